@@ -1,0 +1,43 @@
+"""recoil-jax: differentiable recoil-system models (barrel + impact absorber) in JAX."""
+
+import jax as _jax
+
+# Physics needs float64: contact penetrations are ~1e-3 m against stiffness ~1e8.
+_jax.config.update("jax_enable_x64", True)
+
+from ._model import (  # noqa: E402
+    RECOIL_TERM as RECOIL_TERM,
+    Forces as Forces,
+    characteristic_penetration as characteristic_penetration,
+    contact_width as contact_width,
+    forces as forces,
+    initial_state as initial_state,
+    model_args as model_args,
+    positive_power as positive_power,
+    smooth_relu as smooth_relu,
+    vector_field as vector_field,
+)
+from ._params import (  # noqa: E402
+    PARAMETER_NAMES as PARAMETER_NAMES,
+    Absorber as Absorber,
+    Barrel as Barrel,
+    Contact as Contact,
+    ParameterError as ParameterError,
+    RecoilParams as RecoilParams,
+    Smoothing as Smoothing,
+    SolverOptions as SolverOptions,
+    params_from_values as params_from_values,
+    params_to_values as params_to_values,
+)
+from ._solve import (  # noqa: E402
+    History as History,
+    Peaks as Peaks,
+    SolveError as SolveError,
+    Status as Status,
+    hermite_max as hermite_max,
+    peak_metrics as peak_metrics,
+    peaks as peaks,
+    simulate as simulate,
+)
+
+__version__ = "0.1.0"

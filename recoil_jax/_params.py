@@ -1,0 +1,352 @@
+"""Parameter pytrees: barrel, absorber, contact, smoothing and solver options.
+
+Every physical parameter is a pytree leaf (so `jax.grad`, `jax.jacfwd` and `jax.vmap`
+apply to it); configuration that changes the compiled program (the hard/smoothed mode,
+`max_steps`) is static. Values are validated in `__check_init__` whenever they are
+concrete (Python numbers, NumPy or JAX arrays), i.e. before anything is compiled.
+Tracers (values inside `jit`/`grad`/`vmap`) are not checked: they were checked when the
+concrete inputs were built.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import equinox as eqx
+import jax
+import numpy as np
+
+
+class ParameterError(ValueError):
+    """An invalid parameter value. The message names the parameter, its value and the
+    valid range."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Limits:
+    """Valid and documented ranges of one parameter.
+
+    `lower`/`upper` bound the *valid* domain (values outside raise `ParameterError`);
+    `documented` is the range over which accuracy is tested (see the README).
+    """
+
+    unit: str
+    lower: float
+    upper: float = math.inf
+    lower_open: bool = False  # True: the lower bound itself is invalid (> lower)
+    documented: tuple[float, float] | None = None
+    meaning: str = ""
+
+    def describe(self) -> str:
+        low = f"> {self.lower:g}" if self.lower_open else f">= {self.lower:g}"
+        valid = low if math.isinf(self.upper) else f"{low} and <= {self.upper:g}"
+        unit = f" {self.unit}" if self.unit else ""
+        return f"{valid}{unit}"
+
+
+def _is_concrete(value: Any) -> bool:
+    return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(value))
+
+
+def _check_value(owner: str, name: str, value: Any, limits: Limits) -> None:
+    if value is None or not _is_concrete(value):
+        return
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ParameterError(
+            f"{owner}.{name} = {value!r} is not a number; valid: {limits.describe()}"
+        ) from None
+    flat = array.reshape(-1)
+    bad_finite = ~np.isfinite(flat)
+    if limits.lower_open:
+        bad_range = flat <= limits.lower
+    else:
+        bad_range = flat < limits.lower
+    bad_range |= flat > limits.upper
+    bad = bad_finite | bad_range
+    if not bad.any():
+        return
+    index = int(np.argmax(bad))
+    where = "" if array.ndim == 0 else f"[{np.unravel_index(index, array.shape)}]"
+    bad_value = flat[index]
+    unit = f" {limits.unit}" if limits.unit else ""
+    if bad_finite[index]:
+        reason = "must be finite (NaN and inf are not allowed)"
+    else:
+        reason = "out of range"
+    documented = ""
+    if limits.documented is not None:
+        lo, hi = limits.documented
+        documented = f"; documented range {lo:g} to {hi:g}{unit}"
+    raise ParameterError(
+        f"{owner}.{name}{where} = {bad_value!r}{unit} is invalid ({reason}): "
+        f"valid {name} {limits.describe()}{documented}"
+        + (f" ({limits.meaning})" if limits.meaning else "")
+    )
+
+
+def _as_float_array(value: Any) -> Any:
+    """Leaves become float64 arrays so that `eqx.filter_jit` traces them (it would hold
+    Python floats static and recompile for every new value). Tracers and JAX arrays pass."""
+    if value is None or isinstance(value, jax.Array):
+        return value
+    return np.asarray(value, dtype=np.float64)
+
+
+def _param(default: Any) -> Any:
+    return eqx.field(default=default, converter=_as_float_array)
+
+
+class _Validated(eqx.Module):
+    """Base class: checks every field listed in `LIMITS` when values are concrete."""
+
+    def __check_init__(self):
+        limits = type(self).LIMITS
+        for field in dataclasses.fields(self):
+            if field.name in limits:
+                _check_value(
+                    type(self).__name__,
+                    field.name,
+                    getattr(self, field.name),
+                    limits[field.name],
+                )
+
+
+# Projectile data of the paper (6.86 kg at 564 m/s); v0 = m_p v_p / M = 0.6909 m/s.
+PAPER_PROJECTILE_MASS = 6.86
+PAPER_MUZZLE_VELOCITY = 564.0
+PAPER_BARREL_MASS = 5600.0
+
+
+class Barrel(_Validated):
+    """The recoiling barrel, its recoil spring and its direction-dependent damper.
+
+    Defaults are the paper's values. Units: kg, N/m, N·s/m, m/s.
+
+    - `M`: recoiling mass.
+    - `k`: recoil spring stiffness (barrel to mounting wall P).
+    - `c_out`: recoil damping while the barrel moves rearwards (`v_M > 0`).
+    - `c_ret`: damping on the return stroke (`v_M < 0`).
+    - `v0`: barrel velocity right after the shot; see `Barrel.from_shot`.
+    """
+
+    M: Any = _param(PAPER_BARREL_MASS)
+    k: Any = _param(27500.0)
+    c_out: Any = _param(6239.0)
+    c_ret: Any = _param(14050.0)
+    v0: Any = _param(PAPER_PROJECTILE_MASS * PAPER_MUZZLE_VELOCITY / PAPER_BARREL_MASS)
+
+    LIMITS = {
+        "M": Limits("kg", 0.0, lower_open=True, documented=(1e3, 2e4), meaning="barrel mass"),
+        "k": Limits("N/m", 0.0, lower_open=True, documented=(1e3, 1e6),
+                    meaning="recoil spring stiffness"),
+        "c_out": Limits("N*s/m", 0.0, documented=(0.0, 5e4), meaning="recoil damping, v_M > 0"),
+        "c_ret": Limits("N*s/m", 0.0, documented=(0.0, 5e4), meaning="return damping, v_M < 0"),
+        "v0": Limits("m/s", 0.0, lower_open=True, documented=(0.1, 2.0),
+                     meaning="initial barrel velocity"),
+    }
+
+    @classmethod
+    def from_shot(
+        cls, projectile_mass: Any, muzzle_velocity: Any, M: Any = PAPER_BARREL_MASS, **kwargs
+    ) -> Barrel:
+        """Barrel whose initial velocity comes from momentum conservation at the shot:
+        `v0 = projectile_mass * muzzle_velocity / M` (kg, m/s, kg)."""
+        _check_value("Barrel.from_shot", "projectile_mass", projectile_mass,
+                     Limits("kg", 0.0, lower_open=True))
+        _check_value("Barrel.from_shot", "muzzle_velocity", muzzle_velocity,
+                     Limits("m/s", 0.0, lower_open=True))
+        _check_value("Barrel", "M", M, cls.LIMITS["M"])
+        return cls(M=M, v0=projectile_mass * muzzle_velocity / M, **kwargs)
+
+
+class Absorber(_Validated):
+    """The on-board absorber mass, its coupling to the barrel and its clearance.
+
+    Units: kg, m, N/m, N·s/m. Defaults: the paper's best design (m = 1500 kg, gap = 62 mm)
+    with the paper's coupling (k_r = 13000 N/m, c_r = 3675 N·s/m).
+
+    - `m`: absorber mass.
+    - `gap`: clearance between the absorber and wall A (fixed to the barrel behind it).
+    - `k_r`, `c_r`: spring and damper between absorber and barrel.
+    """
+
+    m: Any = _param(1500.0)
+    gap: Any = _param(0.062)
+    k_r: Any = _param(13000.0)
+    c_r: Any = _param(3675.0)
+
+    LIMITS = {
+        "m": Limits("kg", 0.0, lower_open=True, documented=(10.0, 5000.0),
+                    meaning="absorber mass"),
+        "gap": Limits("m", 0.0, documented=(0.0, 0.2), meaning="clearance to wall A"),
+        "k_r": Limits("N/m", 0.0, lower_open=True, documented=(1e3, 1e5),
+                      meaning="absorber-barrel spring stiffness"),
+        "c_r": Limits("N*s/m", 0.0, documented=(0.0, 2e4), meaning="absorber-barrel damping"),
+    }
+
+
+class Contact(_Validated):
+    """Hunt–Crossley contact between wall A and the absorber.
+
+    `F_ct = max(0, k_c δ^n_c (1 + λ_c δ̇))` for penetration `δ > 0`.
+
+    - `k_c`: contact stiffness, N/m^n_c.
+    - `n_c`: contact exponent (1: linear, 1.5: Hertz), dimensionless, >= 1.
+    - `lambda_c`: Hunt–Crossley damping factor, s/m.
+    """
+
+    k_c: Any = _param(2.1e8)
+    n_c: Any = _param(1.3)
+    lambda_c: Any = _param(0.6)
+
+    LIMITS = {
+        "k_c": Limits("N/m^n_c", 0.0, lower_open=True, documented=(1e6, 1e10),
+                      meaning="contact stiffness"),
+        "n_c": Limits("", 1.0, documented=(1.0, 2.0), meaning="contact exponent"),
+        "lambda_c": Limits("s/m", 0.0, documented=(0.0, 2.0),
+                           meaning="Hunt-Crossley damping factor"),
+    }
+
+
+class RecoilParams(eqx.Module):
+    """All physical parameters of one design. `absorber=None` is the simplified model
+    (barrel, spring and damper only)."""
+
+    barrel: Barrel = Barrel()
+    absorber: Absorber | None = Absorber()
+    contact: Contact = Contact()
+
+
+class Smoothing(_Validated):
+    """Widths, in physical units, over which the model's switches are smoothed.
+
+    Each switch `max(0, x)` is replaced by a C² ramp that equals it exactly for
+    `|x| >= width` (see `smooth_relu`), so the smoothed model differs from the exact one
+    only inside the band.
+
+    - `damping_width` (m/s): the damping switch at `v_M = 0` and the contact's no-pull
+      clamp at `1 + λ_c δ̇ = 0` (in relative velocity).
+    - `contact_width` (m): the contact onset at `δ = 0`. `None` (default) picks
+      `contact_width_fraction` × the characteristic penetration of a head-on impact,
+      `δ* = ((n_c+1) μ v0² / (2 k_c))^(1/(n_c+1))` with `μ = M m / (M + m)`,
+      so the relative smoothing error is the same over the whole range of `k_c`, `n_c`, `m`, `v0`.
+    - `hard=True` (static): the exact model with hard switches, same code path with
+      zero widths (not differentiable at the switches; for reference and checks).
+    """
+
+    damping_width: Any = _param(1e-3)
+    contact_width: Any = _param(None)
+    contact_width_fraction: Any = _param(0.02)
+    hard: bool = eqx.field(default=False, static=True)
+
+    LIMITS = {
+        "damping_width": Limits("m/s", 0.0, lower_open=True, documented=(1e-4, 1e-1),
+                                meaning="damping and clamp smoothing width"),
+        "contact_width": Limits("m", 0.0, lower_open=True, documented=(1e-6, 1e-3),
+                                meaning="contact onset smoothing width"),
+        "contact_width_fraction": Limits("", 0.0, lower_open=True, upper=1.0,
+                                         meaning="contact width / characteristic penetration"),
+    }
+
+    @classmethod
+    def exact(cls) -> Smoothing:
+        """The hard-switch model."""
+        return cls(hard=True)
+
+
+class SolverOptions(_Validated):
+    """Time span and adaptive-step settings (Tsit5 with a PID controller).
+
+    - `t1` (s): end of the simulation.
+    - `rtol`, `atol`: tolerances of the step-size controller (atol in SI units of the
+      state: m and m/s).
+    - `max_steps` (static): bound on solver steps (accepted + rejected); reaching it is
+      reported as a failure, never a truncated result.
+    """
+
+    t1: Any = _param(10.0)
+    rtol: Any = _param(1e-6)
+    atol: Any = _param(1e-9)
+    max_steps: int = eqx.field(default=8192, static=True)
+
+    LIMITS = {
+        "t1": Limits("s", 0.0, lower_open=True, documented=(0.1, 60.0), meaning="end time"),
+        "rtol": Limits("", 0.0, lower_open=True, upper=1.0, meaning="relative tolerance"),
+        "atol": Limits("", 0.0, lower_open=True, meaning="absolute tolerance"),
+    }
+
+    def __check_init__(self):
+        super().__check_init__()
+        if not isinstance(self.max_steps, int) or self.max_steps < 1:
+            raise ParameterError(
+                f"SolverOptions.max_steps = {self.max_steps!r} is invalid: valid max_steps is "
+                "an integer >= 1"
+            )
+
+
+#: Flat parameter names, as used by the command line and sweeps, and where they live.
+PARAMETER_NAMES: dict[str, tuple[str, str]] = {
+    "M": ("barrel", "M"),
+    "k": ("barrel", "k"),
+    "c_out": ("barrel", "c_out"),
+    "c_ret": ("barrel", "c_ret"),
+    "v0": ("barrel", "v0"),
+    "m": ("absorber", "m"),
+    "gap": ("absorber", "gap"),
+    "k_r": ("absorber", "k_r"),
+    "c_r": ("absorber", "c_r"),
+    "k_c": ("contact", "k_c"),
+    "n_c": ("contact", "n_c"),
+    "lambda_c": ("contact", "lambda_c"),
+}
+_GROUPS = {"barrel": Barrel, "absorber": Absorber, "contact": Contact}
+
+
+def params_from_values(values: dict[str, Any] | None = None, **kwargs: Any) -> RecoilParams:
+    """Build `RecoilParams` from flat names (`M k c_out c_ret v0 m gap k_r c_r k_c n_c
+    lambda_c`); missing names take the defaults. `m = 0` gives the simplified model."""
+    values = {**(values or {}), **kwargs}
+    unknown = sorted(set(values) - set(PARAMETER_NAMES))
+    if unknown:
+        raise ParameterError(
+            f"unknown parameter(s) {', '.join(unknown)}; known: {', '.join(PARAMETER_NAMES)}"
+        )
+    grouped: dict[str, dict[str, Any]] = {g: {} for g in _GROUPS}
+    for name, value in values.items():
+        group, field = PARAMETER_NAMES[name]
+        grouped[group][field] = value
+    m = grouped["absorber"].get("m", None)
+    simplified = m is not None and _is_concrete(m) and np.all(np.asarray(m) == 0)
+    if simplified:
+        extra = sorted(set(grouped["absorber"]) - {"m"})
+        if extra:
+            raise ParameterError(
+                f"m = 0 selects the simplified model (no absorber), so {', '.join(extra)} "
+                "cannot be set; give m > 0 to use them"
+            )
+        absorber = None
+    else:
+        absorber = Absorber(**grouped["absorber"])
+    return RecoilParams(
+        barrel=Barrel(**grouped["barrel"]),
+        absorber=absorber,
+        contact=Contact(**grouped["contact"]),
+    )
+
+
+def params_to_values(params: RecoilParams) -> dict[str, Any]:
+    """Inverse of `params_from_values`: the flat name → value mapping (m = 0 for the
+    simplified model)."""
+    out: dict[str, Any] = {}
+    for name, (group, field) in PARAMETER_NAMES.items():
+        module = getattr(params, group)
+        if module is None:
+            if name == "m":
+                out[name] = 0.0
+            continue
+        out[name] = getattr(module, field)
+    return out
