@@ -82,7 +82,7 @@ def _check_value(owner: str, name: str, value: Any, limits: Limits) -> None:
         lo, hi = limits.documented
         documented = f"; documented range {lo:g} to {hi:g}{unit}"
     raise ParameterError(
-        f"{owner}.{name}{where} = {bad_value!r}{unit} is invalid ({reason}): "
+        f"{owner}.{name}{where} = {bad_value:g}{unit} is invalid ({reason}): "
         f"valid {name} {limits.describe()}{documented}"
         + (f" ({limits.meaning})" if limits.meaning else "")
     )

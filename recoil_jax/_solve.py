@@ -65,13 +65,37 @@ class Peaks(eqx.Module):
     num_attempts: jax.Array
     status: jax.Array
 
+    def to_dict(self) -> dict:
+        """JSON-ready dict of one (unbatched) solve; the keys of `recoil-jax simulate
+        --json`."""
+        return {
+            key: (int if key in _INT_KEYS else float)(getattr(self, field))
+            for key, field in PEAK_KEYS.items()
+        } | {"status": Status.message(int(self.status))}
+
+
+#: `simulate --json` key -> `Peaks` field.
+PEAK_KEYS = {
+    "peak_displacement_m": "peak_displacement",
+    "peak_displacement_time_s": "peak_displacement_time",
+    "peak_anchoring_force_N": "peak_anchoring_force",
+    "peak_anchoring_force_time_s": "peak_anchoring_force_time",
+    "peak_contact_force_N": "peak_contact_force",
+    "peak_contact_force_time_s": "peak_contact_force_time",
+    "min_stroke_m": "min_stroke",
+    "max_stroke_m": "max_stroke",
+    "num_steps": "num_steps",
+}
+_INT_KEYS = {"num_steps"}
+
 
 def _metrics(y, args):
     """The quantities whose running maxima are tracked: x_M, F_AN, F_ct, x_m − x_M and
     its negative (so that its minimum is a maximum too)."""
     params, smoothing, width_contact = args
     f = forces(y, params, smoothing, width_contact)
-    stroke = y[2] - y[0]
+    # The simplified model has no absorber, hence no stroke.
+    stroke = jnp.zeros_like(y[0]) if params.absorber is None else y[2] - y[0]
     return jnp.stack([y[0], f.anchoring, f.contact, stroke, -stroke])
 
 

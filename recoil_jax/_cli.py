@@ -1,0 +1,120 @@
+"""The `recoil-jax` command line."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from ._params import PARAMETER_NAMES, ParameterError, Smoothing, SolverOptions, params_from_values
+from ._solve import SolveError
+
+_NAMES = list(PARAMETER_NAMES) + ["t1"]
+
+
+def _parse_assignments(items: list[str]) -> dict[str, float]:
+    values: dict[str, float] = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        if not sep:
+            raise ParameterError(f"expected name=value, got {item!r}; names: {' '.join(_NAMES)}")
+        if name not in _NAMES:
+            raise ParameterError(f"unknown parameter {name!r}; names: {' '.join(_NAMES)}")
+        try:
+            values[name] = float(text)
+        except ValueError:
+            raise ParameterError(f"{name} = {text!r} is not a number") from None
+    return values
+
+
+def _simulate(args) -> int:
+    import numpy as np
+
+    from ._params import params_to_values
+    from ._solve import peaks, simulate
+
+    values = _parse_assignments(args.assignments)
+    options = SolverOptions(**({"t1": values.pop("t1")} if "t1" in values else {}))
+    params = params_from_values(values)
+    smoothing = Smoothing.exact() if args.hard else Smoothing()
+    result = peaks(params, smoothing, options).to_dict()
+    used = {k: float(np.asarray(v)) for k, v in params_to_values(params).items()}
+    used["t1"] = float(options.t1)
+    if args.json:
+        print(json.dumps(result | {"model": "hard" if args.hard else "smoothed",
+                                   "parameters": used}))
+    else:
+        model = "simplified (no absorber)" if params.absorber is None else "with absorber"
+        print(f"recoil-jax: {model}, {'hard' if args.hard else 'smoothed'} switches")
+        print("  parameters: " + ", ".join(f"{k}={v:g}" for k, v in used.items()))
+        rows = [
+            ("peak barrel displacement", f"{result['peak_displacement_m']:.6f} m",
+             f"at {result['peak_displacement_time_s']:.4f} s"),
+            ("peak anchoring force", f"{result['peak_anchoring_force_N']:.2f} N",
+             f"at {result['peak_anchoring_force_time_s']:.4f} s"),
+            ("peak contact force", f"{result['peak_contact_force_N']:.2f} N",
+             f"at {result['peak_contact_force_time_s']:.4f} s"),
+            ("absorber stroke x_m - x_M", f"{result['min_stroke_m']:+.4f} .. "
+             f"{result['max_stroke_m']:+.4f} m", ""),
+            ("solver steps", f"{result['num_steps']}", ""),
+        ]
+        for name, value, when in rows:
+            print(f"  {name:28s} {value:>22s}  {when}")
+    if args.plot:
+        from ._plot import plot_history
+
+        history = simulate(params, smoothing, options, ts=np.linspace(0.0, options.t1, 20001))
+        path = plot_history(history, args.plot, title=", ".join(
+            f"{k}={v:g}" for k, v in used.items() if k in ("m", "gap", "k_r", "c_r")))
+        print(f"wrote {path}", file=sys.stderr)
+    return 0
+
+
+def _reproduce(args) -> int:
+    from ._reproduce import format_table, reproduce
+
+    rows = reproduce(args.out)
+    print(format_table(rows))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="recoil-jax",
+        description="Differentiable recoil-system models: gun barrel with an impact absorber.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    sim = sub.add_parser(
+        "simulate", help="simulate one design and print its peaks",
+        description="Simulate one design. Parameters as name=value (SI units): "
+        + " ".join(_NAMES) + ". m=0 gives the simplified model (no absorber).",
+    )
+    sim.add_argument("assignments", nargs="*", metavar="name=value")
+    sim.add_argument("--hard", action="store_true", help="exact model with hard switches")
+    sim.add_argument("--json", action="store_true", help="print one JSON object")
+    sim.add_argument("--plot", metavar="FILE.png", help="plot x_M, x_m, F_AN, F_ct vs time")
+    sim.set_defaults(func=_simulate)
+    rep = sub.add_parser(
+        "reproduce", help="the paper's numbers beside ours, and its figures",
+        description="Compare with the paper's Table 2 and text and the hard-switch "
+        "reference; write reproduce.csv and Fig. 4, 7, 8, 9 as PNG.",
+    )
+    rep.add_argument("--out", default="results/reproduce", help="output folder")
+    rep.set_defaults(func=_reproduce)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except ParameterError as error:
+        print(f"recoil-jax: error: {error}", file=sys.stderr)
+        return 2
+    except SolveError as error:
+        print(f"recoil-jax: solver failed: {error}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

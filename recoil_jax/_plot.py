@@ -1,0 +1,63 @@
+"""Figures (matplotlib, Agg backend: works without a display)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from ._solve import History  # noqa: E402
+
+
+def plot_history(history: History, path, title: str = "") -> Path:
+    """Time histories of x_M and x_m, F_AN and F_ct, stacked; saved as PNG at `path`."""
+    ts = np.asarray(history.ts)
+    fig, axes = plt.subplots(3, 1, figsize=(8, 8), sharex=True)
+    axes[0].plot(ts, 1e3 * np.asarray(history.x_M), label="barrel $x_M$")
+    axes[0].plot(ts, 1e3 * np.asarray(history.x_m), label="absorber $x_m$")
+    axes[0].set_ylabel("displacement (mm)")
+    axes[0].legend(loc="upper right")
+    axes[1].plot(ts, 1e-3 * np.asarray(history.anchoring_force), color="C2")
+    axes[1].set_ylabel("anchoring force $F_{AN}$ (kN)")
+    axes[2].plot(ts, 1e-3 * np.asarray(history.contact_force), color="C3")
+    axes[2].set_ylabel("contact force $F_{ct}$ (kN)")
+    axes[2].set_xlabel("time (s)")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_series(series, path, *, xlabel: str, ylabel: str, title: str = "",
+                xscale: float = 1.0, yscale: float = 1.0, mark=None) -> Path:
+    """Line plot of labelled `(x, y)` series; `mark` = `(x, y, text)` annotates a point."""
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for label, (x, y) in series.items():
+        ax.plot(xscale * np.asarray(x), yscale * np.asarray(y), label=label)
+    if mark is not None:
+        x, y, text = mark
+        ax.plot([xscale * x], [yscale * y], "ko")
+        ax.annotate(text, (xscale * x, yscale * y), textcoords="offset points", xytext=(8, 6))
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if len(series) > 1:
+        ax.legend()
+    ax.grid(alpha=0.3)
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def _save(fig, path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
