@@ -266,12 +266,16 @@ class SolverOptions(_Validated):
       state: m and m/s).
     - `max_steps` (static): bound on solver steps (accepted + rejected); reaching it is
       reported as a failure, never a truncated result.
+    - `autodiff` (static): `"forward"` (default) runs the stepping loop as a
+      `lax.while_loop`: fastest, supports `jax.jvp`/`jax.jacfwd`. `"reverse"` runs it as a
+      checkpointed loop that supports `jax.grad`/`jax.vjp` (not forward mode).
     """
 
     t1: Any = _param(10.0)
     rtol: Any = _param(1e-6)
     atol: Any = _param(1e-9)
     max_steps: int = eqx.field(default=8192, static=True)
+    autodiff: str = eqx.field(default="forward", static=True)
 
     LIMITS = {
         "t1": Limits("s", 0.0, lower_open=True, documented=(0.1, 60.0), meaning="end time"),
@@ -285,6 +289,11 @@ class SolverOptions(_Validated):
             raise ParameterError(
                 f"SolverOptions.max_steps = {self.max_steps!r} is invalid: valid max_steps is "
                 "an integer >= 1"
+            )
+        if self.autodiff not in ("forward", "reverse"):
+            raise ParameterError(
+                f"SolverOptions.autodiff = {self.autodiff!r} is invalid: valid autodiff is "
+                "'forward' or 'reverse'"
             )
 
 

@@ -155,20 +155,22 @@ class _Carry(eqx.Module):
     status: jax.Array
 
 
-def _solver():
-    # scan_kind="lax": forward-mode autodiff through the stepping loop needs it.
-    return diffrax.Tsit5(scan_kind="lax")
+def _solver(options: SolverOptions):
+    # Forward-mode autodiff through the stepping loop needs the stages as a lax.scan;
+    # reverse mode needs diffrax's default (checkpointed) stage loop.
+    return diffrax.Tsit5(scan_kind="lax" if options.autodiff == "forward" else None)
 
 
 def _controller(options: SolverOptions):
     return diffrax.PIDController(
-        rtol=options.rtol, atol=options.atol, pcoeff=_PCOEFF, icoeff=_ICOEFF
+        rtol=jnp.asarray(options.rtol), atol=jnp.asarray(options.atol),
+        pcoeff=_PCOEFF, icoeff=_ICOEFF,
     )
 
 
 def _peaks(params: RecoilParams, smoothing: Smoothing, options: SolverOptions) -> Peaks:
     args = model_args(params, smoothing)
-    term, solver, controller = RECOIL_TERM, _solver(), _controller(options)
+    term, solver, controller = RECOIL_TERM, _solver(options), _controller(options)
     t0 = jnp.zeros((), dtype=float)
     t1 = jnp.asarray(options.t1, dtype=float)
     y0 = initial_state(params)
@@ -245,7 +247,8 @@ def _peaks(params: RecoilParams, smoothing: Smoothing, options: SolverOptions) -
             status=status,
         )
 
-    final = eqxi.while_loop(cond, body, init, max_steps=options.max_steps, kind="lax")
+    kind = "lax" if options.autodiff == "forward" else "checkpointed"
+    final = eqxi.while_loop(cond, body, init, max_steps=options.max_steps, kind=kind)
     status = jnp.where(
         (final.status == Status.OK) & (final.t < t1), Status.MAX_STEPS, final.status
     )
@@ -321,7 +324,7 @@ def _simulate(params, smoothing, options, ts) -> History:
     args = model_args(params, smoothing)
     solution = diffrax.diffeqsolve(
         RECOIL_TERM,
-        _solver(),
+        _solver(options),
         t0=0.0,
         t1=options.t1,
         dt0=None,
