@@ -34,6 +34,7 @@ from ._solve import (  # noqa: E402
     Peaks as Peaks,
     SolveError as SolveError,
     Status as Status,
+    PEAK_KEYS as PEAK_KEYS,
     hermite_max as hermite_max,
     peak_metrics as peak_metrics,
     peaks as peaks,

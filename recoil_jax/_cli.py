@@ -105,7 +105,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    # name=value items may come after the flags (`simulate m=500 --hard t1=2`).
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        if args.command != "simulate" or any(item.startswith("-") for item in extra):
+            parser.error(f"unrecognized arguments: {' '.join(extra)}")
+        args.assignments = list(args.assignments) + extra
     try:
         return args.func(args)
     except ParameterError as error:

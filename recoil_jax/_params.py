@@ -70,7 +70,9 @@ def _check_value(owner: str, name: str, value: Any, limits: Limits) -> None:
     if not bad.any():
         return
     index = int(np.argmax(bad))
-    where = "" if array.ndim == 0 else f"[{np.unravel_index(index, array.shape)}]"
+    where = ""
+    if array.ndim:
+        where = "[" + ", ".join(str(int(i)) for i in np.unravel_index(index, array.shape)) + "]"
     bad_value = flat[index]
     unit = f" {limits.unit}" if limits.unit else ""
     if bad_finite[index]:
@@ -93,7 +95,10 @@ def _as_float_array(value: Any) -> Any:
     Python floats static and recompile for every new value). Tracers and JAX arrays pass."""
     if value is None or isinstance(value, jax.Array):
         return value
-    return np.asarray(value, dtype=np.float64)
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return value  # left for __check_init__ to report with the parameter's name
 
 
 def _param(default: Any) -> Any:

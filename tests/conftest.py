@@ -1,0 +1,45 @@
+import json
+from pathlib import Path
+
+import pytest
+
+import recoil_jax  # noqa: F401  (enables float64 before any test builds arrays)
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+
+
+@pytest.fixture(scope="session")
+def reference_cases():
+    """The paper's numbers and the independent hard-switch reference
+    (`../shared/reference/paper_cases.json`, beside the checkout)."""
+    path = SHARED / "reference" / "paper_cases.json"
+    if not path.exists():
+        pytest.skip(f"{path} not found (CI has ../shared beside the checkout)")
+    return json.loads(path.read_text())["cases"]
+
+
+def batch_params(designs):
+    """Stack a list of flat-name dicts (all with an absorber) into one `RecoilParams`
+    whose leaves have a leading batch axis, for `jax.vmap`."""
+    import numpy as np
+
+    import recoil_jax as rj
+
+    names = sorted({name for d in designs for name in d})
+    defaults = {k: float(v) for k, v in rj.params_to_values(rj.RecoilParams()).items()}
+    columns = {n: np.array([d.get(n, defaults[n]) for d in designs], dtype=float)
+               for n in set(names) | set(defaults)}
+    return rj.params_from_values(columns)
+
+
+def batch_peaks(designs, smoothing=None, options=None):
+    """`peak_metrics` over a list of designs in one vmapped, jitted call."""
+    import equinox as eqx
+    import jax
+
+    import recoil_jax as rj
+
+    smoothing = smoothing if smoothing is not None else rj.Smoothing()
+    options = options if options is not None else rj.SolverOptions()
+    run = eqx.filter_jit(jax.vmap(rj.peak_metrics, in_axes=(0, None, None)))
+    return run(batch_params(designs), smoothing, options)

@@ -1,0 +1,86 @@
+"""The `recoil-jax` command line."""
+
+import csv
+import json
+import shutil
+import subprocess
+
+import pytest
+
+import recoil_jax as rj
+from recoil_jax._cli import main
+
+REQUIRED_KEYS = {"peak_displacement_m", "peak_displacement_time_s", "peak_anchoring_force_N",
+                 "peak_anchoring_force_time_s", "peak_contact_force_N"}
+
+
+def _run_json(capsys, *argv):
+    assert main(["simulate", *argv, "--json"]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_simulate_json_matches_python_api(capsys):
+    out = _run_json(capsys, "m=1000", "gap=0.059")
+    assert REQUIRED_KEYS <= set(out)
+    expected = rj.peaks(rj.params_from_values(m=1000.0, gap=0.059)).to_dict()
+    for key in REQUIRED_KEYS:
+        assert out[key] == pytest.approx(expected[key], rel=1e-12)
+    assert out["peak_anchoring_force_N"] == pytest.approx(6017.82, rel=1e-4)  # Table 2
+    assert out["parameters"]["gap"] == 0.059 and out["model"] == "smoothed"
+
+
+def test_simulate_simplified_and_hard(capsys):
+    out = _run_json(capsys, "m=0")
+    assert out["peak_displacement_m"] == pytest.approx(0.221477, rel=1e-5)
+    assert out["peak_contact_force_N"] == 0.0
+    hard = _run_json(capsys, "m=500", "gap=0", "--hard", "t1=2")
+    assert hard["model"] == "hard" and hard["parameters"]["t1"] == 2.0
+    assert hard["peak_anchoring_force_N"] == pytest.approx(6661.40, rel=1e-5)
+
+
+def test_simulate_table_and_plot(capsys, tmp_path):
+    plot = tmp_path / "history.png"
+    assert main(["simulate", "m=1500", "gap=0.062", "--plot", str(plot)]) == 0
+    out = capsys.readouterr().out
+    assert "peak anchoring force" in out and "5514" in out
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["gap=-1"], "Absorber.gap = -1 m is invalid"),
+    (["t1=0"], "SolverOptions.t1 = 0 s is invalid"),
+    (["n_c=0.5"], "valid n_c >= 1"),
+    (["M=nan"], "must be finite"),
+    (["mass=3"], "unknown parameter 'mass'"),
+    (["gap"], "expected name=value"),
+    (["gap=wide"], "gap = 'wide' is not a number"),
+])
+def test_simulate_bad_input(capsys, argv, fragment):
+    assert main(["simulate", *argv]) == 2
+    err = capsys.readouterr().err
+    assert fragment in err and err.startswith("recoil-jax: error:")
+
+
+def test_reproduce_writes_table_and_figures(capsys, tmp_path):
+    assert main(["reproduce", "--out", str(tmp_path)]) == 0
+    printed = capsys.readouterr().out
+    assert "table2 m=1500 gap=62mm" in printed and "vs paper" in printed
+    with open(tmp_path / "reproduce.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 9 * 5
+    table2 = [r for r in rows if r["quantity"] == "peak_anchoring_force_N" and r["paper"]]
+    assert len(table2) == 9
+    assert all(abs(float(r["ours_vs_paper"])) < 0.01 for r in table2)
+    for name in ("fig4_simplified_displacement", "fig7_contact_force_gap0",
+                 "fig8_contact_force_gap0_first_impact", "fig9_anchoring_force"):
+        assert (tmp_path / f"{name}.png").read_bytes()[:4] == b"\x89PNG"
+
+
+@pytest.mark.skipif(shutil.which("recoil-jax") is None, reason="console script not installed")
+def test_console_script():
+    done = subprocess.run(["recoil-jax", "simulate", "m=0", "--json"], capture_output=True,
+                          text=True, check=True)
+    assert json.loads(done.stdout)["peak_anchoring_force_N"] == pytest.approx(6949.98,
+                                                                              rel=1e-5)
+    bad = subprocess.run(["recoil-jax", "simulate", "k_c=-1"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "Contact.k_c" in bad.stderr

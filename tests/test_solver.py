@@ -1,0 +1,161 @@
+"""The solver machinery: peak location between steps, failure reporting, and the
+transformations (jit, vmap, jacfwd, grad) the API promises."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import batch_params, batch_peaks
+
+import recoil_jax as rj
+
+
+def test_hermite_max_matches_brute_force():
+    rng = np.random.default_rng(0)
+    p0, d0, p1, d1 = (jnp.asarray(rng.normal(size=500)) for _ in range(4))
+    value, s = rj.hermite_max(p0, d0, p1, d1)
+    grid = np.linspace(0.0, 1.0, 200001)[:, None]
+    h00, h10 = 2 * grid**3 - 3 * grid**2 + 1, grid**3 - 2 * grid**2 + grid
+    h01, h11 = -2 * grid**3 + 3 * grid**2, grid**3 - grid**2
+    brute = h00 * p0 + h10 * d0 + h01 * p1 + h11 * d1
+    np.testing.assert_allclose(value, brute.max(axis=0), atol=1e-9)
+    np.testing.assert_allclose(s, grid[brute.argmax(axis=0), 0], atol=1e-4)
+    # Degenerate cubics (flat, linear, quadratic) give finite values and gradients.
+    degenerate = [jnp.zeros(3), jnp.array([0.0, 1.0, 1.0]), jnp.array([1.0, 0.0, 0.0]),
+                  jnp.array([1.0, 0.0, 1.0])]
+    assert np.isfinite(rj.hermite_max(*degenerate)[0]).all()
+    grads = jax.grad(lambda a: rj.hermite_max(a, a, a, a)[0].sum())(jnp.zeros(3))
+    assert np.isfinite(grads).all()
+
+
+def test_tsit5_last_stage_is_the_end_derivative():
+    """The peak loop takes f(y1) from Tsit5's FSAL stage: guard that assumption."""
+    params, smoothing = rj.params_from_values(m=500.0, gap=0.0), rj.Smoothing()
+    args = rj.model_args(params, smoothing)
+    solver = diffrax.Tsit5(scan_kind="lax")
+    y0 = rj.initial_state(params)
+    dt = 1e-3
+    state = solver.init(rj.RECOIL_TERM, 0.0, dt, y0, args)
+    y1, _, dense, _, _ = solver.step(rj.RECOIL_TERM, 0.0, dt, y0, args, state, False)
+    np.testing.assert_allclose(dense["k"][-1] / dt, rj.vector_field(dt, y1, args), rtol=1e-12)
+
+
+@pytest.mark.parametrize("design", [dict(m=0.0), dict(m=500.0, gap=0.0),
+                                    dict(m=1500.0, gap=0.062)])
+def test_peaks_agree_with_dense_history(design):
+    """Peaks lie between steps: no point of a fine history exceeds them, and the fine
+    history comes within its own resolution of them."""
+    params = rj.params_from_values(design)
+    result = rj.peaks(params)
+    history = rj.simulate(params, ts=jnp.linspace(0.0, 1.0, 100001))
+    for peak, series in [(result.peak_displacement, history.x_M),
+                         (result.peak_anchoring_force, history.anchoring_force),
+                         (result.peak_contact_force, history.contact_force)]:
+        sampled = float(jnp.max(series))
+        assert sampled <= float(peak) * (1 + 1e-6) + 1e-9
+        assert sampled >= float(peak) * (1 - 1e-4) - 1e-9
+    if params.absorber is not None:
+        stroke = history.x_m - history.x_M
+        assert float(jnp.max(stroke)) == pytest.approx(float(result.max_stroke), rel=1e-4)
+        assert float(jnp.min(stroke)) == pytest.approx(float(result.min_stroke), rel=1e-4,
+                                                       abs=1e-7)
+
+
+def test_failed_solve_is_reported_not_truncated():
+    params = rj.params_from_values(m=500.0, gap=0.0)
+    options = rj.SolverOptions(max_steps=50)
+    result = rj.peaks(params, options=options, throw=False)
+    assert int(result.status) == rj.Status.MAX_STEPS
+    with pytest.raises(rj.SolveError, match="max_steps reached before t1"):
+        rj.peaks(params, options=options)
+    with pytest.raises(rj.SolveError, match="max_steps"):
+        rj.simulate(params, options=options)
+    # In a batch, each point carries its own status.
+    batch = batch_peaks([dict(m=500.0, gap=0.0), dict(m=500.0, gap=0.15)],
+                        options=rj.SolverOptions(max_steps=300))
+    assert list(np.asarray(batch.status)) == [rj.Status.MAX_STEPS, rj.Status.OK]
+
+
+def test_outputs_are_finite():
+    for design in (dict(m=0.0), dict(m=10.0, gap=0.0, n_c=1.0, lambda_c=0.0),
+                   dict(m=5000.0, gap=0.2, k_c=1e10, n_c=2.0, lambda_c=2.0, v0=2.0)):
+        result = rj.peaks(rj.params_from_values(design))
+        assert all(np.isfinite(np.asarray(leaf)).all() for leaf in jax.tree.leaves(result))
+        history = rj.simulate(rj.params_from_values(design))
+        assert all(np.isfinite(np.asarray(leaf)).all() for leaf in jax.tree.leaves(history))
+
+
+def test_batched_equals_loop():
+    """vmap changes nothing but roundoff. XLA's batched and scalar transcendental
+    functions can differ in the last bit, which may tip one accept/reject decision and so
+    move a result by about the solver tolerance; at rtol 1e-10 that is far below 1e-8."""
+    designs = [dict(m=100.0, gap=0.0), dict(m=800.0, gap=0.03, k_r=5e4),
+               dict(m=1500.0, gap=0.062), dict(m=2500.0, gap=0.12, c_r=0.0)]
+    options = rj.SolverOptions(rtol=1e-10, atol=1e-13, max_steps=50_000)
+    batch = batch_peaks(designs, options=options)
+    for i, design in enumerate(designs):
+        single = rj.peaks(rj.params_from_values(design), options=options)
+        for field in rj.PEAK_KEYS.values():
+            if field.startswith("num_"):
+                continue
+            rel = 1e-6 if field.endswith("time") else 1e-8  # a flat maximum's time: looser
+            assert float(getattr(batch, field)[i]) == pytest.approx(
+                float(getattr(single, field)), rel=rel, abs=1e-10), field
+
+
+def _peak_vector(x, autodiff="forward", rtol=1e-6):
+    gap, m, k_r, c_r = x
+    params = rj.RecoilParams(absorber=rj.Absorber(m=m, gap=gap, k_r=k_r, c_r=c_r))
+    options = rj.SolverOptions(rtol=rtol, atol=rtol * 1e-3, autodiff=autodiff,
+                               max_steps=100_000)
+    r = rj.peak_metrics(params, rj.Smoothing(), options)
+    return jnp.stack([r.peak_displacement, r.peak_anchoring_force])
+
+
+def test_forward_and_reverse_mode_agree_with_finite_differences():
+    """jacfwd (default loop) and grad/jacrev (checkpointed loop) give the same Jacobian,
+    and it matches central differences (gap, m, k_r, c_r at the paper's best design)."""
+    x = jnp.array([0.062, 1500.0, 13000.0, 3675.0])
+    forward = jax.jit(jax.jacfwd(lambda x: _peak_vector(x, "forward", 1e-8)))(x)
+    reverse = jax.jit(jax.jacrev(lambda x: _peak_vector(x, "reverse", 1e-8)))(x)
+    np.testing.assert_allclose(forward, reverse, rtol=1e-9, atol=1e-12)
+    tight = jax.jit(lambda x: _peak_vector(x, "forward", 1e-11))
+    ranges = np.array([0.2, 5000.0, 1e5, 2e4])  # documented range widths
+    steps = 1e-5 * ranges
+    for j in range(4):
+        e = jnp.zeros(4).at[j].set(steps[j])
+        fd = (tight(x + e) - tight(x - e)) / (2 * steps[j])
+        value = tight(x)
+        scaled = np.abs(forward[:, j] - fd) * ranges[j] / np.abs(value)
+        assert np.all(scaled <= 1e-3), (j, forward[:, j], fd)
+
+
+def test_jit_compiles_once_for_new_values():
+    """Parameter values are traced, not static: new values reuse the compilation."""
+    run = eqx.filter_jit(rj.peak_metrics)
+    before = run._cached._cache_size() if hasattr(run, "_cached") else None
+    traces = []
+    original = rj.peak_metrics
+
+    def counting(params, smoothing, options):
+        traces.append(1)
+        return original(params, smoothing, options)
+
+    run = eqx.filter_jit(counting)
+    for gap in (0.0, 0.03, 0.062):
+        run(rj.params_from_values(m=800.0, gap=gap), rj.Smoothing(), rj.SolverOptions())
+    assert len(traces) == 1
+    del before
+
+
+def test_vmap_over_smoothing_and_tolerance_leaves():
+    """Widths and tolerances are leaves too (traced, vmappable)."""
+    params = batch_params([dict(m=500.0, gap=0.0)] * 2)
+    smoothing = rj.Smoothing(damping_width=jnp.array([1e-3, 1e-3]),
+                             contact_width_fraction=jnp.array([0.02, 0.01]))
+    run = eqx.filter_jit(jax.vmap(rj.peak_metrics, in_axes=(0, 0, None)))
+    result = run(params, smoothing, rj.SolverOptions())
+    assert np.all(np.asarray(result.status) == 0)
+    assert float(result.peak_contact_force[0]) != float(result.peak_contact_force[1])
