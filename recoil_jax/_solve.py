@@ -219,7 +219,11 @@ def _controller(options: SolverOptions):
     )
 
 
-def _peaks(params: RecoilParams, smoothing: Smoothing, options: SolverOptions) -> Peaks:
+def _peaks(
+    params: RecoilParams = RecoilParams(),
+    smoothing: Smoothing = Smoothing(),
+    options: SolverOptions = SolverOptions(),
+) -> Peaks:
     args = model_args(params, smoothing)
     term, solver, controller = RECOIL_TERM, _solver(options), _controller(options)
     t0 = jnp.zeros((), dtype=float)
@@ -347,10 +351,13 @@ def peaks(
     *,
     throw: bool = True,
 ) -> Peaks:
-    """Peak metrics of one design (see `Peaks`). A pure, jittable function of its inputs:
-    `jax.vmap`, `jax.jacfwd` and `jax.jvp` apply to `_peaks`-compatible calls through
-    `peak_metrics` (the unjitted core) — this wrapper jits and, with `throw=True`, raises
-    `SolveError` when a solve fails instead of returning untrustworthy numbers.
+    """Peak metrics of one design (see `Peaks`), jitted. With `throw=True` a failed solve
+    raises `SolveError` instead of returning numbers that cannot be trusted.
+
+    For transformations use `peak_metrics`, the same computation unjitted and without the
+    check: `jax.vmap`, `jax.jacfwd`/`jax.jvp` (default `autodiff="forward"`) and
+    `jax.grad`/`jax.vjp` (`SolverOptions(autodiff="reverse")`) apply to it, and each result
+    carries its `status`.
     """
     result = _peaks_jit(params, smoothing, options)
     if throw:

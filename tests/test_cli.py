@@ -4,6 +4,8 @@ import csv
 import json
 import shutil
 import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -76,11 +78,17 @@ def test_reproduce_writes_table_and_figures(capsys, tmp_path):
         assert (tmp_path / f"{name}.png").read_bytes()[:4] == b"\x89PNG"
 
 
-@pytest.mark.skipif(shutil.which("recoil-jax") is None, reason="console script not installed")
+def _console_script():
+    beside_python = Path(sys.executable).parent / "recoil-jax"
+    return str(beside_python) if beside_python.exists() else shutil.which("recoil-jax")
+
+
+@pytest.mark.skipif(_console_script() is None, reason="console script not installed")
 def test_console_script():
-    done = subprocess.run(["recoil-jax", "simulate", "m=0", "--json"], capture_output=True,
+    script = _console_script()
+    done = subprocess.run([script, "simulate", "m=0", "--json"], capture_output=True,
                           text=True, check=True)
     assert json.loads(done.stdout)["peak_anchoring_force_N"] == pytest.approx(6949.98,
                                                                               rel=1e-5)
-    bad = subprocess.run(["recoil-jax", "simulate", "k_c=-1"], capture_output=True, text=True)
+    bad = subprocess.run([script, "simulate", "k_c=-1"], capture_output=True, text=True)
     assert bad.returncode == 2 and "Contact.k_c" in bad.stderr

@@ -16,12 +16,14 @@ def test_hermite_max_matches_brute_force():
     rng = np.random.default_rng(0)
     p0, d0, p1, d1 = (jnp.asarray(rng.normal(size=500)) for _ in range(4))
     value, s = rj.hermite_max(p0, d0, p1, d1)
-    grid = np.linspace(0.0, 1.0, 200001)[:, None]
+    grid = np.linspace(0.0, 1.0, 20001)[:, None]
     h00, h10 = 2 * grid**3 - 3 * grid**2 + 1, grid**3 - 2 * grid**2 + grid
     h01, h11 = -2 * grid**3 + 3 * grid**2, grid**3 - grid**2
     brute = h00 * p0 + h10 * d0 + h01 * p1 + h11 * d1
-    np.testing.assert_allclose(value, brute.max(axis=0), atol=1e-9)
-    np.testing.assert_allclose(s, grid[brute.argmax(axis=0), 0], atol=1e-4)
+    # The grid's spacing (5e-5) bounds how far below the true maximum it can fall.
+    assert np.all(value >= brute.max(axis=0) - 1e-12)
+    np.testing.assert_allclose(value, brute.max(axis=0), atol=1e-7)
+    np.testing.assert_allclose(s, grid[brute.argmax(axis=0), 0], atol=1e-3)
     # Degenerate cubics (flat, linear, quadratic) give finite values and gradients.
     degenerate = [jnp.zeros(3), jnp.array([0.0, 1.0, 1.0]), jnp.array([1.0, 0.0, 0.0]),
                   jnp.array([1.0, 0.0, 1.0])]
