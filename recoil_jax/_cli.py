@@ -9,7 +9,7 @@ import sys
 from ._params import PARAMETER_NAMES, ParameterError, Smoothing, SolverOptions, params_from_values
 from ._solve import SolveError
 
-_NAMES = list(PARAMETER_NAMES) + ["t1"]
+_NAMES = [*PARAMETER_NAMES, "t1"]
 
 
 def _parse_assignments(items: list[str]) -> dict[str, float]:

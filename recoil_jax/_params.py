@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -144,7 +144,7 @@ class Barrel(_Validated):
     c_ret: Any = _param(14050.0)
     v0: Any = _param(PAPER_PROJECTILE_MASS * PAPER_MUZZLE_VELOCITY / PAPER_BARREL_MASS)
 
-    LIMITS = {
+    LIMITS: ClassVar[dict[str, Limits]] = {
         "M": Limits("kg", 0.0, lower_open=True, documented=(1e3, 2e4), meaning="barrel mass"),
         "k": Limits("N/m", 0.0, lower_open=True, documented=(1e3, 1e6),
                     meaning="recoil spring stiffness"),
@@ -184,7 +184,7 @@ class Absorber(_Validated):
     k_r: Any = _param(13000.0)
     c_r: Any = _param(3675.0)
 
-    LIMITS = {
+    LIMITS: ClassVar[dict[str, Limits]] = {
         "m": Limits("kg", 0.0, lower_open=True, documented=(10.0, 5000.0),
                     meaning="absorber mass"),
         "gap": Limits("m", 0.0, documented=(0.0, 0.2), meaning="clearance to wall A"),
@@ -208,7 +208,7 @@ class Contact(_Validated):
     n_c: Any = _param(1.3)
     lambda_c: Any = _param(0.6)
 
-    LIMITS = {
+    LIMITS: ClassVar[dict[str, Limits]] = {
         "k_c": Limits("N/m^n_c", 0.0, lower_open=True, documented=(1e6, 1e10),
                       meaning="contact stiffness"),
         "n_c": Limits("", 1.0, documented=(1.0, 2.0), meaning="contact exponent"),
@@ -248,7 +248,7 @@ class Smoothing(_Validated):
     contact_width_fraction: Any = _param(0.02)
     hard: bool = eqx.field(default=False, static=True)
 
-    LIMITS = {
+    LIMITS: ClassVar[dict[str, Limits]] = {
         "damping_width": Limits("m/s", 0.0, lower_open=True, documented=(1e-4, 1e-1),
                                 meaning="damping and clamp smoothing width"),
         "contact_width": Limits("m", 0.0, lower_open=True, documented=(1e-6, 1e-3),
@@ -282,7 +282,7 @@ class SolverOptions(_Validated):
     max_steps: int = eqx.field(default=8192, static=True)
     autodiff: str = eqx.field(default="forward", static=True)
 
-    LIMITS = {
+    LIMITS: ClassVar[dict[str, Limits]] = {
         "t1": Limits("s", 0.0, lower_open=True, documented=(0.1, 60.0), meaning="end time"),
         "rtol": Limits("", 0.0, lower_open=True, upper=1.0, meaning="relative tolerance"),
         "atol": Limits("", 0.0, lower_open=True, meaning="absolute tolerance"),

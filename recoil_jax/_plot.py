@@ -7,10 +7,10 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from ._solve import History  # noqa: E402
+from ._solve import History
 
 
 def plot_history(history: History, path, title: str = "") -> Path:

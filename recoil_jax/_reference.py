@@ -134,8 +134,9 @@ def reference_peaks(
         clamped = contact and lam * (y[1] - y[3]) < -1.0
         return _Mode(moving_out=y[1] > 0, contact=contact, clamped=clamped)
 
-    best = {"x": (0.0, 0.0), "F": (anchoring(np.array([0, v0, 0, 0]), make_mode([0, v0, 0, 0])), 0.0),
-            "Fc": (0.0, 0.0), "smin": 0.0, "smax": 0.0}
+    # Running maxima (value, time); the initial state is considered below.
+    best = {"x": (-np.inf, 0.0), "F": (-np.inf, 0.0), "Fc": (0.0, 0.0), "smin": 0.0,
+            "smax": 0.0}
 
     def consider(t, y, mode):
         if y[0] > best["x"][0]:
@@ -169,7 +170,7 @@ def reference_peaks(
         if sol.status < 0:
             raise RuntimeError(f"reference solver failed: {sol.message}")
         for index in range(len(peak_events)):
-            for te, ye in zip(sol.t_events[index], sol.y_events[index]):
+            for te, ye in zip(sol.t_events[index], sol.y_events[index], strict=True):
                 consider(te, ye, mode)
         t, y = sol.t[-1], sol.y[:, -1].copy()
         consider(t, y, mode)

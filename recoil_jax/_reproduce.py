@@ -79,12 +79,12 @@ def write_figures(out: Path, log=None) -> list[Path]:
     ts = np.linspace(0.0, 10.0, 20001)
     history = simulate(simplified, ts=ts)
     best = peaks(simplified)
+    x_peak, t_peak = float(best.peak_displacement), float(best.peak_displacement_time)
     figures.append(plot_series(
         {"simplified model": (history.ts, history.x_M)}, out / "fig4_simplified_displacement.png",
         xlabel="time (s)", ylabel="barrel displacement $x_M$ (m)",
         title="Fig. 4: simplified model, barrel displacement",
-        mark=(float(best.peak_displacement_time), float(best.peak_displacement),
-              f"{float(best.peak_displacement):.4f} m at {float(best.peak_displacement_time):.3f} s"),
+        mark=(t_peak, x_peak, f"{x_peak:.4f} m at {t_peak:.3f} s"),
     ))
     if log:
         log(f"  wrote {figures[-1]}")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import diffrax
 import equinox as eqx
 import equinox.internal as eqxi
@@ -22,13 +24,15 @@ class Status:
     MAX_STEPS = 1
     NONFINITE = 2
     STEP_UNDERFLOW = 3
+    FAILED = 4
 
-    MESSAGES = {
+    MESSAGES: ClassVar[dict[int, str]] = {
         OK: "ok",
         MAX_STEPS: "max_steps reached before t1: increase SolverOptions.max_steps or "
         "loosen the tolerances",
         NONFINITE: "the state became NaN or inf",
         STEP_UNDERFLOW: "the step size underflowed (t + dt == t) before t1",
+        FAILED: "the diffrax solve failed",
     }
 
     @classmethod
@@ -139,11 +143,10 @@ def hermite_max(p0, d0, p1, d1):
     return value, s_best
 
 
-def _initial_best_step(solver, term, t0, y0, args, count):
+def _initial_best_step(t0, y0, count):
     """Placeholder dense info (a zero-length step at t0) for each tracked metric."""
-    del solver, term, args
-    step = dict(t0=t0, t1=t0, y0=y0, y1=y0, k=jnp.zeros((7,) + y0.shape, y0.dtype))
-    return jax.tree.map(lambda x: jnp.broadcast_to(x, (count,) + jnp.shape(x)), step)
+    step = dict(t0=t0, t1=t0, y0=y0, y1=y0, k=jnp.zeros((7, *y0.shape), y0.dtype))
+    return jax.tree.map(lambda x: jnp.broadcast_to(x, (count, *jnp.shape(x))), step)
 
 
 _REFINE_ITERATIONS = 4
@@ -254,7 +257,7 @@ def _peaks(
         metric_rate=rate0,
         best=metric0,
         best_time=jnp.zeros_like(metric0),
-        best_step=_initial_best_step(solver, term, t0, y0, args, metric0.shape[0]),
+        best_step=_initial_best_step(t0, y0, metric0.shape[0]),
         num_steps=jnp.array(0),
         num_attempts=jnp.array(0),
         status=jnp.array(Status.OK),
@@ -403,7 +406,8 @@ def _simulate(params, smoothing, options, ts) -> History:
     ys = solution.ys
     f = jax.vmap(lambda y: forces(y, params, smoothing, args[2]))(ys)
     ok = solution.result == diffrax.RESULTS.successful
-    status = jnp.where(ok, Status.OK, Status.MAX_STEPS)
+    max_steps = solution.result == diffrax.RESULTS.max_steps_reached
+    status = jnp.where(ok, Status.OK, jnp.where(max_steps, Status.MAX_STEPS, Status.FAILED))
     status = jnp.where(ok & ~jnp.all(jnp.isfinite(ys)), Status.NONFINITE, status)
     return History(
         ts=ts,

@@ -137,6 +137,6 @@ def test_contact_never_pulls():
                                       rng.uniform(-0.01, 0.01, 2000),
                                       rng.uniform(-3, 3, 2000)]))
     for smoothing in (rj.Smoothing(), rj.Smoothing.exact()):
-        f = jax.vmap(lambda y: rj.forces(y, params, smoothing))(ys)
+        f = jax.vmap(rj.forces, in_axes=(0, None, None))(ys, params, smoothing)
         assert float(jnp.min(f.contact)) >= 0.0
         assert float(jnp.min(f.contact_elastic)) >= 0.0
