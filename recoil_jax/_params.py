@@ -245,7 +245,7 @@ class Smoothing(_Validated):
 
     damping_width: Any = _param(1e-3)
     contact_width: Any = _param(None)
-    contact_width_fraction: Any = _param(0.02)
+    contact_width_fraction: Any = _param(0.005)
     hard: bool = eqx.field(default=False, static=True)
 
     LIMITS: ClassVar[dict[str, Limits]] = {
