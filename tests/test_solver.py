@@ -48,15 +48,17 @@ def test_tsit5_last_stage_is_the_end_derivative():
                                     dict(m=1500.0, gap=0.062)])
 def test_peaks_agree_with_dense_history(design):
     """Peaks lie between steps: no point of a fine history exceeds them, and the fine
-    history comes within its own resolution of them."""
+    history comes within its own resolution of them. (The history is a separate
+    diffeqsolve; a tight tolerance keeps the two solves' own errors out of the check.)"""
     params = rj.params_from_values(design)
-    result = rj.peaks(params)
-    history = rj.simulate(params, ts=jnp.linspace(0.0, 1.0, 100001))
+    options = rj.SolverOptions(rtol=1e-10, atol=1e-13, max_steps=100_000)
+    result = rj.peaks(params, options=options)
+    history = rj.simulate(params, options=options, ts=jnp.linspace(0.0, 1.0, 100001))
     for peak, series in [(result.peak_displacement, history.x_M),
                          (result.peak_anchoring_force, history.anchoring_force),
                          (result.peak_contact_force, history.contact_force)]:
         sampled = float(jnp.max(series))
-        assert sampled <= float(peak) * (1 + 1e-6) + 1e-9
+        assert sampled <= float(peak) * (1 + 1e-8) + 1e-9
         assert sampled >= float(peak) * (1 - 1e-4) - 1e-9
     if params.absorber is not None:
         stroke = history.x_m - history.x_M
