@@ -6,32 +6,102 @@ import jax as _jax
 # (Set before the submodules import, hence E402 below.)
 _jax.config.update("jax_enable_x64", True)
 
+from ._gradients import (
+    DESIGN_PARAMETERS as DESIGN_PARAMETERS,
+    PeakGradients as PeakGradients,
+    parameter_scale as parameter_scale,
+    peak_gradients as peak_gradients,
+    peak_jacobian as peak_jacobian,
+)
 from ._model import (
     RECOIL_TERM as RECOIL_TERM,
+)
+from ._gradients import (
+    DESIGN_PARAMETERS as DESIGN_PARAMETERS,
+    PeakGradients as PeakGradients,
+    parameter_scale as parameter_scale,
+    peak_gradients as peak_gradients,
+    peak_jacobian as peak_jacobian,
 )
 from ._model import (
     Forces as Forces,
 )
+from ._gradients import (
+    DESIGN_PARAMETERS as DESIGN_PARAMETERS,
+    PeakGradients as PeakGradients,
+    parameter_scale as parameter_scale,
+    peak_gradients as peak_gradients,
+    peak_jacobian as peak_jacobian,
+)
 from ._model import (
     characteristic_penetration as characteristic_penetration,
+)
+from ._gradients import (
+    DESIGN_PARAMETERS as DESIGN_PARAMETERS,
+    PeakGradients as PeakGradients,
+    parameter_scale as parameter_scale,
+    peak_gradients as peak_gradients,
+    peak_jacobian as peak_jacobian,
 )
 from ._model import (
     contact_width as contact_width,
 )
+from ._gradients import (
+    DESIGN_PARAMETERS as DESIGN_PARAMETERS,
+    PeakGradients as PeakGradients,
+    parameter_scale as parameter_scale,
+    peak_gradients as peak_gradients,
+    peak_jacobian as peak_jacobian,
+)
 from ._model import (
     forces as forces,
+)
+from ._gradients import (
+    DESIGN_PARAMETERS as DESIGN_PARAMETERS,
+    PeakGradients as PeakGradients,
+    parameter_scale as parameter_scale,
+    peak_gradients as peak_gradients,
+    peak_jacobian as peak_jacobian,
 )
 from ._model import (
     initial_state as initial_state,
 )
+from ._gradients import (
+    DESIGN_PARAMETERS as DESIGN_PARAMETERS,
+    PeakGradients as PeakGradients,
+    parameter_scale as parameter_scale,
+    peak_gradients as peak_gradients,
+    peak_jacobian as peak_jacobian,
+)
 from ._model import (
     model_args as model_args,
+)
+from ._gradients import (
+    DESIGN_PARAMETERS as DESIGN_PARAMETERS,
+    PeakGradients as PeakGradients,
+    parameter_scale as parameter_scale,
+    peak_gradients as peak_gradients,
+    peak_jacobian as peak_jacobian,
 )
 from ._model import (
     positive_power as positive_power,
 )
+from ._gradients import (
+    DESIGN_PARAMETERS as DESIGN_PARAMETERS,
+    PeakGradients as PeakGradients,
+    parameter_scale as parameter_scale,
+    peak_gradients as peak_gradients,
+    peak_jacobian as peak_jacobian,
+)
 from ._model import (
     smooth_relu as smooth_relu,
+)
+from ._gradients import (
+    DESIGN_PARAMETERS as DESIGN_PARAMETERS,
+    PeakGradients as PeakGradients,
+    parameter_scale as parameter_scale,
+    peak_gradients as peak_gradients,
+    peak_jacobian as peak_jacobian,
 )
 from ._model import (
     vector_field as vector_field,

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import diffrax
 import equinox as eqx
@@ -10,7 +10,7 @@ import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 
-from ._model import RECOIL_TERM, forces, initial_state, model_args, vector_field
+from ._model import RECOIL_TERM, forces, initial_state, model_args
 from ._params import RecoilParams, Smoothing, SolverOptions
 
 # PID coefficients: damp the step-size oscillation at impacts (measured on a prototype).
@@ -152,25 +152,32 @@ def _initial_best_step(t0, y0, count):
 _REFINE_ITERATIONS = 4
 
 
-def _polish(solver, args, final):
+def _polish(solver, args, metrics_fn, final):
     """Refine each peak on the solver's own dense polynomial (Tsit5's 4th-order
     interpolant of the step holding it), by successive parabolic interpolation started
     from the Hermite estimate; kept where it raises the interpolated value. Maxima at a
     step's end are solver points and keep their value. Derivative-free, so it adds
-    little to compile times under `jacfwd`/`grad`."""
+    little to compile times under `jacfwd`/`grad`.
+
+    Returns `(values, times, states)`: the state at each peak (interpolated), shape
+    `(n_metrics, n_state)`."""
 
     def polish_one(i, best, best_time, step):
         dt = step["t1"] - step["t0"]
-        safe_dt = jnp.where(dt > 0, dt, 1.0)
+        has_step = dt > 0
+        safe_dt = jnp.where(has_step, dt, 1.0)
         interp = solver.interpolation_cls(**step)
 
-        def value(t):
-            return _metrics(interp.evaluate(t), args)[i]
+        def state(t):
+            return interp.evaluate(jnp.clip(t, step["t0"], step["t0"] + safe_dt))
 
-        def refine(_, state):
+        def value(t):
+            return metrics_fn(state(t), args)[i]
+
+        def refine(_, carry):
             # Vertex of the parabola through three points of the interpolant, with a
             # shrinking spacing: converges on the maximum of the solver's polynomial.
-            t, h = state
+            t, h = carry
             a, b, c = value(t - h), value(t), value(t + h)
             curvature = a - 2.0 * b + c
             concave = curvature < 0
@@ -181,11 +188,12 @@ def _polish(solver, args, final):
 
         t, _ = jax.lax.fori_loop(0, _REFINE_ITERATIONS, refine, (best_time, 1e-2 * safe_dt))
         start, polished = value(best_time), value(t)
-        interior = (dt > 0) & (best_time > step["t0"]) & (best_time < step["t1"])
+        interior = has_step & (best_time > step["t0"]) & (best_time < step["t1"])
         better = (polished > start) & jnp.isfinite(polished)
-        value_i = jnp.where(better, polished, start)
-        time_i = jnp.where(better, t, best_time)
-        return jnp.where(interior, value_i, best), jnp.where(interior, time_i, best_time)
+        value_i = jnp.where(interior, jnp.where(better, polished, start), best)
+        time_i = jnp.where(interior & better, t, best_time)
+        state_i = jnp.where(has_step, state(time_i), step["y0"])
+        return value_i, time_i, state_i
 
     # One traced copy for all metrics (vmap over the metric index), not five.
     indices = jnp.arange(final.best.shape[0])
@@ -222,19 +230,27 @@ def _controller(options: SolverOptions):
     )
 
 
-def _peaks(
-    params: RecoilParams = RecoilParams(),
-    smoothing: Smoothing = Smoothing(),
-    options: SolverOptions = SolverOptions(),
-) -> Peaks:
-    args = model_args(params, smoothing)
-    term, solver, controller = RECOIL_TERM, _solver(options), _controller(options)
+class _PeakRun(NamedTuple):
+    best: jax.Array  # (n_metrics,) running maxima of metrics_fn
+    best_time: jax.Array  # (n_metrics,)
+    best_state: jax.Array  # (n_metrics, n_state): the state at each maximum
+    num_steps: jax.Array
+    num_attempts: jax.Array
+    status: jax.Array
+
+
+def _integrate_peaks(term, z0, args, metrics_fn, options: SolverOptions) -> _PeakRun:
+    """Integrate `term` from `z0` over `[0, t1]` with Tsit5 + PID, stepping manually
+    (diffrax's documented `solver.step` + `adapt_step_size` pattern) in one while loop,
+    and keep the running maxima of `metrics_fn(z, args)` (a vector), located between
+    steps: each accepted step's cubic Hermite interpolant (end values and rates) finds
+    the step holding a maximum; `_polish` then refines it on Tsit5's dense polynomial."""
+    solver, controller = _solver(options), _controller(options)
     t0 = jnp.zeros((), dtype=float)
     t1 = jnp.asarray(options.t1, dtype=float)
-    y0 = initial_state(params)
     error_order = solver.order(term) + 1
     t_next, controller_state = controller.init(
-        term, t0, t1, y0, None, args, solver.func, error_order
+        term, t0, t1, z0, None, args, solver.func, error_order
     )
     t_next = jnp.minimum(t_next, t1)
     # Round the last step up to t1 within 100 ULPs, as diffeqsolve does.
@@ -242,22 +258,22 @@ def _peaks(
     for _ in range(100):
         t1_floor = eqxi.prevbefore(t1_floor)
 
-    def metric_and_rate(y):
-        return jax.jvp(lambda z: _metrics(z, args), (y,), (vector_field(t0, y, args),))
+    def metric_and_rate(z, f):
+        return jax.jvp(lambda x: metrics_fn(x, args), (z,), (f,))
 
-    metric0, rate0 = metric_and_rate(y0)
+    metric0, rate0 = metric_and_rate(z0, term.vf(t0, z0, args))
     init = _Carry(
         t=t0,
         t_next=t_next,
-        y=y0,
-        solver_state=solver.init(term, t0, t_next, y0, args),
+        y=z0,
+        solver_state=solver.init(term, t0, t_next, z0, args),
         controller_state=controller_state,
         made_jump=jnp.array(False),
         metric=metric0,
         metric_rate=rate0,
         best=metric0,
         best_time=jnp.zeros_like(metric0),
-        best_step=_initial_best_step(t0, y0, metric0.shape[0]),
+        best_step=_initial_best_step(t0, z0, metric0.shape[0]),
         num_steps=jnp.array(0),
         num_attempts=jnp.array(0),
         status=jnp.array(Status.OK),
@@ -268,19 +284,18 @@ def _peaks(
 
     def body(c: _Carry) -> _Carry:
         dt = c.t_next - c.t
-        y1, y_error, dense_info, solver_state, _ = solver.step(
+        z1, z_error, dense_info, solver_state, _ = solver.step(
             term, c.t, c.t_next, c.y, args, c.solver_state, c.made_jump
         )
         keep, t_prev, t_next, made_jump, controller_state, _ = controller.adapt_step_size(
-            c.t, c.t_next, c.y, y1, args, y_error, error_order, c.controller_state
+            c.t, c.t_next, c.y, z1, args, z_error, error_order, c.controller_state
         )
         t_prev = jnp.minimum(t_prev, t1)
         t_next = jnp.where(
             t_next > t1_floor, jnp.where(keep, t1, t_prev + 0.5 * (t1 - t_prev)), t_next
         )
-        # Tsit5 is FSAL: its last stage is dt * f(t + dt, y1).
-        f1 = dense_info["k"][-1] / dt
-        metric1, rate1 = jax.jvp(lambda z: _metrics(z, args), (y1,), (f1,))
+        # Tsit5 is FSAL: its last stage is dt * f(t + dt, z1).
+        metric1, rate1 = metric_and_rate(z1, dense_info["k"][-1] / dt)
         step_best, s = hermite_max(c.metric, c.metric_rate * dt, metric1, rate1 * dt)
         improve = keep & (step_best > c.best)
         step = dict(t0=c.t, t1=c.t_next, **dense_info)
@@ -288,7 +303,7 @@ def _peaks(
             lambda new, old: jnp.where(
                 improve.reshape((-1,) + (1,) * (old.ndim - 1)), new[None], old),
             step, c.best_step)
-        finite = jnp.all(jnp.isfinite(y1)) & jnp.isfinite(dt)
+        finite = jnp.all(jnp.isfinite(z1)) & jnp.isfinite(dt)
         status = jnp.where(keep & ~finite, Status.NONFINITE, c.status)
         status = jnp.where((t_prev < t1) & (t_next <= t_prev), Status.STEP_UNDERFLOW, status)
 
@@ -298,7 +313,7 @@ def _peaks(
         return _Carry(
             t=t_prev,
             t_next=t_next,
-            y=select(y1, c.y),
+            y=select(z1, c.y),
             solver_state=select(solver_state, c.solver_state),
             controller_state=controller_state,
             made_jump=jnp.where(keep, made_jump, c.made_jump),
@@ -317,7 +332,12 @@ def _peaks(
     status = jnp.where(
         (final.status == Status.OK) & (final.t < t1), Status.MAX_STEPS, final.status
     )
-    best, best_time = _polish(solver, args, final)
+    best, best_time, best_state = _polish(solver, args, metrics_fn, final)
+    return _PeakRun(best, best_time, best_state, final.num_steps, final.num_attempts, status)
+
+
+def _peaks_from_run(run: _PeakRun) -> Peaks:
+    best, best_time = run.best, run.best_time
     return Peaks(
         peak_displacement=best[0],
         peak_displacement_time=best_time[0],
@@ -327,10 +347,20 @@ def _peaks(
         peak_contact_force_time=best_time[2],
         min_stroke=-best[4],
         max_stroke=best[3],
-        num_steps=final.num_steps,
-        num_attempts=final.num_attempts,
-        status=status,
+        num_steps=run.num_steps,
+        num_attempts=run.num_attempts,
+        status=run.status,
     )
+
+
+def _peaks(
+    params: RecoilParams = RecoilParams(),
+    smoothing: Smoothing = Smoothing(),
+    options: SolverOptions = SolverOptions(),
+) -> Peaks:
+    args = model_args(params, smoothing)
+    run = _integrate_peaks(RECOIL_TERM, initial_state(params), args, _metrics, options)
+    return _peaks_from_run(run)
 
 
 class SolveError(RuntimeError):
