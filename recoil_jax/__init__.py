@@ -8,6 +8,7 @@ _jax.config.update("jax_enable_x64", True)
 
 from ._gradients import (
     DESIGN_PARAMETERS as DESIGN_PARAMETERS,
+    GRADIENT_OPTIONS as GRADIENT_OPTIONS,
     PeakGradients as PeakGradients,
     parameter_scale as parameter_scale,
     peak_gradients as peak_gradients,
@@ -18,6 +19,7 @@ from ._model import (
 )
 from ._gradients import (
     DESIGN_PARAMETERS as DESIGN_PARAMETERS,
+    GRADIENT_OPTIONS as GRADIENT_OPTIONS,
     PeakGradients as PeakGradients,
     parameter_scale as parameter_scale,
     peak_gradients as peak_gradients,
@@ -28,6 +30,7 @@ from ._model import (
 )
 from ._gradients import (
     DESIGN_PARAMETERS as DESIGN_PARAMETERS,
+    GRADIENT_OPTIONS as GRADIENT_OPTIONS,
     PeakGradients as PeakGradients,
     parameter_scale as parameter_scale,
     peak_gradients as peak_gradients,
@@ -38,6 +41,7 @@ from ._model import (
 )
 from ._gradients import (
     DESIGN_PARAMETERS as DESIGN_PARAMETERS,
+    GRADIENT_OPTIONS as GRADIENT_OPTIONS,
     PeakGradients as PeakGradients,
     parameter_scale as parameter_scale,
     peak_gradients as peak_gradients,
@@ -48,6 +52,7 @@ from ._model import (
 )
 from ._gradients import (
     DESIGN_PARAMETERS as DESIGN_PARAMETERS,
+    GRADIENT_OPTIONS as GRADIENT_OPTIONS,
     PeakGradients as PeakGradients,
     parameter_scale as parameter_scale,
     peak_gradients as peak_gradients,
@@ -58,6 +63,7 @@ from ._model import (
 )
 from ._gradients import (
     DESIGN_PARAMETERS as DESIGN_PARAMETERS,
+    GRADIENT_OPTIONS as GRADIENT_OPTIONS,
     PeakGradients as PeakGradients,
     parameter_scale as parameter_scale,
     peak_gradients as peak_gradients,
@@ -68,6 +74,7 @@ from ._model import (
 )
 from ._gradients import (
     DESIGN_PARAMETERS as DESIGN_PARAMETERS,
+    GRADIENT_OPTIONS as GRADIENT_OPTIONS,
     PeakGradients as PeakGradients,
     parameter_scale as parameter_scale,
     peak_gradients as peak_gradients,
@@ -78,6 +85,7 @@ from ._model import (
 )
 from ._gradients import (
     DESIGN_PARAMETERS as DESIGN_PARAMETERS,
+    GRADIENT_OPTIONS as GRADIENT_OPTIONS,
     PeakGradients as PeakGradients,
     parameter_scale as parameter_scale,
     peak_gradients as peak_gradients,
@@ -88,6 +96,7 @@ from ._model import (
 )
 from ._gradients import (
     DESIGN_PARAMETERS as DESIGN_PARAMETERS,
+    GRADIENT_OPTIONS as GRADIENT_OPTIONS,
     PeakGradients as PeakGradients,
     parameter_scale as parameter_scale,
     peak_gradients as peak_gradients,
@@ -98,6 +107,7 @@ from ._model import (
 )
 from ._gradients import (
     DESIGN_PARAMETERS as DESIGN_PARAMETERS,
+    GRADIENT_OPTIONS as GRADIENT_OPTIONS,
     PeakGradients as PeakGradients,
     parameter_scale as parameter_scale,
     peak_gradients as peak_gradients,

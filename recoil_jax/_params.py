@@ -279,7 +279,7 @@ class SolverOptions(_Validated):
     t1: Any = _param(10.0)
     rtol: Any = _param(1e-6)
     atol: Any = _param(1e-9)
-    max_steps: int = eqx.field(default=8192, static=True)
+    max_steps: int = eqx.field(default=65536, static=True)
     autodiff: str = eqx.field(default="forward", static=True)
 
     LIMITS: ClassVar[dict[str, Limits]] = {

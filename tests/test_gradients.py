@@ -1,0 +1,149 @@
+"""Gradients of every peak metric against central finite differences of the same
+smoothed model at a tight tolerance, and finiteness across the design space."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import batch_params, batch_peaks
+
+import recoil_jax as rj
+
+METRICS = ("peak_displacement", "peak_anchoring_force", "peak_contact_force", "max_stroke",
+           "min_stroke")
+DESIGN = ("gap", "m", "k_r", "c_r")
+DEFAULTS = {k: float(v) for k, v in rj.params_to_values(rj.RecoilParams()).items()}
+
+# 24 designs: gap 0 (contact at once, then several late impacts), impacting gaps around
+# the optimum, and gaps beyond the last impact (no contact at all).
+GRADIENT_DESIGNS = (
+    [dict(m=m, gap=0.0) for m in (100.0, 500.0, 1000.0, 1500.0)]
+    + [dict(m=1500.0, gap=g) for g in (0.01, 0.03, 0.05, 0.062, 0.07)]
+    + [dict(m=1000.0, gap=0.059), dict(m=500.0, gap=0.044), dict(m=100.0, gap=0.005)]
+    + [dict(m=800.0, gap=0.02, k_r=5e4, c_r=500.0), dict(m=2500.0, gap=0.09, k_r=3e3),
+       dict(m=3000.0, gap=0.04, c_r=1.5e4), dict(m=300.0, gap=0.0, k_r=8e4, c_r=0.0),
+       dict(m=1200.0, gap=0.05, k_c=1e9, n_c=1.5, lambda_c=1.2),
+       dict(m=600.0, gap=0.0, k_c=5e6, n_c=1.8, lambda_c=0.2)]
+    + [dict(m=100.0, gap=0.05), dict(m=500.0, gap=0.15), dict(m=1000.0, gap=0.12),
+       dict(m=1500.0, gap=0.18), dict(m=50.0, gap=0.03), dict(m=4000.0, gap=0.2)]
+)
+NO_IMPACT = slice(18, 24)
+
+
+def _metric_array(peaks):
+    return np.stack([np.asarray(getattr(peaks, m)) for m in METRICS], axis=-1)
+
+
+@pytest.fixture(scope="module")
+def jacobians():
+    run = eqx.filter_jit(jax.vmap(rj.peak_gradients, in_axes=(0, None, None, None)))
+    peaks, grads = run(batch_params(GRADIENT_DESIGNS), rj.Smoothing(), rj.GRADIENT_OPTIONS,
+                       DESIGN)
+    assert np.all(np.asarray(peaks.status) == rj.Status.OK)
+    return peaks, np.stack([np.asarray(getattr(grads, m)) for m in METRICS], axis=1)
+
+
+def test_gradients_match_finite_differences(jacobians):
+    """|g − g_FD| · (documented range) / |peak| <= 1e-4 for every metric and each of gap,
+    m, k_r, c_r; central differences (second-order one-sided at gap = 0) at rtol 1e-12."""
+    peaks, grads = jacobians  # grads: (design, metric, parameter)
+    tight = rj.SolverOptions(rtol=1e-12, atol=1e-15, max_steps=200_000)
+    base = _metric_array(batch_peaks(GRADIENT_DESIGNS, options=tight))
+    for j, name in enumerate(DESIGN):
+        scale = rj.parameter_scale(name)
+        h = 1e-6 * scale
+        shifted = []
+        for offset in (1.0, -1.0, 2.0):
+            designs = []
+            for d in GRADIENT_DESIGNS:
+                value = d.get(name, DEFAULTS[name])
+                one_sided = value - h < 0
+                step = offset if not (one_sided and offset == -1.0) else 0.0
+                designs.append({**d, name: value + step * h})
+            shifted.append(_metric_array(batch_peaks(designs, options=tight)))
+        up, down, up2 = shifted
+        one_sided = np.array([d.get(name, DEFAULTS[name]) - h < 0 for d in GRADIENT_DESIGNS])
+        central = (up - down) / (2 * h)
+        forward = (-3 * base + 4 * up - up2) / (2 * h)
+        fd = np.where(one_sided[:, None], forward, central)
+        size = np.maximum(np.abs(base), 1e-12)
+        error = np.abs(grads[:, :, j] - fd) * scale / size
+        # A peak that is exactly zero (no contact) has an exactly zero gradient.
+        zero = base == 0
+        assert np.all(grads[:, :, j][zero] == 0.0), name
+        error = np.where(zero, 0.0, error)
+        worst = np.max(error)
+        print(f"{name}: worst scaled gradient error {worst:.1e}")
+        assert worst <= 1e-4, (name, worst, np.unravel_index(np.argmax(error), error.shape))
+
+
+def test_no_impact_gap_gradient_is_exactly_zero(jacobians):
+    peaks, grads = jacobians
+    assert np.all(np.asarray(peaks.peak_contact_force)[NO_IMPACT] == 0.0)
+    assert np.all(grads[NO_IMPACT, :, DESIGN.index("gap")] == 0.0)
+    impacting = grads[:18, :2, DESIGN.index("gap")]  # x_M and F_AN do depend on gap
+    assert np.all(impacting != 0.0)
+
+
+def test_jacobian_api_and_single_design():
+    params = rj.params_from_values(m=1500.0, gap=0.062)
+    peaks, grads = rj.peak_jacobian(params, wrt=("gap", "m", "k_c"))
+    assert grads.wrt == ("gap", "m", "k_c") and grads.peak_anchoring_force.shape == (3,)
+    assert float(peaks.peak_anchoring_force) == pytest.approx(5514.05, abs=0.02)
+    table = grads.to_dict()
+    assert set(table["peak_contact_force_N"]) == {"gap", "m", "k_c"}
+    with pytest.raises(rj.ParameterError, match="cannot differentiate"):
+        rj.peak_jacobian(params, wrt=("mass",))
+    with pytest.raises(rj.ParameterError, match="simplified model"):
+        rj.peak_jacobian(rj.params_from_values(m=0.0), wrt=("gap",))
+
+
+def test_sensitivity_gradients_agree_with_jacfwd_where_steps_resolve():
+    """Away from contact (simplified model, barrel parameters) differentiating the loop
+    and integrating sensitivities agree: two independent derivative paths."""
+    params = rj.params_from_values(m=0.0)
+    _, grads = rj.peak_jacobian(params, wrt=("k", "c_out", "v0"))
+
+    def peak(x):
+        p = rj.RecoilParams(barrel=rj.Barrel(k=x[0], c_out=x[1], v0=x[2]), absorber=None)
+        r = rj.peak_metrics(p, rj.Smoothing(), rj.SolverOptions(rtol=1e-10, atol=1e-13,
+                                                                max_steps=100_000))
+        return jnp.stack([r.peak_displacement, r.peak_anchoring_force])
+
+    x = jnp.array([27500.0, 6239.0, 0.6909])
+    jac = jax.jit(jax.jacfwd(peak))(x)
+    np.testing.assert_allclose(grads.peak_displacement, jac[0], rtol=1e-5)
+    np.testing.assert_allclose(grads.peak_anchoring_force, jac[1], rtol=1e-5)
+
+
+def _random_designs(count, seed):
+    """Random designs over every documented range; a third pinned to the boundaries."""
+    rng = np.random.default_rng(seed)
+    designs = []
+    for i in range(count):
+        d = dict(
+            M=float(10 ** rng.uniform(3, np.log10(2e4))), v0=float(rng.uniform(0.1, 2.0)),
+            k=float(10 ** rng.uniform(3, 6)), c_out=float(rng.uniform(0, 5e4)),
+            c_ret=float(rng.uniform(0, 5e4)),
+            m=float(10 ** rng.uniform(1, np.log10(5000))), gap=float(rng.uniform(0, 0.2)),
+            k_r=float(10 ** rng.uniform(3, 5)), c_r=float(rng.uniform(0, 2e4)),
+            k_c=float(10 ** rng.uniform(6, 10)), n_c=float(rng.uniform(1, 2)),
+            lambda_c=float(rng.uniform(0, 2)),
+        )
+        if i % 3 == 0:
+            d.update(gap=0.0, c_r=0.0, n_c=1.0)
+        if i % 5 == 0:
+            d.update(lambda_c=0.0, c_out=0.0)
+        designs.append(d)
+    return designs
+
+
+def test_values_and_gradients_finite_over_1000_random_designs():
+    designs = _random_designs(1000, seed=3)
+    run = eqx.filter_jit(jax.vmap(rj.peak_gradients, in_axes=(0, None, None, None)))
+    wrt = tuple(rj.PARAMETER_NAMES)  # every parameter
+    peaks, grads = run(batch_params(designs), rj.Smoothing(), rj.SolverOptions(), wrt)
+    assert np.all(np.asarray(peaks.status) == rj.Status.OK)
+    for leaf in jax.tree.leaves((peaks, grads)):
+        assert np.all(np.isfinite(np.asarray(leaf)))
