@@ -16,161 +16,37 @@ from ._gradients import (
 )
 from ._model import (
     RECOIL_TERM as RECOIL_TERM,
-)
-from ._gradients import (
-    DESIGN_PARAMETERS as DESIGN_PARAMETERS,
-    GRADIENT_OPTIONS as GRADIENT_OPTIONS,
-    PeakGradients as PeakGradients,
-    parameter_scale as parameter_scale,
-    peak_gradients as peak_gradients,
-    peak_jacobian as peak_jacobian,
-)
-from ._model import (
     Forces as Forces,
-)
-from ._gradients import (
-    DESIGN_PARAMETERS as DESIGN_PARAMETERS,
-    GRADIENT_OPTIONS as GRADIENT_OPTIONS,
-    PeakGradients as PeakGradients,
-    parameter_scale as parameter_scale,
-    peak_gradients as peak_gradients,
-    peak_jacobian as peak_jacobian,
-)
-from ._model import (
     characteristic_penetration as characteristic_penetration,
-)
-from ._gradients import (
-    DESIGN_PARAMETERS as DESIGN_PARAMETERS,
-    GRADIENT_OPTIONS as GRADIENT_OPTIONS,
-    PeakGradients as PeakGradients,
-    parameter_scale as parameter_scale,
-    peak_gradients as peak_gradients,
-    peak_jacobian as peak_jacobian,
-)
-from ._model import (
     contact_width as contact_width,
-)
-from ._gradients import (
-    DESIGN_PARAMETERS as DESIGN_PARAMETERS,
-    GRADIENT_OPTIONS as GRADIENT_OPTIONS,
-    PeakGradients as PeakGradients,
-    parameter_scale as parameter_scale,
-    peak_gradients as peak_gradients,
-    peak_jacobian as peak_jacobian,
-)
-from ._model import (
     forces as forces,
-)
-from ._gradients import (
-    DESIGN_PARAMETERS as DESIGN_PARAMETERS,
-    GRADIENT_OPTIONS as GRADIENT_OPTIONS,
-    PeakGradients as PeakGradients,
-    parameter_scale as parameter_scale,
-    peak_gradients as peak_gradients,
-    peak_jacobian as peak_jacobian,
-)
-from ._model import (
     initial_state as initial_state,
-)
-from ._gradients import (
-    DESIGN_PARAMETERS as DESIGN_PARAMETERS,
-    GRADIENT_OPTIONS as GRADIENT_OPTIONS,
-    PeakGradients as PeakGradients,
-    parameter_scale as parameter_scale,
-    peak_gradients as peak_gradients,
-    peak_jacobian as peak_jacobian,
-)
-from ._model import (
     model_args as model_args,
-)
-from ._gradients import (
-    DESIGN_PARAMETERS as DESIGN_PARAMETERS,
-    GRADIENT_OPTIONS as GRADIENT_OPTIONS,
-    PeakGradients as PeakGradients,
-    parameter_scale as parameter_scale,
-    peak_gradients as peak_gradients,
-    peak_jacobian as peak_jacobian,
-)
-from ._model import (
     positive_power as positive_power,
-)
-from ._gradients import (
-    DESIGN_PARAMETERS as DESIGN_PARAMETERS,
-    GRADIENT_OPTIONS as GRADIENT_OPTIONS,
-    PeakGradients as PeakGradients,
-    parameter_scale as parameter_scale,
-    peak_gradients as peak_gradients,
-    peak_jacobian as peak_jacobian,
-)
-from ._model import (
     smooth_relu as smooth_relu,
-)
-from ._gradients import (
-    DESIGN_PARAMETERS as DESIGN_PARAMETERS,
-    GRADIENT_OPTIONS as GRADIENT_OPTIONS,
-    PeakGradients as PeakGradients,
-    parameter_scale as parameter_scale,
-    peak_gradients as peak_gradients,
-    peak_jacobian as peak_jacobian,
-)
-from ._model import (
     vector_field as vector_field,
 )
 from ._params import (
     PARAMETER_NAMES as PARAMETER_NAMES,
-)
-from ._params import (
     Absorber as Absorber,
-)
-from ._params import (
     Barrel as Barrel,
-)
-from ._params import (
     Contact as Contact,
-)
-from ._params import (
     ParameterError as ParameterError,
-)
-from ._params import (
     RecoilParams as RecoilParams,
-)
-from ._params import (
     Smoothing as Smoothing,
-)
-from ._params import (
     SolverOptions as SolverOptions,
-)
-from ._params import (
     params_from_values as params_from_values,
-)
-from ._params import (
     params_to_values as params_to_values,
 )
 from ._solve import (
     PEAK_KEYS as PEAK_KEYS,
-)
-from ._solve import (
     History as History,
-)
-from ._solve import (
     Peaks as Peaks,
-)
-from ._solve import (
     SolveError as SolveError,
-)
-from ._solve import (
     Status as Status,
-)
-from ._solve import (
     hermite_max as hermite_max,
-)
-from ._solve import (
     peak_metrics as peak_metrics,
-)
-from ._solve import (
     peaks as peaks,
-)
-from ._solve import (
     simulate as simulate,
 )
 

@@ -47,7 +47,7 @@ def jacobians():
 def test_gradients_match_finite_differences(jacobians):
     """|g − g_FD| · (documented range) / |peak| <= 1e-4 for every metric and each of gap,
     m, k_r, c_r; central differences (second-order one-sided at gap = 0) at rtol 1e-12."""
-    peaks, grads = jacobians  # grads: (design, metric, parameter)
+    _, grads = jacobians  # grads: (design, metric, parameter)
     tight = rj.SolverOptions(rtol=1e-12, atol=1e-15, max_steps=200_000)
     base = _metric_array(batch_peaks(GRADIENT_DESIGNS, options=tight))
     for j, name in enumerate(DESIGN):
