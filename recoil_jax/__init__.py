@@ -111,5 +111,17 @@ from ._solve import (
 from ._solve import (
     simulate as simulate,
 )
+from ._sweep import (
+    SweepResult as SweepResult,
+)
+from ._sweep import (
+    grid as grid,
+)
+from ._sweep import (
+    sweep as sweep,
+)
+from ._sweep import (
+    sweep_grid as sweep_grid,
+)
 
 __version__ = "0.1.0"

@@ -1,0 +1,268 @@
+"""Vectorised sweeps: many designs in vmapped, chunked, device-sharded batches."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import sys
+import time
+from collections.abc import Mapping, Sequence
+
+import equinox as eqx
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from ._gradients import GRADIENT_OPTIONS, _check_wrt, peak_gradients
+from ._params import (
+    PARAMETER_NAMES,
+    ParameterError,
+    RecoilParams,
+    Smoothing,
+    SolverOptions,
+    params_from_values,
+    params_to_values,
+)
+from ._solve import PEAK_KEYS, Status, peak_metrics
+
+_METRIC_FIELDS = {  # gradient key -> PeakGradients field
+    "peak_displacement_m": "peak_displacement",
+    "peak_anchoring_force_N": "peak_anchoring_force",
+    "peak_contact_force_N": "peak_contact_force",
+    "min_stroke_m": "min_stroke",
+    "max_stroke_m": "max_stroke",
+}
+
+
+@dataclasses.dataclass
+class SweepResult:
+    """Results of a sweep, one entry per design, in input order (NumPy arrays, shape
+    `(n,)`).
+
+    - `values`: every parameter of every design, by flat name (`m = 0`: no absorber).
+    - `peaks`: the peaks by `simulate --json` key (`peak_anchoring_force_N`, ...). Points
+      whose solve failed hold NaN there, and say why in `status`.
+    - `status`: `Status` codes; `messages()` gives the reasons.
+    - `gradients`: with `wrt`, `{peak key: {parameter: (n,) derivative}}`, else None.
+    - `swept`, `grid_shape`: for a cartesian grid, the swept names and the grid's shape
+      (`reshape` the arrays to it, C order over `swept`).
+    """
+
+    values: dict[str, np.ndarray]
+    peaks: dict[str, np.ndarray]
+    status: np.ndarray
+    gradients: dict[str, dict[str, np.ndarray]] | None = None
+    swept: tuple[str, ...] = ()
+    grid_shape: tuple[int, ...] | None = None
+    seconds: float = 0.0
+
+    def __len__(self) -> int:
+        return int(self.status.shape[0])
+
+    @property
+    def ok(self) -> np.ndarray:
+        return self.status == Status.OK
+
+    def messages(self) -> list[str]:
+        return [Status.message(code) for code in self.status]
+
+    def failures(self) -> list[tuple[int, str]]:
+        """`(index, reason)` of every failed point."""
+        return [(int(i), Status.message(self.status[i])) for i in np.flatnonzero(~self.ok)]
+
+    def records(self) -> list[dict]:
+        """One dict per point: its parameters, peaks (None where the solve failed),
+        `status` ("ok" or the reason) and, with gradients, `d<peak>/d<parameter>` keys."""
+        out = []
+        for i in range(len(self)):
+            record = {name: float(v[i]) for name, v in self.values.items()}
+            for key, v in self.peaks.items():
+                record[key] = None if not self.ok[i] else (
+                    int(v[i]) if key == "num_steps" else float(v[i]))
+            if self.gradients:
+                for key, by_param in self.gradients.items():
+                    for name, v in by_param.items():
+                        record[f"d({key})/d({name})"] = float(v[i]) if self.ok[i] else None
+            record["status"] = Status.message(self.status[i])
+            out.append(record)
+        return out
+
+
+def _as_columns(designs) -> dict[str, np.ndarray]:
+    if isinstance(designs, Mapping):
+        columns = {k: np.atleast_1d(np.asarray(v, dtype=float)) for k, v in designs.items()}
+    else:
+        designs = list(designs)
+        if not designs:
+            raise ParameterError("no designs to sweep")
+        names = sorted({k for d in designs for k in d})
+        defaults = params_to_values(RecoilParams())
+        columns = {n: np.array([float(d.get(n, defaults[n])) for d in designs]) for n in names}
+    lengths = {len(v) for v in columns.values()}
+    if len(lengths) > 1:
+        raise ParameterError(f"sweep columns have different lengths: {sorted(lengths)}")
+    unknown = sorted(set(columns) - set(PARAMETER_NAMES))
+    if unknown:
+        raise ParameterError(
+            f"unknown parameter(s) {', '.join(unknown)}; known: {', '.join(PARAMETER_NAMES)}")
+    return columns
+
+
+def grid(axes: Mapping[str, Sequence[float]], fixed: Mapping[str, float] | None = None):
+    """Cartesian product of `axes` (name -> values), C order, plus `fixed` values:
+    returns `(columns, shape)` for `sweep`."""
+    names = list(axes)
+    arrays = [np.asarray(axes[n], dtype=float).reshape(-1) for n in names]
+    points = np.array(list(itertools.product(*arrays)), dtype=float).reshape(-1, len(names))
+    columns = {n: points[:, j] for j, n in enumerate(names)}
+    for name, value in (fixed or {}).items():
+        if name in columns:
+            raise ParameterError(f"{name} is both swept and fixed")
+        columns[name] = np.full(points.shape[0], float(value))
+    return columns, tuple(len(a) for a in arrays)
+
+
+class _Progress:
+    def __init__(self, total: int, enabled: bool, stream=None):
+        self.total, self.enabled = total, enabled
+        self.stream = stream or sys.stderr
+        self.start = time.perf_counter()
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+
+    def update(self, done: int) -> None:
+        if not self.enabled:
+            return
+        elapsed = time.perf_counter() - self.start
+        rate = done / elapsed if elapsed > 0 else 0.0
+        left = (self.total - done) / rate if rate > 0 else float("nan")
+        width = 30
+        filled = int(width * done / self.total)
+        line = (f"sweep [{'#' * filled}{'.' * (width - filled)}] {done}/{self.total} designs, "
+                f"{elapsed:.1f} s, {rate:.0f}/s, ~{left:.0f} s left")
+        end = "\r" if self.tty and done < self.total else "\n"
+        print(line, end=end, file=self.stream, flush=True)
+
+
+def _chunk_runner(with_gradients: bool):
+    if with_gradients:
+        return eqx.filter_jit(jax.vmap(peak_gradients, in_axes=(0, None, None, None)))
+    return eqx.filter_jit(jax.vmap(peak_metrics, in_axes=(0, None, None)))
+
+
+_RUNNERS = {False: _chunk_runner(False), True: _chunk_runner(True)}
+
+
+def sweep(
+    designs,
+    *,
+    smoothing: Smoothing = Smoothing(),
+    options: SolverOptions | None = None,
+    wrt: Sequence[str] | None = None,
+    chunk_size: int = 1024,
+    progress: bool | None = None,
+    sort_by_gap: bool = True,
+    devices: Sequence[jax.Device] | None = None,
+) -> SweepResult:
+    """Peaks (and, with `wrt`, their gradients) of many designs.
+
+    - `designs`: a list of `{name: value}` dicts, or a mapping `name -> (n,) array`
+      (e.g. from `grid`). Names not given take the paper's values; `m = 0` (every point)
+      is the simplified model.
+    - Every value is validated before anything is compiled; a bad point raises
+      `ParameterError` naming its index.
+    - Designs run `chunk_size` at a time through one compiled `vmap` (the last chunk is
+      padded), sharded over `devices` (default: all local devices) along the batch.
+      Under `vmap` a chunk moves at its slowest member's pace, so designs are sorted by
+      `gap` first (impact-heavy small gaps together); results come back in input order.
+    - Each point carries a status; a failed solve never aborts the sweep and its peaks
+      are NaN, flagged in `status` (see `SweepResult.failures()`).
+    - `progress`: a progress line on stderr (default: when there is more than one chunk).
+    - `options`: default `SolverOptions()`, or `GRADIENT_OPTIONS` with `wrt`.
+    """
+    columns = _as_columns(designs)
+    n = len(next(iter(columns.values())))
+    simplified = "m" in columns and np.all(columns["m"] == 0)
+    if "m" in columns and np.any(columns["m"] == 0) and not simplified:
+        raise ParameterError(
+            "m = 0 (simplified model) and m > 0 cannot be mixed in one sweep; sweep them "
+            "separately")
+    wrt = tuple(wrt) if wrt else None
+    options = options or (GRADIENT_OPTIONS if wrt else SolverOptions())
+    absorber_free = ("gap", "k_r", "c_r") if simplified else ()
+    defaults = params_to_values(params_from_values({"m": 0.0} if simplified else {}))
+    values = {k: np.full(n, float(np.asarray(v))) for k, v in defaults.items()}
+    values.update(columns)
+    values = {k: v for k, v in values.items() if k not in absorber_free}
+    full = params_from_values(values)  # validates every point, before any compilation
+    if wrt:
+        _check_wrt(full, wrt)
+
+    order = np.argsort(values["gap"], kind="stable") if (
+        sort_by_gap and not simplified) else np.arange(n)
+    devices = list(devices) if devices is not None else jax.local_devices()
+    chunk = max(len(devices), chunk_size - chunk_size % len(devices))
+    chunk = min(chunk, -(-n // len(devices)) * len(devices))  # no bigger than needed
+    mesh = Mesh(np.array(devices), ("batch",))
+    sharding = NamedSharding(mesh, PartitionSpec("batch"))
+    runner = _RUNNERS[bool(wrt)]
+    show = progress if progress is not None else n > chunk
+    bar = _Progress(n, show)
+
+    outputs = []
+    start = time.perf_counter()
+    for begin in range(0, n, chunk):
+        index = order[begin:begin + chunk]
+        padded = np.concatenate([index, np.full(chunk - len(index), index[-1])])
+        batch = jax.tree.map(lambda leaf, p=padded: np.asarray(leaf)[p], full)
+        batch = jax.device_put(batch, sharding)
+        if wrt:
+            result = runner(batch, smoothing, options, wrt)
+        else:
+            result = runner(batch, smoothing, options)
+        result = jax.tree.map(lambda x, k=len(index): np.asarray(x)[:k], result)
+        outputs.append(result)
+        bar.update(min(begin + chunk, n))
+    seconds = time.perf_counter() - start
+
+    inverse = np.empty(n, dtype=int)
+    inverse[order] = np.arange(n)
+
+    def gather(get):
+        return np.concatenate([get(o) for o in outputs])[inverse]
+
+    if wrt:
+        peaks_of = lambda o: o[0]  # noqa: E731
+    else:
+        peaks_of = lambda o: o  # noqa: E731
+    status = gather(lambda o: np.asarray(peaks_of(o).status))
+    failed = status != Status.OK
+    peaks = {}
+    for key, field in PEAK_KEYS.items():
+        column = gather(lambda o, f=field: np.asarray(getattr(peaks_of(o), f)))
+        if key != "num_steps":
+            column = np.where(failed, np.nan, column)
+        peaks[key] = column
+    gradients = None
+    if wrt:
+        gradients = {}
+        for key, field in _METRIC_FIELDS.items():
+            matrix = gather(lambda o, f=field: np.asarray(getattr(o[1], f)))
+            gradients[key] = {name: np.where(failed, np.nan, matrix[:, j])
+                              for j, name in enumerate(wrt)}
+    if failed.any() and show is not False:
+        reasons = {Status.message(c) for c in status[failed]}
+        print(f"sweep: {int(failed.sum())} of {n} designs failed ({'; '.join(reasons)}); "
+              "see SweepResult.failures()", file=sys.stderr)
+    return SweepResult(values=values, peaks=peaks, status=status, gradients=gradients,
+                       seconds=seconds)
+
+
+def sweep_grid(axes: Mapping[str, Sequence[float]], fixed: Mapping[str, float] | None = None,
+               **kwargs) -> SweepResult:
+    """`sweep` over the cartesian product of `axes` (see `grid`); the result knows its
+    `swept` names and `grid_shape`."""
+    columns, shape = grid(axes, fixed)
+    result = sweep(columns, **kwargs)
+    result.swept = tuple(axes)
+    result.grid_shape = shape
+    return result
