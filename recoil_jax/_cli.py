@@ -78,6 +78,12 @@ def _reproduce(args) -> int:
     return 0
 
 
+def _sweep(args) -> int:
+    from ._sweep_cli import run_sweep
+
+    return run_sweep(args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="recoil-jax",
@@ -94,6 +100,19 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--json", action="store_true", help="print one JSON object")
     sim.add_argument("--plot", metavar="FILE.png", help="plot x_M, x_m, F_AN, F_ct vs time")
     sim.set_defaults(func=_simulate)
+    swp = sub.add_parser(
+        "sweep", help="peaks over a grid or a list of designs",
+        description="Sweep designs: name=a,b,c (a list), name=start:stop:count (a range, "
+        "inclusive) or name=value (fixed), over the cartesian grid of the swept names; "
+        "or --points FILE (CSV with a header of names, or a JSON list of objects). "
+        "Writes sweep.csv, sweep.npz (arrays + metadata) and figures to --out.",
+    )
+    swp.add_argument("assignments", nargs="*", metavar="name=values")
+    swp.add_argument("--points", metavar="FILE", help="designs from CSV or JSON")
+    swp.add_argument("--json", action="store_true",
+                     help="print a JSON list, in input order (keys as simulate --json + status)")
+    swp.add_argument("--out", metavar="DIR", help="folder for sweep.csv, sweep.npz, figures")
+    swp.set_defaults(func=_sweep)
     rep = sub.add_parser(
         "reproduce", help="the paper's numbers beside ours, and its figures",
         description="Compare with the paper's Table 2 and text and the hard-switch "
@@ -109,7 +128,8 @@ def main(argv: list[str] | None = None) -> int:
     # name=value items may come after the flags (`simulate m=500 --hard t1=2`).
     args, extra = parser.parse_known_args(argv)
     if extra:
-        if args.command != "simulate" or any(item.startswith("-") for item in extra):
+        if args.command not in ("simulate", "sweep") or any(
+                item.startswith("-") for item in extra):
             parser.error(f"unrecognized arguments: {' '.join(extra)}")
         args.assignments = list(args.assignments) + extra
     try:

@@ -55,6 +55,25 @@ def plot_series(series, path, *, xlabel: str, ylabel: str, title: str = "",
     return _save(fig, path)
 
 
+def plot_heatmap(x, y, values, path, *, xlabel: str, ylabel: str, label: str,
+                 diverging: bool = False) -> Path:
+    """`values[i, j]` at `(x[j], y[i])` as a colour map (NaN: failed points, blank)."""
+    fig, ax = plt.subplots(figsize=(7, 5))
+    values = np.asarray(values, dtype=float)
+    kwargs = {}
+    if diverging:
+        # Clip at the 98th percentile: grazing impacts at the plateau's edge are steep.
+        limit = float(np.nanpercentile(np.abs(values), 98)) or 1.0
+        kwargs = {"cmap": "RdBu_r", "vmin": -limit, "vmax": limit}
+    mesh = ax.pcolormesh(np.asarray(x), np.asarray(y), values, shading="nearest", **kwargs)
+    fig.colorbar(mesh, ax=ax, label=label)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(label)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
 def _save(fig, path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

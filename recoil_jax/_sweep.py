@@ -70,20 +70,23 @@ class SweepResult:
         """`(index, reason)` of every failed point."""
         return [(int(i), Status.message(self.status[i])) for i in np.flatnonzero(~self.ok)]
 
-    def records(self) -> list[dict]:
-        """One dict per point: its parameters, peaks (None where the solve failed),
-        `status` ("ok" or the reason) and, with gradients, `d<peak>/d<parameter>` keys."""
+    def records(self, model: str = "smoothed") -> list[dict]:
+        """One dict per point, in input order, with the keys of `recoil-jax simulate
+        --json`: the peaks (None where the solve failed), `status` ("ok" or the reason),
+        `model`, `parameters`; with gradients also `gradients` ({peak: {param: d}})."""
         out = []
         for i in range(len(self)):
-            record = {name: float(v[i]) for name, v in self.values.items()}
-            for key, v in self.peaks.items():
-                record[key] = None if not self.ok[i] else (
-                    int(v[i]) if key == "num_steps" else float(v[i]))
-            if self.gradients:
-                for key, by_param in self.gradients.items():
-                    for name, v in by_param.items():
-                        record[f"d({key})/d({name})"] = float(v[i]) if self.ok[i] else None
+            ok = bool(self.ok[i])
+            record = {key: None if not ok else (int(v[i]) if key == "num_steps"
+                                                else float(v[i]))
+                      for key, v in self.peaks.items()}
             record["status"] = Status.message(self.status[i])
+            record["model"] = model
+            record["parameters"] = {name: float(v[i]) for name, v in self.values.items()}
+            if self.gradients:
+                record["gradients"] = {
+                    key: {name: float(v[i]) if ok else None for name, v in by.items()}
+                    for key, by in self.gradients.items()}
             out.append(record)
         return out
 
