@@ -98,7 +98,6 @@ def write_figures(result: SweepResult, out: Path) -> list[Path]:
     units = {"peak_displacement_m": ("peak barrel displacement (m)", 1.0),
              "peak_anchoring_force_N": ("peak anchoring force (N)", 1.0)}
     if "gap" in swept and len(swept) <= 2:
-        gap_axis = swept.index("gap")
         other = [n for n in swept if n != "gap"]
         for key, (label, scale) in units.items():
             data = result.peaks[key].reshape(shape)
@@ -136,36 +135,30 @@ def write_figures(result: SweepResult, out: Path) -> list[Path]:
 
 
 def run_sweep(args) -> int:
-    if args.points:
-        if args.assignments:
-            fixed = dict(item.split("=", 1) for item in args.assignments)
+    axes, fixed = {}, {}
+    for item in args.assignments:
+        name, sep, text = item.partition("=")
+        if not sep:
+            raise ParameterError(f"expected name=value, got {item!r}")
+        if name not in PARAMETER_NAMES and name != "t1":
+            raise ParameterError(f"unknown parameter {name!r}; names: "
+                                 f"{' '.join(PARAMETER_NAMES)} t1")
+        values = parse_axis(name, text)
+        if len(values) == 1:
+            fixed[name] = float(values[0])
         else:
-            fixed = {}
-        designs = read_points(args.points)
-        fixed_values = {k: float(v) for k, v in fixed.items()}
-        designs = [fixed_values | d for d in designs]
-        options = SolverOptions(t1=fixed_values.pop("t1")) if "t1" in fixed_values else None
-        for d in designs:
-            d.pop("t1", None)
+            axes[name] = values
+    options = SolverOptions(t1=fixed.pop("t1")) if "t1" in fixed else None
+    if args.points:
+        if axes:
+            raise ParameterError("with --points, other parameters can only be fixed "
+                                 "(name=value), not swept")
+        designs = [fixed | design for design in read_points(args.points)]
         result = sweep(designs, options=options, progress=not args.json)
     else:
-        axes, fixed = {}, {}
-        for item in args.assignments:
-            name, sep, text = item.partition("=")
-            if not sep:
-                raise ParameterError(f"expected name=value, got {item!r}")
-            if name not in PARAMETER_NAMES and name != "t1":
-                raise ParameterError(f"unknown parameter {name!r}; names: "
-                                     f"{' '.join(PARAMETER_NAMES)} t1")
-            values = parse_axis(name, text)
-            if len(values) == 1:
-                fixed[name] = float(values[0])
-            else:
-                axes[name] = values
         if not axes:
             raise ParameterError("nothing to sweep: give at least one list a,b,c or range "
                                  "start:stop:count, or --points FILE")
-        options = SolverOptions(t1=fixed.pop("t1")) if "t1" in fixed else None
         wrt = ("gap",) if "gap" in axes else None
         result = sweep_grid(axes, fixed, options=options, wrt=wrt, progress=not args.json)
     if args.json:
