@@ -115,6 +115,9 @@ from ._sweep import (
     SweepResult as SweepResult,
 )
 from ._sweep import (
+    batch_params as batch_params,
+)
+from ._sweep import (
     grid as grid,
 )
 from ._sweep import (

@@ -84,6 +84,12 @@ def _sweep(args) -> int:
     return run_sweep(args)
 
 
+def _bench(args) -> int:
+    from ._bench import main_bench
+
+    return main_bench(args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="recoil-jax",
@@ -113,6 +119,15 @@ def build_parser() -> argparse.ArgumentParser:
                      help="print a JSON list, in input order (keys as simulate --json + status)")
     swp.add_argument("--out", metavar="DIR", help="folder for sweep.csv, sweep.npz, figures")
     swp.set_defaults(func=_sweep)
+    bench = sub.add_parser(
+        "bench", help="throughput and Jacobians/s against a scipy solve_ivp loop",
+        description="Vmapped solves/s at batch sizes 1, 64, 1024, 16384; 4-parameter "
+        "Jacobians/s; compile time; a serial scipy solve_ivp loop (RK45, rtol 1e-5) on the "
+        "same peaks as the baseline, and the largest relative difference from it.",
+    )
+    bench.add_argument("--json", action="store_true", help="print one JSON object")
+    bench.add_argument("--quick", action="store_true", help="small batches (a smoke run)")
+    bench.set_defaults(func=_bench)
     rep = sub.add_parser(
         "reproduce", help="the paper's numbers beside ours, and its figures",
         description="Compare with the paper's Table 2 and text and the hard-switch "

@@ -111,6 +111,27 @@ def _as_columns(designs) -> dict[str, np.ndarray]:
     return columns
 
 
+def batch_params(designs) -> tuple[RecoilParams, dict[str, np.ndarray]]:
+    """Designs (a list of `{name: value}` dicts, or `name -> (n,)` columns) as one
+    `RecoilParams` whose every leaf has shape `(n,)` (names not given take the paper's
+    values), ready for `jax.vmap(..., in_axes=0)`; also returns the flat columns. Every
+    value is validated (a bad one raises `ParameterError` naming its index). `m = 0` in
+    every design is the simplified model; mixing it with `m > 0` is an error."""
+    columns = _as_columns(designs)
+    n = len(next(iter(columns.values())))
+    simplified = "m" in columns and np.all(columns["m"] == 0)
+    if "m" in columns and np.any(columns["m"] == 0) and not simplified:
+        raise ParameterError(
+            "m = 0 (simplified model) and m > 0 cannot be mixed in one sweep; sweep them "
+            "separately")
+    absorber_free = ("gap", "k_r", "c_r") if simplified else ()
+    defaults = params_to_values(params_from_values({"m": 0.0} if simplified else {}))
+    values = {k: np.full(n, float(np.asarray(v))) for k, v in defaults.items()}
+    values.update(columns)
+    values = {k: v for k, v in values.items() if k not in absorber_free}
+    return params_from_values(values), values
+
+
 def grid(axes: Mapping[str, Sequence[float]], fixed: Mapping[str, float] | None = None):
     """Cartesian product of `axes` (name -> values), C order, plus `fixed` values:
     returns `(columns, shape)` for `sweep`."""
@@ -182,21 +203,11 @@ def sweep(
     - `progress`: a progress line on stderr (default: when there is more than one chunk).
     - `options`: default `SolverOptions()`, or `GRADIENT_OPTIONS` with `wrt`.
     """
-    columns = _as_columns(designs)
-    n = len(next(iter(columns.values())))
-    simplified = "m" in columns and np.all(columns["m"] == 0)
-    if "m" in columns and np.any(columns["m"] == 0) and not simplified:
-        raise ParameterError(
-            "m = 0 (simplified model) and m > 0 cannot be mixed in one sweep; sweep them "
-            "separately")
     wrt = tuple(wrt) if wrt else None
     options = options or (GRADIENT_OPTIONS if wrt else SolverOptions())
-    absorber_free = ("gap", "k_r", "c_r") if simplified else ()
-    defaults = params_to_values(params_from_values({"m": 0.0} if simplified else {}))
-    values = {k: np.full(n, float(np.asarray(v))) for k, v in defaults.items()}
-    values.update(columns)
-    values = {k: v for k, v in values.items() if k not in absorber_free}
-    full = params_from_values(values)  # validates every point, before any compilation
+    full, values = batch_params(designs)  # validates every point, before any compilation
+    n = len(values["M"])
+    simplified = full.absorber is None
     if wrt:
         _check_wrt(full, wrt)
 

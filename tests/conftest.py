@@ -19,17 +19,10 @@ def reference_cases():
 
 
 def batch_params(designs):
-    """Stack a list of flat-name dicts (all with an absorber) into one `RecoilParams`
-    whose leaves have a leading batch axis, for `jax.vmap`."""
-    import numpy as np
-
+    """A list of flat-name dicts as one `RecoilParams` with a leading batch axis."""
     import recoil_jax as rj
 
-    names = sorted({name for d in designs for name in d})
-    defaults = {k: float(v) for k, v in rj.params_to_values(rj.RecoilParams()).items()}
-    columns = {n: np.array([d.get(n, defaults[n]) for d in designs], dtype=float)
-               for n in set(names) | set(defaults)}
-    return rj.params_from_values(columns)
+    return rj.batch_params(designs)[0]
 
 
 def batch_peaks(designs, smoothing=None, options=None):

@@ -1,0 +1,18 @@
+"""The benchmark runs and reports what it promises (speed itself is not asserted)."""
+
+from recoil_jax._bench import format_bench, run_bench
+
+
+def test_bench_smoke():
+    result = run_bench(batch_sizes=(1, 8), scipy_designs=2, jacobian_batch=4,
+                       log=lambda msg: None)
+    for key in ("sims_per_s", "batch_size", "scipy_sims_per_s", "jacobians_per_s",
+                "compile_s", "max_rel_error"):
+        assert key in result
+    assert result["sims_per_s"] > 0 and result["scipy_sims_per_s"] > 0
+    assert result["jacobians_per_s"] > 0 and result["compile_s"] >= 0
+    # Both solve the same model to rtol ~1e-5: peaks agree well inside 1e-3.
+    assert result["max_rel_error"] < 1e-3
+    assert "x the scipy loop" in format_bench(result)
+    assert [row["batch_size"] for row in result["batches"]] == [1, 8]
+    assert result["batch_size"] in (1, 8)
