@@ -15,7 +15,7 @@ from ._gradients import DESIGN_PARAMETERS, GRADIENT_OPTIONS, peak_gradients
 from ._params import Smoothing, SolverOptions
 from ._reference import reference_peaks
 from ._solve import peak_metrics
-from ._sweep import batch_params
+from ._sweep import batch_params, shard_batch
 
 
 def bench_designs(count: int, seed: int = 0) -> dict[str, np.ndarray]:
@@ -57,6 +57,8 @@ def run_bench(batch_sizes=(1, 64, 1024, 16384), scipy_designs: int = 20,
         # Evenly spread through the sorted designs, so each batch has the same mix.
         index = np.linspace(0, len(columns["m"]) - 1, size).astype(int)
         params = batch_params(_take(columns, index))[0]
+        if size % jax.local_device_count() == 0:
+            params = shard_batch(params)  # over every device, as `sweep` does
         _, first = _timed(solve, params, smoothing, options)
         repeats = max(1, min(5, int(2048 // size)))
         times = [_timed(solve, params, smoothing, options)[1] for _ in range(repeats)]
@@ -69,6 +71,8 @@ def run_bench(batch_sizes=(1, 64, 1024, 16384), scipy_designs: int = 20,
     jac = eqx.filter_jit(jax.vmap(peak_gradients, in_axes=(0, None, None, None)))
     index = np.linspace(0, len(columns["m"]) - 1, jacobian_batch).astype(int)
     params = batch_params(_take(columns, index))[0]
+    if jacobian_batch % jax.local_device_count() == 0:
+        params = shard_batch(params)
     _, jac_first = _timed(jac, params, smoothing, GRADIENT_OPTIONS, DESIGN_PARAMETERS)
     _, jac_run = _timed(jac, params, smoothing, GRADIENT_OPTIONS, DESIGN_PARAMETERS)
     jacobians_per_s = jacobian_batch / jac_run

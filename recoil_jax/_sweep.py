@@ -132,6 +132,14 @@ def batch_params(designs) -> tuple[RecoilParams, dict[str, np.ndarray]]:
     return params_from_values(values), values
 
 
+def shard_batch(tree, devices: Sequence[jax.Device] | None = None):
+    """Place a pytree whose leaves have a leading batch axis on `devices` (default: all
+    local devices), split along that axis. The batch must divide evenly."""
+    devices = list(devices) if devices is not None else jax.local_devices()
+    mesh = Mesh(np.array(devices), ("batch",))
+    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec("batch")))
+
+
 def grid(axes: Mapping[str, Sequence[float]], fixed: Mapping[str, float] | None = None):
     """Cartesian product of `axes` (name -> values), C order, plus `fixed` values:
     returns `(columns, shape)` for `sweep`."""
@@ -216,8 +224,6 @@ def sweep(
     devices = list(devices) if devices is not None else jax.local_devices()
     chunk = max(len(devices), chunk_size - chunk_size % len(devices))
     chunk = min(chunk, -(-n // len(devices)) * len(devices))  # no bigger than needed
-    mesh = Mesh(np.array(devices), ("batch",))
-    sharding = NamedSharding(mesh, PartitionSpec("batch"))
     runner = _RUNNERS[bool(wrt)]
     show = progress if progress is not None else n > chunk
     bar = _Progress(n, show)
@@ -228,7 +234,7 @@ def sweep(
         index = order[begin:begin + chunk]
         padded = np.concatenate([index, np.full(chunk - len(index), index[-1])])
         batch = jax.tree.map(lambda leaf, p=padded: np.asarray(leaf)[p], full)
-        batch = jax.device_put(batch, sharding)
+        batch = shard_batch(batch, devices)
         if wrt:
             result = runner(batch, smoothing, options, wrt)
         else:
