@@ -247,18 +247,16 @@ def sweep(
     inverse = np.empty(n, dtype=int)
     inverse[order] = np.arange(n)
 
-    def gather(get):
-        return np.concatenate([get(o) for o in outputs])[inverse]
+    chunk_peaks = [o[0] if wrt else o for o in outputs]
 
-    if wrt:
-        peaks_of = lambda o: o[0]  # noqa: E731
-    else:
-        peaks_of = lambda o: o  # noqa: E731
-    status = gather(lambda o: np.asarray(peaks_of(o).status))
+    def gather(chunks, field):
+        return np.concatenate([np.asarray(getattr(c, field)) for c in chunks])[inverse]
+
+    status = gather(chunk_peaks, "status")
     failed = status != Status.OK
     peaks = {}
     for key, field in PEAK_KEYS.items():
-        column = gather(lambda o, f=field: np.asarray(getattr(peaks_of(o), f)))
+        column = gather(chunk_peaks, field)
         if key != "num_steps":
             column = np.where(failed, np.nan, column)
         peaks[key] = column
@@ -266,10 +264,10 @@ def sweep(
     if wrt:
         gradients = {}
         for key, field in _METRIC_FIELDS.items():
-            matrix = gather(lambda o, f=field: np.asarray(getattr(o[1], f)))
+            matrix = gather([o[1] for o in outputs], field)
             gradients[key] = {name: np.where(failed, np.nan, matrix[:, j])
                               for j, name in enumerate(wrt)}
-    if failed.any() and show is not False:
+    if failed.any():
         reasons = {Status.message(c) for c in status[failed]}
         print(f"sweep: {int(failed.sum())} of {n} designs failed ({'; '.join(reasons)}); "
               "see SweepResult.failures()", file=sys.stderr)

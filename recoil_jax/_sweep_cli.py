@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ._params import PARAMETER_NAMES, ParameterError, SolverOptions
+from ._solve import Status
 from ._sweep import SweepResult, sweep, sweep_grid
 
 
@@ -77,9 +78,7 @@ def write_results(result: SweepResult, out: Path, meta: dict) -> list[Path]:
             arrays[f"grad_{key}__{name}"] = v
     metadata = meta | {"swept": list(result.swept), "grid_shape": result.grid_shape,
                        "n": len(result), "failed": len(result.failures()),
-                       "status_codes": {0: "ok"} | {int(c): m for c, m in
-                                                      zip(result.status, result.messages(),
-                                                          strict=True)}}
+                       "status_codes": Status.MESSAGES}
     np.savez(out / "sweep.npz", metadata=json.dumps(metadata), **arrays)
     return [out / "sweep.csv", out / "sweep.npz"]
 
