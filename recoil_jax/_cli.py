@@ -85,6 +85,23 @@ def _sweep(args) -> int:
     return run_sweep(args)
 
 
+def _optimise(args) -> int:
+    from ._studies import run_study
+
+    report = run_study(args.study, args.out, progress=True)
+    if args.json:
+        print(json.dumps(report))
+    else:
+        print(f"study {report['study']}: objective {report['objective']:.6g}, "
+              f"{report['simulations']} simulations, {report['seconds']:.1f} s")
+        print("  best: " + ", ".join(f"{k}={report['best'][k]:.6g}"
+                                     for k in report["tuned"]))
+        for name, c in report["constraints"].items():
+            state = "ok" if c["satisfied"] else "VIOLATED"
+            print(f"  {name}: {c['value']:.6g} (limit {c['limit']:g}) {state}")
+    return 0
+
+
 def _bench(args) -> int:
     from ._bench import main_bench
 
@@ -129,6 +146,15 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--json", action="store_true", help="print one JSON object")
     bench.add_argument("--quick", action="store_true", help="small batches (a smoke run)")
     bench.set_defaults(func=_bench)
+    opt = sub.add_parser(
+        "optimise", help="run an optimisation study (optimise/<study>.toml)",
+        description="Tune absorber parameters with optax as the study file says; write "
+        "result.json, convergence.png, best_history.png (and front/robust figures).",
+    )
+    opt.add_argument("study", help="study file, e.g. optimise/paper_gap.toml")
+    opt.add_argument("--out", help="output folder (default results/<study name>)")
+    opt.add_argument("--json", action="store_true", help="print result.json to stdout")
+    opt.set_defaults(func=_optimise)
     rep = sub.add_parser(
         "reproduce", help="the paper's numbers beside ours, and its figures",
         description="Compare with the paper's Table 2 and text and the hard-switch "

@@ -24,13 +24,12 @@ import jax.numpy as jnp
 from ._model import contact_width, initial_state, vector_field
 from ._params import (
     PARAMETER_NAMES,
-    Absorber,
-    Barrel,
-    Contact,
     ParameterError,
     RecoilParams,
     Smoothing,
     SolverOptions,
+    _is_concrete,
+    parameter_limits,
 )
 from ._solve import Peaks, _integrate_peaks, _metrics, _peaks_from_run, _raise_on_failure
 
@@ -43,13 +42,9 @@ DESIGN_PARAMETERS = ("gap", "m", "k_r", "c_r")
 #: <= 1.8e-4 and rtol 1e-7 <= 8.2e-5 over 24 designs (tests/test_gradients.py).
 GRADIENT_OPTIONS = SolverOptions(rtol=1e-7, atol=1e-10)
 
-_GROUP_CLASSES = {"barrel": Barrel, "absorber": Absorber, "contact": Contact}
-
-
 def parameter_scale(name: str) -> float:
     """Width of a parameter's documented range (the tangent scaling; SI units)."""
-    group, field = PARAMETER_NAMES[name]
-    lo, hi = _GROUP_CLASSES[group].LIMITS[field].documented
+    lo, hi = parameter_limits(name).documented
     return hi - lo
 
 
@@ -121,11 +116,75 @@ def _model_metrics(y, params, smoothing):
     return _metrics(y, (params, smoothing, contact_width(params, smoothing)))
 
 
+#: Metrics that have a smooth maximum over time (index into `_metrics`).
+SMOOTH_MAX_METRICS = {"peak_displacement": 0, "peak_anchoring_force": 1}
+# The log-integral starts from a seed worth `_SEED * t1` seconds at the initial value,
+# so that it is finite at t = 0 and its first steps are not stiff.
+_SEED = 1e-3
+_N_STATE = 4
+
+
+class SmoothMax(eqx.Module):
+    """Smooth maxima over time of peak metrics: `T · log((1/t1) ∫_0^t1 exp(g(t)/T) dt)`
+    for each metric `g` named in `metrics` (static; keys of `SMOOTH_MAX_METRICS`) with
+    temperature `T` in the metric's unit (`temperatures`, shape `(len(metrics),)`).
+
+    As `T → 0` this tends to `max_t g`, from below by about `T · log(t1 / w)` where `w`
+    is the width of the peak. Unlike the peak, it is smooth where the maximum jumps
+    from one local maximum to another: both contribute, weighted by `exp(g/T)`.
+    It is integrated as one extra state per metric, `L = log((1/t1) ∫ exp(g/T))`, with
+    `dL/dt = exp(g/T − L) / t1`, under the same error control as the rest.
+    """
+
+    metrics: tuple[str, ...] = eqx.field(static=True)
+    temperatures: jax.Array = eqx.field(converter=lambda x: jnp.asarray(x, dtype=float))
+
+    def __check_init__(self):
+        for name in self.metrics:
+            if name not in SMOOTH_MAX_METRICS:
+                raise ParameterError(
+                    f"no smooth maximum of {name!r}; choose from {', '.join(SMOOTH_MAX_METRICS)}"
+                )
+        if jnp.shape(self.temperatures)[-1:] != (len(self.metrics),):
+            raise ParameterError("SmoothMax needs one temperature per metric")
+        if _is_concrete(self.temperatures) and not bool(jnp.all(self.temperatures > 0)):
+            raise ParameterError(
+                f"SmoothMax.temperatures = {self.temperatures} is invalid: valid > 0 "
+                "(in the metric's unit)"
+            )
+
+
+def _augmented_vf(t, y, params, smoothing, smooth_max, t1):
+    f = _model_vf(t, y[:_N_STATE], params, smoothing)
+    if smooth_max is None:
+        return f
+    g = _model_metrics(y[:_N_STATE], params, smoothing)
+    index = jnp.asarray([SMOOTH_MAX_METRICS[name] for name in smooth_max.metrics])
+    # Clipped so that a sudden rise far above the running integral cannot overflow.
+    exponent = jnp.minimum(g[index] / smooth_max.temperatures - y[_N_STATE:], 700.0)
+    return jnp.concatenate([f, jnp.exp(exponent) / t1])
+
+
+def _augmented_metrics(y, params, smoothing):
+    # The log-integrals increase monotonically: their maximum is their value at t1.
+    return jnp.concatenate([_model_metrics(y[:_N_STATE], params, smoothing), y[_N_STATE:]])
+
+
+def _augmented_initial_state(params, smoothing, smooth_max):
+    y0 = initial_state(params)
+    if smooth_max is None:
+        return y0
+    g0 = _model_metrics(y0, params, smoothing)
+    index = jnp.asarray([SMOOTH_MAX_METRICS[name] for name in smooth_max.metrics])
+    return jnp.concatenate([y0, g0[index] / smooth_max.temperatures + jnp.log(_SEED)])
+
+
 def _sensitivity_vf(t, z, args):
-    params, smoothing, tangents = args
-    n = initial_state(params).shape[0]
+    params, smoothing, tangents, smooth_max, t1 = args
+    n = _N_STATE + (0 if smooth_max is None else len(smooth_max.metrics))
     y, sensitivities = z[:n], z[n:].reshape(-1, n)
-    f_y, f_jvp = jax.linearize(lambda y_, p_: _model_vf(t, y_, p_, smoothing), y, params)
+    f_y, f_jvp = jax.linearize(
+        lambda y_, p_: _augmented_vf(t, y_, p_, smoothing, smooth_max, t1), y, params)
     d_sensitivities = jax.vmap(f_jvp)(sensitivities, tangents)
     return jnp.concatenate([f_y, d_sensitivities.reshape(-1)])
 
@@ -133,24 +192,29 @@ def _sensitivity_vf(t, z, args):
 _SENSITIVITY_TERM = diffrax.ODETerm(_sensitivity_vf)
 
 
-def _peaks_and_gradients(params, smoothing, options, wrt):
+def _sensitivity_solve(params, smoothing, options, wrt, smooth_max=None):
+    """Peaks, their gradients, and (with `smooth_max`) the smooth maxima `(k,)` and their
+    gradients `(k, len(wrt))`."""
     tangents = _tangents(params, wrt)
-    y0 = initial_state(params)
+    y0 = _augmented_initial_state(params, smoothing, smooth_max)
     n = y0.shape[0]
-    s0 = jax.vmap(lambda tp: jax.jvp(initial_state, (params,), (tp,))[1])(tangents)
+    s0 = jax.vmap(lambda tp: jax.jvp(
+        lambda p: _augmented_initial_state(p, smoothing, smooth_max), (params,), (tp,))[1]
+    )(tangents)
     z0 = jnp.concatenate([y0, s0.reshape(-1)])
+    t1 = jnp.asarray(options.t1, dtype=float)
 
     def metrics_fn(z, args):
-        return _model_metrics(z[:n], args[0], args[1])
+        return _augmented_metrics(z[:n], args[0], args[1])
 
-    args = (params, smoothing, tangents)
+    args = (params, smoothing, tangents, smooth_max, t1)
     run = _integrate_peaks(_SENSITIVITY_TERM, z0, args, metrics_fn, options)
 
     def gradient_of_metric(i, state):
         y, sensitivities = state[:n], state[n:].reshape(-1, n)
 
         def metric(y_, p_):
-            return _model_metrics(y_, p_, smoothing)[i]
+            return _augmented_metrics(y_, p_, smoothing)[i]
 
         return jax.vmap(lambda s, tp: jax.jvp(metric, (y, params), (s, tp))[1])(
             sensitivities, tangents)
@@ -167,7 +231,18 @@ def _peaks_and_gradients(params, smoothing, options, wrt):
         max_stroke=grads[3],
         wrt=wrt,
     )
-    return _peaks_from_run(run), gradients
+    peaks = _peaks_from_run(run)
+    if smooth_max is None:
+        return peaks, gradients, None, None
+    temperatures = smooth_max.temperatures
+    smooth_values = temperatures * run.best[5:]
+    smooth_grads = temperatures[:, None] * grads[5:]
+    return peaks, gradients, smooth_values, smooth_grads
+
+
+def _peaks_and_gradients(params, smoothing, options, wrt):
+    peaks, gradients, _, _ = _sensitivity_solve(params, smoothing, options, wrt)
+    return peaks, gradients
 
 
 def peak_gradients(

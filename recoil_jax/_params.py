@@ -320,6 +320,12 @@ PARAMETER_NAMES: dict[str, tuple[str, str]] = {
 _GROUPS = {"barrel": Barrel, "absorber": Absorber, "contact": Contact}
 
 
+def parameter_limits(name: str) -> Limits:
+    """The valid and documented range of a parameter (flat name)."""
+    group, field = PARAMETER_NAMES[name]
+    return _GROUPS[group].LIMITS[field]
+
+
 def params_from_values(values: dict[str, Any] | None = None, **kwargs: Any) -> RecoilParams:
     """Build `RecoilParams` from flat names (`M k c_out c_ret v0 m gap k_r c_r k_c n_c
     lambda_c`); missing names take the defaults. `m = 0` gives the simplified model."""

@@ -74,6 +74,47 @@ def plot_heatmap(x, y, values, path, *, xlabel: str, ylabel: str, label: str,
     return _save(fig, path)
 
 
+def plot_convergence(result, path, title: str = "") -> Path:
+    """Convergence of an `OptimiseResult`: per run, the best feasible objective so far
+    and the worst normalised constraint violation, against the step."""
+    history = result.history
+    objective = np.where(np.all(history["violations"] <= 0, axis=-1), history["objective"],
+                         np.inf)
+    best_so_far = np.minimum.accumulate(objective, axis=0)
+    steps = np.arange(1, objective.shape[0] + 1)
+    has_limits = history["violations"].shape[-1] > 0
+    fig, axes = plt.subplots(2 if has_limits else 1, 1, figsize=(8, 7 if has_limits else 4.5),
+                             sharex=True, squeeze=False)
+    ax = axes[0, 0]
+    for r in range(objective.shape[1]):
+        ax.plot(steps, np.where(np.isfinite(best_so_far[:, r]), best_so_far[:, r], np.nan),
+                lw=0.8, alpha=0.6)
+    overall = np.min(best_so_far, axis=1)
+    ax.plot(steps, np.where(np.isfinite(overall), overall, np.nan), "k", lw=2,
+            label="best of all runs")
+    finite = best_so_far[np.isfinite(best_so_far)]
+    if finite.size:
+        low = float(np.min(finite))
+        high = float(np.percentile(finite, 90))
+        ax.set_ylim(low - 0.02 * (high - low + abs(low) * 1e-3), high)
+    ax.set_ylabel("best feasible objective")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    if has_limits:
+        ax = axes[1, 0]
+        worst = np.max(history["violations"], axis=-1)
+        for r in range(worst.shape[1]):
+            ax.plot(steps, np.maximum(worst[:, r], 1e-7), lw=0.8, alpha=0.6)
+        ax.set_yscale("log")
+        ax.set_ylabel("worst limit violation (relative)")
+        ax.grid(alpha=0.3)
+    axes[-1, 0].set_xlabel("step")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
 def _save(fig, path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
