@@ -6,10 +6,15 @@ import jax as _jax
 # (Set before the submodules import, hence E402 below.)
 _jax.config.update("jax_enable_x64", True)
 
+from ._design import (
+    METRICS as METRICS,
+    differentiable_peaks as differentiable_peaks,
+)
 from ._gradients import (
     DESIGN_PARAMETERS as DESIGN_PARAMETERS,
     GRADIENT_OPTIONS as GRADIENT_OPTIONS,
     PeakGradients as PeakGradients,
+    SmoothMax as SmoothMax,
     parameter_scale as parameter_scale,
     peak_gradients as peak_gradients,
     peak_jacobian as peak_jacobian,
@@ -25,6 +30,20 @@ from ._model import (
     positive_power as positive_power,
     smooth_relu as smooth_relu,
     vector_field as vector_field,
+)
+from ._optimise import (
+    Constraint as Constraint,
+    DesignProblem as DesignProblem,
+    Objective as Objective,
+    OptimiseResult as OptimiseResult,
+    constraint_report as constraint_report,
+    default_optimiser as default_optimiser,
+    evaluate_design as evaluate_design,
+    optimise as optimise,
+)
+from ._paper import (
+    case_params as case_params,
+    paper_cases as paper_cases,
 )
 from ._params import (
     PARAMETER_NAMES as PARAMETER_NAMES,

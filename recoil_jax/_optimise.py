@@ -42,10 +42,12 @@ from ._params import (
     parameter_limits,
     params_to_values,
 )
-from ._solve import Status
+from ._solve import PEAK_KEYS, Status
 
 #: What an objective or a constraint can name besides parameters.
 OBJECTIVE_METRICS = METRICS
+#: `Peaks` field → `simulate --json` key.
+_JSON_KEYS = {field: key for key, field in PEAK_KEYS.items()}
 
 
 class Objective(eqx.Module):
@@ -469,7 +471,10 @@ def optimise(
     limits = np.asarray([[limit for _, _, limit in constraints]], dtype=float).reshape(1, -1)
     sizes = set()
     if scenarios is not None:
-        sizes.add(int(np.shape(jax.tree.leaves(scenarios)[0])[0]))
+        # Leaves with a leading axis vary per scenario; scalars are shared.
+        sizes |= {int(np.shape(x)[0]) for x in jax.tree.leaves(scenarios) if np.ndim(x)}
+        if not sizes:
+            raise ParameterError("scenarios: no parameter has a leading scenario axis")
     if scenario_limits:
         names = [name for name, _, _ in constraints]
         for name, values in scenario_limits.items():
@@ -480,9 +485,10 @@ def optimise(
     if len(sizes) > 1:
         raise ParameterError(f"scenarios of different lengths: {sorted(sizes)}")
     n_scenarios = sizes.pop() if sizes else 1
-    params = (scenarios if scenarios is not None else
-              jax.tree.map(lambda x: jnp.repeat(jnp.asarray(x)[None], n_scenarios, axis=0),
-                           problem.params))
+    # Every parameter is a scalar per design: shared values broadcast over the scenarios.
+    params = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x, dtype=float),
+                                                     (n_scenarios,)),
+                          problem.params if scenarios is None else scenarios)
     limits = np.repeat(limits, n_scenarios, axis=0)
     for name, values in (scenario_limits or {}).items():
         limits[:, [c[0] for c in constraints].index(name)] = np.asarray(values, dtype=float)
@@ -512,6 +518,7 @@ def optimise(
     converged_step = np.full(runs, -1)
     records: list[_StepRecord] = []
     simulations = 0
+    best_so_far = np.inf
     start_time = time.perf_counter()
     for k in range(steps):
         state, record = step_fn(state, run_params, run_limits, jnp.asarray(active))
@@ -525,16 +532,18 @@ def optimise(
         active &= ~stop
         if callback is not None:
             callback(k, {"objective": record.objective, "active": active.copy()})
-        if show:
-            best = np.nanmin(np.where(np.all(record.violations <= 0, axis=-1),
-                                      record.objective, np.nan), initial=np.inf)
+        feasible = np.all(record.violations <= 0, axis=-1) & (record.status == Status.OK)
+        best_so_far = min(best_so_far, float(np.min(np.where(feasible, record.objective,
+                                                              np.inf))))
+        tty = sys.stderr.isatty()
+        last = k + 1 == steps or not active.any()
+        if show and (tty or last or (k + 1) % max(1, steps // 10) == 0):
             print(f"optimise: step {k + 1}/{steps}, {int(active.sum())}/{runs} runs active, "
-                  f"best objective {best:.6g}, {time.perf_counter() - start_time:.1f} s",
-                  end="\r" if sys.stderr.isatty() else "\n", file=sys.stderr, flush=True)
+                  f"best feasible objective {best_so_far:.6g}, "
+                  f"{time.perf_counter() - start_time:.1f} s",
+                  end="\r" if tty and not last else "\n", file=sys.stderr, flush=True)
         if not active.any():
             break
-    if show and sys.stderr.isatty():
-        print(file=sys.stderr)
 
     history = {
         "theta": np.stack([r.theta for r in records]),
@@ -583,16 +592,24 @@ def optimise(
 
 
 def constraint_report(problem: DesignProblem, design: Mapping[str, float],
-                      metrics: Mapping[str, float]) -> dict[str, dict]:
-    """`{name: {value, limit, kind, satisfied}}` for every constraint (`name` is
-    `"<quantity> <= limit"` style: `max_stroke_max`, `m_max`, ...)."""
+                      metrics: Mapping[str, float], limits=None) -> dict[str, dict]:
+    """`{"<name> (max|min)": {value, limit, satisfied}}` for every constraint of `problem`.
+
+    `design`: flat parameter values; `metrics`: the peaks with `simulate --json` keys
+    (`Peaks.to_dict()`); `limits`: optional per-scenario limits of the metric
+    constraints (in the order of `problem.metric_constraints`)."""
+    metric_limits = iter([] if limits is None else [float(x) for x in limits])
     report = {}
     for c in problem.constraints:
-        value = float(metrics[c.name]) if c.is_metric else float(design[c.name])
         for kind, limit in c.limits():
+            if c.is_metric:
+                limit = next(metric_limits) if limits is not None else limit
+                value = float(metrics[_JSON_KEYS[c.name]])
+            else:
+                value = float(design[c.name])
             ok = value <= limit if kind == "max" else value >= limit
-            report[f"{c.name}_{kind}"] = {"value": value, "limit": limit, "kind": kind,
-                                         "satisfied": bool(ok)}
+            report[f"{c.name} ({kind})"] = {"value": value, "limit": float(limit),
+                                           "satisfied": bool(ok)}
     return report
 
 

@@ -40,8 +40,9 @@ from typing import Any
 import jax
 import numpy as np
 
+from ._optimise import _JSON_KEYS as _METRIC_KEYS
 from ._params import PARAMETER_NAMES, ParameterError, Smoothing, params_from_values
-from ._solve import PEAK_KEYS, peaks, simulate
+from ._solve import peaks, simulate
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -53,8 +54,6 @@ _SECTIONS = {"description", "design", "tune", "objective", "constraints", "optim
 _OPTIMISER_KEYS = {"starts", "steps", "learning_rate", "seed", "anneal", "patience",
                    "update_every", "penalty"}
 _CHECK_KEYS = {"grid", "local", "hard", "nominal"}
-#: `Peaks` field → `simulate --json` key.
-_METRIC_KEYS = {field: key for key, field in PEAK_KEYS.items()}
 
 
 @dataclass
@@ -173,22 +172,6 @@ def _objective_of(problem, metrics_json: dict) -> float:
                      for name, w in problem.objective.weights.items()))
 
 
-def _constraints_json(problem, design: dict, metrics_json: dict, limits=None) -> dict:
-    report = {}
-    metric_limits = iter([] if limits is None else list(limits))
-    for c in problem.constraints:
-        for kind, limit in c.limits():
-            if c.is_metric:
-                limit = float(next(metric_limits)) if limits is not None else limit
-                value = metrics_json[_METRIC_KEYS[c.name]]
-            else:
-                value = design[c.name]
-            ok = value <= limit if kind == "max" else value >= limit
-            report[f"{c.name} ({kind})"] = {"value": float(value), "limit": float(limit),
-                                            "satisfied": bool(ok)}
-    return report
-
-
 def _scatter_worst(problem, params, offsets) -> tuple[dict, float]:
     """Worst-case metrics (max; min for min_stroke) and objective over `offsets`."""
     from ._design import values_of, with_values
@@ -203,6 +186,8 @@ def _scatter_worst(problem, params, offsets) -> tuple[dict, float]:
 
 
 def _best_summary(study: Study, result, scenario: int) -> dict:
+    from ._optimise import constraint_report
+
     problem = study.problem
     params = result.best_params(scenario)
     design = result.best_design(scenario)
@@ -214,9 +199,9 @@ def _best_summary(study: Study, result, scenario: int) -> dict:
         worst, worst_objective = _scatter_worst(problem, params, problem.objective.scatter[1])
         summary["objective"] = worst_objective
         summary["worst_case_metrics"] = worst
-        summary["constraints"] = _constraints_json(problem, design, worst, limits)
+        summary["constraints"] = constraint_report(problem, design, worst, limits)
     else:
-        summary["constraints"] = _constraints_json(problem, design, metrics, limits)
+        summary["constraints"] = constraint_report(problem, design, metrics, limits)
     return summary
 
 
