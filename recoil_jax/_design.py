@@ -99,7 +99,9 @@ def differentiable_peaks(
     _check_wrt(params, wrt)
 
     def fn(theta):
-        return _metrics(jnp.asarray(theta, dtype=float), params=params, wrt=wrt,
+        # The tuned leaves of `params` are replaced by `theta`: cut any tangent they carry.
+        base = with_values(params, wrt, jax.lax.stop_gradient(values_of(params, wrt)))
+        return _metrics(jnp.asarray(theta, dtype=float), params=base, wrt=wrt,
                         smoothing=smoothing, options=options, smooth_max=smooth_max)
 
     return fn

@@ -32,38 +32,43 @@ def test_grad_through_differentiable_peaks_equals_sensitivity_jacobian():
     params = rj.RecoilParams(absorber=rj.Absorber(m=1400.0, gap=0.05, k_r=15000.0, c_r=3000.0))
     peaks, grads = rj.peak_jacobian(params, wrt=wrt)
     expected = np.asarray(grads.peak_anchoring_force) + 1e4 * np.asarray(grads.max_stroke)
-    np.testing.assert_allclose(grad, expected, rtol=1e-9)
-    np.testing.assert_allclose(forward, expected, rtol=1e-9)
+    # Same solve, compiled in a different program: the step grid may differ by rounding,
+    # so agreement is to well inside the solver tolerance (rtol 1e-7), not bitwise.
+    np.testing.assert_allclose(grad, expected, rtol=1e-6)
+    np.testing.assert_allclose(forward, grad, rtol=1e-12)
     np.testing.assert_allclose(value, peaks.peak_anchoring_force + 1e4 * peaks.max_stroke,
-                               rtol=1e-12)
+                               rtol=1e-8)
 
 
-@pytest.mark.parametrize("gap", [0.055, 0.062, 0.07])
-def test_smooth_max_value_and_gradient(gap):
-    """The log-sum-exp maximum over time lies below the peak by a few temperatures, falls
-    towards it as T shrinks, and its gradient matches central differences."""
+def _smooth_force(gap, temperature, options):
     params = rj.RecoilParams(absorber=rj.Absorber(m=1500.0, gap=gap))
-    peak = float(rj.peaks(params).peak_anchoring_force)
-    gaps = {}
+    smooth = rj.SmoothMax(("peak_anchoring_force",), jnp.atleast_1d(temperature))
+    fn = rj.differentiable_peaks(params, ("gap",), options=options, smooth_max=smooth)
+    return fn(jnp.atleast_1d(gap))[0]["smooth_peak_anchoring_force"]
+
+
+def test_smooth_max_value_and_gradient():
+    """The log-sum-exp maximum over time lies below the peak by a few temperatures, falls
+    towards it as T shrinks, and its gradient matches central differences (before, at
+    and after the kink of the optimum). One compilation each: gap and T are traced."""
+    gaps = jnp.array([0.055, 0.062, 0.07])
+    peak = np.asarray(rj.sweep({"m": np.full(3, 1500.0), "gap": np.asarray(gaps)},
+                               progress=False).peaks["peak_anchoring_force_N"])
+    value_and_grad = jax.jit(jax.vmap(jax.value_and_grad(_smooth_force), (0, None, None)))
+    tight = rj.SolverOptions(rtol=1e-11, atol=1e-14, max_steps=200_000)
+    tight_values = jax.jit(jax.vmap(_smooth_force, (0, None, None)))
+    h = 1e-6
+    below = {}
     for temperature in (20.0, 2.0):
-        smooth = rj.SmoothMax(("peak_anchoring_force",), [temperature])
-        fn = rj.differentiable_peaks(params, ("gap",), smooth_max=smooth)
-
-        def value(g, fn=fn):
-            return fn(jnp.atleast_1d(g))[0]["smooth_peak_anchoring_force"]
-
-        v, dv = jax.jit(jax.value_and_grad(value))(gap)
-        gaps[temperature] = peak - float(v)
-        assert 0.0 < peak - float(v) < 10 * temperature
-        h = 1e-6
-        tight = rj.SolverOptions(rtol=1e-11, atol=1e-14, max_steps=200_000)
-        fd_fn = rj.differentiable_peaks(params, ("gap",), options=tight, smooth_max=smooth)
-        up, down = (float(fd_fn(jnp.atleast_1d(gap + s))[0]["smooth_peak_anchoring_force"])
-                    for s in (h, -h))
-        fd = (up - down) / (2 * h)
+        values, grads = value_and_grad(gaps, temperature, rj.GRADIENT_OPTIONS)
+        below[temperature] = peak - np.asarray(values)
+        assert np.all((below[temperature] > 0) & (below[temperature] < 10 * temperature))
+        fd = (np.asarray(tight_values(gaps + h, temperature, tight))
+              - np.asarray(tight_values(gaps - h, temperature, tight))) / (2 * h)
         # Scaled like the peak gradients: by the gap's range over the value.
-        assert abs(float(dv) - fd) * 0.2 / peak <= 1e-4, (float(dv), fd)
-    assert gaps[2.0] < gaps[20.0]
+        error = np.abs(np.asarray(grads) - fd) * 0.2 / peak
+        assert np.all(error <= 1e-4), (np.asarray(grads), fd)
+    assert np.all(below[2.0] < below[20.0])
 
 
 def test_paper_gap_optimum_matches_dense_grid_with_one_compilation():
@@ -226,3 +231,30 @@ def test_bad_study_file_exits_with_a_message(tmp_path, capsys):
     study.write_text("[tune]\nmass = [0, 1]\n[objective]\npeak_anchoring_force = 1.0\n")
     assert main(["optimise", str(study)]) == 2
     assert "unknown parameter 'mass'" in capsys.readouterr().err
+
+
+def test_tuning_benchmark_smoke(tmp_path):
+    """The gradient-free comparison runs and reports simulations for both methods."""
+    from recoil_jax._bench_tuning import format_report, run_tuning_bench
+
+    study = tmp_path / "tiny.toml"
+    study.write_text("""
+[design]
+m = 1500.0
+gap = 0.062
+[tune]
+gap = [0.0, 0.12]
+c_r = [1000.0, 6000.0]
+[objective]
+peak_anchoring_force = 1.0
+[constraints]
+max_stroke = { max = 0.15 }
+[optimiser]
+starts = 2
+steps = 20
+""")
+    report = run_tuning_bench(study, nelder_mead_evaluations=40, log=lambda _: None)
+    assert report["gradient"]["simulations_total"] == 40
+    assert 0 < report["nelder_mead"]["simulations_total"] <= 41
+    assert report["best_objective"] <= report["gradient"]["best_objective"]
+    assert "Nelder-Mead" in format_report(report)
