@@ -40,7 +40,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from ._optimise import _JSON_KEYS as _METRIC_KEYS
+from ._optimise import _JSON_KEYS as _METRIC_KEYS, constraint_report
 from ._params import PARAMETER_NAMES, ParameterError, Smoothing, params_from_values
 from ._solve import peaks, simulate
 
@@ -186,8 +186,6 @@ def _scatter_worst(problem, params, offsets) -> tuple[dict, float]:
 
 
 def _best_summary(study: Study, result, scenario: int) -> dict:
-    from ._optimise import constraint_report
-
     problem = study.problem
     params = result.best_params(scenario)
     design = result.best_design(scenario)
@@ -205,6 +203,18 @@ def _best_summary(study: Study, result, scenario: int) -> dict:
     return summary
 
 
+def _feasible_objective(problem, sweep_result) -> tuple[np.ndarray, np.ndarray]:
+    """The objective (with peaks) of each swept design, inf where a solve failed or a
+    metric limit is broken; and the feasibility mask."""
+    feasible = sweep_result.ok.copy()
+    for name, kind, limit in problem.metric_constraints:
+        values = sweep_result.peaks[_METRIC_KEYS[name]]
+        feasible &= values <= limit if kind == "max" else values >= limit
+    objective = sum(w * sweep_result.peaks[_METRIC_KEYS[n]]
+                    for n, w in problem.objective.weights.items())
+    return np.where(feasible, objective, np.inf), feasible
+
+
 def _grid_check(study: Study, result, axes: dict) -> tuple[dict, int]:
     """The best feasible point of a cartesian grid around the best design (others fixed
     at it), for the objective with peaks."""
@@ -218,13 +228,7 @@ def _grid_check(study: Study, result, axes: dict) -> tuple[dict, int]:
         grid_axes[name] = np.linspace(float(lo), float(hi), int(count))
     fixed = {k: v for k, v in design.items() if k not in grid_axes}
     sweep_result = sweep_grid(grid_axes, fixed=fixed, progress=False)
-    feasible = sweep_result.ok.copy()
-    for name, kind, limit in problem.metric_constraints:
-        values = sweep_result.peaks[_METRIC_KEYS[name]]
-        feasible &= values <= limit if kind == "max" else values >= limit
-    objective = sum(w * sweep_result.peaks[_METRIC_KEYS[n]]
-                    for n, w in problem.objective.weights.items())
-    objective = np.where(feasible, objective, np.inf)
+    objective, feasible = _feasible_objective(problem, sweep_result)
     i = int(np.argmin(objective))
     spacing = {n: float(a[1] - a[0]) if len(a) > 1 else 0.0 for n, a in grid_axes.items()}
     return {
@@ -252,13 +256,7 @@ def _local_check(study: Study, result, fraction: float) -> tuple[dict, int]:
             points.append({**design, name: value})
             labels.append(name)
     sweep_result = sweep(points, progress=False)
-    feasible = sweep_result.ok.copy()
-    for name, kind, limit in problem.metric_constraints:
-        values = sweep_result.peaks[_METRIC_KEYS[name]]
-        feasible &= values <= limit if kind == "max" else values >= limit
-    objective = sum(w * sweep_result.peaks[_METRIC_KEYS[n]]
-                    for n, w in problem.objective.weights.items())
-    objective = np.where(feasible, objective, np.inf)
+    objective, _ = _feasible_objective(problem, sweep_result)
     return {"fraction_of_bounds": fraction, "points": len(points),
             "best_scan_objective": float(np.min(objective)),
             "per_parameter": {n: float(np.min(objective[np.asarray(labels) == n]))
