@@ -297,9 +297,10 @@ def run_study(path, out: str | Path | None = None, progress: bool | None = None)
     if check.get("hard"):
         hard = _metrics_json(result.best_params(0), Smoothing.exact())
         smooth = report["metrics"]
+        # At the nominal parameters (for a scatter study too): a check of the model.
         report["hard_model"] = {
             "metrics": hard,
-            "objective": _objective_of(problem, hard),
+            "objective_at_nominal": _objective_of(problem, hard),
             "max_relative_difference": max(
                 abs(hard[k] - smooth[k]) / max(abs(smooth[k]), 1e-12)
                 for k in smooth if k.endswith("_N") or k.endswith("_m")),
@@ -367,7 +368,7 @@ def _plot_front(table: dict, out: Path, plot_series) -> None:
     displacement = [r["metrics"]["peak_displacement_m"] for r in rows]
     unit = "kg" if vary == "m" else ("m" if vary in PARAMETER_NAMES else "")
     plot_series({"best design": (x, force)}, out / f"front_{vary}.png",
-                xlabel=f"{vary} {unit}".strip(), ylabel="peak anchoring force (N)",
+                xlabel=f"{vary} ({unit})" if unit else vary, ylabel="peak anchoring force (N)",
                 title=f"Pareto front: peak anchoring force vs {vary}")
     plot_series({"best design": (displacement, force)},
                 out / f"front_{vary}_force_vs_displacement.png",
