@@ -11,11 +11,11 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from ._gradients import DESIGN_PARAMETERS, GRADIENT_OPTIONS, peak_gradients
+from ._gradients import DESIGN_PARAMETERS
 from ._params import Smoothing, SolverOptions
 from ._reference import reference_peaks
 from ._solve import peak_metrics
-from ._sweep import batch_params, shard_batch
+from ._sweep import batch_params, shard_batch, sweep
 
 
 def bench_designs(count: int, seed: int = 0) -> dict[str, np.ndarray]:
@@ -41,40 +41,45 @@ def _timed(fn, *args):
 
 
 def run_bench(batch_sizes=(1, 64, 1024, 16384), scipy_designs: int = 20,
-              jacobian_batch: int = 1024, log=None) -> dict:
+              jacobian_batch: int = 4096, log=None) -> dict:
     """Measure and return the figures (see `recoil-jax bench --help`)."""
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
     smoothing, options = Smoothing(), SolverOptions()
     largest = max(batch_sizes)
     columns = bench_designs(max(largest, jacobian_batch, scipy_designs))
-    # Sorted by gap, as `sweep` does (a vmapped batch moves at its slowest member's pace).
-    columns = _take(columns, np.argsort(columns["gap"], kind="stable"))
-    solve = eqx.filter_jit(jax.vmap(peak_metrics, in_axes=(0, None, None)))
+
+    def timed_sweep(designs, **kwargs):
+        start = time.perf_counter()
+        result = sweep(designs, progress=False, **kwargs)
+        return result, time.perf_counter() - start
 
     rows = []
     compile_s = None
     for size in batch_sizes:
-        # Evenly spread through the sorted designs, so each batch has the same mix.
-        index = np.linspace(0, len(columns["m"]) - 1, size).astype(int)
-        params = batch_params(_take(columns, index))[0]
-        if size % jax.local_device_count() == 0:
-            params = shard_batch(params)  # over every device, as `sweep` does
-        _, first = _timed(solve, params, smoothing, options)
+        # Evenly spread through the designs, so each batch has the same mix.
+        designs = _take(columns, np.linspace(0, len(columns["m"]) - 1, size).astype(int))
+        _, first = timed_sweep(designs)
         repeats = max(1, min(5, int(2048 // size)))
-        times = [_timed(solve, params, smoothing, options)[1] for _ in range(repeats)]
-        run = min(times)
+        run = min(timed_sweep(designs)[1] for _ in range(repeats))
         if size == 1024 or compile_s is None:
             compile_s = max(first - run, 0.0)
         rows.append({"batch_size": size, "seconds": run, "sims_per_s": size / run})
         log(f"  batch {size:6d}: {size / run:9.0f} sims/s  ({run:.3f} s)")
 
-    jac = eqx.filter_jit(jax.vmap(peak_gradients, in_axes=(0, None, None, None)))
-    index = np.linspace(0, len(columns["m"]) - 1, jacobian_batch).astype(int)
-    params = batch_params(_take(columns, index))[0]
-    if jacobian_batch % jax.local_device_count() == 0:
+    # The plain vmap of the stepping loop, on the 1024-design batch, for comparison.
+    designs = _take(columns, np.linspace(0, len(columns["m"]) - 1, 1024).astype(int))
+    designs = _take(designs, np.argsort(designs["gap"], kind="stable"))
+    params = batch_params(designs)[0]
+    if 1024 % jax.local_device_count() == 0:
         params = shard_batch(params)
-    _, jac_first = _timed(jac, params, smoothing, GRADIENT_OPTIONS, DESIGN_PARAMETERS)
-    _, jac_run = _timed(jac, params, smoothing, GRADIENT_OPTIONS, DESIGN_PARAMETERS)
+    solve = eqx.filter_jit(jax.vmap(peak_metrics, in_axes=(0, None, None)))
+    _timed(solve, params, smoothing, options)
+    vmap_per_s = 1024 / _timed(solve, params, smoothing, options)[1]
+    log(f"  plain vmap, batch 1024: {vmap_per_s:.0f} sims/s")
+
+    designs = _take(columns, np.linspace(0, len(columns["m"]) - 1, jacobian_batch).astype(int))
+    _, jac_first = timed_sweep(designs, wrt=DESIGN_PARAMETERS)
+    _, jac_run = timed_sweep(designs, wrt=DESIGN_PARAMETERS)
     jacobians_per_s = jacobian_batch / jac_run
     log(f"  jacobians (4 parameters, batch {jacobian_batch}): {jacobians_per_s:.0f}/s")
 
@@ -88,12 +93,10 @@ def run_bench(batch_sizes=(1, 64, 1024, 16384), scipy_designs: int = 20,
                 for i in range(scipy_designs)]
     scipy_s = time.perf_counter() - start
     scipy_per_s = scipy_designs / scipy_s
-    ours = solve(batch_params(chosen)[0], smoothing, options)
-    errors = []
-    for i, ref in enumerate(baseline):
-        for key, field in (("peak_displacement_m", "peak_displacement"),
-                           ("peak_anchoring_force_N", "peak_anchoring_force")):
-            errors.append(abs(float(getattr(ours, field)[i]) / ref[key] - 1.0))
+    ours = sweep(chosen, progress=False).peaks
+    errors = [abs(float(ours[key][i]) / ref[key] - 1.0)
+              for i, ref in enumerate(baseline)
+              for key in ("peak_displacement_m", "peak_anchoring_force_N")]
     log(f"  scipy solve_ivp (RK45, rtol 1e-5, serial): {scipy_per_s:.1f} sims/s")
 
     best = max(rows, key=lambda r: r["sims_per_s"])
@@ -102,6 +105,7 @@ def run_bench(batch_sizes=(1, 64, 1024, 16384), scipy_designs: int = 20,
         "batch_size": best["batch_size"],
         "scipy_sims_per_s": scipy_per_s,
         "speedup_vs_scipy": best["sims_per_s"] / scipy_per_s,
+        "plain_vmap_sims_per_s": vmap_per_s,
         "jacobians_per_s": jacobians_per_s,
         "jacobian_compile_s": max(jac_first - jac_run, 0.0),
         "compile_s": compile_s,
@@ -120,6 +124,8 @@ def format_bench(result: dict) -> str:
         f"scipy solve_ivp loop (RK45, rtol 1e-5): {result['scipy_sims_per_s']:.1f} sims/s",
         f"best: {result['sims_per_s']:.0f} sims/s at batch {result['batch_size']} = "
         f"{result['speedup_vs_scipy']:.0f}x the scipy loop",
+        f"plain vmap of the stepping loop (batch 1024): {result['plain_vmap_sims_per_s']:.0f} "
+        "sims/s",
         f"jacobians (gap, m, k_r, c_r): {result['jacobians_per_s']:.0f}/s",
         f"compile: {result['compile_s']:.2f} s (solve), {result['jacobian_compile_s']:.2f} s "
         "(jacobian)",
@@ -132,6 +138,6 @@ def format_bench(result: dict) -> str:
 def main_bench(args) -> int:
     sizes = (1, 64, 1024) if args.quick else (1, 64, 1024, 16384)
     result = run_bench(batch_sizes=sizes, scipy_designs=5 if args.quick else 20,
-                       jacobian_batch=64 if args.quick else 1024)
+                       jacobian_batch=64 if args.quick else 4096)
     print(json.dumps(result) if args.json else format_bench(result))
     return 0

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 
 from ._params import PARAMETER_NAMES, ParameterError, Smoothing, SolverOptions, params_from_values
@@ -180,16 +179,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def use_all_cores() -> None:
-    """One XLA host device per CPU core, so that sweeps shard over every core (measured
-    1.33x on 2 cores). Only effective before JAX starts its backend; an explicit
-    `--xla_force_host_platform_device_count` in XLA_FLAGS wins."""
-    flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_force_host_platform_device_count" not in flags:
-        count = os.cpu_count() or 1
-        os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={count}"
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     # name=value items may come after the flags (`simulate m=500 --hard t1=2`).
@@ -199,8 +188,6 @@ def main(argv: list[str] | None = None) -> int:
                 item.startswith("-") for item in extra):
             parser.error(f"unrecognized arguments: {' '.join(extra)}")
         args.assignments = list(args.assignments) + extra
-    if args.command in ("sweep", "bench"):
-        use_all_cores()
     try:
         return args.func(args)
     except ParameterError as error:

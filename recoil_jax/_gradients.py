@@ -31,7 +31,15 @@ from ._params import (
     _is_concrete,
     parameter_limits,
 )
-from ._solve import Peaks, _integrate_peaks, _metrics, _peaks_from_run, _raise_on_failure
+from ._solve import (
+    Peaks,
+    _integrate_peaks,
+    _metrics,
+    _PeakLoop,
+    _peaks_from_run,
+    _queued_map,
+    _raise_on_failure,
+)
 
 #: The default parameters to differentiate with respect to: the absorber design.
 DESIGN_PARAMETERS = ("gap", "m", "k_r", "c_r")
@@ -195,20 +203,36 @@ _SENSITIVITY_TERM = diffrax.ODETerm(_sensitivity_vf)
 def _sensitivity_solve(params, smoothing, options, wrt, smooth_max=None):
     """Peaks, their gradients, and (with `smooth_max`) the smooth maxima `(k,)` and their
     gradients `(k, len(wrt))`."""
+    z0, args = _sensitivity_setup(params, smoothing, options, wrt, smooth_max)
+    run = _integrate_peaks(_SENSITIVITY_TERM, z0, args, _sensitivity_metrics, options)
+    return _sensitivity_post(args, run, wrt)
+
+
+def _state_size(smooth_max) -> int:
+    return _N_STATE + (0 if smooth_max is None else len(smooth_max.metrics))
+
+
+def _sensitivity_metrics(z, args):
+    params, smoothing, _, smooth_max, _ = args
+    return _augmented_metrics(z[:_state_size(smooth_max)], params, smoothing)
+
+
+def _sensitivity_setup(params, smoothing, options, wrt, smooth_max):
+    """`(z0, args)` of the sensitivity system: the state, then one sensitivity column per
+    parameter in `wrt` (scaled by its range)."""
     tangents = _tangents(params, wrt)
     y0 = _augmented_initial_state(params, smoothing, smooth_max)
-    n = y0.shape[0]
     s0 = jax.vmap(lambda tp: jax.jvp(
         lambda p: _augmented_initial_state(p, smoothing, smooth_max), (params,), (tp,))[1]
     )(tangents)
     z0 = jnp.concatenate([y0, s0.reshape(-1)])
-    t1 = jnp.asarray(options.t1, dtype=float)
+    return z0, (params, smoothing, tangents, smooth_max, jnp.asarray(options.t1, dtype=float))
 
-    def metrics_fn(z, args):
-        return _augmented_metrics(z[:n], args[0], args[1])
 
-    args = (params, smoothing, tangents, smooth_max, t1)
-    run = _integrate_peaks(_SENSITIVITY_TERM, z0, args, metrics_fn, options)
+def _sensitivity_post(args, run, wrt):
+    """Gradients at the located peaks by the envelope theorem: `∇_y g · S(t*) + ∂g/∂θ`."""
+    params, smoothing, tangents, smooth_max, _ = args
+    n = _state_size(smooth_max)
 
     def gradient_of_metric(i, state):
         y, sensitivities = state[:n], state[n:].reshape(-1, n)
@@ -238,6 +262,20 @@ def _sensitivity_solve(params, smoothing, options, wrt, smooth_max=None):
     smooth_values = temperatures * run.best[5:]
     smooth_grads = temperatures[:, None] * grads[5:]
     return peaks, gradients, smooth_values, smooth_grads
+
+
+def _peak_gradients_batch(params, smoothing, options, wrt, lanes):
+    """`jax.vmap(peak_gradients)` over a batch, run through `_queued_map` with `lanes`
+    designs in flight."""
+    loop = _PeakLoop(_SENSITIVITY_TERM, _sensitivity_metrics, options)
+    return _queued_map(
+        loop,
+        lambda design: _sensitivity_setup(design, smoothing, options, wrt, None),
+        lambda design, args, run: _sensitivity_post(args, run, wrt)[:2],
+        params, lanes)
+
+
+_peak_gradients_batch_jit = eqx.filter_jit(_peak_gradients_batch)
 
 
 def _peaks_and_gradients(params, smoothing, options, wrt):

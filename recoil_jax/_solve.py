@@ -239,63 +239,74 @@ class _PeakRun(NamedTuple):
     status: jax.Array
 
 
-def _integrate_peaks(term, z0, args, metrics_fn, options: SolverOptions) -> _PeakRun:
-    """Integrate `term` from `z0` over `[0, t1]` with Tsit5 + PID, stepping manually
-    (diffrax's documented `solver.step` + `adapt_step_size` pattern) in one while loop,
-    and keep the running maxima of `metrics_fn(z, args)` (a vector), located between
-    steps: each accepted step's cubic Hermite interpolant (end values and rates) finds
-    the step holding a maximum; `_polish` then refines it on Tsit5's dense polynomial."""
-    solver, controller = _solver(options), _controller(options)
-    t0 = jnp.zeros((), dtype=float)
-    t1 = jnp.asarray(options.t1, dtype=float)
-    error_order = solver.order(term) + 1
-    t_next, controller_state = controller.init(
-        term, t0, t1, z0, None, args, solver.func, error_order
-    )
-    t_next = jnp.minimum(t_next, t1)
-    # Round the last step up to t1 within 100 ULPs, as diffeqsolve does.
-    t1_floor = t1
-    for _ in range(100):
-        t1_floor = eqxi.prevbefore(t1_floor)
+class _PeakLoop:
+    """The stepping loop of `_integrate_peaks`, in pieces (`init`, `running`, `body`,
+    `finish`), so that the queued driver (`_queued_map`) can run many designs through
+    the same loop. `term`, `metrics_fn` and `options` are static."""
 
-    def metric_and_rate(z, f):
-        return jax.jvp(lambda x: metrics_fn(x, args), (z,), (f,))
+    def __init__(self, term, metrics_fn, options: SolverOptions):
+        self.term, self.metrics_fn, self.options = term, metrics_fn, options
+        self.solver, self.controller = _solver(options), _controller(options)
+        self.error_order = self.solver.order(term) + 1
 
-    metric0, rate0 = metric_and_rate(z0, term.vf(t0, z0, args))
-    init = _Carry(
-        t=t0,
-        t_next=t_next,
-        y=z0,
-        solver_state=solver.init(term, t0, t_next, z0, args),
-        controller_state=controller_state,
-        made_jump=jnp.array(False),
-        metric=metric0,
-        metric_rate=rate0,
-        best=metric0,
-        best_time=jnp.zeros_like(metric0),
-        best_step=_initial_best_step(t0, z0, metric0.shape[0]),
-        num_steps=jnp.array(0),
-        num_attempts=jnp.array(0),
-        status=jnp.array(Status.OK),
-    )
+    def _t1(self):
+        t1 = jnp.asarray(self.options.t1, dtype=float)
+        # Round the last step up to t1 within 100 ULPs, as diffeqsolve does.
+        t1_floor = t1
+        for _ in range(100):
+            t1_floor = eqxi.prevbefore(t1_floor)
+        return t1, t1_floor
 
-    def cond(c: _Carry):
+    def _metric_and_rate(self, z, f, args):
+        return jax.jvp(lambda x: self.metrics_fn(x, args), (z,), (f,))
+
+    def init(self, z0, args) -> _Carry:
+        term, solver = self.term, self.solver
+        t0 = jnp.zeros((), dtype=float)
+        t1, _ = self._t1()
+        t_next, controller_state = self.controller.init(
+            term, t0, t1, z0, None, args, solver.func, self.error_order
+        )
+        t_next = jnp.minimum(t_next, t1)
+        metric0, rate0 = self._metric_and_rate(z0, term.vf(t0, z0, args), args)
+        return _Carry(
+            t=t0,
+            t_next=t_next,
+            y=z0,
+            solver_state=solver.init(term, t0, t_next, z0, args),
+            controller_state=controller_state,
+            made_jump=jnp.array(False),
+            metric=metric0,
+            metric_rate=rate0,
+            best=metric0,
+            best_time=jnp.zeros_like(metric0),
+            best_step=_initial_best_step(t0, z0, metric0.shape[0]),
+            num_steps=jnp.array(0),
+            num_attempts=jnp.array(0),
+            status=jnp.array(Status.OK),
+        )
+
+    def running(self, c: _Carry):
+        t1, _ = self._t1()
         return (c.t < t1) & (c.status == Status.OK)
 
-    def body(c: _Carry) -> _Carry:
+    def body(self, c: _Carry, args) -> _Carry:
+        term, solver = self.term, self.solver
+        t1, t1_floor = self._t1()
         dt = c.t_next - c.t
         z1, z_error, dense_info, solver_state, _ = solver.step(
             term, c.t, c.t_next, c.y, args, c.solver_state, c.made_jump
         )
-        keep, t_prev, t_next, made_jump, controller_state, _ = controller.adapt_step_size(
-            c.t, c.t_next, c.y, z1, args, z_error, error_order, c.controller_state
-        )
+        keep, t_prev, t_next, made_jump, controller_state, _ = (
+            self.controller.adapt_step_size(
+                c.t, c.t_next, c.y, z1, args, z_error, self.error_order, c.controller_state
+            ))
         t_prev = jnp.minimum(t_prev, t1)
         t_next = jnp.where(
             t_next > t1_floor, jnp.where(keep, t1, t_prev + 0.5 * (t1 - t_prev)), t_next
         )
         # Tsit5 is FSAL: its last stage is dt * f(t + dt, z1).
-        metric1, rate1 = metric_and_rate(z1, dense_info["k"][-1] / dt)
+        metric1, rate1 = self._metric_and_rate(z1, dense_info["k"][-1] / dt, args)
         step_best, s = hermite_max(c.metric, c.metric_rate * dt, metric1, rate1 * dt)
         improve = keep & (step_best > c.best)
         step = dict(t0=c.t, t1=c.t_next, **dense_info)
@@ -327,13 +338,108 @@ def _integrate_peaks(term, z0, args, metrics_fn, options: SolverOptions) -> _Pea
             status=status,
         )
 
+    def finish(self, final: _Carry, args) -> _PeakRun:
+        t1, _ = self._t1()
+        status = jnp.where(
+            (final.status == Status.OK) & (final.t < t1), Status.MAX_STEPS, final.status
+        )
+        best, best_time, best_state = _polish(self.solver, args, self.metrics_fn, final)
+        return _PeakRun(best, best_time, best_state, final.num_steps, final.num_attempts,
+                        status)
+
+
+def _integrate_peaks(term, z0, args, metrics_fn, options: SolverOptions) -> _PeakRun:
+    """Integrate `term` from `z0` over `[0, t1]` with Tsit5 + PID, stepping manually
+    (diffrax's documented `solver.step` + `adapt_step_size` pattern) in one while loop,
+    and keep the running maxima of `metrics_fn(z, args)` (a vector), located between
+    steps: each accepted step's cubic Hermite interpolant (end values and rates) finds
+    the step holding a maximum; `_polish` then refines it on Tsit5's dense polynomial."""
+    loop = _PeakLoop(term, metrics_fn, options)
     kind = "lax" if options.autodiff == "forward" else "checkpointed"
-    final = eqxi.while_loop(cond, body, init, max_steps=options.max_steps, kind=kind)
-    status = jnp.where(
-        (final.status == Status.OK) & (final.t < t1), Status.MAX_STEPS, final.status
-    )
-    best, best_time, best_state = _polish(solver, args, metrics_fn, final)
-    return _PeakRun(best, best_time, best_state, final.num_steps, final.num_attempts, status)
+    final = eqxi.while_loop(loop.running, lambda c: loop.body(c, args), loop.init(z0, args),
+                            max_steps=options.max_steps, kind=kind)
+    return loop.finish(final, args)
+
+
+def _queued_map(loop: _PeakLoop, setup, post, designs, lanes: int):
+    """`jax.vmap(lambda d: post(d, loop.finish(solve(*setup(d)))))(designs)`, but with
+    `lanes` designs in flight at a time, each lane taking the next design as soon as its
+    own has finished (refilled in groups of at least `lanes // 16`).
+
+    A plain `vmap` of the stepping loop runs every member for as many steps as the
+    slowest one needs; over random designs that used under a third of the lanes' steps.
+
+    `setup(design) -> (z0, args)`; `post(design, args, run) -> result`. `designs`: a
+    pytree with a leading axis `N`. Not vmappable; jit it."""
+    n = jax.tree.leaves(designs)[0].shape[0]
+    lanes = min(lanes, n)
+    max_steps = loop.options.max_steps
+
+    def take(index):
+        return jax.tree.map(lambda x: x[index], designs)
+
+    def start(index):
+        z0, args = setup(take(index))
+        return loop.init(z0, args), args
+
+    # Every lane starts idle; the first refill loads the first `lanes` designs (so the
+    # setup is traced once, inside the refill).
+    lane_state, lane_args = jax.tree.map(
+        lambda x: jnp.zeros((lanes, *x.shape), x.dtype), jax.eval_shape(start, 0))
+    finals = jax.tree.map(lambda x: jnp.zeros((n, *x.shape[1:]), x.dtype), lane_state)
+    carry = (lane_state, lane_args, jnp.full(lanes, -1), jnp.array(0), finals, jnp.array(0))
+    threshold = max(1, lanes // 16)
+
+    def running(c):
+        return loop.running(c) & (c.num_attempts < max_steps)
+
+    def cond(carry):
+        return carry[-1] < n
+
+    def refill(state, args, index, next_index):
+        idle = index < 0
+        new_index = next_index + jnp.cumsum(idle) - 1
+        fill = idle & (new_index < n)
+        count = jnp.sum(fill)
+
+        def load(operands):
+            state, args, index, next_index = operands
+            fresh_state, fresh_args = jax.vmap(start)(jnp.where(fill, new_index, 0))
+
+            def pick(new, old):
+                return jnp.where(fill.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
+
+            state = jax.tree.map(pick, fresh_state, state)
+            args = jax.tree.map(pick, fresh_args, args)
+            return state, args, jnp.where(fill, new_index, index), next_index + count
+
+        now = (count >= threshold) | ((count > 0) & ~jnp.any(index >= 0))
+        return jax.lax.cond(now, load, lambda operands: operands,
+                            (state, args, index, next_index))
+
+    def body(carry):
+        state, args, index, next_index, finals, done = carry
+        state, args, index, next_index = refill(state, args, index, next_index)
+        active = index >= 0
+        go = active & jax.vmap(running)(state)
+        stepped = jax.vmap(loop.body)(state, args)
+        state = jax.tree.map(
+            lambda new, old: jnp.where(go.reshape((-1,) + (1,) * (new.ndim - 1)), new, old),
+            stepped, state)
+        finished = active & ~jax.vmap(running)(state)
+        slot = jnp.where(finished, index, n)  # out of range: dropped
+        finals = jax.tree.map(lambda buf, x: buf.at[slot].set(x, mode="drop"), finals, state)
+        done = done + jnp.sum(finished)
+        index = jnp.where(finished, -1, index)
+        return state, args, index, next_index, finals, done
+
+    finals = jax.lax.while_loop(cond, body, carry)[4]
+
+    def finish(design, final):
+        _, args = setup(design)
+        return post(design, args, loop.finish(final, args))
+
+    return jax.vmap(finish)(designs, finals)
 
 
 def _peaks_from_run(run: _PeakRun) -> Peaks:
@@ -471,3 +577,19 @@ def simulate(
     if throw:
         _raise_on_failure(result.status)
     return result
+
+
+def _peaks_batch(params: RecoilParams, smoothing: Smoothing, options: SolverOptions,
+                 lanes: int) -> Peaks:
+    """`jax.vmap(peak_metrics)` over a batch of designs (leading axis on every leaf of
+    `params`), run through `_queued_map` with `lanes` designs in flight."""
+    loop = _PeakLoop(RECOIL_TERM, _metrics, options)
+
+    def setup(design):
+        return initial_state(design), model_args(design, smoothing)
+
+    return _queued_map(loop, setup, lambda design, args, run: _peaks_from_run(run), params,
+                       lanes)
+
+
+_peaks_batch_jit = eqx.filter_jit(_peaks_batch)
