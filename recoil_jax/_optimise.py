@@ -44,8 +44,6 @@ from ._params import (
 )
 from ._solve import PEAK_KEYS, Status
 
-#: What an objective or a constraint can name besides parameters.
-OBJECTIVE_METRICS = METRICS
 #: `Peaks` field → `simulate --json` key.
 _JSON_KEYS = {field: key for key, field in PEAK_KEYS.items()}
 
@@ -53,7 +51,7 @@ _JSON_KEYS = {field: key for key, field in PEAK_KEYS.items()}
 class Objective(eqx.Module):
     """`Σ_k weights[k] · metric_k`, to be minimised (metric units, e.g. N and m).
 
-    - `weights`: metric name (`OBJECTIVE_METRICS`) → weight.
+    - `weights`: metric name (`METRICS`) → weight.
     - `temperatures`: metric name → temperature (metric unit). Those metrics enter the
       objective the optimiser sees as their smooth maximum over time
       (`T·log((1/t1)∫exp(g/T)dt)`, see `SmoothMax`) instead of their peak: smooth where the
@@ -72,9 +70,9 @@ class Objective(eqx.Module):
         if not self.weights:
             raise ParameterError("Objective.weights is empty: weight at least one metric")
         for name in self.weights:
-            if name not in OBJECTIVE_METRICS:
+            if name not in METRICS:
                 raise ParameterError(f"Objective: unknown metric {name!r}; choose from "
-                                     f"{', '.join(OBJECTIVE_METRICS)}")
+                                     f"{', '.join(METRICS)}")
         for name in self.temperatures:
             if name not in self.weights:
                 raise ParameterError(f"Objective.temperatures names {name!r}, which the "
@@ -96,6 +94,10 @@ class Objective(eqx.Module):
         temperatures = jnp.asarray(list(self.temperatures.values())) * temperature_scale
         return SmoothMax(tuple(self.temperatures), temperatures)
 
+    def of_json(self, metrics: Mapping[str, float]) -> float:
+        """The objective (with peaks) of metrics keyed as `simulate --json`."""
+        return float(self({name: metrics[_JSON_KEYS[name]] for name in self.weights}))
+
     def __call__(self, metrics: Mapping[str, jax.Array], smooth: bool = False) -> jax.Array:
         """The objective of `metrics` (a dict of scalars, or arrays of equal shape).
         `smooth=True` takes `smooth_<metric>` where the objective has a temperature."""
@@ -107,7 +109,7 @@ class Objective(eqx.Module):
 
 
 class Constraint(eqx.Module):
-    """`lower <= value <= upper` for a metric (`OBJECTIVE_METRICS`) or a parameter (flat
+    """`lower <= value <= upper` for a metric (`METRICS`) or a parameter (flat
     name), in its SI unit. Give one or both limits."""
 
     name: str = eqx.field(static=True)
@@ -115,10 +117,10 @@ class Constraint(eqx.Module):
     lower: float | None = eqx.field(default=None, static=True)
 
     def __check_init__(self):
-        if self.name not in OBJECTIVE_METRICS and self.name not in PARAMETER_NAMES:
+        if self.name not in METRICS and self.name not in PARAMETER_NAMES:
             raise ParameterError(
                 f"Constraint on unknown quantity {self.name!r}; metrics: "
-                f"{', '.join(OBJECTIVE_METRICS)}; parameters: {', '.join(PARAMETER_NAMES)}")
+                f"{', '.join(METRICS)}; parameters: {', '.join(PARAMETER_NAMES)}")
         if self.upper is None and self.lower is None:
             raise ParameterError(f"Constraint on {self.name} has neither upper nor lower")
         if self.upper is not None and self.lower is not None and self.lower > self.upper:
@@ -127,7 +129,7 @@ class Constraint(eqx.Module):
 
     @property
     def is_metric(self) -> bool:
-        return self.name in OBJECTIVE_METRICS
+        return self.name in METRICS
 
     def limits(self) -> list[tuple[str, float]]:
         """`[(kind, limit)]` with kind `"max"` or `"min"`."""
@@ -330,7 +332,6 @@ class OptimiseResult:
     """
 
     problem: DesignProblem
-    tune: tuple[str, ...]
     scenarios: int
     starts: int
     history: dict[str, np.ndarray]
@@ -348,6 +349,10 @@ class OptimiseResult:
     compilations: int
     scenario_params: RecoilParams  # the base design of each scenario, leading axis S
     scenario_limits: np.ndarray  # (S, C) the metric limits of each scenario
+
+    @property
+    def tune(self) -> tuple[str, ...]:
+        return self.problem.tune
 
     def best_design(self, scenario: int = 0) -> dict[str, float]:
         """Every parameter of the best design of `scenario`, by the `simulate` names."""
@@ -570,7 +575,6 @@ def optimise(
         best_theta.append(run_best_theta[r])
     return OptimiseResult(
         problem=problem,
-        tune=problem.tune,
         scenarios=n_scenarios,
         starts=starts,
         history=history,

@@ -420,11 +420,13 @@ def _queued_map(loop: _PeakLoop, setup, post, designs, lanes: int):
     def body(carry):
         state, args, index, next_index, finals, done = carry
         state, args, index, next_index = refill(state, args, index, next_index)
+        # Every lane holding a design is still running: a lane is emptied the moment its
+        # design finishes, and a freshly loaded one starts at t = 0 < t1.
         active = index >= 0
-        go = active & jax.vmap(running)(state)
         stepped = jax.vmap(loop.body)(state, args)
         state = jax.tree.map(
-            lambda new, old: jnp.where(go.reshape((-1,) + (1,) * (new.ndim - 1)), new, old),
+            lambda new, old: jnp.where(active.reshape((-1,) + (1,) * (new.ndim - 1)), new,
+                                       old),
             stepped, state)
         finished = active & ~jax.vmap(running)(state)
         slot = jnp.where(finished, index, n)  # out of range: dropped

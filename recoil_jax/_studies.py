@@ -163,13 +163,7 @@ def _optimise_kwargs(study: Study, progress: bool | None) -> dict:
 
 
 def _metrics_json(params, smoothing=None) -> dict:
-    result = peaks(params, smoothing or Smoothing()).to_dict()
-    return result
-
-
-def _objective_of(problem, metrics_json: dict) -> float:
-    return float(sum(w * metrics_json[_METRIC_KEYS[name]]
-                     for name, w in problem.objective.weights.items()))
+    return peaks(params, smoothing or Smoothing()).to_dict()
 
 
 def _scatter_worst(problem, params, offsets) -> tuple[dict, float]:
@@ -182,7 +176,7 @@ def _scatter_worst(problem, params, offsets) -> tuple[dict, float]:
             for o in offsets]
     worst = {k: (min if k == "min_stroke_m" else max)(r[k] for r in rows)
              for k in rows[0] if k.endswith(("_m", "_N"))}
-    return worst, max(_objective_of(problem, r) for r in rows)
+    return worst, max(problem.objective.of_json(r) for r in rows)
 
 
 def _best_summary(study: Study, result, scenario: int) -> dict:
@@ -191,7 +185,7 @@ def _best_summary(study: Study, result, scenario: int) -> dict:
     design = result.best_design(scenario)
     metrics = _metrics_json(params)
     summary = {"best": design, "metrics": metrics,
-               "objective": _objective_of(problem, metrics)}
+               "objective": problem.objective.of_json(metrics)}
     limits = result.scenario_limits[scenario]
     if problem.objective.scatter is not None:
         worst, worst_objective = _scatter_worst(problem, params, problem.objective.scatter[1])
@@ -210,8 +204,8 @@ def _feasible_objective(problem, sweep_result) -> tuple[np.ndarray, np.ndarray]:
     for name, kind, limit in problem.metric_constraints:
         values = sweep_result.peaks[_METRIC_KEYS[name]]
         feasible &= values <= limit if kind == "max" else values >= limit
-    objective = sum(w * sweep_result.peaks[_METRIC_KEYS[n]]
-                    for n, w in problem.objective.weights.items())
+    objective = problem.objective(
+        {n: sweep_result.peaks[_METRIC_KEYS[n]] for n in problem.objective.weights})
     return np.where(feasible, objective, np.inf), feasible
 
 
@@ -300,7 +294,7 @@ def run_study(path, out: str | Path | None = None, progress: bool | None = None)
         # At the nominal parameters (for a scatter study too): a check of the model.
         report["hard_model"] = {
             "metrics": hard,
-            "objective_at_nominal": _objective_of(problem, hard),
+            "objective_at_nominal": problem.objective.of_json(hard),
             "max_relative_difference": max(
                 abs(hard[k] - smooth[k]) / max(abs(smooth[k]), 1e-12)
                 for k in smooth if k.endswith("_N") or k.endswith("_m")),
@@ -400,7 +394,7 @@ def _nominal_comparison(study: Study, result, kwargs: dict, out: Path) -> tuple[
     for label, params in (("robust", result.best_params(0)),
                           ("nominal", nominal.best_params(0))):
         base = float(values_of(params, (name,))[0])
-        objectives = [_objective_of(problem, _metrics_json(
+        objectives = [problem.objective.of_json(_metrics_json(
             with_values(params, (name,), [base * (1 + o)]))) for o in fine]
         curves[f"{label} design"] = (100 * fine, objectives)
         report[label] = {"best": {k: v for k, v in
