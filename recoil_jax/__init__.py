@@ -25,6 +25,7 @@ from ._model import (
     characteristic_penetration as characteristic_penetration,
     contact_width as contact_width,
     forces as forces,
+    future_metric_bounds as future_metric_bounds,
     initial_state as initial_state,
     model_args as model_args,
     positive_power as positive_power,

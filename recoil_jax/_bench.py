@@ -15,7 +15,7 @@ from ._gradients import DESIGN_PARAMETERS
 from ._params import Smoothing, SolverOptions
 from ._reference import reference_peaks
 from ._solve import peak_metrics
-from ._sweep import batch_params, shard_batch, sweep
+from ._sweep import batch_params, default_workers, shard_batch, sweep
 
 
 def bench_designs(count: int, seed: int = 0) -> dict[str, np.ndarray]:
@@ -59,12 +59,18 @@ def run_bench(batch_sizes=(1, 64, 1024, 16384), scipy_designs: int = 20,
         # Evenly spread through the designs, so each batch has the same mix.
         designs = _take(columns, np.linspace(0, len(columns["m"]) - 1, size).astype(int))
         _, first = timed_sweep(designs)
-        repeats = max(1, min(5, int(2048 // size)))
+        repeats = max(2, min(5, int(2048 // size)))
         run = min(timed_sweep(designs)[1] for _ in range(repeats))
         if size == 1024 or compile_s is None:
             compile_s = max(first - run, 0.0)
         rows.append({"batch_size": size, "seconds": run, "sims_per_s": size / run})
         log(f"  batch {size:6d}: {size / run:9.0f} sims/s  ({run:.3f} s)")
+
+    # The same sweep in one part on one thread, for comparison.
+    designs = _take(columns, np.linspace(0, len(columns["m"]) - 1, largest).astype(int))
+    timed_sweep(designs, workers=1)
+    one_worker_per_s = largest / min(timed_sweep(designs, workers=1)[1] for _ in range(2))
+    log(f"  one worker, batch {largest}: {one_worker_per_s:.0f} sims/s")
 
     # The plain vmap of the stepping loop, on the 1024-design batch, for comparison.
     designs = _take(columns, np.linspace(0, len(columns["m"]) - 1, 1024).astype(int))
@@ -79,7 +85,7 @@ def run_bench(batch_sizes=(1, 64, 1024, 16384), scipy_designs: int = 20,
 
     designs = _take(columns, np.linspace(0, len(columns["m"]) - 1, jacobian_batch).astype(int))
     _, jac_first = timed_sweep(designs, wrt=DESIGN_PARAMETERS)
-    _, jac_run = timed_sweep(designs, wrt=DESIGN_PARAMETERS)
+    jac_run = min(timed_sweep(designs, wrt=DESIGN_PARAMETERS)[1] for _ in range(2))
     jacobians_per_s = jacobian_batch / jac_run
     log(f"  jacobians (4 parameters, batch {jacobian_batch}): {jacobians_per_s:.0f}/s")
 
@@ -106,6 +112,8 @@ def run_bench(batch_sizes=(1, 64, 1024, 16384), scipy_designs: int = 20,
         "scipy_sims_per_s": scipy_per_s,
         "speedup_vs_scipy": best["sims_per_s"] / scipy_per_s,
         "plain_vmap_sims_per_s": vmap_per_s,
+        "one_worker_sims_per_s": one_worker_per_s,
+        "workers": default_workers(jax.local_devices()),
         "jacobians_per_s": jacobians_per_s,
         "jacobian_compile_s": max(jac_first - jac_run, 0.0),
         "compile_s": compile_s,
@@ -124,6 +132,8 @@ def format_bench(result: dict) -> str:
         f"scipy solve_ivp loop (RK45, rtol 1e-5): {result['scipy_sims_per_s']:.1f} sims/s",
         f"best: {result['sims_per_s']:.0f} sims/s at batch {result['batch_size']} = "
         f"{result['speedup_vs_scipy']:.0f}x the scipy loop",
+        f"same sweep, one worker instead of {result['workers']}: "
+        f"{result['one_worker_sims_per_s']:.0f} sims/s",
         f"plain vmap of the stepping loop (batch 1024): {result['plain_vmap_sims_per_s']:.0f} "
         "sims/s",
         f"jacobians (gap, m, k_r, c_r): {result['jacobians_per_s']:.0f}/s",

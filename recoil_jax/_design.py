@@ -21,30 +21,11 @@ from ._gradients import (
     _check_wrt,
     _sensitivity_solve,
 )
-from ._params import PARAMETER_NAMES, RecoilParams, Smoothing, SolverOptions
+from ._params import RecoilParams, Smoothing, SolverOptions, values_of, with_values
 
 #: The peak metrics `differentiable_peaks` returns (`Peaks` field names).
 METRICS = ("peak_displacement", "peak_anchoring_force", "peak_contact_force", "max_stroke",
            "min_stroke")
-
-
-def with_values(params: RecoilParams, names: Sequence[str], values) -> RecoilParams:
-    """`params` with the parameters `names` (flat names) set to `values` (shape
-    `(len(names),)`)."""
-    for j, name in enumerate(names):
-        group, field = PARAMETER_NAMES[name]
-        params = eqx.tree_at(
-            lambda p, g=group, f=field: getattr(getattr(p, g), f), params,
-            jnp.asarray(values[j], dtype=float))
-    return params
-
-
-def values_of(params: RecoilParams, names: Sequence[str]) -> jax.Array:
-    """The parameters `names` of `params` as one array, shape `(len(names),)`."""
-    return jnp.stack([
-        jnp.asarray(getattr(getattr(params, PARAMETER_NAMES[n][0]), PARAMETER_NAMES[n][1]),
-                    dtype=float)
-        for n in names])
 
 
 def _solve(theta, params, wrt, smoothing, options, smooth_max):

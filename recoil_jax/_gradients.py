@@ -16,12 +16,14 @@ sensitivity columns have the size of the state and one error norm suits them all
 
 from __future__ import annotations
 
+import functools
+
 import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._model import contact_width, initial_state, vector_field
+from ._model import contact_width, future_metric_bounds, initial_state, vector_field
 from ._params import (
     PARAMETER_NAMES,
     ParameterError,
@@ -30,6 +32,8 @@ from ._params import (
     SolverOptions,
     _is_concrete,
     parameter_limits,
+    values_of,
+    with_values,
 )
 from ._solve import (
     Peaks,
@@ -102,18 +106,10 @@ def _check_wrt(params: RecoilParams, wrt: tuple[str, ...]) -> None:
         raise ParameterError(f"wrt names a parameter twice: {wrt}")
 
 
-def _tangents(params: RecoilParams, wrt: tuple[str, ...]):
-    """A `RecoilParams` of tangents with a leading axis of len(wrt): direction j moves
-    parameter wrt[j] by its documented range."""
-    zeros = jax.tree.map(jnp.zeros_like, params)
-    directions = []
-    for name in wrt:
-        group, field = PARAMETER_NAMES[name]
-        leaf = getattr(getattr(zeros, group), field)
-        directions.append(eqx.tree_at(
-            lambda p, g=group, f=field: getattr(getattr(p, g), f), zeros,
-            leaf + parameter_scale(name)))
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *directions)
+def _directions(wrt: tuple[str, ...]):
+    """Tangent directions in the space of the parameters `wrt`, shape `(k, k)`: direction
+    j moves parameter wrt[j] by its documented range."""
+    return jnp.diag(jnp.asarray([parameter_scale(name) for name in wrt]))
 
 
 def _model_vf(t, y, params, smoothing):
@@ -187,24 +183,34 @@ def _augmented_initial_state(params, smoothing, smooth_max):
     return jnp.concatenate([y0, g0[index] / smooth_max.temperatures + jnp.log(_SEED)])
 
 
-def _sensitivity_vf(t, z, args):
-    params, smoothing, tangents, smooth_max, t1 = args
-    n = _N_STATE + (0 if smooth_max is None else len(smooth_max.metrics))
+def _sensitivity_vf(t, z, args, wrt):
+    params, smoothing, smooth_max, t1 = args
+    n = _state_size(smooth_max)
     y, sensitivities = z[:n], z[n:].reshape(-1, n)
+    # Linearised in the parameters `wrt` only: the others are constants here, so no
+    # tangent flows through them.
     f_y, f_jvp = jax.linearize(
-        lambda y_, p_: _augmented_vf(t, y_, p_, smoothing, smooth_max, t1), y, params)
-    d_sensitivities = jax.vmap(f_jvp)(sensitivities, tangents)
+        lambda y_, theta: _augmented_vf(t, y_, with_values(params, wrt, theta), smoothing,
+                                        smooth_max, t1),
+        y, values_of(params, wrt))
+    d_sensitivities = jax.vmap(f_jvp)(sensitivities, _directions(wrt))
     return jnp.concatenate([f_y, d_sensitivities.reshape(-1)])
 
 
-_SENSITIVITY_TERM = diffrax.ODETerm(_sensitivity_vf)
+@functools.cache
+def _sensitivity_term(wrt: tuple[str, ...]) -> diffrax.ODETerm:
+    """The state and its sensitivities to `wrt` as one diffrax term (one per `wrt`)."""
+    return diffrax.ODETerm(functools.partial(_sensitivity_vf, wrt=wrt))
 
 
 def _sensitivity_solve(params, smoothing, options, wrt, smooth_max=None):
     """Peaks, their gradients, and (with `smooth_max`) the smooth maxima `(k,)` and their
     gradients `(k, len(wrt))`."""
     z0, args = _sensitivity_setup(params, smoothing, options, wrt, smooth_max)
-    run = _integrate_peaks(_SENSITIVITY_TERM, z0, args, _sensitivity_metrics, options)
+    # A smooth maximum integrates over all of [0, t1]: no stopping once the peaks settle.
+    bounds = _sensitivity_bounds if smooth_max is None else None
+    run = _integrate_peaks(_sensitivity_term(wrt), z0, args, _sensitivity_metrics, options,
+                           bounds)
     return _sensitivity_post(args, run, wrt)
 
 
@@ -213,35 +219,44 @@ def _state_size(smooth_max) -> int:
 
 
 def _sensitivity_metrics(z, args):
-    params, smoothing, _, smooth_max, _ = args
+    params, smoothing, smooth_max, _ = args
     return _augmented_metrics(z[:_state_size(smooth_max)], params, smoothing)
+
+
+def _sensitivity_bounds(z, args, time_left):
+    """`future_metric_bounds` of the state part of `z` (without smooth maxima)."""
+    params, smoothing, _, _ = args
+    model_args = (params, smoothing, contact_width(params, smoothing))
+    return future_metric_bounds(z[:_N_STATE], model_args, time_left)
 
 
 def _sensitivity_setup(params, smoothing, options, wrt, smooth_max):
     """`(z0, args)` of the sensitivity system: the state, then one sensitivity column per
     parameter in `wrt` (scaled by its range)."""
-    tangents = _tangents(params, wrt)
-    y0 = _augmented_initial_state(params, smoothing, smooth_max)
-    s0 = jax.vmap(lambda tp: jax.jvp(
-        lambda p: _augmented_initial_state(p, smoothing, smooth_max), (params,), (tp,))[1]
-    )(tangents)
+    def initial(theta):
+        return _augmented_initial_state(with_values(params, wrt, theta), smoothing, smooth_max)
+
+    theta = values_of(params, wrt)
+    y0 = initial(theta)
+    s0 = jax.vmap(lambda d: jax.jvp(initial, (theta,), (d,))[1])(_directions(wrt))
     z0 = jnp.concatenate([y0, s0.reshape(-1)])
-    return z0, (params, smoothing, tangents, smooth_max, jnp.asarray(options.t1, dtype=float))
+    return z0, (params, smoothing, smooth_max, jnp.asarray(options.t1, dtype=float))
 
 
 def _sensitivity_post(args, run, wrt):
     """Gradients at the located peaks by the envelope theorem: `∇_y g · S(t*) + ∂g/∂θ`."""
-    params, smoothing, tangents, smooth_max, _ = args
+    params, smoothing, smooth_max, _ = args
     n = _state_size(smooth_max)
+    theta = values_of(params, wrt)
 
     def gradient_of_metric(i, state):
         y, sensitivities = state[:n], state[n:].reshape(-1, n)
 
-        def metric(y_, p_):
-            return _augmented_metrics(y_, p_, smoothing)[i]
+        def metric(y_, theta_):
+            return _augmented_metrics(y_, with_values(params, wrt, theta_), smoothing)[i]
 
-        return jax.vmap(lambda s, tp: jax.jvp(metric, (y, params), (s, tp))[1])(
-            sensitivities, tangents)
+        return jax.vmap(lambda s, d: jax.jvp(metric, (y, theta), (s, d))[1])(
+            sensitivities, _directions(wrt))
 
     indices = jnp.arange(run.best_state.shape[0])
     directional = jax.vmap(gradient_of_metric)(indices, run.best_state)
@@ -267,7 +282,8 @@ def _sensitivity_post(args, run, wrt):
 def _peak_gradients_batch(params, smoothing, options, wrt, lanes):
     """`jax.vmap(peak_gradients)` over a batch, run through `_queued_map` with `lanes`
     designs in flight."""
-    loop = _PeakLoop(_SENSITIVITY_TERM, _sensitivity_metrics, options)
+    loop = _PeakLoop(_sensitivity_term(wrt), _sensitivity_metrics, options,
+                     _sensitivity_bounds)
     return _queued_map(
         loop,
         lambda design: _sensitivity_setup(design, smoothing, options, wrt, None),

@@ -113,6 +113,69 @@ def forces(y, params: RecoilParams, smoothing: Smoothing, width_contact=None) ->
     )
 
 
+# max over s in [0, 1] of s (1 − s)³ (3 + s) / 16 = 0.021472 (at s = 0.2649), rounded up.
+_SWITCH_POWER = 0.0215
+
+
+def future_metric_bounds(y, args, time_left):
+    """Upper bounds, valid for the rest of the run, on the metrics x_M, F_AN, F_ct,
+    x_m − x_M and x_M − x_m, from the mechanical energy at state `y`; shape `(5,)`.
+
+    The energy `E = ½M v_M² + ½m v_m² + ½k x_M² + ½k_r (x_M − x_m)² + U(δ)` (with the
+    contact potential `U`) never increases: the dampers, the contact's Hunt–Crossley
+    part and its no-pull clamp only dissipate. The one exception is the smoothed damping
+    switch, which can create at most `0.0215 |c_out − c_ret| w²` watts (0.0215 bounds
+    `|v| (r(v) − max(v, 0)) / w²` over the band); that is added for `time_left` seconds.
+    With `E*` bounding every later energy (Cauchy–Schwarz throughout):
+
+    - `x_M ≤ √(2E*/k)` and `F_AN ≤ √((k + c_out²/M) 2E*) + |c_out − c_ret| 3w/16`;
+    - `|x_M − x_m| ≤ √(2E*/k_r)`, `δ ≤ ((n_c+1) E*/k_c)^(1/(n_c+1))` and
+      `|δ̇| ≤ √(2E* (1/M + 1/m))`, which bound the stroke and `F_ct`;
+    - `F_ct = 0` once the wall can no longer reach the absorber.
+
+    Returns `+inf` bounds where the dissipation argument fails (`λ_c w ≥ 1`). The peak
+    loop stops once every bound is below its running peak. `args = model_args(params,
+    smoothing)`; `time_left` (s).
+    """
+    params, smoothing, width_contact = args
+    barrel, absorber, contact = params.barrel, params.absorber, params.contact
+    x_M, v_M, x_m, v_m = y[0], y[1], y[2], y[3]
+    width_v = 0.0 if smoothing.hard else smoothing.damping_width
+    spread = jnp.abs(barrel.c_out - barrel.c_ret)
+    energy = 0.5 * barrel.M * v_M**2 + 0.5 * barrel.k * x_M**2
+    energy = energy + spread * _SWITCH_POWER * width_v**2 * jnp.maximum(time_left, 0.0)
+    if absorber is not None:
+        # U(δ) <= k_c (δ + w)₊^(n+1) / (n+1), since the smoothed ramp r(s) <= (s + w)₊.
+        relative = x_M - x_m
+        reach = jnp.maximum(relative - absorber.gap + width_contact, 0.0)
+        energy = energy + (0.5 * absorber.m * v_m**2 + 0.5 * absorber.k_r * relative**2
+                           + contact.k_c * positive_power(reach, contact.n_c + 1.0)
+                           / (contact.n_c + 1.0))
+    two_energy = 2.0 * energy
+    damper_offset = spread * 3.0 * width_v / 16.0
+    displacement = jnp.sqrt(two_energy / barrel.k)
+    anchoring = jnp.sqrt((barrel.k + barrel.c_out**2 / barrel.M) * two_energy) + damper_offset
+    if absorber is None:
+        zero = jnp.zeros_like(displacement)
+        return jnp.stack([displacement, anchoring, zero, zero, zero])
+    relative_max = jnp.sqrt(two_energy / absorber.k_r)
+    # U(δ) >= k_c δ₊^(n+1) / (n+1), since r(s) >= max(s, 0).
+    penetration = positive_power((contact.n_c + 1.0) * energy / contact.k_c,
+                                 1.0 / (contact.n_c + 1.0))
+    penetration = jnp.minimum(penetration, relative_max - absorber.gap)
+    reachable = penetration > -width_contact
+    rate = jnp.sqrt(two_energy * (1.0 / barrel.M + 1.0 / absorber.m))
+    elastic = contact.k_c * positive_power(penetration + width_contact, contact.n_c)
+    factor = 1.0 + contact.lambda_c * (rate + 3.0 * width_v / 16.0)
+    contact_force = jnp.where(reachable, elastic * factor, 0.0)
+    # The no-pull clamp dissipates only while r(1) = 1, i.e. λ_c w < 1.
+    valid = contact.lambda_c * width_v < 1.0
+    inf = jnp.full_like(displacement, jnp.inf)
+    bounds = jnp.stack([displacement, anchoring, contact_force, relative_max,
+                        jnp.minimum(relative_max, absorber.gap + penetration)])
+    return jnp.where(valid, bounds, inf)
+
+
 def vector_field(t, y, args):
     """`dy/dt` for `args = (params, smoothing, contact_width)`; the diffrax vector field."""
     del t

@@ -16,6 +16,7 @@ from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 
@@ -370,3 +371,22 @@ def params_to_values(params: RecoilParams) -> dict[str, Any]:
             continue
         out[name] = getattr(module, field)
     return out
+
+
+def with_values(params: RecoilParams, names, values) -> RecoilParams:
+    """`params` with the parameters `names` (flat names) set to `values` (shape
+    `(len(names),)`)."""
+    for j, name in enumerate(names):
+        group, field = PARAMETER_NAMES[name]
+        params = eqx.tree_at(
+            lambda p, g=group, f=field: getattr(getattr(p, g), f), params,
+            jnp.asarray(values[j], dtype=float))
+    return params
+
+
+def values_of(params: RecoilParams, names) -> jax.Array:
+    """The parameters `names` of `params` as one array, shape `(len(names),)`."""
+    return jnp.stack([
+        jnp.asarray(getattr(getattr(params, PARAMETER_NAMES[n][0]), PARAMETER_NAMES[n][1]),
+                    dtype=float)
+        for n in names])

