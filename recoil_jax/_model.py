@@ -171,8 +171,9 @@ def future_metric_bounds(y, args, time_left):
     # The no-pull clamp dissipates only while r(1) = 1, i.e. λ_c w < 1.
     valid = contact.lambda_c * width_v < 1.0
     inf = jnp.full_like(displacement, jnp.inf)
+    # x_M − x_m = gap + δ, and `penetration` already respects relative_max.
     bounds = jnp.stack([displacement, anchoring, contact_force, relative_max,
-                        jnp.minimum(relative_max, absorber.gap + penetration)])
+                        absorber.gap + penetration])
     return jnp.where(valid, bounds, inf)
 
 
