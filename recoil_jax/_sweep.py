@@ -239,10 +239,9 @@ def sweep(
       `default_workers`: one per device, and on CPU one per core), each run from its own
       thread on one of `devices` (default: all local devices).
     - In each part `lanes` designs (capped at 1/16 of the part, but at least 32) are in
-      flight in one
-      vmapped stepping loop, and a lane takes the next design as soon as its own has
-      finished: a plain `vmap` runs every design for as many steps as the slowest in the
-      batch needs. Designs are sorted by `gap` first, so the impact-heavy ones start
+      flight in one vmapped stepping loop, and a lane takes the next design as soon as
+      its own has finished: a plain `vmap` runs every design for as many steps as the
+      slowest in the batch needs. Designs are sorted by `gap` first, so the impact-heavy ones start
       early; results come back in input order.
     - Each point carries a status; a failed solve never aborts the sweep and its peaks
       are NaN, flagged in `status` (see `SweepResult.failures()`).
