@@ -88,7 +88,7 @@ fig.tight_layout()
 gaps = np.linspace(0.0, 0.12, 25 if FAST else 121)
 masses = [500.0, 1500.0] if FAST else [100.0, 500.0, 1000.0, 1500.0]
 result = rj.sweep_grid({"m": masses, "gap": gaps})
-force = result.peaks["peak_anchoring_force_N"].reshape(result.grid_shape)
+force = result.peaks["peak_anchoring_force"].reshape(result.grid_shape)
 fig, ax = plt.subplots(figsize=(8, 4.5))
 for m, row in zip(masses, force, strict=True):
     ax.plot(1e3 * gaps, row, label=f"m = {m:g} kg")

@@ -43,8 +43,8 @@ masses = np.linspace(250.0, 3000.0, n)
 gaps = np.linspace(0.0, 0.15, n)
 result = rj.sweep_grid({"m": masses, "gap": gaps}, wrt=("gap", "m"))
 print(f"{len(result)} designs in {result.seconds:.1f} s, failures: {result.failures()}")
-force = result.peaks["peak_anchoring_force_N"].reshape(result.grid_shape)
-dforce_dgap = result.gradients["peak_anchoring_force_N"]["gap"].reshape(result.grid_shape)
+force = result.peaks["peak_anchoring_force"].reshape(result.grid_shape)
+dforce_dgap = result.gradients["peak_anchoring_force"]["gap"].reshape(result.grid_shape)
 
 fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
 mesh = axes[0].pcolormesh(1e3 * gaps, masses, force, shading="nearest")
@@ -64,7 +64,7 @@ fig.tight_layout()
 # plateau cannot move the gap — which is why the optimiser runs many starts at once.
 
 # %%
-no_impact = result.peaks["peak_contact_force_N"].reshape(result.grid_shape) == 0
+no_impact = result.peaks["peak_contact_force"].reshape(result.grid_shape) == 0
 print(f"{no_impact.mean():.0%} of the grid has no impact; gap gradient there: "
       f"{np.abs(dforce_dgap[no_impact]).max() if no_impact.any() else 0.0}")
 
@@ -78,11 +78,11 @@ print(f"{no_impact.mean():.0%} of the grid has no impact; gap gradient there: "
 gaps_fine = np.linspace(0.045, 0.08, 15 if FAST else 141)
 line = rj.sweep({"m": np.full_like(gaps_fine, 1500.0), "gap": gaps_fine}, wrt=("gap",))
 fig, axes = plt.subplots(3, 1, figsize=(8, 8), sharex=True)
-axes[0].plot(1e3 * gaps_fine, line.peaks["peak_anchoring_force_N"])
+axes[0].plot(1e3 * gaps_fine, line.peaks["peak_anchoring_force"])
 axes[0].set_ylabel("peak F_AN (N)")
 axes[1].plot(1e3 * gaps_fine, line.peaks["peak_anchoring_force_time_s"], ".")
 axes[1].set_ylabel("time of the peak (s)")
-axes[2].plot(1e3 * gaps_fine, line.gradients["peak_anchoring_force_N"]["gap"])
+axes[2].plot(1e3 * gaps_fine, line.gradients["peak_anchoring_force"]["gap"])
 axes[2].set_ylabel("dF/dgap (N/m)")
 axes[2].set_xlabel("gap (mm)")
 fig.tight_layout()
@@ -101,7 +101,7 @@ def smooth_force(gap, temperature):
 
 smooth = jax.jit(jax.vmap(smooth_force, in_axes=(0, None)))
 fig, ax = plt.subplots(figsize=(8, 4.5))
-ax.plot(1e3 * gaps_fine, line.peaks["peak_anchoring_force_N"], "k", label="peak")
+ax.plot(1e3 * gaps_fine, line.peaks["peak_anchoring_force"], "k", label="peak")
 for temperature in (5.0, 20.0):
     ax.plot(1e3 * gaps_fine, smooth(jnp.asarray(gaps_fine), temperature),
             label=f"smooth max, T = {temperature:g} N")
@@ -114,7 +114,7 @@ ax.legend()
 # Scaled by each parameter's documented range: which parameters matter most?
 
 # %%
-wrt = tuple(rj.PARAMETER_NAMES)
+wrt = tuple(rj.PARAMETERS)
 peaks, grads = rj.peak_jacobian(rj.RecoilParams(absorber=rj.Absorber(m=1500.0, gap=0.062)),
                                 wrt=wrt)
 scaled = {name: float(grads.peak_anchoring_force[j]) * rj.parameter_scale(name)

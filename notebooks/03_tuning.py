@@ -73,10 +73,10 @@ problem = rj.DesignProblem(
 result = rj.optimise(problem, starts=STARTS, steps=STEPS,
                      optimiser=optax.adam(optax.cosine_decay_schedule(0.1, STEPS, alpha=0.01)))
 design = result.best_design()
-metrics = rj.peaks(result.best_params()).to_dict()
+metrics = rj.peaks(result.best_params(), options=problem.options).metrics()
 print({k: round(design[k], 4) for k in problem.tune})
-print(f"peak F_AN {metrics['peak_anchoring_force_N']:.1f} N (paper's design: 5514.1 N), "
-      f"max stroke {metrics['max_stroke_m']:.4f} m")
+print(f"peak F_AN {metrics['peak_anchoring_force']:.1f} N (paper's design: 5514.1 N), "
+      f"max stroke {metrics['max_stroke']:.4f} m")
 print(rj.constraint_report(problem, design, metrics))
 
 # %% [markdown]

@@ -1,4 +1,12 @@
-"""recoil-jax: differentiable recoil-system models (barrel + impact absorber) in JAX."""
+"""recoil-jax: differentiable recoil-system models (barrel + impact absorber) in JAX.
+
+The engine lives in the private modules of this package; this file is its public API.
+The applications built on it (command line, studies, benchmarks, figures) live in
+`recoil_jax.apps`, which imports from here and never the other way round. The model is
+specified in `docs/model.md`.
+"""
+
+import importlib.metadata
 
 import jax as _jax
 
@@ -6,18 +14,22 @@ import jax as _jax
 # (Set before the submodules import, hence E402 below.)
 _jax.config.update("jax_enable_x64", True)
 
-from ._design import (
-    METRICS as METRICS,
-    differentiable_peaks as differentiable_peaks,
-)
+from ._dense import hermite_max as hermite_max
+from ._design import differentiable_peaks as differentiable_peaks
 from ._gradients import (
     DESIGN_PARAMETERS as DESIGN_PARAMETERS,
     GRADIENT_OPTIONS as GRADIENT_OPTIONS,
-    PeakGradients as PeakGradients,
     SmoothMax as SmoothMax,
     parameter_scale as parameter_scale,
     peak_gradients as peak_gradients,
     peak_jacobian as peak_jacobian,
+)
+from ._metrics import (
+    METRICS as METRICS,
+    PEAK_FIELDS as PEAK_FIELDS,
+    Metric as Metric,
+    PeakGradients as PeakGradients,
+    Peaks as Peaks,
 )
 from ._model import (
     RECOIL_TERM as RECOIL_TERM,
@@ -29,17 +41,14 @@ from ._model import (
     initial_state as initial_state,
     model_args as model_args,
     positive_power as positive_power,
+    signals as signals,
     smooth_relu as smooth_relu,
+    tracked_metrics as tracked_metrics,
     vector_field as vector_field,
 )
 from ._optimise import (
-    Constraint as Constraint,
-    DesignProblem as DesignProblem,
-    Objective as Objective,
     OptimiseResult as OptimiseResult,
-    constraint_report as constraint_report,
     default_optimiser as default_optimiser,
-    evaluate_design as evaluate_design,
     optimise as optimise,
 )
 from ._paper import (
@@ -47,34 +56,51 @@ from ._paper import (
     paper_cases as paper_cases,
 )
 from ._params import (
-    PARAMETER_NAMES as PARAMETER_NAMES,
+    PARAMETERS as PARAMETERS,
     Absorber as Absorber,
     Barrel as Barrel,
     Contact as Contact,
+    Parameter as Parameter,
     ParameterError as ParameterError,
     RecoilParams as RecoilParams,
     Smoothing as Smoothing,
     SolverOptions as SolverOptions,
+    end_time as end_time,
     params_from_values as params_from_values,
     params_to_values as params_to_values,
+    values_of as values_of,
+    with_values as with_values,
 )
+from ._problem import (
+    Constraint as Constraint,
+    DesignProblem as DesignProblem,
+    Objective as Objective,
+    constraint_report as constraint_report,
+    evaluate_design as evaluate_design,
+)
+from ._reference import reference_peaks as reference_peaks
 from ._solve import (
-    PEAK_KEYS as PEAK_KEYS,
     History as History,
-    Peaks as Peaks,
-    SolveError as SolveError,
-    Status as Status,
-    hermite_max as hermite_max,
     peak_metrics as peak_metrics,
     peaks as peaks,
     simulate as simulate,
 )
+from ._status import (
+    SolveError as SolveError,
+    Status as Status,
+    failure_message as failure_message,
+    status_codes as status_codes,
+    status_messages as status_messages,
+    status_table as status_table,
+)
 from ._sweep import (
     SweepResult as SweepResult,
     batch_params as batch_params,
+    default_workers as default_workers,
     grid as grid,
+    shard_batch as shard_batch,
     sweep as sweep,
     sweep_grid as sweep_grid,
 )
 
-__version__ = "0.1.0"
+__version__ = importlib.metadata.version("recoil-jax")

@@ -15,39 +15,40 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._gradients import (
-    GRADIENT_OPTIONS,
-    SmoothMax,
-    _check_wrt,
-    _sensitivity_solve,
-)
+from ._gradients import GRADIENT_OPTIONS, SmoothMax, check_wrt, sensitivity_solve, smooth_name
+from ._metrics import METRICS
 from ._params import RecoilParams, Smoothing, SolverOptions, values_of, with_values
+from ._status import status_item
 
-#: The peak metrics `differentiable_peaks` returns (`Peaks` field names).
-METRICS = ("peak_displacement", "peak_anchoring_force", "peak_contact_force", "max_stroke",
-           "min_stroke")
+__all__ = ["design_metrics", "differentiable_peaks"]
 
 
 def _solve(theta, params, wrt, smoothing, options, smooth_max):
-    peaks, grads, smooth_values, smooth_grads = _sensitivity_solve(
+    peaks, grads, smooth_values, smooth_grads = sensitivity_solve(
         with_values(params, wrt, theta), smoothing, options, wrt, smooth_max)
     values = {name: getattr(peaks, name) for name in METRICS}
     jacobian = {name: getattr(grads, name) for name in METRICS}
     if smooth_max is not None:
+        assert smooth_values is not None and smooth_grads is not None
         for j, name in enumerate(smooth_max.metrics):
-            values["smooth_" + name] = smooth_values[j]
-            jacobian["smooth_" + name] = smooth_grads[j]
-    return values, jacobian, peaks.status
+            values[smooth_name(name)] = smooth_values[j]
+            jacobian[smooth_name(name)] = smooth_grads[j]
+    (code,) = jax.tree.leaves(peaks.status)  # the integer code: custom JVPs take arrays
+    return values, jacobian, code
 
 
 @eqx.filter_custom_jvp
-def _metrics(theta, *, params, wrt, smoothing, options, smooth_max):
+def design_metrics(theta, *, params, wrt, smoothing, options, smooth_max):
+    """`(metrics, code)` of `params` with the parameters `wrt` set to `theta`: the
+    metrics of `METRICS` by name (and `smooth_<metric>` for each of `smooth_max`) and the
+    integer `Status` code, with a custom JVP on the forward sensitivities. The keyword
+    arguments are closed over (not differentiated); see `differentiable_peaks`."""
     values, _, status = _solve(theta, params, wrt, smoothing, options, smooth_max)
     return values, status
 
 
-@_metrics.def_jvp
-def _metrics_jvp(primals, tangents, *, params, wrt, smoothing, options, smooth_max):
+@design_metrics.def_jvp
+def _design_metrics_jvp(primals, tangents, *, params, wrt, smoothing, options, smooth_max):
     (theta,), (theta_dot,) = primals, tangents
     values, jacobian, status = _solve(theta, params, wrt, smoothing, options, smooth_max)
     if theta_dot is None:
@@ -62,27 +63,38 @@ def differentiable_peaks(
     options: SolverOptions = GRADIENT_OPTIONS,
     smooth_max: SmoothMax | None = None,
 ) -> Callable[[jax.Array], tuple[dict[str, jax.Array], jax.Array]]:
-    """`fn(theta) -> (metrics, status)`: the peaks of `params` with the parameters `wrt`
-    set to `theta` (shape `(len(wrt),)`, SI units), as a function that JAX can
-    differentiate in forward or reverse mode (gradients by forward sensitivities with
-    error control, see `peak_gradients`).
-
-    `metrics` maps each of `METRICS` (and `"smooth_<metric>"` for each metric of
-    `smooth_max`) to a scalar; `status` is the solve's `Status` code. Unjitted; `jit` and
-    `vmap` it as you need (`params` may be closed over, also inside `jit`).
+    """The peaks as a function of the tuned parameters that JAX can differentiate in
+    forward or reverse mode, with gradients by forward sensitivities with error control
+    (see `peak_gradients`), not the derivative of the discrete solver.
 
     ```python
     fn = rj.differentiable_peaks(params, ("gap", "m"))
     force, grad = jax.value_and_grad(lambda th: fn(th)[0]["peak_anchoring_force"])(theta)
     ```
+
+    **Arguments:**
+
+    - `params`: the design; the parameters `wrt` are replaced by `theta`, the others are
+      held (closed over, also inside `jit`).
+    - `wrt`: flat names of the tuned parameters (static).
+    - `smoothing`, `options`: as `peak_gradients` (default `GRADIENT_OPTIONS`).
+    - `smooth_max`: optional `SmoothMax`: also return `"smooth_<metric>"` entries.
+
+    **Returns:** `fn(theta) -> (metrics, status)`, `theta` of shape `(len(wrt),)` in SI
+    units: `metrics` maps each metric of `METRICS` by name (and the smooth maxima) to a
+    scalar, `status` is the solve's `Status`. Unjitted; `jit` and `vmap` it as you need.
+
+    **Raises:** `ParameterError` for a bad `wrt`.
     """
     wrt = tuple(wrt)
-    _check_wrt(params, wrt)
+    check_wrt(params, wrt)
 
     def fn(theta):
         # The tuned leaves of `params` are replaced by `theta`: cut any tangent they carry.
         base = with_values(params, wrt, jax.lax.stop_gradient(values_of(params, wrt)))
-        return _metrics(jnp.asarray(theta, dtype=float), params=base, wrt=wrt,
-                        smoothing=smoothing, options=options, smooth_max=smooth_max)
+        metrics, code = design_metrics(jnp.asarray(theta, dtype=float), params=base, wrt=wrt,
+                                       smoothing=smoothing, options=options,
+                                       smooth_max=smooth_max)
+        return metrics, status_item(code)
 
     return fn

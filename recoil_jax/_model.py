@@ -1,4 +1,5 @@
-"""The recoil models as a diffrax ODE term (see `shared/design/model.md`).
+"""The recoil models as a diffrax ODE term, their forces, the signals whose extremes are
+the metrics, and the energy bounds that let a solve stop early (`docs/model.md`).
 
 State `y = (x_M, v_M, x_m, v_m)` (m, m/s), recoil is +x. The simplified model is the
 absorber-free case (`params.absorber is None`): the absorber states stay at zero.
@@ -11,7 +12,24 @@ from typing import NamedTuple
 import diffrax
 import jax.numpy as jnp
 
+from ._metrics import METRICS
 from ._params import RecoilParams, Smoothing
+
+__all__ = [
+    "RECOIL_TERM",
+    "Forces",
+    "characteristic_penetration",
+    "contact_width",
+    "forces",
+    "future_metric_bounds",
+    "initial_state",
+    "model_args",
+    "positive_power",
+    "signals",
+    "smooth_relu",
+    "tracked_metrics",
+    "vector_field",
+]
 
 
 def smooth_relu(x, width):
@@ -117,9 +135,29 @@ def forces(y, params: RecoilParams, smoothing: Smoothing, width_contact=None) ->
 _SWITCH_POWER = 0.0215
 
 
-def future_metric_bounds(y, args, time_left):
-    """Upper bounds, valid for the rest of the run, on the metrics x_M, F_AN, F_ct,
-    x_m − x_M and x_M − x_m, from the mechanical energy at state `y`; shape `(5,)`.
+def signals(y, args) -> dict[str, jnp.ndarray]:
+    """The time signals whose extremes are the metrics (`Metric.signal`): barrel
+    displacement `x_M` (m), anchoring force `F_AN` (N), contact force `F_ct` (N) and the
+    absorber's travel `stroke = x_m − x_M` (m; 0 for the simplified model).
+    `args = model_args(params, smoothing)`."""
+    params, smoothing, width_contact = args
+    f = forces(y, params, smoothing, width_contact)
+    # The simplified model has no absorber, hence no stroke.
+    stroke = jnp.zeros_like(y[0]) if params.absorber is None else y[2] - y[0]
+    return {"x_M": y[0], "F_AN": f.anchoring, "F_ct": f.contact, "stroke": stroke}
+
+
+def tracked_metrics(y, args) -> dict[str, jnp.ndarray]:
+    """What the peak loop maximises, by metric name: `sign · signal` of each metric of
+    `METRICS` (the negated stroke for `min_stroke`, so that its minimum is a maximum)."""
+    values = signals(y, args)
+    return {name: m.sign * values[m.signal] for name, m in METRICS.items()}
+
+
+def future_metric_bounds(y, args, time_left) -> dict[str, jnp.ndarray]:
+    """Upper bounds, valid for the rest of the run, on every tracked metric
+    (`tracked_metrics`: x_M, F_AN, F_ct, x_m − x_M and x_M − x_m), by metric name, from
+    the mechanical energy at state `y`.
 
     The energy `E = ½M v_M² + ½m v_m² + ½k x_M² + ½k_r (x_M − x_m)² + U(δ)` (with the
     contact potential `U`) never increases: the dampers, the contact's Hunt–Crossley
@@ -157,7 +195,8 @@ def future_metric_bounds(y, args, time_left):
     anchoring = jnp.sqrt((barrel.k + barrel.c_out**2 / barrel.M) * two_energy) + damper_offset
     if absorber is None:
         zero = jnp.zeros_like(displacement)
-        return jnp.stack([displacement, anchoring, zero, zero, zero])
+        return {"peak_displacement": displacement, "peak_anchoring_force": anchoring,
+                "peak_contact_force": zero, "min_stroke": zero, "max_stroke": zero}
     relative_max = jnp.sqrt(two_energy / absorber.k_r)
     # U(δ) >= k_c δ₊^(n+1) / (n+1), since r(s) >= max(s, 0).
     penetration = positive_power((contact.n_c + 1.0) * energy / contact.k_c,
@@ -172,9 +211,10 @@ def future_metric_bounds(y, args, time_left):
     valid = contact.lambda_c * width_v < 1.0
     inf = jnp.full_like(displacement, jnp.inf)
     # x_M − x_m = gap + δ, and `penetration` already respects relative_max.
-    bounds = jnp.stack([displacement, anchoring, contact_force, relative_max,
-                        absorber.gap + penetration])
-    return jnp.where(valid, bounds, inf)
+    bounds = {"peak_displacement": displacement, "peak_anchoring_force": anchoring,
+              "peak_contact_force": contact_force, "min_stroke": absorber.gap + penetration,
+              "max_stroke": relative_max}
+    return {name: jnp.where(valid, bound, inf) for name, bound in bounds.items()}
 
 
 def vector_field(t, y, args):

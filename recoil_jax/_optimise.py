@@ -1,28 +1,20 @@
-"""Gradient-based absorber tuning with optax.
+"""Gradient-based design tuning with optax: many starts at once, bounds by
+reparametrisation, metric limits by an augmented Lagrangian.
 
-The pieces, each small:
-
-- `Objective`: a weighted sum of peak metrics, optionally with a smooth maximum over time
-  (log-sum-exp, `SmoothMax`) in place of a peak, and optionally the worst case over a
-  scatter of one parameter (e.g. v0 ± 5 %).
-- `Constraint`: an upper or lower limit on a metric or a parameter. Limits on tuned
-  parameters tighten their bounds (held exactly by the reparametrisation); limits on
-  metrics go through an augmented Lagrangian (PHR), whose multipliers are updated every
-  `update_every` steps while the penalty grows as long as a limit is violated.
-- `DesignProblem`: the base design, the tuned parameters with their bounds, the objective
-  and the constraints. Bounds are held by a smooth reparametrisation,
-  `θ = lo + (hi − lo) · sigmoid(u)`, so no clipping ever zeroes a gradient.
-- `optimise`: many starts at once (`vmap`), one optax optimiser, one compiled step for the
-  whole run, a history of every step, stopping rules per start, and the best feasible
-  design over every evaluated point.
+- Bounds hold through a smooth reparametrisation, `θ = lo + (hi − lo) · sigmoid(u)`, so no
+  clipping ever zeroes a gradient.
+- Limits on metrics go through an augmented Lagrangian (PHR): the multipliers are updated
+  every `update_every` steps, and the penalty grows while a limit is violated.
+- Every start (and every scenario of a front) runs in one vmapped step, compiled once
+  per run; the host loop keeps the history, applies the stopping rules and selects the
+  best feasible design.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import sys
-import time
 from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -30,170 +22,12 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ._design import METRICS, _metrics as _design_metrics, values_of, with_values
-from ._gradients import GRADIENT_OPTIONS, SmoothMax, _check_wrt
-from ._params import (
-    PARAMETER_NAMES,
-    ParameterError,
-    RecoilParams,
-    Smoothing,
-    SolverOptions,
-    _check_value,
-    parameter_limits,
-    params_to_values,
-)
-from ._solve import PEAK_KEYS, Status
+from ._params import ParameterError, RecoilParams, params_to_values, values_of, with_values
+from ._problem import DesignProblem, evaluate_design
+from ._progress import Progress
+from ._status import Status, status_codes
 
-#: `Peaks` field → `simulate --json` key.
-_JSON_KEYS = {field: key for key, field in PEAK_KEYS.items()}
-
-
-class Objective(eqx.Module):
-    """`Σ_k weights[k] · metric_k`, to be minimised (metric units, e.g. N and m).
-
-    - `weights`: metric name (`METRICS`) → weight.
-    - `temperatures`: metric name → temperature (metric unit). Those metrics enter the
-      objective the optimiser sees as their smooth maximum over time
-      (`T·log((1/t1)∫exp(g/T)dt)`, see `SmoothMax`) instead of their peak: smooth where the
-      peak jumps from one local maximum to another. Only `peak_displacement` and
-      `peak_anchoring_force` have one. The *reported* objective always uses the peaks.
-    - `scatter`: `(name, relative offsets)`: evaluate the design at `value·(1 + offset)`
-      of that parameter for each offset (vmapped) and take the worst case, for the
-      objective and the metric constraints alike (robust design).
-    """
-
-    weights: dict[str, float]
-    temperatures: dict[str, float] = eqx.field(default_factory=dict)
-    scatter: tuple[str, tuple[float, ...]] | None = eqx.field(default=None, static=True)
-
-    def __check_init__(self):
-        if not self.weights:
-            raise ParameterError("Objective.weights is empty: weight at least one metric")
-        for name in self.weights:
-            if name not in METRICS:
-                raise ParameterError(f"Objective: unknown metric {name!r}; choose from "
-                                     f"{', '.join(METRICS)}")
-        for name in self.temperatures:
-            if name not in self.weights:
-                raise ParameterError(f"Objective.temperatures names {name!r}, which the "
-                                     "objective does not weight")
-        SmoothMax(tuple(self.temperatures), list(self.temperatures.values()))
-        if self.scatter is not None:
-            name, offsets = self.scatter
-            if name not in PARAMETER_NAMES:
-                raise ParameterError(f"Objective.scatter: unknown parameter {name!r}")
-            if not offsets or any(not -1.0 < o < 10.0 for o in offsets):
-                raise ParameterError(
-                    "Objective.scatter offsets must be relative offsets > -1, e.g. "
-                    "(-0.05, 0, 0.05)")
-
-    def smooth_max(self, temperature_scale=1.0) -> SmoothMax | None:
-        """The `SmoothMax` of the objective's temperatures times `temperature_scale`."""
-        if not self.temperatures:
-            return None
-        temperatures = jnp.asarray(list(self.temperatures.values())) * temperature_scale
-        return SmoothMax(tuple(self.temperatures), temperatures)
-
-    def of_json(self, metrics: Mapping[str, float]) -> float:
-        """The objective (with peaks) of metrics keyed as `simulate --json`."""
-        return float(self({name: metrics[_JSON_KEYS[name]] for name in self.weights}))
-
-    def __call__(self, metrics: Mapping[str, jax.Array], smooth: bool = False) -> jax.Array:
-        """The objective of `metrics` (a dict of scalars, or arrays of equal shape).
-        `smooth=True` takes `smooth_<metric>` where the objective has a temperature."""
-        total = 0.0
-        for name, weight in self.weights.items():
-            key = "smooth_" + name if smooth and name in self.temperatures else name
-            total = total + weight * metrics[key]
-        return total
-
-
-class Constraint(eqx.Module):
-    """`lower <= value <= upper` for a metric (`METRICS`) or a parameter (flat
-    name), in its SI unit. Give one or both limits."""
-
-    name: str = eqx.field(static=True)
-    upper: float | None = eqx.field(default=None, static=True)
-    lower: float | None = eqx.field(default=None, static=True)
-
-    def __check_init__(self):
-        if self.name not in METRICS and self.name not in PARAMETER_NAMES:
-            raise ParameterError(
-                f"Constraint on unknown quantity {self.name!r}; metrics: "
-                f"{', '.join(METRICS)}; parameters: {', '.join(PARAMETER_NAMES)}")
-        if self.upper is None and self.lower is None:
-            raise ParameterError(f"Constraint on {self.name} has neither upper nor lower")
-        if self.upper is not None and self.lower is not None and self.lower > self.upper:
-            raise ParameterError(f"Constraint on {self.name}: lower {self.lower} > upper "
-                                 f"{self.upper}")
-
-    @property
-    def is_metric(self) -> bool:
-        return self.name in METRICS
-
-    def limits(self) -> list[tuple[str, float]]:
-        """`[(kind, limit)]` with kind `"max"` or `"min"`."""
-        out = []
-        if self.upper is not None:
-            out.append(("max", float(self.upper)))
-        if self.lower is not None:
-            out.append(("min", float(self.lower)))
-        return out
-
-
-class DesignProblem(eqx.Module):
-    """What to tune, within which bounds, for which objective, under which limits.
-
-    - `params`: the base design. Parameters not tuned keep its values; the first start of
-      each run begins at it.
-    - `tune`: flat names of the tuned parameters (default gap, m, k_r, c_r).
-    - `bounds`: name → `(lo, hi)`; default the documented range. Parameter constraints on
-      tuned parameters tighten these.
-    - `objective`, `constraints`, `smoothing`, `options` (default `GRADIENT_OPTIONS`).
-    """
-
-    params: RecoilParams
-    objective: Objective
-    tune: tuple[str, ...] = eqx.field(default=("gap", "m", "k_r", "c_r"), static=True)
-    bounds: dict[str, tuple[float, float]] = eqx.field(default_factory=dict, static=True)
-    constraints: tuple[Constraint, ...] = eqx.field(default=(), static=True)
-    smoothing: Smoothing = Smoothing()
-    options: SolverOptions = GRADIENT_OPTIONS
-
-    def __check_init__(self):
-        _check_wrt(self.params, self.tune)
-        for name, bound in self.bounds.items():
-            if name not in self.tune:
-                raise ParameterError(f"bounds given for {name!r}, which is not tuned")
-            lo, hi = bound
-            if not lo < hi:
-                raise ParameterError(f"bounds for {name}: need lo < hi, got ({lo}, {hi})")
-            _check_value("bounds", name, lo, parameter_limits(name))
-            _check_value("bounds", name, hi, parameter_limits(name))
-        lower, upper = self.box()
-        for name, lo, hi in zip(self.tune, lower, upper, strict=True):
-            if not lo < hi:
-                raise ParameterError(
-                    f"the constraints leave no room for {name}: bounds ({lo:g}, {hi:g})")
-
-    def box(self) -> tuple[np.ndarray, np.ndarray]:
-        """The bounds of the tuned parameters, tightened by their constraints."""
-        lower, upper = [], []
-        for name in self.tune:
-            lo, hi = self.bounds.get(name, parameter_limits(name).documented)
-            for c in self.constraints:
-                if c.name == name:
-                    lo = lo if c.lower is None else max(lo, c.lower)
-                    hi = hi if c.upper is None else min(hi, c.upper)
-            lower.append(lo)
-            upper.append(hi)
-        return np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
-
-    @property
-    def metric_constraints(self) -> list[tuple[str, str, float]]:
-        """`[(metric, kind, limit)]` handled by the augmented Lagrangian."""
-        return [(c.name, kind, limit) for c in self.constraints if c.is_metric
-                for kind, limit in c.limits()]
+__all__ = ["OptimiseResult", "default_optimiser", "optimise"]
 
 
 def _to_theta(u, lower, upper):
@@ -203,53 +37,6 @@ def _to_theta(u, lower, upper):
 def _to_u(theta, lower, upper):
     fraction = np.clip((np.asarray(theta) - lower) / (upper - lower), 1e-4, 1 - 1e-4)
     return np.log(fraction) - np.log1p(-fraction)
-
-
-def evaluate_design(problem: DesignProblem, theta, params=None, temperature_scale=1.0,
-                    limits=None):
-    """Metrics of the tuned values `theta` (worst case over the objective's scatter),
-    their `status`, the smooth and exact objectives, and the normalised violations of the
-    metric constraints (`<= 0` when satisfied). Differentiable in `theta`; unjitted.
-    `temperature_scale` multiplies the objective's smooth-max temperatures; `limits`
-    (shape `(C,)`) replaces the limits of `problem.metric_constraints`."""
-    params = problem.params if params is None else params
-    if limits is None:
-        limits = jnp.asarray([limit for _, _, limit in problem.metric_constraints])
-    objective = problem.objective
-    smooth_max = objective.smooth_max(temperature_scale)
-
-    def metrics_at(p):
-        return _design_metrics(theta, params=p, wrt=problem.tune, smoothing=problem.smoothing,
-                               options=problem.options, smooth_max=smooth_max)
-
-    if objective.scatter is None:
-        metrics, status = metrics_at(params)
-    else:
-        name, offsets = objective.scatter
-        nominal = values_of(params, (name,))
-        scattered = jax.vmap(lambda o: with_values(params, (name,), nominal * (1.0 + o)))(
-            jnp.asarray(offsets))
-        per_sample, statuses = jax.vmap(metrics_at)(scattered)
-        # Worst case over the scatter: of the objective, and of each limited metric.
-        smooth_values = objective(per_sample, smooth=True)
-        exact_values = objective(per_sample)
-        metrics = {k: jnp.max(v) for k, v in per_sample.items()}
-        metrics["min_stroke"] = jnp.min(per_sample["min_stroke"])
-        status = jnp.max(statuses)
-        return (metrics, status, jnp.max(smooth_values), jnp.max(exact_values),
-                _violations(problem, metrics, limits))
-    return (metrics, status, objective(metrics, smooth=True), objective(metrics),
-            _violations(problem, metrics, limits))
-
-
-def _violations(problem: DesignProblem, metrics, limits) -> jax.Array:
-    out = []
-    for j, (name, kind, _) in enumerate(problem.metric_constraints):
-        limit = limits[j]
-        scale = jnp.where(limit != 0, jnp.abs(limit), 1.0)
-        value = metrics[name]
-        out.append((value - limit) / scale if kind == "max" else (limit - value) / scale)
-    return jnp.stack(out) if out else jnp.zeros((0,))
 
 
 class _State(eqx.Module):
@@ -264,56 +51,73 @@ class _State(eqx.Module):
 class _StepRecord(eqx.Module):
     theta: jax.Array
     metrics: dict
-    status: jax.Array
+    status: jax.Array  # integer `Status` codes
     smooth_objective: jax.Array
     objective: jax.Array
     violations: jax.Array
 
 
-def _make_step(problem: DesignProblem, optimiser: optax.GradientTransformation, steps: int,
-               anneal: float, update_every: int, penalty_growth: float, max_penalty: float,
-               trace_counter):
+@dataclasses.dataclass(frozen=True)
+class _Settings:
+    steps: int
+    anneal: float
+    update_every: int
+    penalty_growth: float
+    max_penalty: float
+
+
+def _make_step(problem: DesignProblem, optimiser: optax.GradientTransformation,
+               settings: _Settings):
+    """The vmapped, jitted step of every run, and the function whose traces count the
+    compilations (`eqx.debug.get_num_traces`)."""
     lower, upper = (jnp.asarray(b) for b in problem.box())
+    steps = settings.steps
+    ok = int(status_codes(Status.ok))
 
+    def loss(u, state: _State, params, limits):
+        theta = _to_theta(u, lower, upper)
+        # Anneal the smooth-max temperatures geometrically to `anneal` of their start.
+        progress = state.step / max(steps - 1, 1)
+        metrics, status, smooth, exact, violations = evaluate_design(
+            problem, theta, params, settings.anneal**progress, limits)
+        scale = jnp.where(state.step == 0, jax.lax.stop_gradient(jnp.abs(smooth)),
+                          state.scale)
+        scale = jnp.where(scale > 0, scale, 1.0)
+        lam, rho = state.multipliers, state.penalty
+        augmented = jnp.sum(jnp.maximum(lam + rho * violations, 0.0) ** 2 - lam**2) / (
+            2.0 * rho)
+        (code,) = jax.tree.leaves(status)
+        record = _StepRecord(theta, metrics, code, smooth, exact, violations)
+        return smooth / scale + augmented, (record, scale)
+
+    @eqx.debug.assert_max_traces(max_traces=1)
     def one(state: _State, params, limits, active):
-        trace_counter.append(1)  # counts traces (tests check there is exactly one)
-
-        def loss(u):
-            theta = _to_theta(u, lower, upper)
-            # Anneal the smooth-max temperatures geometrically to `anneal` of their start.
-            progress = state.step / max(steps - 1, 1)
-            metrics, status, smooth, exact, violations = evaluate_design(
-                problem, theta, params, anneal**progress, limits)
-            scale = jnp.where(state.step == 0, jax.lax.stop_gradient(jnp.abs(smooth)),
-                              state.scale)
-            scale = jnp.where(scale > 0, scale, 1.0)
-            lam, rho = state.multipliers, state.penalty
-            augmented = jnp.sum(jnp.maximum(lam + rho * violations, 0.0) ** 2 - lam**2) / (
-                2.0 * rho)
-            record = _StepRecord(theta, metrics, status, smooth, exact, violations)
-            return smooth / scale + augmented, (record, scale)
-
-        (value, (record, scale)), grad = jax.value_and_grad(loss, has_aux=True)(state.u)
-        ok = (record.status == Status.OK) & jnp.isfinite(value) & jnp.all(jnp.isfinite(grad))
-        move = active & ok
+        (value, (record, scale)), grad = jax.value_and_grad(loss, has_aux=True)(
+            state.u, state, params, limits)
+        solved = (record.status == ok) & jnp.isfinite(value) & jnp.all(jnp.isfinite(grad))
+        move = active & solved
         updates, opt_state = optimiser.update(grad, state.opt_state, state.u)
-        u = jnp.where(move, optax.apply_updates(state.u, updates), state.u)
-        opt_state = jax.tree.map(lambda new, old: jnp.where(move, new, old), opt_state,
-                                 state.opt_state)
+
+        def where_moving(new: Any, old: Any) -> Any:
+            return jnp.where(move, new, old)
+
+        u = where_moving(optax.apply_updates(state.u, updates), state.u)
+        opt_state = jax.tree.map(where_moving, opt_state, state.opt_state)
         # Augmented Lagrangian (PHR): first-order multiplier update every `update_every`
         # steps; the penalty grows while any limit is still violated.
-        at_update = move & ((state.step + 1) % update_every == 0)
+        at_update = move & ((state.step + 1) % settings.update_every == 0)
         multipliers = jnp.where(
             at_update, jnp.maximum(state.multipliers + state.penalty * record.violations, 0.0),
             state.multipliers)
         violated = jnp.any(record.violations > 0)
         penalty = jnp.where(at_update & violated,
-                            jnp.minimum(state.penalty * penalty_growth, max_penalty),
+                            jnp.minimum(state.penalty * settings.penalty_growth,
+                                        settings.max_penalty),
                             state.penalty)
         new = _State(u, opt_state, multipliers, penalty, scale, state.step + move)
         return new, record
 
-    return eqx.filter_jit(jax.vmap(one))
+    return eqx.filter_jit(jax.vmap(one)), one
 
 
 @dataclasses.dataclass
@@ -325,7 +129,8 @@ class OptimiseResult:
       found over every evaluated point of every run (NaN objective if none was feasible),
       per scenario (`(S, P)`, `(S,)`...).
     - `history`: per step, arrays of shape `(N, R, ...)`: `theta`, `objective` (exact,
-      with peaks), `smooth_objective`, `violations`, `status`, and each metric.
+      with peaks), `smooth_objective`, `violations`, `status` (integer `Status` codes),
+      and each metric by name.
     - `converged`: per run, whether its stopping rule fired (`(R,)`); `converged_step`.
     - `simulations`: solves used (each with sensitivities; times the scatter samples).
     - `compilations`: how many times the step was traced (1).
@@ -355,7 +160,7 @@ class OptimiseResult:
         return self.problem.tune
 
     def best_design(self, scenario: int = 0) -> dict[str, float]:
-        """Every parameter of the best design of `scenario`, by the `simulate` names."""
+        """Every parameter of the best design of `scenario`, by flat name."""
         params = self.best_params(scenario)
         return {k: float(np.asarray(v)) for k, v in params_to_values(params).items()}
 
@@ -430,6 +235,59 @@ def _stationary(records, patience: int, ftol: float, vtol: float) -> np.ndarray:
     return flat & (worst <= vtol)
 
 
+def _scenarios(problem: DesignProblem, scenarios: RecoilParams | None,
+               scenario_limits: Mapping[str, Sequence[float]] | None):
+    """The base design `(S, ...)` and metric limits `(S, C)` of each scenario."""
+    constraints = problem.metric_constraints
+    limits = np.asarray([[limit for _, _, limit in constraints]], dtype=float).reshape(1, -1)
+    sizes = set()
+    if scenarios is not None:
+        # Leaves with a leading axis vary per scenario; scalars are shared.
+        sizes |= {int(np.shape(x)[0]) for x in jax.tree.leaves(scenarios) if np.ndim(x)}
+        if not sizes:
+            raise ParameterError("scenarios: no parameter has a leading scenario axis")
+    names = [name for name, _, _ in constraints]
+    for name, values in (scenario_limits or {}).items():
+        if name not in names:
+            raise ParameterError(f"scenario_limits names {name!r}, which has no metric "
+                                 f"constraint; constrained: {', '.join(names) or 'none'}")
+        if not np.all(np.isfinite(np.asarray(values, dtype=float))):
+            raise ParameterError(f"scenario_limits for {name} must be finite numbers")
+        sizes.add(len(values))
+    if len(sizes) > 1:
+        raise ParameterError(f"scenarios of different lengths: {sorted(sizes)}")
+    count = sizes.pop() if sizes else 1
+    # Every parameter is a scalar per design: shared values broadcast over the scenarios.
+    params = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x, dtype=float), (count,)),
+                          problem.params if scenarios is None else scenarios)
+    limits = np.repeat(limits, count, axis=0)
+    for name, values in (scenario_limits or {}).items():
+        limits[:, names.index(name)] = np.asarray(values, dtype=float)
+    return params, limits
+
+
+def _select_best(history: dict[str, np.ndarray], scenarios: int, starts: int):
+    """The best strictly feasible point of each run, and of each scenario."""
+    ok = int(status_codes(Status.ok))
+    runs = scenarios * starts
+    feasible = np.all(history["violations"] <= 0, axis=-1) & (history["status"] == ok)
+    values = np.where(feasible, history["objective"], np.inf)  # (N, R)
+    run_best_step = np.argmin(values, axis=0)
+    run_best_objective = values[run_best_step, np.arange(runs)]
+    run_best_objective = np.where(np.isfinite(run_best_objective), run_best_objective, np.nan)
+    run_best_theta = history["theta"][run_best_step, np.arange(runs)]
+    best = {"theta": [], "objective": [], "run": [], "step": []}
+    for s in range(scenarios):
+        rs = np.arange(s * starts, (s + 1) * starts)
+        scores = np.where(np.isnan(run_best_objective[rs]), np.inf, run_best_objective[rs])
+        r = int(rs[np.argmin(scores)])
+        best["run"].append(r)
+        best["step"].append(int(run_best_step[r]))
+        best["objective"].append(run_best_objective[r])
+        best["theta"].append(run_best_theta[r])
+    return ({k: np.asarray(v) for k, v in best.items()}, run_best_objective, run_best_theta)
+
+
 def optimise(
     problem: DesignProblem,
     *,
@@ -451,102 +309,81 @@ def optimise(
     progress: bool | None = None,
     callback: Callable[[int, dict], None] | None = None,
 ) -> OptimiseResult:
-    """Minimise `problem.objective` subject to `problem.constraints` from `starts` starting
-    points at once (vmapped), with `optimiser` (default Adam with a cosine-decayed step of
-    0.1 → 0.001 in the sigmoid coordinates).
+    """Minimise `problem.objective` subject to `problem.constraints` from many starts at
+    once (vmapped), with an optax optimiser, in one compiled step.
 
+    **Arguments:**
+
+    - `problem`: the `DesignProblem`.
+    - `optimiser`: any optax transformation, applied to the sigmoid coordinates; default
+      Adam with a step cosine-decayed from 0.1 to 0.001 (`default_optimiser`).
+    - `starts`: starts per scenario: the base design, then a Latin hypercube (`seed`).
+    - `steps`: the most steps taken.
+    - `scenarios`: optionally a batched `RecoilParams` (leading axis `S`): the problem is
+      solved for each (e.g. one absorber mass per point of a Pareto front), `starts` each.
+    - `scenario_limits`: metric name → one limit per scenario (an ε-constraint front).
     - `anneal`: the smooth-max temperatures fall geometrically to this fraction of the
       objective's over the `steps` (a continuation: smooth early, close to the peak late).
-    - `scenarios`: optionally a batched `RecoilParams` (leading axis `S`): the problem is
-      solved for each (e.g. one absorber mass per point of a Pareto front), `starts` each;
-      `scenario_limits`: metric name → one limit per scenario (an ε-constraint front).
-    - Stopping: a run stops once, over the last `patience` steps (after `min_steps`),
-      its objective has moved by at most `ftol` (relative) and its metric limits have
-      held within `vtol` (relative); a run whose solve fails stops too. The optimisation
-      stops when every run has stopped, or after `steps`. The best design is the best
-      *feasible* point (every limit strictly held) over all steps of all runs.
+    - `update_every`, `penalty`, `penalty_growth`, `max_penalty`: the augmented
+      Lagrangian's multiplier period and penalty schedule.
+    - `patience`, `ftol`, `vtol`, `min_steps`: a run stops once, over the last `patience`
+      steps (after `min_steps`), its objective has moved by at most `ftol` (relative) and
+      its limits have held within `vtol` (relative); a run whose solve fails stops too.
     - `progress`: a progress line on stderr (default: when stderr is a terminal).
     - `callback(step, record)`: called after each step with the host-side record.
+
+    **Returns:** `OptimiseResult`: the best *feasible* point (every limit strictly held)
+    over all steps of all runs, per scenario, with the whole history.
+
+    **Raises:** `ParameterError` for bad arguments (before compiling).
     """
     if starts < 1 or steps < 1:
         raise ParameterError(f"starts and steps must be >= 1 (got {starts}, {steps})")
     if optimiser is None:
         optimiser = default_optimiser(0.1, steps)
-    constraints = problem.metric_constraints
-    limits = np.asarray([[limit for _, _, limit in constraints]], dtype=float).reshape(1, -1)
-    sizes = set()
-    if scenarios is not None:
-        # Leaves with a leading axis vary per scenario; scalars are shared.
-        sizes |= {int(np.shape(x)[0]) for x in jax.tree.leaves(scenarios) if np.ndim(x)}
-        if not sizes:
-            raise ParameterError("scenarios: no parameter has a leading scenario axis")
-    if scenario_limits:
-        names = [name for name, _, _ in constraints]
-        for name, values in scenario_limits.items():
-            if name not in names:
-                raise ParameterError(f"scenario_limits names {name!r}, which has no metric "
-                                     f"constraint; constrained: {', '.join(names) or 'none'}")
-            sizes.add(len(values))
-    if len(sizes) > 1:
-        raise ParameterError(f"scenarios of different lengths: {sorted(sizes)}")
-    n_scenarios = sizes.pop() if sizes else 1
-    # Every parameter is a scalar per design: shared values broadcast over the scenarios.
-    params = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x, dtype=float),
-                                                     (n_scenarios,)),
-                          problem.params if scenarios is None else scenarios)
-    limits = np.repeat(limits, n_scenarios, axis=0)
-    for name, values in (scenario_limits or {}).items():
-        limits[:, [c[0] for c in constraints].index(name)] = np.asarray(values, dtype=float)
+    params, limits = _scenarios(problem, scenarios, scenario_limits)
+    n_scenarios = limits.shape[0]
     runs = n_scenarios * starts
     run_params = jax.tree.map(lambda x: jnp.repeat(jnp.asarray(x), starts, axis=0), params)
     run_limits = jnp.asarray(np.repeat(limits, starts, axis=0))
 
     lower, upper = problem.box()
-    theta0 = _start_points(problem, params, n_scenarios, starts, seed)
-    u0 = jnp.asarray(_to_u(theta0, lower, upper))
-    n_limits = len(problem.metric_constraints)
+    u0 = jnp.asarray(_to_u(_start_points(problem, params, n_scenarios, starts, seed), lower,
+                           upper))
     state = _State(
         u=u0,
         opt_state=jax.vmap(optimiser.init)(u0),
-        multipliers=jnp.zeros((runs, n_limits)),
+        multipliers=jnp.zeros((runs, limits.shape[1])),
         penalty=jnp.full((runs,), float(penalty)),
         scale=jnp.ones((runs,)),
         step=jnp.zeros((runs,), dtype=int),
     )
-    traces: list[int] = []
-    step_fn = _make_step(problem, optimiser, steps, anneal, update_every, penalty_growth,
-                         max_penalty, traces)
+    step_fn, traced = _make_step(problem, optimiser, _Settings(
+        steps, anneal, update_every, penalty_growth, max_penalty))
     samples = 1 if problem.objective.scatter is None else len(problem.objective.scatter[1])
 
-    show = sys.stderr.isatty() if progress is None else progress
+    bar = Progress("optimise", steps, "steps", progress)
     active = np.ones(runs, dtype=bool)
     converged_step = np.full(runs, -1)
     records: list[_StepRecord] = []
-    simulations = 0
     best_so_far = np.inf
-    start_time = time.perf_counter()
+    ok = int(status_codes(Status.ok))
     for k in range(steps):
         state, record = step_fn(state, run_params, run_limits, jnp.asarray(active))
         record = jax.tree.map(np.asarray, record)
         records.append(record)
-        simulations += runs * samples
-        failed = record.status != Status.OK
+        failed = record.status != ok
         stop = active & (failed | ((k + 1 >= min_steps) & _stationary(records, patience, ftol,
                                                                      vtol)))
         converged_step = np.where(stop & ~failed, k, converged_step)
         active &= ~stop
         if callback is not None:
             callback(k, {"objective": record.objective, "active": active.copy()})
-        feasible = np.all(record.violations <= 0, axis=-1) & (record.status == Status.OK)
+        feasible = np.all(record.violations <= 0, axis=-1) & ~failed
         best_so_far = min(best_so_far, float(np.min(np.where(feasible, record.objective,
                                                               np.inf))))
-        tty = sys.stderr.isatty()
-        last = k + 1 == steps or not active.any()
-        if show and (tty or last or (k + 1) % max(1, steps // 10) == 0):
-            print(f"optimise: step {k + 1}/{steps}, {int(active.sum())}/{runs} runs active, "
-                  f"best feasible objective {best_so_far:.6g}, "
-                  f"{time.perf_counter() - start_time:.1f} s",
-                  end="\r" if tty and not last else "\n", file=sys.stderr, flush=True)
+        bar.update(k + 1, f"{int(active.sum())}/{runs} runs active, best feasible objective "
+                   f"{best_so_far:.6g}", final=not active.any())
         if not active.any():
             break
 
@@ -557,22 +394,7 @@ def optimise(
         "violations": np.stack([r.violations for r in records]),
         "status": np.stack([r.status for r in records]),
     } | {name: np.stack([r.metrics[name] for r in records]) for name in records[0].metrics}
-    feasible = np.all(history["violations"] <= 0, axis=-1) & (history["status"] == Status.OK)
-    values = np.where(feasible, history["objective"], np.inf)  # (N, R)
-    run_best_step = np.argmin(values, axis=0)
-    run_best_objective = values[run_best_step, np.arange(runs)]
-    run_best_objective = np.where(np.isfinite(run_best_objective), run_best_objective, np.nan)
-    run_best_theta = history["theta"][run_best_step, np.arange(runs)]
-
-    best_theta, best_objective, best_run, best_step = [], [], [], []
-    for s in range(n_scenarios):
-        rs = np.arange(s * starts, (s + 1) * starts)
-        scores = np.where(np.isnan(run_best_objective[rs]), np.inf, run_best_objective[rs])
-        r = int(rs[np.argmin(scores)])
-        best_run.append(r)
-        best_step.append(int(run_best_step[r]))
-        best_objective.append(run_best_objective[r])
-        best_theta.append(run_best_theta[r])
+    best, run_best_objective, run_best_theta = _select_best(history, n_scenarios, starts)
     return OptimiseResult(
         problem=problem,
         scenarios=n_scenarios,
@@ -580,44 +402,21 @@ def optimise(
         history=history,
         converged=converged_step >= 0,
         converged_step=converged_step,
-        best_theta=np.asarray(best_theta),
-        best_objective=np.asarray(best_objective),
-        best_run=np.asarray(best_run),
-        best_step=np.asarray(best_step),
+        best_theta=best["theta"],
+        best_objective=best["objective"],
+        best_run=best["run"],
+        best_step=best["step"],
         run_best_objective=run_best_objective,
         run_best_theta=run_best_theta,
-        simulations=simulations,
+        simulations=len(records) * runs * samples,
         steps=len(records),
-        seconds=time.perf_counter() - start_time,
-        compilations=len(traces),
+        seconds=bar.elapsed,
+        compilations=eqx.debug.get_num_traces(traced),
         scenario_params=params,
         scenario_limits=limits,
     )
 
 
-def constraint_report(problem: DesignProblem, design: Mapping[str, float],
-                      metrics: Mapping[str, float], limits=None) -> dict[str, dict]:
-    """`{"<name> (max|min)": {value, limit, satisfied}}` for every constraint of `problem`.
-
-    `design`: flat parameter values; `metrics`: the peaks with `simulate --json` keys
-    (`Peaks.to_dict()`); `limits`: optional per-scenario limits of the metric
-    constraints (in the order of `problem.metric_constraints`)."""
-    metric_limits = iter([] if limits is None else [float(x) for x in limits])
-    report = {}
-    for c in problem.constraints:
-        for kind, limit in c.limits():
-            if c.is_metric:
-                limit = next(metric_limits) if limits is not None else limit
-                value = float(metrics[_JSON_KEYS[c.name]])
-            else:
-                value = float(design[c.name])
-            ok = value <= limit if kind == "max" else value >= limit
-            report[f"{c.name} ({kind})"] = {"value": value, "limit": float(limit),
-                                           "satisfied": bool(ok)}
-    return report
-
-
 def default_optimiser(learning_rate: float, steps: int) -> optax.GradientTransformation:
     """Adam on the sigmoid coordinates, its step cosine-decayed to 1 % over `steps`."""
     return optax.adam(optax.cosine_decay_schedule(learning_rate, steps, alpha=0.01))
-

@@ -1,5 +1,5 @@
 """The paper's numbers (Table 2 and text), shipped with the package, beside the
-high-accuracy hard-switch reference values of the model in `shared/design/model.md`."""
+high-accuracy hard-switch reference values of the model in `docs/model.md`."""
 
 from __future__ import annotations
 
@@ -9,10 +9,12 @@ from typing import Any
 
 from ._params import params_from_values
 
+__all__ = ["case_params", "paper_cases"]
+
 
 def paper_cases() -> list[dict[str, Any]]:
     """The cases: each a dict with `case` (name), `params` (flat names: `m`, `gap`; m = 0
-    is the simplified model), `paper` and `reference` (keys as `simulate --json`)."""
+    is the simplified model), `paper` and `reference` (JSON keys, as `simulate --json`)."""
     text = resources.files("recoil_jax").joinpath("data/paper_cases.json").read_text()
     return json.loads(text)["cases"]
 

@@ -1,4 +1,10 @@
-"""Parameter pytrees: barrel, absorber, contact, smoothing and solver options.
+"""The parameter registry and the parameter pytrees.
+
+`PARAMETERS` is the one registry of design parameters: flat name (as used on the command
+line, in TOML, JSON, CSV, `wrt` and `tune`), the pytree group it lives in, its unit,
+default, valid range and documented range. The pytrees (`Barrel`, `Absorber`,
+`Contact`), their validation, the flat-name conversions and every error message derive
+from it.
 
 Every physical parameter is a pytree leaf (so `jax.grad`, `jax.jacfwd` and `jax.vmap`
 apply to it); configuration that changes the compiled program (the hard/smoothed mode,
@@ -12,12 +18,37 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
+
+__all__ = [
+    "PARAMETERS",
+    "T1_LIMITS",
+    "Absorber",
+    "Barrel",
+    "Contact",
+    "Limits",
+    "Parameter",
+    "ParameterError",
+    "RecoilParams",
+    "Smoothing",
+    "SolverOptions",
+    "check_value",
+    "default_end_time",
+    "end_time",
+    "is_concrete",
+    "parameter",
+    "params_from_values",
+    "params_to_values",
+    "values_of",
+    "with_values",
+]
 
 
 class ParameterError(ValueError):
@@ -25,9 +56,9 @@ class ParameterError(ValueError):
     valid range."""
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class Limits:
-    """Valid and documented ranges of one parameter.
+    """Unit, valid range and documented range of one scalar.
 
     `lower`/`upper` bound the *valid* domain (values outside raise `ParameterError`);
     `documented` is the range over which accuracy is tested (see the README).
@@ -47,12 +78,87 @@ class Limits:
         return f"{valid}{unit}"
 
 
-def _is_concrete(value: Any) -> bool:
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Parameter(Limits):
+    """A design parameter: its flat `name`, the `group` of `RecoilParams` holding it
+    (`barrel`, `absorber`, `contact`) and its `default` (SI units)."""
+
+    name: str
+    group: str
+    default: float
+
+    @property
+    def owner(self) -> str:
+        """The class holding it (`Barrel`, `Absorber`, `Contact`), for messages."""
+        return _GROUPS[self.group].__name__
+
+    @property
+    def label(self) -> str:
+        """`name (unit)`, for axis labels."""
+        return f"{self.name} ({self.unit})" if self.unit else self.name
+
+
+# Projectile data of the paper (6.86 kg at 564 m/s); v0 = m_p v_p / M = 0.6909 m/s.
+PAPER_PROJECTILE_MASS = 6.86
+PAPER_MUZZLE_VELOCITY = 564.0
+PAPER_BARREL_MASS = 5600.0
+
+#: The design parameters by flat name, in the order the command line lists them.
+PARAMETERS: dict[str, Parameter] = {
+    p.name: p
+    for p in (
+        Parameter(name="M", group="barrel", default=PAPER_BARREL_MASS, unit="kg", lower=0.0,
+                  lower_open=True, documented=(1e3, 2e4), meaning="barrel mass"),
+        Parameter(name="k", group="barrel", default=27500.0, unit="N/m", lower=0.0,
+                  lower_open=True, documented=(1e3, 1e6), meaning="recoil spring stiffness"),
+        Parameter(name="c_out", group="barrel", default=6239.0, unit="N*s/m", lower=0.0,
+                  documented=(0.0, 5e4), meaning="recoil damping, v_M > 0"),
+        Parameter(name="c_ret", group="barrel", default=14050.0, unit="N*s/m", lower=0.0,
+                  documented=(0.0, 5e4), meaning="return damping, v_M < 0"),
+        Parameter(name="v0", group="barrel",
+                  default=PAPER_PROJECTILE_MASS * PAPER_MUZZLE_VELOCITY / PAPER_BARREL_MASS,
+                  unit="m/s", lower=0.0, lower_open=True, documented=(0.1, 2.0),
+                  meaning="initial barrel velocity"),
+        Parameter(name="m", group="absorber", default=1500.0, unit="kg", lower=0.0,
+                  lower_open=True, documented=(10.0, 5000.0), meaning="absorber mass"),
+        Parameter(name="gap", group="absorber", default=0.062, unit="m", lower=0.0,
+                  documented=(0.0, 0.2), meaning="clearance to wall A"),
+        Parameter(name="k_r", group="absorber", default=13000.0, unit="N/m", lower=0.0,
+                  lower_open=True, documented=(1e3, 1e5),
+                  meaning="absorber-barrel spring stiffness"),
+        Parameter(name="c_r", group="absorber", default=3675.0, unit="N*s/m", lower=0.0,
+                  documented=(0.0, 2e4), meaning="absorber-barrel damping"),
+        Parameter(name="k_c", group="contact", default=2.1e8, unit="N/m^n_c", lower=0.0,
+                  lower_open=True, documented=(1e6, 1e10), meaning="contact stiffness"),
+        Parameter(name="n_c", group="contact", default=1.3, unit="", lower=1.0,
+                  documented=(1.0, 2.0), meaning="contact exponent"),
+        Parameter(name="lambda_c", group="contact", default=0.6, unit="s/m", lower=0.0,
+                  documented=(0.0, 2.0), meaning="Hunt-Crossley damping factor"),
+    )
+}
+
+
+def parameter(name: str) -> Parameter:
+    """The registry entry of the flat parameter `name`; a `ParameterError` listing the
+    known names if there is none."""
+    try:
+        return PARAMETERS[name]
+    except KeyError:
+        raise ParameterError(
+            f"unknown parameter {name!r}; known: {', '.join(PARAMETERS)}"
+        ) from None
+
+
+def is_concrete(value: Any) -> bool:
+    """No leaf of `value` is a tracer (so it can be checked now)."""
     return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(value))
 
 
-def _check_value(owner: str, name: str, value: Any, limits: Limits) -> None:
-    if value is None or not _is_concrete(value):
+def check_value(owner: str, name: str, value: Any, limits: Limits) -> None:
+    """Raise `ParameterError` if a concrete `value` (scalar or array) is not a finite
+    number inside `limits`; the message names `owner.name`, the bad value (and its index
+    in an array) and the valid range. Tracers and `None` pass."""
+    if value is None or not is_concrete(value):
         return
     try:
         array = np.asarray(value, dtype=np.float64)
@@ -102,18 +208,25 @@ def _as_float_array(value: Any) -> Any:
         return value  # left for __check_init__ to report with the parameter's name
 
 
-def _param(default: Any) -> Any:
+def _leaf(default: Any) -> Any:
     return eqx.field(default=default, converter=_as_float_array)
+
+
+def _registered(name: str) -> Any:
+    """A pytree leaf for the registered parameter `name`, with its default."""
+    return _leaf(PARAMETERS[name].default)
 
 
 class _Validated(eqx.Module):
     """Base class: checks every field listed in `LIMITS` when values are concrete."""
 
+    LIMITS: ClassVar[Mapping[str, Limits]] = {}
+
     def __check_init__(self):
         limits = type(self).LIMITS
         for field in dataclasses.fields(self):
             if field.name in limits:
-                _check_value(
+                check_value(
                     type(self).__name__,
                     field.name,
                     getattr(self, field.name),
@@ -121,10 +234,8 @@ class _Validated(eqx.Module):
                 )
 
 
-# Projectile data of the paper (6.86 kg at 564 m/s); v0 = m_p v_p / M = 0.6909 m/s.
-PAPER_PROJECTILE_MASS = 6.86
-PAPER_MUZZLE_VELOCITY = 564.0
-PAPER_BARREL_MASS = 5600.0
+def _group_limits(group: str) -> dict[str, Limits]:
+    return {name: p for name, p in PARAMETERS.items() if p.group == group}
 
 
 class Barrel(_Validated):
@@ -139,21 +250,13 @@ class Barrel(_Validated):
     - `v0`: barrel velocity right after the shot; see `Barrel.from_shot`.
     """
 
-    M: Any = _param(PAPER_BARREL_MASS)
-    k: Any = _param(27500.0)
-    c_out: Any = _param(6239.0)
-    c_ret: Any = _param(14050.0)
-    v0: Any = _param(PAPER_PROJECTILE_MASS * PAPER_MUZZLE_VELOCITY / PAPER_BARREL_MASS)
+    M: Any = _registered("M")
+    k: Any = _registered("k")
+    c_out: Any = _registered("c_out")
+    c_ret: Any = _registered("c_ret")
+    v0: Any = _registered("v0")
 
-    LIMITS: ClassVar[dict[str, Limits]] = {
-        "M": Limits("kg", 0.0, lower_open=True, documented=(1e3, 2e4), meaning="barrel mass"),
-        "k": Limits("N/m", 0.0, lower_open=True, documented=(1e3, 1e6),
-                    meaning="recoil spring stiffness"),
-        "c_out": Limits("N*s/m", 0.0, documented=(0.0, 5e4), meaning="recoil damping, v_M > 0"),
-        "c_ret": Limits("N*s/m", 0.0, documented=(0.0, 5e4), meaning="return damping, v_M < 0"),
-        "v0": Limits("m/s", 0.0, lower_open=True, documented=(0.1, 2.0),
-                     meaning="initial barrel velocity"),
-    }
+    LIMITS: ClassVar[Mapping[str, Limits]] = _group_limits("barrel")
 
     @classmethod
     def from_shot(
@@ -161,11 +264,11 @@ class Barrel(_Validated):
     ) -> Barrel:
         """Barrel whose initial velocity comes from momentum conservation at the shot:
         `v0 = projectile_mass * muzzle_velocity / M` (kg, m/s, kg)."""
-        _check_value("Barrel.from_shot", "projectile_mass", projectile_mass,
-                     Limits("kg", 0.0, lower_open=True))
-        _check_value("Barrel.from_shot", "muzzle_velocity", muzzle_velocity,
-                     Limits("m/s", 0.0, lower_open=True))
-        _check_value("Barrel", "M", M, cls.LIMITS["M"])
+        check_value("Barrel.from_shot", "projectile_mass", projectile_mass,
+                    Limits(unit="kg", lower=0.0, lower_open=True))
+        check_value("Barrel.from_shot", "muzzle_velocity", muzzle_velocity,
+                    Limits(unit="m/s", lower=0.0, lower_open=True))
+        check_value("Barrel", "M", M, cls.LIMITS["M"])
         return cls(M=M, v0=projectile_mass * muzzle_velocity / M, **kwargs)
 
 
@@ -180,19 +283,12 @@ class Absorber(_Validated):
     - `k_r`, `c_r`: spring and damper between absorber and barrel.
     """
 
-    m: Any = _param(1500.0)
-    gap: Any = _param(0.062)
-    k_r: Any = _param(13000.0)
-    c_r: Any = _param(3675.0)
+    m: Any = _registered("m")
+    gap: Any = _registered("gap")
+    k_r: Any = _registered("k_r")
+    c_r: Any = _registered("c_r")
 
-    LIMITS: ClassVar[dict[str, Limits]] = {
-        "m": Limits("kg", 0.0, lower_open=True, documented=(10.0, 5000.0),
-                    meaning="absorber mass"),
-        "gap": Limits("m", 0.0, documented=(0.0, 0.2), meaning="clearance to wall A"),
-        "k_r": Limits("N/m", 0.0, lower_open=True, documented=(1e3, 1e5),
-                      meaning="absorber-barrel spring stiffness"),
-        "c_r": Limits("N*s/m", 0.0, documented=(0.0, 2e4), meaning="absorber-barrel damping"),
-    }
+    LIMITS: ClassVar[Mapping[str, Limits]] = _group_limits("absorber")
 
 
 class Contact(_Validated):
@@ -205,17 +301,11 @@ class Contact(_Validated):
     - `lambda_c`: Hunt–Crossley damping factor, s/m.
     """
 
-    k_c: Any = _param(2.1e8)
-    n_c: Any = _param(1.3)
-    lambda_c: Any = _param(0.6)
+    k_c: Any = _registered("k_c")
+    n_c: Any = _registered("n_c")
+    lambda_c: Any = _registered("lambda_c")
 
-    LIMITS: ClassVar[dict[str, Limits]] = {
-        "k_c": Limits("N/m^n_c", 0.0, lower_open=True, documented=(1e6, 1e10),
-                      meaning="contact stiffness"),
-        "n_c": Limits("", 1.0, documented=(1.0, 2.0), meaning="contact exponent"),
-        "lambda_c": Limits("s/m", 0.0, documented=(0.0, 2.0),
-                           meaning="Hunt-Crossley damping factor"),
-    }
+    LIMITS: ClassVar[Mapping[str, Limits]] = _group_limits("contact")
 
 
 class RecoilParams(eqx.Module):
@@ -225,6 +315,10 @@ class RecoilParams(eqx.Module):
     barrel: Barrel = Barrel()
     absorber: Absorber | None = Absorber()
     contact: Contact = Contact()
+
+
+_GROUPS: dict[str, type[_Validated]] = {"barrel": Barrel, "absorber": Absorber,
+                                        "contact": Contact}
 
 
 class Smoothing(_Validated):
@@ -242,19 +336,22 @@ class Smoothing(_Validated):
       so the relative smoothing error is the same over the whole range of `k_c`, `n_c`, `m`, `v0`.
     - `hard=True` (static): the exact model with hard switches, same code path with
       zero widths (not differentiable at the switches; for reference and checks).
+
+    See `docs/model.md`, *Smoothing*.
     """
 
-    damping_width: Any = _param(1e-3)
-    contact_width: Any = _param(None)
-    contact_width_fraction: Any = _param(0.005)
+    damping_width: Any = _leaf(1e-3)
+    contact_width: Any = _leaf(None)
+    contact_width_fraction: Any = _leaf(0.005)
     hard: bool = eqx.field(default=False, static=True)
 
-    LIMITS: ClassVar[dict[str, Limits]] = {
-        "damping_width": Limits("m/s", 0.0, lower_open=True, documented=(1e-4, 1e-1),
+    LIMITS: ClassVar[Mapping[str, Limits]] = {
+        "damping_width": Limits(unit="m/s", lower=0.0, lower_open=True,
+                                documented=(1e-4, 1e-1),
                                 meaning="damping and clamp smoothing width"),
-        "contact_width": Limits("m", 0.0, lower_open=True, documented=(1e-6, 1e-3),
+        "contact_width": Limits(unit="m", lower=0.0, lower_open=True, documented=(1e-6, 1e-3),
                                 meaning="contact onset smoothing width"),
-        "contact_width_fraction": Limits("", 0.0, lower_open=True, upper=1.0,
+        "contact_width_fraction": Limits(unit="", lower=0.0, lower_open=True, upper=1.0,
                                          meaning="contact width / characteristic penetration"),
     }
 
@@ -264,10 +361,17 @@ class Smoothing(_Validated):
         return cls(hard=True)
 
 
+#: Limits of the end time, the one solver setting that may differ between the points
+#: of a sweep (`t1` on the command line and in `sweep --points`).
+T1_LIMITS = Limits(unit="s", lower=0.0, lower_open=True, documented=(0.1, 60.0),
+                   meaning="end time")
+
+
 class SolverOptions(_Validated):
     """Time span and adaptive-step settings (Tsit5 with a PID controller).
 
-    - `t1` (s): end of the simulation.
+    - `t1` (s): end of the simulation; `None` (default) is the model's end time,
+      `default_end_time` (10 s).
     - `rtol`, `atol`: tolerances of the step-size controller (atol in SI units of the
       state: m and m/s).
     - `max_steps` (static): bound on solver steps (accepted + rejected); reaching it is
@@ -277,16 +381,17 @@ class SolverOptions(_Validated):
       checkpointed loop that supports `jax.grad`/`jax.vjp` (not forward mode).
     """
 
-    t1: Any = _param(10.0)
-    rtol: Any = _param(1e-6)
-    atol: Any = _param(1e-9)
+    t1: Any = _leaf(None)
+    rtol: Any = _leaf(1e-6)
+    atol: Any = _leaf(1e-9)
     max_steps: int = eqx.field(default=65536, static=True)
     autodiff: str = eqx.field(default="forward", static=True)
 
-    LIMITS: ClassVar[dict[str, Limits]] = {
-        "t1": Limits("s", 0.0, lower_open=True, documented=(0.1, 60.0), meaning="end time"),
-        "rtol": Limits("", 0.0, lower_open=True, upper=1.0, meaning="relative tolerance"),
-        "atol": Limits("", 0.0, lower_open=True, meaning="absolute tolerance"),
+    LIMITS: ClassVar[Mapping[str, Limits]] = {
+        "t1": T1_LIMITS,
+        "rtol": Limits(unit="", lower=0.0, lower_open=True, upper=1.0,
+                       meaning="relative tolerance"),
+        "atol": Limits(unit="", lower=0.0, lower_open=True, meaning="absolute tolerance"),
     }
 
     def __check_init__(self):
@@ -303,45 +408,38 @@ class SolverOptions(_Validated):
             )
 
 
-#: Flat parameter names, as used by the command line and sweeps, and where they live.
-PARAMETER_NAMES: dict[str, tuple[str, str]] = {
-    "M": ("barrel", "M"),
-    "k": ("barrel", "k"),
-    "c_out": ("barrel", "c_out"),
-    "c_ret": ("barrel", "c_ret"),
-    "v0": ("barrel", "v0"),
-    "m": ("absorber", "m"),
-    "gap": ("absorber", "gap"),
-    "k_r": ("absorber", "k_r"),
-    "c_r": ("absorber", "c_r"),
-    "k_c": ("contact", "k_c"),
-    "n_c": ("contact", "n_c"),
-    "lambda_c": ("contact", "lambda_c"),
-}
-_GROUPS = {"barrel": Barrel, "absorber": Absorber, "contact": Contact}
+def default_end_time(params: RecoilParams) -> Any:
+    """The model's end time when `SolverOptions.t1` is not given: 10 s (the paper's)."""
+    return jnp.full(jnp.shape(params.barrel.v0), 10.0)
 
 
-def parameter_limits(name: str) -> Limits:
-    """The valid and documented range of a parameter (flat name)."""
-    group, field = PARAMETER_NAMES[name]
-    return _GROUPS[group].LIMITS[field]
+def end_time(params: RecoilParams, options: SolverOptions) -> Any:
+    """The end time of a solve (s): `options.t1`, or the model's default."""
+    t1 = default_end_time(params) if options.t1 is None else options.t1
+    return jnp.asarray(t1, dtype=float)
 
 
-def params_from_values(values: dict[str, Any] | None = None, **kwargs: Any) -> RecoilParams:
-    """Build `RecoilParams` from flat names (`M k c_out c_ret v0 m gap k_r c_r k_c n_c
-    lambda_c`); missing names take the defaults. `m = 0` gives the simplified model."""
+def params_from_values(values: Mapping[str, Any] | None = None, **kwargs: Any) -> RecoilParams:
+    """Build `RecoilParams` from flat parameter names (`PARAMETERS`).
+
+    **Arguments:**
+
+    - `values`, `**kwargs`: flat name → value (scalars, or arrays for a batch); names not
+      given take their defaults. `m = 0` gives the simplified model (no absorber).
+
+    **Returns:** the validated `RecoilParams`.
+
+    **Raises:** `ParameterError` for an unknown name, a value outside its valid range, or
+    absorber parameters given with `m = 0`.
+    """
     values = {**(values or {}), **kwargs}
-    unknown = sorted(set(values) - set(PARAMETER_NAMES))
-    if unknown:
-        raise ParameterError(
-            f"unknown parameter(s) {', '.join(unknown)}; known: {', '.join(PARAMETER_NAMES)}"
-        )
+    for name in values:
+        parameter(name)
     grouped: dict[str, dict[str, Any]] = {g: {} for g in _GROUPS}
     for name, value in values.items():
-        group, field = PARAMETER_NAMES[name]
-        grouped[group][field] = value
+        grouped[PARAMETERS[name].group][name] = value
     m = grouped["absorber"].get("m", None)
-    simplified = m is not None and _is_concrete(m) and np.all(np.asarray(m) == 0)
+    simplified = m is not None and is_concrete(m) and bool(np.all(np.asarray(m) == 0))
     if simplified:
         extra = sorted(set(grouped["absorber"]) - {"m"})
         if extra:
@@ -361,32 +459,34 @@ def params_from_values(values: dict[str, Any] | None = None, **kwargs: Any) -> R
 
 def params_to_values(params: RecoilParams) -> dict[str, Any]:
     """Inverse of `params_from_values`: the flat name → value mapping (m = 0 for the
-    simplified model)."""
+    simplified model, whose other absorber parameters are absent)."""
     out: dict[str, Any] = {}
-    for name, (group, field) in PARAMETER_NAMES.items():
-        module = getattr(params, group)
+    for name, p in PARAMETERS.items():
+        module = getattr(params, p.group)
         if module is None:
             if name == "m":
                 out[name] = 0.0
             continue
-        out[name] = getattr(module, field)
+        out[name] = getattr(module, name)
     return out
 
 
-def with_values(params: RecoilParams, names, values) -> RecoilParams:
+def with_values(params: RecoilParams, names: Sequence[str], values: Any) -> RecoilParams:
     """`params` with the parameters `names` (flat names) set to `values` (shape
-    `(len(names),)`)."""
+    `(len(names),)`). Concrete values are validated like the constructors do (tracers,
+    inside transformations, are not)."""
     for j, name in enumerate(names):
-        group, field = PARAMETER_NAMES[name]
+        p = parameter(name)
+        value = values[j]
+        check_value(p.owner, name, value, p)
         params = eqx.tree_at(
-            lambda p, g=group, f=field: getattr(getattr(p, g), f), params,
-            jnp.asarray(values[j], dtype=float))
+            lambda q, g=p.group, f=name: getattr(getattr(q, g), f), params,
+            jnp.asarray(value, dtype=float))
     return params
 
 
-def values_of(params: RecoilParams, names) -> jax.Array:
+def values_of(params: RecoilParams, names: Sequence[str]) -> jax.Array:
     """The parameters `names` of `params` as one array, shape `(len(names),)`."""
     return jnp.stack([
-        jnp.asarray(getattr(getattr(params, PARAMETER_NAMES[n][0]), PARAMETER_NAMES[n][1]),
-                    dtype=float)
+        jnp.asarray(getattr(getattr(params, PARAMETERS[n].group), n), dtype=float)
         for n in names])

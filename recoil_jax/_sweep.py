@@ -1,4 +1,5 @@
-"""Vectorised sweeps: many designs in vmapped, chunked, device-sharded batches."""
+"""Vectorised sweeps: many designs in chunked batches, split over threads and devices,
+each through the lane scheduler, with a status per point."""
 
 from __future__ import annotations
 
@@ -6,33 +7,45 @@ import dataclasses
 import itertools
 import os
 import sys
-import time
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from ._gradients import GRADIENT_OPTIONS, _check_wrt, _peak_gradients_batch_jit
+from ._gradients import GRADIENT_OPTIONS, check_wrt, peak_gradients_batch
+from ._metrics import METRICS, PEAK_FIELDS
 from ._params import (
-    PARAMETER_NAMES,
+    PARAMETERS,
+    T1_LIMITS,
     ParameterError,
     RecoilParams,
     Smoothing,
     SolverOptions,
+    check_value,
+    default_end_time,
     params_from_values,
     params_to_values,
 )
-from ._solve import PEAK_KEYS, Status, _peaks_batch_jit
+from ._progress import Progress
+from ._solve import peaks_batch
+from ._status import Status, status_codes, status_item, status_messages
 
-_METRIC_FIELDS = {  # gradient key -> PeakGradients field
-    "peak_displacement_m": "peak_displacement",
-    "peak_anchoring_force_N": "peak_anchoring_force",
-    "peak_contact_force_N": "peak_contact_force",
-    "min_stroke_m": "min_stroke",
-    "max_stroke_m": "max_stroke",
-}
+__all__ = [
+    "SweepResult",
+    "batch_params",
+    "default_workers",
+    "grid",
+    "shard_batch",
+    "sweep",
+    "sweep_grid",
+]
+
+#: Names a design may carry besides the parameters: the end time, per point.
+_SETTINGS = ("t1",)
+_ABSORBER = tuple(name for name, p in PARAMETERS.items() if p.group == "absorber")
 
 
 @dataclasses.dataclass
@@ -40,59 +53,76 @@ class SweepResult:
     """Results of a sweep, one entry per design, in input order (NumPy arrays, shape
     `(n,)`).
 
-    - `values`: every parameter of every design, by flat name (`m = 0`: no absorber).
-    - `peaks`: the peaks by `simulate --json` key (`peak_anchoring_force_N`, ...). Points
-      whose solve failed hold NaN there, and say why in `status`.
-    - `status`: `Status` codes; `messages()` gives the reasons.
-    - `gradients`: with `wrt`, `{peak key: {parameter: (n,) derivative}}`, else None.
+    - `values`: every parameter of every design by flat name, as requested (`m = 0`: no
+      absorber, whose other parameters then have no effect), and `t1` if given per point.
+    - `peaks`: the reported `Peaks` fields by name (`peak_anchoring_force`,
+      `peak_anchoring_force_time`, ..., `num_steps`). Points whose solve failed hold NaN
+      there, and say why in `status`.
+    - `status`: a `Status` item of shape `(n,)`; `ok`, `messages()` and `failures()` read
+      it.
+    - `gradients`: with `wrt`, `{metric: {parameter: (n,) derivative}}`, else None. For the
+      simplified model (`m = 0`) the derivatives with respect to absorber parameters are 0.
     - `swept`, `grid_shape`: for a cartesian grid, the swept names and the grid's shape
       (`reshape` the arrays to it, C order over `swept`).
     """
 
     values: dict[str, np.ndarray]
     peaks: dict[str, np.ndarray]
-    status: np.ndarray
+    status: Any
     gradients: dict[str, dict[str, np.ndarray]] | None = None
     swept: tuple[str, ...] = ()
     grid_shape: tuple[int, ...] | None = None
     seconds: float = 0.0
 
     def __len__(self) -> int:
-        return int(self.status.shape[0])
+        return int(status_codes(self.status).shape[0])
 
     @property
     def ok(self) -> np.ndarray:
-        return self.status == Status.OK
+        return np.asarray(self.status == Status.ok)
 
     def messages(self) -> list[str]:
-        return [Status.message(code) for code in self.status]
+        return status_messages(self.status)
 
     def failures(self) -> list[tuple[int, str]]:
         """`(index, reason)` of every failed point."""
-        return [(int(i), Status.message(self.status[i])) for i in np.flatnonzero(~self.ok)]
+        messages = self.messages()
+        return [(int(i), messages[i]) for i in np.flatnonzero(~self.ok)]
+
+    def parameters(self, index: int) -> dict[str, float]:
+        """The parameters of point `index`, as `simulate --json` reports them (no
+        absorber parameters for the simplified model)."""
+        simplified = self.values["m"][index] == 0
+        return {name: float(v[index]) for name, v in self.values.items()
+                if not (simplified and name in _ABSORBER and name != "m")}
 
     def records(self, model: str = "smoothed") -> list[dict]:
         """One dict per point, in input order, with the keys of `recoil-jax simulate
-        --json`: the peaks (None where the solve failed), `status` ("ok" or the reason),
-        `model`, `parameters`; with gradients also `gradients` ({peak: {param: d}})."""
+        --json` (`PEAK_FIELDS`): the peaks (None where the solve failed), `status` ("ok" or
+        the reason), `model`, `parameters`; with gradients also `gradients`
+        ({metric key: {parameter: derivative}})."""
         out = []
+        messages = self.messages()
         for i in range(len(self)):
             ok = bool(self.ok[i])
-            record = {key: None if not ok else (int(v[i]) if key == "num_steps"
-                                                else float(v[i]))
-                      for key, v in self.peaks.items()}
-            record["status"] = Status.message(self.status[i])
+            record: dict[str, Any] = {
+                key: None if not ok else (int if field == "num_steps" else float)(
+                    self.peaks[field][i])
+                for field, key in PEAK_FIELDS.items()}
+            record["status"] = messages[i]
             record["model"] = model
-            record["parameters"] = {name: float(v[i]) for name, v in self.values.items()}
+            record["parameters"] = self.parameters(i)
             if self.gradients:
                 record["gradients"] = {
-                    key: {name: float(v[i]) if ok else None for name, v in by.items()}
-                    for key, by in self.gradients.items()}
+                    METRICS[name].key: {p: float(v[i]) if ok else None for p, v in by.items()}
+                    for name, by in self.gradients.items()}
             out.append(record)
         return out
 
 
 def _as_columns(designs) -> dict[str, np.ndarray]:
+    """Designs as `name -> (n,)` float columns (names checked; missing values in a list of
+    dicts take the defaults)."""
     if isinstance(designs, Mapping):
         columns = {k: np.atleast_1d(np.asarray(v, dtype=float)) for k, v in designs.items()}
     else:
@@ -100,16 +130,34 @@ def _as_columns(designs) -> dict[str, np.ndarray]:
         if not designs:
             raise ParameterError("no designs to sweep")
         names = sorted({k for d in designs for k in d})
-        defaults = params_to_values(RecoilParams())
-        columns = {n: np.array([float(d.get(n, defaults[n])) for d in designs]) for n in names}
+        defaults = {name: p.default for name, p in PARAMETERS.items()}
+        for name in names:
+            if name not in defaults and name not in _SETTINGS:
+                _unknown(name)
+        if "t1" in names and not all("t1" in d for d in designs):
+            raise ParameterError("t1 is given for some points but not all: give it for every "
+                                 "point, or for none")
+        columns = {n: np.array([float(d.get(n, defaults.get(n, np.nan))) for d in designs])
+                   for n in names}
     lengths = {len(v) for v in columns.values()}
     if len(lengths) > 1:
         raise ParameterError(f"sweep columns have different lengths: {sorted(lengths)}")
-    unknown = sorted(set(columns) - set(PARAMETER_NAMES))
-    if unknown:
-        raise ParameterError(
-            f"unknown parameter(s) {', '.join(unknown)}; known: {', '.join(PARAMETER_NAMES)}")
+    for name, column in columns.items():
+        if name in _SETTINGS:
+            check_value("SolverOptions", name, column, T1_LIMITS)
+        elif name in PARAMETERS:
+            p = PARAMETERS[name]
+            if name == "m":  # m = 0 is the simplified model: check the others in place
+                column = np.where(column == 0, p.default, column)
+            check_value(p.owner, name, column, p)
+        else:
+            _unknown(name)
     return columns
+
+
+def _unknown(name: str):
+    raise ParameterError(f"unknown parameter(s) {name}; known: {', '.join(PARAMETERS)} "
+                         f"and {', '.join(_SETTINGS)}")
 
 
 def batch_params(designs) -> tuple[RecoilParams, dict[str, np.ndarray]]:
@@ -117,23 +165,25 @@ def batch_params(designs) -> tuple[RecoilParams, dict[str, np.ndarray]]:
     `RecoilParams` whose every leaf has shape `(n,)` (names not given take the paper's
     values), ready for `jax.vmap(..., in_axes=0)`; also returns the flat columns. Every
     value is validated (a bad one raises `ParameterError` naming its index). `m = 0` in
-    every design is the simplified model; mixing it with `m > 0` is an error."""
+    every design is the simplified model; mixing it with `m > 0` in one `RecoilParams` is
+    an error (`sweep` runs such designs as two groups)."""
     columns = _as_columns(designs)
+    columns.pop("t1", None)
     n = len(next(iter(columns.values())))
     simplified = "m" in columns and np.all(columns["m"] == 0)
     if "m" in columns and np.any(columns["m"] == 0) and not simplified:
         raise ParameterError(
-            "m = 0 (simplified model) and m > 0 cannot be mixed in one sweep; sweep them "
-            "separately")
-    absorber_free = ("gap", "k_r", "c_r") if simplified else ()
+            "m = 0 (simplified model) and m > 0 cannot be mixed in one RecoilParams; "
+            "sweep() runs them as two groups")
     defaults = params_to_values(params_from_values({"m": 0.0} if simplified else {}))
     values = {k: np.full(n, float(np.asarray(v))) for k, v in defaults.items()}
     values.update(columns)
-    values = {k: v for k, v in values.items() if k not in absorber_free}
+    if simplified:
+        values = {k: v for k, v in values.items() if k == "m" or k not in _ABSORBER}
     return params_from_values(values), values
 
 
-def shard_batch(tree, devices: Sequence[jax.Device] | None = None):
+def shard_batch(tree, devices: Sequence[Any] | None = None):
     """Place a pytree whose leaves have a leading batch axis on `devices` (default: all
     local devices), split along that axis. The batch must divide evenly."""
     devices = list(devices) if devices is not None else jax.local_devices()
@@ -155,28 +205,7 @@ def grid(axes: Mapping[str, Sequence[float]], fixed: Mapping[str, float] | None 
     return columns, tuple(len(a) for a in arrays)
 
 
-class _Progress:
-    def __init__(self, total: int, enabled: bool, stream=None):
-        self.total, self.enabled = total, enabled
-        self.stream = stream or sys.stderr
-        self.start = time.perf_counter()
-        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
-
-    def update(self, done: int) -> None:
-        if not self.enabled:
-            return
-        elapsed = time.perf_counter() - self.start
-        rate = done / elapsed if elapsed > 0 else 0.0
-        left = (self.total - done) / rate if rate > 0 else float("nan")
-        width = 30
-        filled = int(width * done / self.total)
-        line = (f"sweep [{'#' * filled}{'.' * (width - filled)}] {done}/{self.total} designs, "
-                f"{elapsed:.1f} s, {rate:.0f}/s, ~{left:.0f} s left")
-        end = "\r" if self.tty and done < self.total else "\n"
-        print(line, end=end, file=self.stream, flush=True)
-
-
-def default_workers(devices: Sequence[jax.Device]) -> int:
+def default_workers(devices: Sequence[Any]) -> int:
     """Parts a sweep chunk is split into: one per device, and on CPU at least one per
     core this process may use. One XLA CPU program keeps about one core busy, and
     programs called from different threads run at the same time."""
@@ -187,7 +216,7 @@ def default_workers(devices: Sequence[jax.Device]) -> int:
     return len(devices)
 
 
-def _run_chunk(batch: RecoilParams, smoothing, options, wrt, devices, lanes: int,
+def _run_chunk(batch: RecoilParams, t1, smoothing, options, wrt, devices, lanes: int,
                workers: int):
     """Run one chunk: split along the batch into `workers` equal, interleaved parts
     (each with the same mix of designs), each through the queued stepping loop (`lanes`
@@ -199,12 +228,12 @@ def _run_chunk(batch: RecoilParams, smoothing, options, wrt, devices, lanes: int
     lanes = min(lanes, max(32, size // 16))
 
     def run(i):
-        part = jax.device_put(jax.tree.map(lambda x: x[i::workers], batch),
-                              devices[i % len(devices)])
+        part, end = jax.device_put(jax.tree.map(lambda x: x[i::workers], (batch, t1)),
+                                   devices[i % len(devices)])
         if wrt:
-            out = _peak_gradients_batch_jit(part, smoothing, options, wrt, lanes)
+            out = peak_gradients_batch(part, end, smoothing, options, wrt, lanes)
         else:
-            out = _peaks_batch_jit(part, smoothing, options, lanes)
+            out = peaks_batch(part, end, smoothing, options, lanes)
         return jax.tree.map(np.asarray, out)
 
     with ThreadPoolExecutor(workers) as pool:
@@ -212,6 +241,28 @@ def _run_chunk(batch: RecoilParams, smoothing, options, wrt, devices, lanes: int
     # Undo the interleaving: design j of part i is entry i + j * workers of the chunk.
     return jax.tree.map(
         lambda *xs: np.stack(xs, axis=1).reshape(-1, *xs[0].shape[1:]), *outputs)
+
+
+def _run_group(params: RecoilParams, t1: np.ndarray, order: np.ndarray, smoothing, options,
+               wrt, devices, lanes, workers, chunk_size, bar: Progress, done: int):
+    """Solve one group of designs (all with, or all without, an absorber) in the order
+    `order`, chunk by chunk; returns `(peaks, gradients)` in the group's input order."""
+    n = len(order)
+    chunk = max(workers, chunk_size - chunk_size % workers)
+    chunk = min(chunk, -(-n // workers) * workers)  # no bigger than needed
+    outputs = []
+    for begin in range(0, n, chunk):
+        index = order[begin:begin + chunk]
+        padded = np.concatenate([index, np.full(chunk - len(index), index[-1])])
+        batch = jax.tree.map(lambda leaf, p=padded: np.asarray(leaf)[p], params)
+        result = _run_chunk(batch, t1[padded], smoothing, options, wrt, devices, lanes,
+                            workers)
+        outputs.append(jax.tree.map(lambda x, k=len(index): x[:k], result))
+        bar.update(done + min(begin + chunk, n))
+    inverse = np.empty(n, dtype=int)
+    inverse[order] = np.arange(n)
+    gathered = jax.tree.map(lambda *xs: np.concatenate(xs)[inverse], *outputs)
+    return gathered if wrt else (gathered, None)
 
 
 def sweep(
@@ -224,86 +275,108 @@ def sweep(
     lanes: int = 1024,
     progress: bool | None = None,
     sort_by_gap: bool = True,
-    devices: Sequence[jax.Device] | None = None,
+    devices: Sequence[Any] | None = None,
     workers: int | None = None,
 ) -> SweepResult:
     """Peaks (and, with `wrt`, their gradients) of many designs.
 
-    - `designs`: a list of `{name: value}` dicts, or a mapping `name -> (n,) array`
-      (e.g. from `grid`). Names not given take the paper's values; `m = 0` (every point)
-      is the simplified model.
-    - Every value is validated before anything is compiled; a bad point raises
-      `ParameterError` naming its index.
-    - Designs run `chunk_size` at a time (the last chunk is padded, so nothing
-      recompiles), split into `workers` equal, interleaved parts (default
+    **Arguments:**
+
+    - `designs`: a list of `{name: value}` dicts, or a mapping `name -> (n,) array` (e.g.
+      from `grid`). Names are flat parameter names, plus `t1` (the end time, per point);
+      names not given take the paper's values. `m = 0` is the simplified model, and may be
+      mixed with absorbers: the two groups run apart and merge in input order.
+    - `smoothing`: the switch widths, shared by every point.
+    - `options`: default `SolverOptions()`, or `GRADIENT_OPTIONS` with `wrt`; its `t1`
+      applies where the designs do not give one.
+    - `wrt`: parameters to differentiate with respect to (forward sensitivities).
+    - `chunk_size`: designs per compiled call (the last chunk is padded to the same shape,
+      so nothing recompiles).
+    - `lanes`: designs in flight per part in the vmapped stepping loop (capped at 1/16 of
+      the part, at least 32); a lane takes the next design as soon as its own has
+      finished. A plain `vmap` would run every design for as many steps as the slowest.
+    - `progress`: a progress line on stderr (default: when there is more than one chunk).
+    - `sort_by_gap`: run designs in order of `gap`, so that the impact-heavy ones start
+      early; results come back in input order regardless.
+    - `devices`, `workers`: each chunk is split into `workers` interleaved parts (default
       `default_workers`: one per device, and on CPU one per core), each run from its own
       thread on one of `devices` (default: all local devices).
-    - In each part `lanes` designs (capped at 1/16 of the part, but at least 32) are in
-      flight in one vmapped stepping loop, and a lane takes the next design as soon as
-      its own has finished: a plain `vmap` runs every design for as many steps as the
-      slowest in the batch needs. Designs are sorted by `gap` first, so the impact-heavy ones start
-      early; results come back in input order.
-    - Each point carries a status; a failed solve never aborts the sweep and its peaks
-      are NaN, flagged in `status` (see `SweepResult.failures()`).
-    - `progress`: a progress line on stderr (default: when there is more than one chunk).
-    - `options`: default `SolverOptions()`, or `GRADIENT_OPTIONS` with `wrt`.
+
+    **Returns:** `SweepResult`. A failed solve never aborts the sweep: its peaks are NaN
+    and `status` says why (`SweepResult.failures()`).
+
+    **Raises:** `ParameterError` for an unknown name or a bad value (naming the point's
+    index) before anything is compiled.
     """
     wrt = tuple(wrt) if wrt else None
     options = options or (GRADIENT_OPTIONS if wrt else SolverOptions())
-    full, values = batch_params(designs)  # validates every point, before any compilation
-    n = len(values["M"])
-    simplified = full.absorber is None
-    if wrt:
-        _check_wrt(full, wrt)
+    columns = _as_columns(designs)  # validates every point, before any compilation
+    n = len(next(iter(columns.values())))
+    simplified = columns["m"] == 0 if "m" in columns else np.zeros(n, dtype=bool)
+    groups = []  # (indices into the input, params, values, end times, wrt)
+    for mask in (~simplified, simplified):
+        if not mask.any():
+            continue
+        indices = np.flatnonzero(mask)
+        group = {k: v[indices] for k, v in columns.items()}
+        params, values = batch_params(group)
+        if "t1" in group:
+            t1 = group["t1"]
+        elif options.t1 is not None:
+            t1 = np.full(len(indices), float(options.t1))
+        else:
+            t1 = np.asarray(default_end_time(params))
+        group_wrt = wrt
+        if wrt and params.absorber is None:
+            group_wrt = tuple(w for w in wrt if w not in _ABSORBER) or None
+        elif wrt:
+            check_wrt(params, wrt)
+        groups.append((indices, params, values, t1, group_wrt))
 
-    order = np.argsort(values["gap"], kind="stable") if (
-        sort_by_gap and not simplified) else np.arange(n)
     devices = list(devices) if devices is not None else jax.local_devices()
     workers = workers or default_workers(devices)
     if workers < 1:
         raise ParameterError(f"workers = {workers} is invalid: valid >= 1")
-    chunk = max(workers, chunk_size - chunk_size % workers)
-    chunk = min(chunk, -(-n // workers) * workers)  # no bigger than needed
-    show = progress if progress is not None else n > chunk
-    bar = _Progress(n, show)
+    bar = Progress("sweep", n, "designs", progress if progress is not None else n > max(
+        workers, chunk_size - chunk_size % workers))
 
-    outputs = []
-    start = time.perf_counter()
-    for begin in range(0, n, chunk):
-        index = order[begin:begin + chunk]
-        padded = np.concatenate([index, np.full(chunk - len(index), index[-1])])
-        batch = jax.tree.map(lambda leaf, p=padded: np.asarray(leaf)[p], full)
-        result = _run_chunk(batch, smoothing, options, wrt, devices, lanes, workers)
-        result = jax.tree.map(lambda x, k=len(index): x[:k], result)
-        outputs.append(result)
-        bar.update(min(begin + chunk, n))
-    seconds = time.perf_counter() - start
+    codes = np.zeros(n, dtype=np.int32)
+    peaks = {field: np.zeros(n) for field in PEAK_FIELDS}
+    gradients = {name: {w: np.zeros(n) for w in wrt} for name in METRICS} if wrt else None
+    values = {name: np.full(n, np.nan) for name in PARAMETERS}
+    done = 0
+    for indices, params, group_values, t1, group_wrt in groups:
+        sort = sort_by_gap and params.absorber is not None
+        order = np.argsort(group_values["gap"], kind="stable") if sort else np.arange(
+            len(indices))
+        result, grads = _run_group(params, t1, order, smoothing, options, group_wrt, devices,
+                                   lanes, workers, chunk_size, bar, done)
+        done += len(indices)
+        codes[indices] = status_codes(result.status)
+        for field in PEAK_FIELDS:
+            peaks[field][indices] = getattr(result, field)
+        if gradients is not None and grads is not None:
+            for name in METRICS:
+                matrix = getattr(grads, name)
+                for j, w in enumerate(grads.wrt):
+                    gradients[name][w][indices] = matrix[:, j]
+        for name, column in group_values.items():
+            values[name][indices] = column
+    seconds = bar.elapsed
+    # Every requested value as given (absorber parameters of m = 0 points included).
+    values = {name: v for name, v in values.items() if not np.all(np.isnan(v))}
+    values |= {name: columns[name] for name in columns}
 
-    inverse = np.empty(n, dtype=int)
-    inverse[order] = np.arange(n)
-
-    chunk_peaks = [o[0] if wrt else o for o in outputs]
-
-    def gather(chunks, field):
-        return np.concatenate([np.asarray(getattr(c, field)) for c in chunks])[inverse]
-
-    status = gather(chunk_peaks, "status")
-    failed = status != Status.OK
-    peaks = {}
-    for key, field in PEAK_KEYS.items():
-        column = gather(chunk_peaks, field)
-        if key != "num_steps":
-            column = np.where(failed, np.nan, column)
-        peaks[key] = column
-    gradients = None
-    if wrt:
-        gradients = {}
-        for key, field in _METRIC_FIELDS.items():
-            matrix = gather([o[1] for o in outputs], field)
-            gradients[key] = {name: np.where(failed, np.nan, matrix[:, j])
-                              for j, name in enumerate(wrt)}
+    failed = codes != status_codes(Status.ok)
+    for field in PEAK_FIELDS:
+        if field != "num_steps":
+            peaks[field] = np.where(failed, np.nan, peaks[field])
+    if gradients is not None:
+        gradients = {name: {w: np.where(failed, np.nan, v) for w, v in by.items()}
+                     for name, by in gradients.items()}
+    status = status_item(codes)
     if failed.any():
-        reasons = {Status.message(c) for c in status[failed]}
+        reasons = sorted(set(status_messages(status_item(codes[failed]))))
         print(f"sweep: {int(failed.sum())} of {n} designs failed ({'; '.join(reasons)}); "
               "see SweepResult.failures()", file=sys.stderr)
     return SweepResult(values=values, peaks=peaks, status=status, gradients=gradients,

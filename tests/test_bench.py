@@ -1,8 +1,11 @@
 """The benchmark runs and reports what it promises (speed itself is not asserted)."""
 
-from recoil_jax._bench import format_bench, run_bench
+import pytest
+
+from recoil_jax.apps._bench import format_bench, run_bench
 
 
+@pytest.mark.slow
 def test_bench_smoke():
     result = run_bench(batch_sizes=(1, 8), scipy_designs=2, jacobian_batch=4,
                        log=lambda msg: None)

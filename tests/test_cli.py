@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 import recoil_jax as rj
-from recoil_jax._cli import main
+from recoil_jax.apps import main
 
 REQUIRED_KEYS = {"peak_displacement_m", "peak_displacement_time_s", "peak_anchoring_force_N",
                  "peak_anchoring_force_time_s", "peak_contact_force_N"}

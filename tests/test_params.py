@@ -150,3 +150,15 @@ def test_validation_happens_before_compilation():
     # Inside transformations values are tracers: they are not checked (they were checked
     # when the concrete inputs were built).
     assert rj.Absorber(gap=jnp.float64(0.01)).gap is not None
+
+
+def test_with_values_validates_like_the_constructors():
+    params = rj.RecoilParams()
+    moved = rj.with_values(params, ("gap", "k"), [0.03, 3e4])
+    assert float(moved.absorber.gap) == 0.03 and float(moved.barrel.k) == 3e4
+    with pytest.raises(rj.ParameterError, match=r"Absorber\.gap = -0\.1 m is invalid"):
+        rj.with_values(params, ("gap",), [-0.1])
+    with pytest.raises(rj.ParameterError, match="must be finite"):
+        rj.with_values(params, ("k",), [np.nan])
+    with pytest.raises(rj.ParameterError, match="unknown parameter 'mass'"):
+        rj.with_values(params, ("mass",), [1.0])

@@ -173,7 +173,11 @@ def test_energy_bounds_hold_for_the_rest_of_the_run(design, smoothing):
     future_max = np.maximum.accumulate(series[::-1], axis=0)[::-1]
     ys = jnp.stack([h.x_M, h.v_M, h.x_m, h.v_m], axis=1)
     args = rj.model_args(params, smoothing)
-    bounds = np.asarray(jax.vmap(lambda y, t: rj.future_metric_bounds(y, args, t1 - t))(ys, ts))
+    # In the order of `series`: x_M, F_AN, F_ct, stroke and its negative.
+    order = ("peak_displacement", "peak_anchoring_force", "peak_contact_force", "max_stroke",
+             "min_stroke")
+    by_name = jax.vmap(lambda y, t: rj.future_metric_bounds(y, args, t1 - t))(ys, ts)
+    bounds = np.stack([np.asarray(by_name[name]) for name in order], axis=1)
     scale = np.max(np.abs(series), axis=0) + 1e-12
     slack = (bounds - future_max) / scale
     assert np.all(slack >= -1e-8), (np.argmin(slack, axis=0), slack.min(axis=0))

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from recoil_jax._cli import main
+from recoil_jax.apps import main
 
 
 def test_grid_sweep_writes_files_and_figures(tmp_path, capsys):
@@ -56,6 +56,23 @@ def test_points_file_json_output_in_input_order(tmp_path, capsys, kind):
 def test_sweep_bad_input(capsys, argv, fragment):
     assert main(["sweep", *argv]) == 2
     assert fragment in capsys.readouterr().err
+
+
+def test_no_absorber_beside_absorbers_and_end_time_in_points(tmp_path, capsys):
+    """`sweep m=0,500,1500 gap=0.05` (the first comparison a user makes) runs, and `t1`
+    is accepted per point in `--points`, as by `simulate`."""
+    assert main(["sweep", "m=0,500,1500", "gap=0.05", "--json"]) == 0
+    records = json.loads(capsys.readouterr().out)
+    assert [r["parameters"]["m"] for r in records] == [0.0, 500.0, 1500.0]
+    assert records[0]["peak_anchoring_force_N"] == pytest.approx(6949.98, abs=0.01)
+    assert "gap" not in records[0]["parameters"]
+    assert all(r["status"] == "ok" for r in records)
+    path = tmp_path / "points.csv"
+    path.write_text("m,gap,t1\n500,0.0,0.3\n500,0.0,2.0\n")
+    assert main(["sweep", "--points", str(path), "--json"]) == 0
+    records = json.loads(capsys.readouterr().out)
+    assert [r["parameters"]["t1"] for r in records] == [0.3, 2.0]
+    assert records[0]["peak_displacement_m"] < records[1]["peak_displacement_m"]
 
 
 def test_points_file_errors(tmp_path, capsys):

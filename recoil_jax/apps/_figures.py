@@ -10,10 +10,12 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from ._solve import History
+import recoil_jax as rj
+
+__all__ = ["plot_convergence", "plot_heatmap", "plot_history", "plot_series"]
 
 
-def plot_history(history: History, path, title: str = "") -> Path:
+def plot_history(history: rj.History, path, title: str = "") -> Path:
     """Time histories of x_M and x_m, F_AN and F_ct, stacked; saved as PNG at `path`."""
     ts = np.asarray(history.ts)
     fig, axes = plt.subplots(3, 1, figsize=(8, 8), sharex=True)

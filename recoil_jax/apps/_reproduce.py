@@ -8,18 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ._paper import case_params, paper_cases
-from ._params import params_from_values
-from ._plot import plot_series
-from ._solve import peaks, simulate
+import recoil_jax as rj
 
-_QUANTITIES = [
-    "peak_displacement_m",
-    "peak_displacement_time_s",
-    "peak_anchoring_force_N",
-    "peak_anchoring_force_time_s",
-    "peak_contact_force_N",
-]
+from ._figures import plot_series
+
+__all__ = ["comparison_rows", "format_table", "reproduce", "write_figures"]
+
 _COLUMNS = ["case", "quantity", "paper", "reference", "ours", "ours_vs_paper", "ours_vs_reference"]
 
 
@@ -33,13 +27,15 @@ def _relative(ours: float, other: float | None) -> float | None:
 
 def comparison_rows(log=None) -> list[dict]:
     """One row per (case, quantity): paper value (or None), reference value, ours
-    (default smoothed model) and the relative differences."""
+    (default smoothed model) and the relative differences. Quantities are the JSON keys
+    (`PEAK_FIELDS`) the reference gives."""
     rows = []
-    for case in paper_cases():
-        ours = peaks(case_params(case)).to_dict()
+    for case in rj.paper_cases():
+        ours = rj.peaks(rj.case_params(case)).to_dict()
         if log:
             log(f"  {case['case']}: peak F_AN {ours['peak_anchoring_force_N']:.1f} N")
-        for quantity in _QUANTITIES:
+        quantities = [key for key in rj.PEAK_FIELDS.values() if key in case["reference"]]
+        for quantity in quantities:
             paper = case["paper"].get(quantity)
             reference = case["reference"].get(quantity)
             rows.append({
@@ -75,10 +71,10 @@ def format_table(rows: list[dict]) -> str:
 def write_figures(out: Path, log=None) -> list[Path]:
     """PNGs corresponding to the paper's Fig. 4, 7, 8 and 9."""
     figures = []
-    simplified = params_from_values(m=0.0)
+    simplified = rj.params_from_values(m=0.0)
     ts = np.linspace(0.0, 10.0, 20001)
-    history = simulate(simplified, ts=ts)
-    best = peaks(simplified)
+    history = rj.simulate(simplified, ts=ts)
+    best = rj.peaks(simplified)
     x_peak, t_peak = float(best.peak_displacement), float(best.peak_displacement_time)
     figures.append(plot_series(
         {"simplified model": (history.ts, history.x_M)}, out / "fig4_simplified_displacement.png",
@@ -91,10 +87,10 @@ def write_figures(out: Path, log=None) -> list[Path]:
     whole, first = {}, {}
     ts_first = np.linspace(0.0, 0.04, 20001)
     for m in (100.0, 500.0, 1000.0, 1500.0):
-        params = params_from_values(m=m, gap=0.0)
-        h = simulate(params, ts=ts)
+        params = rj.params_from_values(m=m, gap=0.0)
+        h = rj.simulate(params, ts=ts)
         whole[f"m = {m:.0f} kg"] = (h.ts, h.contact_force)
-        h = simulate(params, ts=ts_first)
+        h = rj.simulate(params, ts=ts_first)
         first[f"m = {m:.0f} kg"] = (h.ts, h.contact_force)
     figures.append(plot_series(
         whole, out / "fig7_contact_force_gap0.png", xlabel="time (s)",
@@ -106,8 +102,8 @@ def write_figures(out: Path, log=None) -> list[Path]:
         ylabel="contact force $F_{ct}$ (kN)", xscale=1e3, yscale=1e-3,
         title="Fig. 8: contact force, gap = 0, first impact",
     ))
-    proposed = params_from_values(m=1500.0, gap=0.062)
-    h_best = simulate(proposed, ts=ts)
+    proposed = rj.params_from_values(m=1500.0, gap=0.062)
+    h_best = rj.simulate(proposed, ts=ts)
     figures.append(plot_series(
         {"simplified model": (history.ts, history.anchoring_force),
          "with absorber m = 1500 kg, gap = 62 mm": (h_best.ts, h_best.anchoring_force)},
@@ -128,7 +124,7 @@ def reproduce(out, log=None) -> list[dict]:
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    log(f"reproducing {len(paper_cases())} paper cases (default smoothed model)")
+    log(f"reproducing {len(rj.paper_cases())} paper cases (default smoothed model)")
     rows = comparison_rows(log)
     with open(out / "reproduce.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=_COLUMNS)

@@ -11,11 +11,9 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from ._gradients import DESIGN_PARAMETERS
-from ._params import Smoothing, SolverOptions
-from ._reference import reference_peaks
-from ._solve import peak_metrics
-from ._sweep import batch_params, default_workers, shard_batch, sweep
+import recoil_jax as rj
+
+__all__ = ["bench_designs", "format_bench", "main_bench", "run_bench"]
 
 
 def bench_designs(count: int, seed: int = 0) -> dict[str, np.ndarray]:
@@ -44,13 +42,13 @@ def run_bench(batch_sizes=(1, 64, 1024, 16384), scipy_designs: int = 20,
               jacobian_batch: int = 4096, log=None) -> dict:
     """Measure and return the figures (see `recoil-jax bench --help`)."""
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
-    smoothing, options = Smoothing(), SolverOptions()
+    smoothing, options = rj.Smoothing(), rj.SolverOptions()
     largest = max(batch_sizes)
     columns = bench_designs(max(largest, jacobian_batch, scipy_designs))
 
     def timed_sweep(designs, **kwargs):
         start = time.perf_counter()
-        result = sweep(designs, progress=False, **kwargs)
+        result = rj.sweep(designs, progress=False, **kwargs)
         return result, time.perf_counter() - start
 
     rows = []
@@ -75,17 +73,17 @@ def run_bench(batch_sizes=(1, 64, 1024, 16384), scipy_designs: int = 20,
     # The plain vmap of the stepping loop, on the 1024-design batch, for comparison.
     designs = _take(columns, np.linspace(0, len(columns["m"]) - 1, 1024).astype(int))
     designs = _take(designs, np.argsort(designs["gap"], kind="stable"))
-    params = batch_params(designs)[0]
+    params = rj.batch_params(designs)[0]
     if 1024 % jax.local_device_count() == 0:
-        params = shard_batch(params)
-    solve = eqx.filter_jit(jax.vmap(peak_metrics, in_axes=(0, None, None)))
+        params = rj.shard_batch(params)
+    solve = eqx.filter_jit(jax.vmap(rj.peak_metrics, in_axes=(0, None, None)))
     _timed(solve, params, smoothing, options)
     vmap_per_s = 1024 / _timed(solve, params, smoothing, options)[1]
     log(f"  plain vmap, batch 1024: {vmap_per_s:.0f} sims/s")
 
     designs = _take(columns, np.linspace(0, len(columns["m"]) - 1, jacobian_batch).astype(int))
-    _, jac_first = timed_sweep(designs, wrt=DESIGN_PARAMETERS)
-    jac_run = min(timed_sweep(designs, wrt=DESIGN_PARAMETERS)[1] for _ in range(2))
+    _, jac_first = timed_sweep(designs, wrt=rj.DESIGN_PARAMETERS)
+    jac_run = min(timed_sweep(designs, wrt=rj.DESIGN_PARAMETERS)[1] for _ in range(2))
     jacobians_per_s = jacobian_batch / jac_run
     log(f"  jacobians (4 parameters, batch {jacobian_batch}): {jacobians_per_s:.0f}/s")
 
@@ -94,15 +92,15 @@ def run_bench(batch_sizes=(1, 64, 1024, 16384), scipy_designs: int = 20,
     index = np.linspace(0, len(columns["m"]) - 1, scipy_designs).astype(int)
     chosen = _take(columns, index)
     start = time.perf_counter()
-    baseline = [reference_peaks({k: float(v[i]) for k, v in chosen.items()}, t1=10.0,
+    baseline = [rj.reference_peaks({k: float(v[i]) for k, v in chosen.items()}, t1=10.0,
                                 rtol=1e-5, atol=1e-8, method="RK45")
                 for i in range(scipy_designs)]
     scipy_s = time.perf_counter() - start
     scipy_per_s = scipy_designs / scipy_s
-    ours = sweep(chosen, progress=False).peaks
+    ours = rj.sweep(chosen, progress=False).peaks
     errors = [abs(float(ours[key][i]) / ref[key] - 1.0)
               for i, ref in enumerate(baseline)
-              for key in ("peak_displacement_m", "peak_anchoring_force_N")]
+              for key in ("peak_displacement", "peak_anchoring_force")]
     log(f"  scipy solve_ivp (RK45, rtol 1e-5, serial): {scipy_per_s:.1f} sims/s")
 
     best = max(rows, key=lambda r: r["sims_per_s"])
@@ -113,7 +111,7 @@ def run_bench(batch_sizes=(1, 64, 1024, 16384), scipy_designs: int = 20,
         "speedup_vs_scipy": best["sims_per_s"] / scipy_per_s,
         "plain_vmap_sims_per_s": vmap_per_s,
         "one_worker_sims_per_s": one_worker_per_s,
-        "workers": default_workers(jax.local_devices()),
+        "workers": rj.default_workers(jax.local_devices()),
         "jacobians_per_s": jacobians_per_s,
         "jacobian_compile_s": max(jac_first - jac_run, 0.0),
         "compile_s": compile_s,

@@ -2,7 +2,7 @@
 
 ```toml
 description = "what this study asks"
-[design]                      # the base design (simulate names); the rest: paper values
+[design]                      # the base design (flat names); the rest: paper values
 m = 1500
 [tune]                        # tuned parameters and their bounds
 gap = [0.0, 0.12]
@@ -25,6 +25,11 @@ local = 0.02                  # 1-D scans ± this fraction of each bound's width
 hard = true                   # the hard-switch model
 nominal = true                # (scatter) the nominal optimum under the same scatter
 ```
+
+A study is named by its path, or by the name of a study shipped in the repository's
+`optimise/` folder (`resolve_study`), so that neither depends on the working directory.
+Every metric of a study's result is solved with the problem's own smoothing and solver
+options.
 """
 
 from __future__ import annotations
@@ -40,20 +45,24 @@ from typing import Any
 import jax
 import numpy as np
 
-from ._optimise import _JSON_KEYS as _METRIC_KEYS, constraint_report
-from ._params import PARAMETER_NAMES, ParameterError, Smoothing, params_from_values
-from ._solve import peaks, simulate
+import recoil_jax as rj
+
+__all__ = ["SHIPPED", "Study", "load_study", "optimise_kwargs", "resolve_study", "run_study"]
 
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover
-    import tomli as tomllib
+    import tomli as tomllib  # pyright: ignore[reportMissingImports]
 
 _SECTIONS = {"description", "design", "tune", "objective", "constraints", "optimiser",
              "front", "check"}
 _OPTIMISER_KEYS = {"starts", "steps", "learning_rate", "seed", "anneal", "patience",
                    "update_every", "penalty"}
 _CHECK_KEYS = {"grid", "local", "hard", "nominal"}
+
+#: Where the shipped studies live: `optimise/` beside the package, in a checkout or an
+#: editable install.
+SHIPPED = Path(__file__).resolve().parents[2] / "optimise"
 
 
 @dataclass
@@ -62,25 +71,58 @@ class Study:
 
     name: str
     description: str
-    problem: Any  # DesignProblem
+    problem: rj.DesignProblem
     optimiser: dict = field(default_factory=dict)
     fronts: list[dict] = field(default_factory=list)
     check: dict = field(default_factory=dict)
 
 
-def _error(path, message: str) -> ParameterError:
-    return ParameterError(f"{path}: {message}")
+def _error(path, message: str) -> rj.ParameterError:
+    return rj.ParameterError(f"{path}: {message}")
+
+
+def resolve_study(study: str | Path) -> Path:
+    """The study file `study` names: an existing path, or the name of a shipped study
+    (`tuned_absorber` or `tuned_absorber.toml`, found in `optimise/` whatever the working
+    directory)."""
+    path = Path(study)
+    if path.exists():
+        return path
+    shipped = SHIPPED / (path.name if path.suffix == ".toml" else f"{path.name}.toml")
+    if path.parent == Path(".") and shipped.exists():
+        return shipped
+    names = sorted(p.stem for p in SHIPPED.glob("*.toml"))
+    raise rj.ParameterError(f"study file {study} not found; shipped studies: "
+                            f"{', '.join(names) or 'none'}")
+
+
+def _front_values(path, front: dict, constrained: list[str]) -> list[float]:
+    vary, values = front.get("vary"), front.get("values")
+    if vary not in rj.PARAMETERS and vary not in constrained:
+        raise _error(path, f"[[front]] vary = {vary!r}: give a parameter or a constrained "
+                     f"metric ({', '.join(constrained) or 'none'})")
+    if not isinstance(values, list) or not values:
+        raise _error(path, f"[[front]] vary = {vary!r} needs values = [...]")
+    if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
+        raise _error(path, f"[[front]] vary = {vary!r}: values must be numbers, got "
+                     f"{values!r}")
+    values = [float(v) for v in values]
+    if vary in rj.PARAMETERS:
+        try:
+            rj.params_from_values({vary: np.asarray(values)})
+        except rj.ParameterError as error:
+            raise _error(path, f"[[front]] {error}") from None
+    elif not np.all(np.isfinite(values)):
+        raise _error(path, f"[[front]] vary = {vary!r}: values must be finite")
+    return values
 
 
 def load_study(path) -> Study:
-    """Parse and validate a study file (errors name the file and the key)."""
-    from ._optimise import Constraint, DesignProblem, Objective
-
-    path = Path(path)
+    """Parse and validate a study file or shipped study name (errors name the file and
+    the key)."""
+    path = resolve_study(path)
     try:
         config = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise ParameterError(f"study file {path} not found") from None
     except tomllib.TOMLDecodeError as error:
         raise _error(path, f"not valid TOML: {error}") from None
     unknown = set(config) - _SECTIONS
@@ -93,7 +135,7 @@ def load_study(path) -> Study:
     design = dict(config.get("design", {}))
     tune, bounds = [], {}
     for name, bound in config["tune"].items():
-        if name not in PARAMETER_NAMES:
+        if name not in rj.PARAMETERS:
             raise _error(path, f"[tune] unknown parameter {name!r}")
         if not (isinstance(bound, list) and len(bound) == 2):
             raise _error(path, f"[tune] {name} = [lo, hi] expected, got {bound!r}")
@@ -107,7 +149,7 @@ def load_study(path) -> Study:
             raise _error(path, "[objective.scatter] takes one parameter = [offsets]")
         (scatter_name, offsets), = scatter.items()
         scatter = (scatter_name, tuple(float(o) for o in offsets))
-    objective = Objective(
+    objective = rj.Objective(
         weights={k: float(v) for k, v in objective_config.items()},
         temperatures={k: float(v) for k, v in temperatures.items()},
         scatter=scatter,
@@ -116,11 +158,11 @@ def load_study(path) -> Study:
     for name, limits in config.get("constraints", {}).items():
         if not isinstance(limits, dict) or set(limits) - {"max", "min"}:
             raise _error(path, f"[constraints] {name} = {{max = .., min = ..}} expected")
-        constraints.append(Constraint(name, upper=limits.get("max"), lower=limits.get("min")))
-    # The base design starts inside the (constraint-tightened) bounds.
-    params = params_from_values(design)
-    problem = DesignProblem(params=params, objective=objective, tune=tuple(tune),
-                            bounds=bounds, constraints=tuple(constraints))
+        constraints.append(rj.Constraint(name, upper=limits.get("max"),
+                                         lower=limits.get("min")))
+    params = rj.params_from_values(design)
+    problem = rj.DesignProblem(params=params, objective=objective, tune=tuple(tune),
+                               bounds=bounds, constraints=tuple(constraints))
     optimiser = dict(config.get("optimiser", {}))
     if set(optimiser) - _OPTIMISER_KEYS:
         raise _error(path, f"[optimiser] unknown key(s) "
@@ -130,14 +172,10 @@ def load_study(path) -> Study:
     fronts = [fronts] if isinstance(fronts, dict) else list(fronts)
     constrained = [name for name, _, _ in problem.metric_constraints]
     for front in fronts:
-        vary = front.get("vary")
-        if vary not in PARAMETER_NAMES and vary not in constrained:
-            raise _error(path, f"[[front]] vary = {vary!r}: give a parameter or a "
-                         f"constrained metric ({', '.join(constrained) or 'none'})")
-        if vary in tune:
-            raise _error(path, f"[[front]] vary = {vary!r} is tuned; fix it to vary it")
-        if not front.get("values"):
-            raise _error(path, "[[front]] needs values = [...]")
+        front["values"] = _front_values(path, front, constrained)
+        if front["vary"] in tune:
+            raise _error(path, f"[[front]] vary = {front['vary']!r} is tuned; fix it to "
+                         "vary it")
     check = dict(config.get("check", {}))
     if set(check) - _CHECK_KEYS:
         raise _error(path, f"[check] unknown key(s) {', '.join(sorted(set(check) - _CHECK_KEYS))}")
@@ -145,13 +183,13 @@ def load_study(path) -> Study:
                  optimiser=optimiser, fronts=fronts, check=check)
 
 
-def _optimise_kwargs(study: Study, progress: bool | None) -> dict:
-    from ._optimise import default_optimiser
-
+def optimise_kwargs(study: Study, progress: bool | None) -> dict:
+    """The keyword arguments of `rj.optimise` that the study's `[optimiser]` sets."""
     o = study.optimiser
     steps = int(o.get("steps", 200))
-    kwargs = dict(starts=int(o.get("starts", 8)), steps=steps, seed=int(o.get("seed", 0)),
-                  optimiser=default_optimiser(float(o.get("learning_rate", 0.1)), steps),
+    kwargs: dict[str, Any] = dict(
+                  starts=int(o.get("starts", 8)), steps=steps, seed=int(o.get("seed", 0)),
+                  optimiser=rj.default_optimiser(float(o.get("learning_rate", 0.1)), steps),
                   progress=progress)
     for key in ("anneal", "penalty"):
         if key in o:
@@ -162,38 +200,47 @@ def _optimise_kwargs(study: Study, progress: bool | None) -> dict:
     return kwargs
 
 
-def _metrics_json(params, smoothing=None) -> dict:
-    return peaks(params, smoothing or Smoothing()).to_dict()
+def _peaks(problem: rj.DesignProblem, params, smoothing=None) -> rj.Peaks:
+    """The peaks of `params` with the problem's solver options (and smoothing)."""
+    return rj.peaks(params, problem.smoothing if smoothing is None else smoothing,
+                    problem.options)
 
 
-def _scatter_worst(problem, params, offsets) -> tuple[dict, float]:
-    """Worst-case metrics (max; min for min_stroke) and objective over `offsets`."""
-    from ._design import values_of, with_values
-
+def _scattered(problem: rj.DesignProblem, params, offsets) -> list[rj.Peaks]:
+    assert problem.objective.scatter is not None
     name, _ = problem.objective.scatter
-    nominal = float(values_of(params, (name,))[0])
-    rows = [_metrics_json(with_values(params, (name,), [nominal * (1 + o)]))
+    nominal = float(rj.values_of(params, (name,))[0])
+    return [_peaks(problem, rj.with_values(params, (name,), [nominal * (1 + o)]))
             for o in offsets]
-    worst = {k: (min if k == "min_stroke_m" else max)(r[k] for r in rows)
-             for k in rows[0] if k.endswith(("_m", "_N"))}
-    return worst, max(problem.objective.of_json(r) for r in rows)
 
 
-def _best_summary(study: Study, result, scenario: int) -> dict:
+def _worst_case(problem: rj.DesignProblem, runs: list[rj.Peaks]) -> tuple[dict, float]:
+    """Worst-case metrics (each metric's own extreme) by JSON key, and the worst
+    objective, over the scattered solves `runs`."""
+    worst = {}
+    for name, m in rj.METRICS.items():
+        values = [float(getattr(r, name)) for r in runs]
+        worst[m.key] = max(values) if m.extreme == "max" else min(values)
+    return worst, max(float(problem.objective(r.metrics())) for r in runs)
+
+
+def _best_summary(study: Study, result: rj.OptimiseResult, scenario: int) -> dict:
     problem = study.problem
     params = result.best_params(scenario)
     design = result.best_design(scenario)
-    metrics = _metrics_json(params)
-    summary = {"best": design, "metrics": metrics,
-               "objective": problem.objective.of_json(metrics)}
+    best = _peaks(problem, params)
+    summary = {"best": design, "metrics": best.to_dict(),
+               "objective": float(problem.objective(best.metrics()))}
     limits = result.scenario_limits[scenario]
     if problem.objective.scatter is not None:
-        worst, worst_objective = _scatter_worst(problem, params, problem.objective.scatter[1])
+        worst, worst_objective = _worst_case(
+            problem, _scattered(problem, params, problem.objective.scatter[1]))
         summary["objective"] = worst_objective
         summary["worst_case_metrics"] = worst
-        summary["constraints"] = constraint_report(problem, design, worst, limits)
+        by_name = {name: worst[m.key] for name, m in rj.METRICS.items()}
+        summary["constraints"] = rj.constraint_report(problem, design, by_name, limits)
     else:
-        summary["constraints"] = constraint_report(problem, design, metrics, limits)
+        summary["constraints"] = rj.constraint_report(problem, design, best.metrics(), limits)
     return summary
 
 
@@ -202,18 +249,20 @@ def _feasible_objective(problem, sweep_result) -> tuple[np.ndarray, np.ndarray]:
     metric limit is broken; and the feasibility mask."""
     feasible = sweep_result.ok.copy()
     for name, kind, limit in problem.metric_constraints:
-        values = sweep_result.peaks[_METRIC_KEYS[name]]
+        values = sweep_result.peaks[name]
         feasible &= values <= limit if kind == "max" else values >= limit
-    objective = problem.objective(
-        {n: sweep_result.peaks[_METRIC_KEYS[n]] for n in problem.objective.weights})
+    objective = problem.objective(sweep_result.peaks)
     return np.where(feasible, objective, np.inf), feasible
+
+
+def _sweep(problem, designs, **kwargs):
+    return rj.sweep(designs, smoothing=problem.smoothing, options=problem.options,
+                    progress=False, **kwargs)
 
 
 def _grid_check(study: Study, result, axes: dict) -> tuple[dict, int]:
     """The best feasible point of a cartesian grid around the best design (others fixed
     at it), for the objective with peaks."""
-    from ._sweep import sweep_grid
-
     problem = study.problem
     design = result.best_design(0)
     grid_axes = {}
@@ -221,7 +270,8 @@ def _grid_check(study: Study, result, axes: dict) -> tuple[dict, int]:
         lo, hi, count = spec
         grid_axes[name] = np.linspace(float(lo), float(hi), int(count))
     fixed = {k: v for k, v in design.items() if k not in grid_axes}
-    sweep_result = sweep_grid(grid_axes, fixed=fixed, progress=False)
+    columns, _ = rj.grid(grid_axes, fixed)
+    sweep_result = _sweep(problem, columns)
     objective, feasible = _feasible_objective(problem, sweep_result)
     i = int(np.argmin(objective))
     spacing = {n: float(a[1] - a[0]) if len(a) > 1 else 0.0 for n, a in grid_axes.items()}
@@ -237,8 +287,6 @@ def _grid_check(study: Study, result, axes: dict) -> tuple[dict, int]:
 
 def _local_check(study: Study, result, fraction: float) -> tuple[dict, int]:
     """1-D scans of ± `fraction` of each bound's width through the best design."""
-    from ._sweep import sweep
-
     problem = study.problem
     design = result.best_design(0)
     lower, upper = problem.box()
@@ -249,7 +297,7 @@ def _local_check(study: Study, result, fraction: float) -> tuple[dict, int]:
             value = float(np.clip(design[name] + x, lower[j], upper[j]))
             points.append({**design, name: value})
             labels.append(name)
-    sweep_result = sweep(points, progress=False)
+    sweep_result = _sweep(problem, points)
     objective, _ = _feasible_objective(problem, sweep_result)
     return {"fraction_of_bounds": fraction, "points": len(points),
             "best_scan_objective": float(np.min(objective)),
@@ -258,21 +306,28 @@ def _local_check(study: Study, result, fraction: float) -> tuple[dict, int]:
 
 
 def run_study(path, out: str | Path | None = None, progress: bool | None = None) -> dict:
-    """Run a study file: optimise, check, write `result.json` and figures to `out`
-    (default `results/<study name>`). Returns the result dict."""
-    from ._optimise import optimise
-    from ._plot import plot_convergence, plot_history, plot_series
+    """Run a study: optimise, check, write `result.json` and figures.
+
+    **Arguments:**
+
+    - `path`: a study file, or the name of a shipped study (`resolve_study`).
+    - `out`: the output folder (default `results/<study name>`).
+    - `progress`: progress lines on stderr (default: on a terminal).
+
+    **Returns:** the dict written to `result.json`.
+    """
+    from ._figures import plot_convergence, plot_history
 
     study = load_study(path)
     out = Path(out) if out is not None else Path("results") / study.name
     out.mkdir(parents=True, exist_ok=True)
     problem = study.problem
-    kwargs = _optimise_kwargs(study, progress)
+    kwargs = optimise_kwargs(study, progress)
     started = time.perf_counter()
     if progress is not False:
         print(f"study {study.name}: {study.description}", file=sys.stderr)
 
-    result = optimise(problem, **kwargs)
+    result = rj.optimise(problem, **kwargs)
     report: dict[str, Any] = {"study": study.name, "description": study.description}
     report |= _best_summary(study, result, 0)
     simulations = {"optimiser": int(result.simulations)}
@@ -284,20 +339,21 @@ def run_study(path, out: str | Path | None = None, progress: bool | None = None)
         "where_starts_ended": result.clusters(0),
     }
     plot_convergence(result, out / "convergence.png", title=study.name)
-    history = simulate(result.best_params(0), ts=np.linspace(0.0, 3.0, 3001))
+    history = rj.simulate(result.best_params(0), problem.smoothing,
+                          ts=np.linspace(0.0, 3.0, 3001))
     plot_history(history, out / "best_history.png", title=f"{study.name}: best design")
 
     check = study.check
     if check.get("hard"):
-        hard = _metrics_json(result.best_params(0), Smoothing.exact())
-        smooth = report["metrics"]
+        hard = _peaks(problem, result.best_params(0), rj.Smoothing.exact())
+        smooth = _peaks(problem, result.best_params(0))
         # At the nominal parameters (for a scatter study too): a check of the model.
         report["hard_model"] = {
-            "metrics": hard,
-            "objective_at_nominal": problem.objective.of_json(hard),
+            "metrics": hard.to_dict(),
+            "objective_at_nominal": float(problem.objective(hard.metrics())),
             "max_relative_difference": max(
-                abs(hard[k] - smooth[k]) / max(abs(smooth[k]), 1e-12)
-                for k in smooth if k.endswith("_N") or k.endswith("_m")),
+                abs(float(getattr(hard, name)) - float(getattr(smooth, name)))
+                / max(abs(float(getattr(smooth, name))), 1e-12) for name in rj.METRICS),
         }
         simulations["hard_check"] = 1
     if "grid" in check:
@@ -318,7 +374,7 @@ def run_study(path, out: str | Path | None = None, progress: bool | None = None)
         table, n = _run_front(study, front, kwargs)
         fronts.append(table)
         simulations[f"front_{front['vary']}"] = n
-        _plot_front(table, out, plot_series)
+        _plot_front(table, out)
     if fronts:
         report["fronts"] = fronts
     report["simulations"] = int(sum(simulations.values()))
@@ -329,17 +385,14 @@ def run_study(path, out: str | Path | None = None, progress: bool | None = None)
 
 
 def _run_front(study: Study, front: dict, kwargs: dict) -> tuple[dict, int]:
-    from ._design import with_values
-    from ._optimise import optimise
-
     problem = study.problem
-    vary, values = front["vary"], [float(v) for v in front["values"]]
-    if vary in PARAMETER_NAMES:
-        scenarios = jax.vmap(lambda v: with_values(problem.params, (vary,), v[None]))(
+    vary, values = front["vary"], front["values"]
+    if vary in rj.PARAMETERS:
+        scenarios = jax.vmap(lambda v: rj.with_values(problem.params, (vary,), v[None]))(
             np.asarray(values))
-        result = optimise(problem, scenarios=scenarios, **kwargs)
+        result = rj.optimise(problem, scenarios=scenarios, **kwargs)
     else:
-        result = optimise(problem, scenario_limits={vary: values}, **kwargs)
+        result = rj.optimise(problem, scenario_limits={vary: values}, **kwargs)
     rows = []
     for s, value in enumerate(values):
         if not np.isfinite(result.best_objective[s]):
@@ -352,54 +405,61 @@ def _run_front(study: Study, front: dict, kwargs: dict) -> tuple[dict, int]:
     return {"vary": vary, "points": rows}, int(result.simulations)
 
 
-def _plot_front(table: dict, out: Path, plot_series) -> None:
+def _label(name: str) -> str:
+    """An axis label with its unit, for a parameter or a metric."""
+    return rj.PARAMETERS[name].label if name in rj.PARAMETERS else rj.METRICS[name].label
+
+
+def _plot_front(table: dict, out: Path) -> None:
+    from ._figures import plot_series
+
     vary = table["vary"]
     rows = [r for r in table["points"] if r["feasible"]]
     if not rows:
         return
+    force_key = rj.METRICS["peak_anchoring_force"].key
+    displacement_key = rj.METRICS["peak_displacement"].key
     x = [r[vary] for r in rows]
-    force = [r["metrics"]["peak_anchoring_force_N"] for r in rows]
-    displacement = [r["metrics"]["peak_displacement_m"] for r in rows]
-    unit = "kg" if vary == "m" else ("m" if vary in PARAMETER_NAMES else "")
+    force = [r["metrics"][force_key] for r in rows]
+    displacement = [r["metrics"][displacement_key] for r in rows]
     plot_series({"best design": (x, force)}, out / f"front_{vary}.png",
-                xlabel=f"{vary} ({unit})" if unit else vary, ylabel="peak anchoring force (N)",
+                xlabel=_label(vary), ylabel=rj.METRICS["peak_anchoring_force"].label,
                 title=f"Pareto front: peak anchoring force vs {vary}")
     plot_series({"best design": (displacement, force)},
                 out / f"front_{vary}_force_vs_displacement.png",
-                xlabel="peak barrel displacement (mm)", ylabel="peak anchoring force (N)",
-                xscale=1e3, title="peak anchoring force vs peak displacement")
-    lines = [f"{vary},peak_anchoring_force_N,peak_displacement_m,max_stroke_m,"
+                xlabel="peak barrel displacement (mm)",
+                ylabel=rj.METRICS["peak_anchoring_force"].label, xscale=1e3,
+                title="peak anchoring force vs peak displacement")
+    stroke_key = rj.METRICS["max_stroke"].key
+    lines = [f"{vary},{force_key},{displacement_key},{stroke_key},"
              + ",".join(rows[0]["best"])]
     for r in rows:
         lines.append(",".join(f"{v:.9g}" for v in [
-            r[vary], r["metrics"]["peak_anchoring_force_N"], r["metrics"]["peak_displacement_m"],
-            r["metrics"]["max_stroke_m"], *r["best"].values()]))
+            r[vary], r["metrics"][force_key], r["metrics"][displacement_key],
+            r["metrics"][stroke_key], *r["best"].values()]))
     (out / f"front_{vary}.csv").write_text("\n".join(lines) + "\n")
 
 
 def _nominal_comparison(study: Study, result, kwargs: dict, out: Path) -> tuple[dict, int]:
     """Optimise the nominal problem (no scatter) and compare both designs over a fine
     scatter of the same range."""
-    from ._design import values_of, with_values
-    from ._optimise import optimise
-    from ._plot import plot_series
+    from ._figures import plot_series
 
     problem = study.problem
+    assert problem.objective.scatter is not None
     name, offsets = problem.objective.scatter
     nominal_problem = dataclasses.replace(
         problem, objective=dataclasses.replace(problem.objective, scatter=None))
-    nominal = optimise(nominal_problem, **kwargs)
+    nominal = rj.optimise(nominal_problem, **kwargs)
     fine = np.linspace(min(offsets), max(offsets), 21)
     curves, report = {}, {}
     for label, params in (("robust", result.best_params(0)),
                           ("nominal", nominal.best_params(0))):
-        base = float(values_of(params, (name,))[0])
-        objectives = [problem.objective.of_json(_metrics_json(
-            with_values(params, (name,), [base * (1 + o)]))) for o in fine]
+        objectives = [float(problem.objective(r.metrics()))
+                      for r in _scattered(problem, params, fine)]
         curves[f"{label} design"] = (100 * fine, objectives)
-        report[label] = {"best": {k: v for k, v in
-                                  zip(problem.tune, (float(x) for x in values_of(
-                                      params, problem.tune)), strict=True)},
+        report[label] = {"best": dict(zip(problem.tune, (float(x) for x in rj.values_of(
+                             params, problem.tune)), strict=True)),
                          "objective_nominal": objectives[len(fine) // 2],
                          "objective_worst": max(objectives)}
     plot_series(curves, out / "robust_vs_nominal.png", xlabel=f"{name} offset (%)",

@@ -1,4 +1,5 @@
-"""The `recoil-jax` command line."""
+"""The `recoil-jax` command line: argument parsing, the `simulate` command, and dispatch
+to the other commands (each in its own module, imported when used)."""
 
 from __future__ import annotations
 
@@ -6,40 +7,42 @@ import argparse
 import json
 import sys
 
-from ._params import PARAMETER_NAMES, ParameterError, Smoothing, SolverOptions, params_from_values
-from ._solve import SolveError
+import recoil_jax as rj
 
-_NAMES = [*PARAMETER_NAMES, "t1"]
+__all__ = ["NAMES", "build_parser", "main", "parse_assignments"]
+
+#: Names `name=value` items may use: the parameters, and the end time.
+NAMES = [*rj.PARAMETERS, "t1"]
 
 
-def _parse_assignments(items: list[str]) -> dict[str, float]:
+def parse_assignments(items: list[str]) -> dict[str, float]:
+    """`name=value` items as a dict of numbers; names must be in `NAMES`."""
     values: dict[str, float] = {}
     for item in items:
         name, sep, text = item.partition("=")
         if not sep:
-            raise ParameterError(f"expected name=value, got {item!r}; names: {' '.join(_NAMES)}")
-        if name not in _NAMES:
-            raise ParameterError(f"unknown parameter {name!r}; names: {' '.join(_NAMES)}")
+            raise rj.ParameterError(f"expected name=value, got {item!r}; names: "
+                                    f"{' '.join(NAMES)}")
+        if name not in NAMES:
+            raise rj.ParameterError(f"unknown parameter {name!r}; names: {' '.join(NAMES)}")
         try:
             values[name] = float(text)
         except ValueError:
-            raise ParameterError(f"{name} = {text!r} is not a number") from None
+            raise rj.ParameterError(f"{name} = {text!r} is not a number") from None
     return values
 
 
 def _simulate(args) -> int:
     import numpy as np
 
-    from ._params import params_to_values
-    from ._solve import peaks, simulate
-
-    values = _parse_assignments(args.assignments)
-    options = SolverOptions(**({"t1": values.pop("t1")} if "t1" in values else {}))
-    params = params_from_values(values)
-    smoothing = Smoothing.exact() if args.hard else Smoothing()
-    result = peaks(params, smoothing, options).to_dict()
-    used = {k: float(np.asarray(v)) for k, v in params_to_values(params).items()}
-    used["t1"] = float(options.t1)
+    values = parse_assignments(args.assignments)
+    options = rj.SolverOptions(t1=values.pop("t1", None))
+    params = rj.params_from_values(values)
+    smoothing = rj.Smoothing.exact() if args.hard else rj.Smoothing()
+    result = rj.peaks(params, smoothing, options).to_dict()
+    t1 = float(rj.end_time(params, options))
+    used = {k: float(np.asarray(v)) for k, v in rj.params_to_values(params).items()}
+    used["t1"] = t1
     if args.json:
         print(json.dumps(result | {"model": "hard" if args.hard else "smoothed",
                                    "parameters": used}))
@@ -47,23 +50,23 @@ def _simulate(args) -> int:
         model = "simplified (no absorber)" if params.absorber is None else "with absorber"
         print(f"recoil-jax: {model}, {'hard' if args.hard else 'smoothed'} switches")
         print("  parameters: " + ", ".join(f"{k}={v:g}" for k, v in used.items()))
-        rows = [
-            ("peak barrel displacement", f"{result['peak_displacement_m']:.6f} m",
-             f"at {result['peak_displacement_time_s']:.4f} s"),
-            ("peak anchoring force", f"{result['peak_anchoring_force_N']:.2f} N",
-             f"at {result['peak_anchoring_force_time_s']:.4f} s"),
-            ("peak contact force", f"{result['peak_contact_force_N']:.2f} N",
-             f"at {result['peak_contact_force_time_s']:.4f} s"),
-            ("absorber stroke x_m - x_M", f"{result['min_stroke_m']:+.4f} .. "
-             f"{result['max_stroke_m']:+.4f} m", ""),
-            ("solver steps", f"{result['num_steps']}", ""),
-        ]
+        metrics = rj.METRICS
+        rows = []
+        for name in ("peak_displacement", "peak_anchoring_force", "peak_contact_force"):
+            m = metrics[name]
+            digits = 6 if m.unit == "m" else 2
+            rows.append((m.meaning, f"{result[m.key]:.{digits}f} {m.unit}",
+                         f"at {result[m.time_key]:.4f} s"))
+        low, high = metrics["min_stroke"], metrics["max_stroke"]
+        rows += [("absorber stroke x_m - x_M",
+                  f"{result[low.key]:+.4f} .. {result[high.key]:+.4f} m", ""),
+                 ("solver steps", f"{result['num_steps']}", "")]
         for name, value, when in rows:
             print(f"  {name:28s} {value:>22s}  {when}")
     if args.plot:
-        from ._plot import plot_history
+        from ._figures import plot_history
 
-        history = simulate(params, smoothing, options, ts=np.linspace(0.0, options.t1, 20001))
+        history = rj.simulate(params, smoothing, options, ts=np.linspace(0.0, t1, 20001))
         path = plot_history(history, args.plot, title=", ".join(
             f"{k}={v:g}" for k, v in used.items() if k in ("m", "gap", "k_r", "c_r")))
         print(f"wrote {path}", file=sys.stderr)
@@ -73,13 +76,12 @@ def _simulate(args) -> int:
 def _reproduce(args) -> int:
     from ._reproduce import format_table, reproduce
 
-    rows = reproduce(args.out)
-    print(format_table(rows))
+    print(format_table(reproduce(args.out)))
     return 0
 
 
 def _sweep(args) -> int:
-    from ._sweep_cli import run_sweep
+    from ._sweep import run_sweep
 
     return run_sweep(args)
 
@@ -118,11 +120,12 @@ def build_parser() -> argparse.ArgumentParser:
         prog="recoil-jax",
         description="Differentiable recoil-system models: gun barrel with an impact absorber.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {rj.__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     sim = sub.add_parser(
         "simulate", help="simulate one design and print its peaks",
         description="Simulate one design. Parameters as name=value (SI units): "
-        + " ".join(_NAMES) + ". m=0 gives the simplified model (no absorber).",
+        + " ".join(NAMES) + ". m=0 gives the simplified model (no absorber).",
     )
     sim.add_argument("assignments", nargs="*", metavar="name=value")
     sim.add_argument("--hard", action="store_true", help="exact model with hard switches")
@@ -134,6 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Sweep designs: name=a,b,c (a list), name=start:stop:count (a range, "
         "inclusive) or name=value (fixed), over the cartesian grid of the swept names; "
         "or --points FILE (CSV with a header of names, or a JSON list of objects). "
+        "Names: " + " ".join(NAMES) + ". m=0 (no absorber) may be mixed with m > 0. "
         "Writes sweep.csv, sweep.npz (arrays + metadata) and figures to --out.",
     )
     swp.add_argument("assignments", nargs="*", metavar="name=values")
@@ -153,20 +157,22 @@ def build_parser() -> argparse.ArgumentParser:
     bench.set_defaults(func=_bench)
     opt = sub.add_parser(
         "optimise", help="run an optimisation study (optimise/<study>.toml)",
-        description="Tune absorber parameters with optax as the study file says; write "
-        "result.json, convergence.png, best_history.png (and front/robust figures).",
+        description="Tune design parameters with optax as the study file says; write "
+        "result.json, convergence.png, best_history.png (and front/robust figures). "
+        "STUDY is a path, or the name of a study shipped in optimise/ (e.g. paper_gap).",
     )
-    opt.add_argument("study", help="study file, e.g. optimise/paper_gap.toml")
+    opt.add_argument("study", help="study file or name, e.g. optimise/paper_gap.toml")
     opt.add_argument("--out", help="output folder (default results/<study name>)")
     opt.add_argument("--json", action="store_true", help="print result.json to stdout")
     opt.set_defaults(func=_optimise)
     tuning = sub.add_parser(
         "bench-tuning", help="gradient-based tuning against Nelder-Mead (simulations)",
-        description="On the tuned_absorber study: simulations that optax multi-start "
-        "tuning and scipy's Nelder-Mead each need to come within 0.1 %% of the best "
-        "objective found, with the limits held.",
+        description="On a study (default tuned_absorber): simulations that optax "
+        "multi-start tuning and scipy's Nelder-Mead each need to come within 0.1 %% of the "
+        "best objective found, with the limits held.",
     )
-    tuning.add_argument("study", nargs="?", default="optimise/tuned_absorber.toml")
+    tuning.add_argument("study", nargs="?", default="tuned_absorber",
+                        help="study file or shipped study name (default tuned_absorber)")
     tuning.add_argument("--json", action="store_true", help="print one JSON object")
     tuning.set_defaults(func=_bench_tuning)
     rep = sub.add_parser(
@@ -180,6 +186,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command line with `argv` (default `sys.argv[1:]`); returns the exit code:
+    0 done, 1 a solve failed, 2 bad input."""
     parser = build_parser()
     # name=value items may come after the flags (`simulate m=500 --hard t1=2`).
     args, extra = parser.parse_known_args(argv)
@@ -190,11 +198,11 @@ def main(argv: list[str] | None = None) -> int:
         args.assignments = list(args.assignments) + extra
     try:
         return args.func(args)
-    except ParameterError as error:
+    except rj.ParameterError as error:
         print(f"recoil-jax: error: {error}", file=sys.stderr)
         return 2
-    except SolveError as error:
-        print(f"recoil-jax: solver failed: {error}", file=sys.stderr)
+    except rj.SolveError as error:
+        print(f"recoil-jax: solver failed: {rj.failure_message(error)}", file=sys.stderr)
         return 1
 
 

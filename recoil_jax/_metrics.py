@@ -1,0 +1,189 @@
+"""The metric registry, and the containers that carry metrics by name.
+
+`METRICS` is the one registry of what a solve reports: each metric's name (used in
+Python, TOML study files, objectives and constraints), its unit, the model signal it is
+the extreme of, and whether its time is reported. The JSON and CSV keys
+(`peak_anchoring_force_N`, `peak_displacement_time_s`, ...) derive from it, as do the
+fields of `Peaks` and `PeakGradients`, which are checked against it when built.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Literal
+
+import equinox as eqx
+import jax
+
+from ._params import ParameterError
+from ._status import Status
+
+__all__ = [
+    "METRICS",
+    "PEAK_FIELDS",
+    "Metric",
+    "PeakGradients",
+    "Peaks",
+    "metric",
+]
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Metric:
+    """One reported metric: the `extreme` (`"max"` or `"min"`) over `[0, t1]` of the model
+    signal `signal` (see `tracked_metrics`), in `unit`."""
+
+    name: str
+    unit: str
+    signal: str
+    extreme: Literal["max", "min"]
+    timed: bool  # the time of the extreme is reported too
+    smoothable: bool  # has a smooth maximum over time (`SmoothMax`)
+    meaning: str
+
+    @property
+    def key(self) -> str:
+        """The JSON / CSV key: the name with its unit (`peak_anchoring_force_N`)."""
+        return f"{self.name}_{self.unit}"
+
+    @property
+    def time_field(self) -> str:
+        return f"{self.name}_time"
+
+    @property
+    def time_key(self) -> str:
+        return f"{self.name}_time_s"
+
+    @property
+    def sign(self) -> float:
+        """+1 for a maximum, −1 for a minimum: the loop tracks maxima of `sign · signal`."""
+        return 1.0 if self.extreme == "max" else -1.0
+
+    @property
+    def label(self) -> str:
+        """`meaning (unit)`, for axis labels."""
+        return f"{self.meaning} ({self.unit})"
+
+
+#: The metrics by name, in the order they are reported.
+METRICS: dict[str, Metric] = {
+    m.name: m
+    for m in (
+        Metric(name="peak_displacement", unit="m", signal="x_M", extreme="max", timed=True,
+               smoothable=True, meaning="peak barrel displacement"),
+        Metric(name="peak_anchoring_force", unit="N", signal="F_AN", extreme="max",
+               timed=True, smoothable=True, meaning="peak anchoring force"),
+        Metric(name="peak_contact_force", unit="N", signal="F_ct", extreme="max",
+               timed=True, smoothable=False, meaning="peak contact force"),
+        Metric(name="min_stroke", unit="m", signal="stroke", extreme="min", timed=False,
+               smoothable=False, meaning="least absorber travel x_m - x_M"),
+        Metric(name="max_stroke", unit="m", signal="stroke", extreme="max", timed=False,
+               smoothable=False, meaning="largest absorber travel x_m - x_M"),
+    )
+}
+
+
+def metric(name: str) -> Metric:
+    """The registry entry of metric `name`; a `ParameterError` listing the metrics if
+    there is none."""
+    try:
+        return METRICS[name]
+    except KeyError:
+        raise ParameterError(f"unknown metric {name!r}; choose from {', '.join(METRICS)}") from None
+
+
+def _reported_fields() -> dict[str, str]:
+    fields = {}
+    for m in METRICS.values():
+        fields[m.name] = m.key
+        if m.timed:
+            fields[m.time_field] = m.time_key
+    fields["num_steps"] = "num_steps"
+    return fields
+
+
+#: `Peaks` field → JSON / CSV key, for every reported field, in output order.
+PEAK_FIELDS: dict[str, str] = _reported_fields()
+
+
+class Peaks(eqx.Module):
+    """Peak metrics of one solve (scalars; leading batch axes under `vmap`).
+
+    Peaks are located between solver steps, not on a save grid (`docs/model.md`).
+
+    - `peak_displacement` (m), `peak_displacement_time` (s): max of x_M.
+    - `peak_anchoring_force` (N), `peak_anchoring_force_time` (s): max of F_AN.
+    - `peak_contact_force` (N), `peak_contact_force_time` (s): max of F_ct (0, at t = 0,
+      when there is no contact or no absorber).
+    - `min_stroke`, `max_stroke` (m): min and max of the absorber's travel relative to the
+      barrel, x_m − x_M (both 0 for the simplified model).
+    - `num_steps`: accepted steps; `num_attempts`: accepted + rejected. The solve stops
+      before `t1` once the mechanical energy left shows that no metric can exceed its
+      peak again (`future_metric_bounds`); the peaks are those over all of `[0, t1]`.
+    - `status`: a `Status`; anything but `Status.ok` means the other fields are not to be
+      trusted.
+
+    The fields are those of `METRICS` (and their times); `Peaks.of` builds it by name.
+    """
+
+    peak_displacement: jax.Array
+    peak_displacement_time: jax.Array
+    peak_anchoring_force: jax.Array
+    peak_anchoring_force_time: jax.Array
+    peak_contact_force: jax.Array
+    peak_contact_force_time: jax.Array
+    min_stroke: jax.Array
+    max_stroke: jax.Array
+    num_steps: jax.Array
+    num_attempts: jax.Array
+    status: Any
+
+    @classmethod
+    def of(cls, values: dict[str, Any], times: dict[str, Any], num_steps, num_attempts,
+           status) -> Peaks:
+        """Build from `values` and `times` keyed by metric name (every metric of
+        `METRICS`; times of the timed ones)."""
+        fields = {name: values[name] for name in METRICS}
+        fields |= {m.time_field: times[m.name] for m in METRICS.values() if m.timed}
+        return cls(**fields, num_steps=num_steps, num_attempts=num_attempts, status=status)
+
+    def metrics(self) -> dict[str, Any]:
+        """The metric values by name (`METRICS`), as in objectives and constraints."""
+        return {name: getattr(self, name) for name in METRICS}
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict of one (unbatched) solve; the keys of `recoil-jax simulate
+        --json` (`PEAK_FIELDS`, then `status`: `"ok"` or why the solve failed)."""
+        out: dict[str, Any] = {
+            key: (int if field == "num_steps" else float)(getattr(self, field))
+            for field, key in PEAK_FIELDS.items()
+        }
+        return out | {"status": Status[self.status]}
+
+
+class PeakGradients(eqx.Module):
+    """Derivatives of the peak metrics with respect to the parameters `wrt` (flat names,
+    static). One field per metric of `METRICS`, each of shape `(..., len(wrt))`; units:
+    metric unit per parameter unit.
+
+    There is no gradient of the peak *times*: a peak can jump from one local maximum to
+    another, and its time with it.
+    """
+
+    peak_displacement: jax.Array
+    peak_anchoring_force: jax.Array
+    peak_contact_force: jax.Array
+    min_stroke: jax.Array
+    max_stroke: jax.Array
+    wrt: tuple[str, ...] = eqx.field(static=True)
+
+    @classmethod
+    def of(cls, gradients: dict[str, Any], wrt: tuple[str, ...]) -> PeakGradients:
+        """Build from gradients keyed by metric name (every metric of `METRICS`)."""
+        return cls(**{name: gradients[name] for name in METRICS}, wrt=wrt)
+
+    def to_dict(self) -> dict[str, dict[str, float]]:
+        """`{metric key: {parameter: derivative}}` for one (unbatched) design, with the
+        JSON keys of `METRICS` (`peak_anchoring_force_N`, ...)."""
+        return {m.key: {n: float(getattr(self, m.name)[j]) for j, n in enumerate(self.wrt)}
+                for m in METRICS.values()}

@@ -1,0 +1,275 @@
+"""What a design study asks: objectives, constraints and the design problem, and the
+evaluation of one design as a differentiable function of its tuned values.
+
+- `Objective`: a weighted sum of peak metrics, optionally with a smooth maximum over time
+  (log-sum-exp, `SmoothMax`) in place of a peak, and optionally the worst case over a
+  scatter of one parameter (e.g. v0 ± 5 %).
+- `Constraint`: an upper or lower limit on a metric or a parameter.
+- `DesignProblem`: the base design, the tuned parameters with their bounds, the objective
+  and the constraints.
+- `evaluate_design`: metrics, objectives and normalised limit violations of tuned values,
+  differentiable through the forward sensitivities (`design_metrics`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._design import design_metrics
+from ._gradients import GRADIENT_OPTIONS, SmoothMax, check_wrt, smooth_name
+from ._metrics import METRICS, metric
+from ._params import (
+    PARAMETERS,
+    ParameterError,
+    RecoilParams,
+    Smoothing,
+    SolverOptions,
+    check_value,
+    parameter,
+    values_of,
+    with_values,
+)
+from ._status import status_item
+
+__all__ = [
+    "Constraint",
+    "DesignProblem",
+    "Objective",
+    "constraint_report",
+    "evaluate_design",
+]
+
+
+class Objective(eqx.Module):
+    """`Σ_k weights[k] · metric_k`, to be minimised (metric units, e.g. N and m).
+
+    - `weights`: metric name (`METRICS`) → weight.
+    - `temperatures`: metric name → temperature (metric unit). Those metrics enter the
+      objective the optimiser sees as their smooth maximum over time
+      (`T·log((1/t1)∫exp(g/T)dt)`, see `SmoothMax`) instead of their peak: smooth where the
+      peak jumps from one local maximum to another. Only `peak_displacement` and
+      `peak_anchoring_force` have one. The *reported* objective always uses the peaks.
+    - `scatter`: `(name, relative offsets)`: evaluate the design at `value·(1 + offset)`
+      of that parameter for each offset (vmapped) and take the worst case, for the
+      objective and the metric constraints alike (robust design).
+    """
+
+    weights: dict[str, float]
+    temperatures: dict[str, float] = eqx.field(default_factory=dict)
+    scatter: tuple[str, tuple[float, ...]] | None = eqx.field(default=None, static=True)
+
+    def __check_init__(self):
+        if not self.weights:
+            raise ParameterError("Objective.weights is empty: weight at least one metric")
+        for name in self.weights:
+            metric(name)
+        for name in self.temperatures:
+            if name not in self.weights:
+                raise ParameterError(f"Objective.temperatures names {name!r}, which the "
+                                     "objective does not weight")
+        SmoothMax(tuple(self.temperatures), list(self.temperatures.values()))
+        if self.scatter is not None:
+            name, offsets = self.scatter
+            parameter(name)
+            if not offsets or any(not -1.0 < o < 10.0 for o in offsets):
+                raise ParameterError(
+                    "Objective.scatter offsets must be relative offsets > -1, e.g. "
+                    "(-0.05, 0, 0.05)")
+
+    def smooth_max(self, temperature_scale=1.0) -> SmoothMax | None:
+        """The `SmoothMax` of the objective's temperatures times `temperature_scale`."""
+        if not self.temperatures:
+            return None
+        temperatures = jnp.asarray(list(self.temperatures.values())) * temperature_scale
+        return SmoothMax(tuple(self.temperatures), temperatures)
+
+    def __call__(self, metrics: Mapping[str, Any], smooth: bool = False) -> Any:
+        """The objective of `metrics` (metric name → scalar, or arrays of equal shape).
+        `smooth=True` takes the smooth maximum where the objective has a temperature."""
+        total = 0.0
+        for name, weight in self.weights.items():
+            key = smooth_name(name) if smooth and name in self.temperatures else name
+            total = total + weight * metrics[key]
+        return total
+
+
+class Constraint(eqx.Module):
+    """`lower <= value <= upper` for a metric (`METRICS`) or a parameter (flat
+    name), in its SI unit. Give one or both limits."""
+
+    name: str = eqx.field(static=True)
+    upper: float | None = eqx.field(default=None, static=True)
+    lower: float | None = eqx.field(default=None, static=True)
+
+    def __check_init__(self):
+        if self.name not in METRICS and self.name not in PARAMETERS:
+            raise ParameterError(
+                f"Constraint on unknown quantity {self.name!r}; metrics: "
+                f"{', '.join(METRICS)}; parameters: {', '.join(PARAMETERS)}")
+        if self.upper is None and self.lower is None:
+            raise ParameterError(f"Constraint on {self.name} has neither upper nor lower")
+        if self.upper is not None and self.lower is not None and self.lower > self.upper:
+            raise ParameterError(f"Constraint on {self.name}: lower {self.lower} > upper "
+                                 f"{self.upper}")
+
+    @property
+    def is_metric(self) -> bool:
+        return self.name in METRICS
+
+    def limits(self) -> list[tuple[str, float]]:
+        """`[(kind, limit)]` with kind `"max"` or `"min"`."""
+        out = []
+        if self.upper is not None:
+            out.append(("max", float(self.upper)))
+        if self.lower is not None:
+            out.append(("min", float(self.lower)))
+        return out
+
+
+class DesignProblem(eqx.Module):
+    """What to tune, within which bounds, for which objective, under which limits.
+
+    - `params`: the base design. Parameters not tuned keep its values; the first start of
+      each run begins at it.
+    - `tune`: flat names of the tuned parameters (default gap, m, k_r, c_r).
+    - `bounds`: name → `(lo, hi)`; default the documented range. Parameter constraints on
+      tuned parameters tighten these.
+    - `objective`, `constraints`, `smoothing`, `options` (default `GRADIENT_OPTIONS`).
+    """
+
+    params: RecoilParams
+    objective: Objective
+    tune: tuple[str, ...] = eqx.field(default=("gap", "m", "k_r", "c_r"), static=True)
+    bounds: dict[str, tuple[float, float]] = eqx.field(default_factory=dict, static=True)
+    constraints: tuple[Constraint, ...] = eqx.field(default=(), static=True)
+    smoothing: Smoothing = Smoothing()
+    options: SolverOptions = GRADIENT_OPTIONS
+
+    def __check_init__(self):
+        check_wrt(self.params, self.tune)
+        for name, bound in self.bounds.items():
+            if name not in self.tune:
+                raise ParameterError(f"bounds given for {name!r}, which is not tuned")
+            lo, hi = bound
+            if not lo < hi:
+                raise ParameterError(f"bounds for {name}: need lo < hi, got ({lo}, {hi})")
+            check_value("bounds", name, lo, PARAMETERS[name])
+            check_value("bounds", name, hi, PARAMETERS[name])
+        lower, upper = self.box()
+        for name, lo, hi in zip(self.tune, lower, upper, strict=True):
+            if not lo < hi:
+                raise ParameterError(
+                    f"the constraints leave no room for {name}: bounds ({lo:g}, {hi:g})")
+
+    def box(self) -> tuple[np.ndarray, np.ndarray]:
+        """The bounds of the tuned parameters, tightened by their constraints."""
+        lower, upper = [], []
+        for name in self.tune:
+            documented = PARAMETERS[name].documented
+            lo, hi = self.bounds.get(name, documented or (np.nan, np.nan))
+            for c in self.constraints:
+                if c.name == name:
+                    lo = lo if c.lower is None else max(lo, c.lower)
+                    hi = hi if c.upper is None else min(hi, c.upper)
+            lower.append(lo)
+            upper.append(hi)
+        return np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
+
+    @property
+    def metric_constraints(self) -> list[tuple[str, str, float]]:
+        """`[(metric, kind, limit)]` handled by the augmented Lagrangian."""
+        return [(c.name, kind, limit) for c in self.constraints if c.is_metric
+                for kind, limit in c.limits()]
+
+
+def evaluate_design(problem: DesignProblem, theta, params=None,
+                    temperature_scale: Any = 1.0, limits=None):
+    """Evaluate the tuned values `theta` (shape `(len(problem.tune),)`) of `problem`.
+
+    Differentiable in `theta` (through the forward sensitivities); unjitted.
+
+    **Arguments:**
+
+    - `params`: the base design (default `problem.params`).
+    - `temperature_scale`: multiplies the objective's smooth-max temperatures.
+    - `limits`: shape `(C,)`, replaces the limits of `problem.metric_constraints`.
+
+    **Returns:** `(metrics, status, smooth_objective, objective, violations)`: the metrics
+    by name (worst case over the objective's scatter), the solve's `Status`, the
+    objective the optimiser sees and the one with true peaks, and the normalised
+    violations of the metric constraints (`<= 0` when satisfied).
+    """
+    params = problem.params if params is None else params
+    if limits is None:
+        limits = jnp.asarray([limit for _, _, limit in problem.metric_constraints])
+    objective = problem.objective
+    smooth_max = objective.smooth_max(temperature_scale)
+
+    def metrics_at(p):
+        metrics, code = design_metrics(theta, params=p, wrt=problem.tune,
+                                       smoothing=problem.smoothing, options=problem.options,
+                                       smooth_max=smooth_max)
+        return metrics, status_item(code)
+
+    if objective.scatter is None:
+        metrics, status = metrics_at(params)
+    else:
+        name, offsets = objective.scatter
+        nominal = values_of(params, (name,))
+        scattered = jax.vmap(lambda o: with_values(params, (name,), nominal * (1.0 + o)))(
+            jnp.asarray(offsets))
+        per_sample, statuses = jax.vmap(metrics_at)(scattered)
+        # Worst case over the scatter: of the objective, and of each limited metric.
+        smooth_values = objective(per_sample, smooth=True)
+        exact_values = objective(per_sample)
+        metrics = {k: jnp.max(v) for k, v in per_sample.items()}
+        metrics["min_stroke"] = jnp.min(per_sample["min_stroke"])
+        status = jax.tree.map(jnp.max, statuses)
+        return (metrics, status, jnp.max(smooth_values), jnp.max(exact_values),
+                _violations(problem, metrics, limits))
+    return (metrics, status, objective(metrics, smooth=True), objective(metrics),
+            _violations(problem, metrics, limits))
+
+
+def _violations(problem: DesignProblem, metrics, limits) -> jax.Array:
+    out = []
+    for j, (name, kind, _) in enumerate(problem.metric_constraints):
+        limit = limits[j]
+        scale = jnp.where(limit != 0, jnp.abs(limit), 1.0)
+        value = metrics[name]
+        out.append((value - limit) / scale if kind == "max" else (limit - value) / scale)
+    return jnp.stack(out) if out else jnp.zeros((0,))
+
+
+def constraint_report(problem: DesignProblem, design: Mapping[str, float],
+                      metrics: Mapping[str, float], limits=None) -> dict[str, dict]:
+    """Whether each limit of `problem` holds.
+
+    **Arguments:**
+
+    - `design`: flat parameter values (`params_to_values`, `OptimiseResult.best_design`).
+    - `metrics`: the metrics by name (`Peaks.metrics()`).
+    - `limits`: optional per-scenario limits of the metric constraints (in the order of
+      `problem.metric_constraints`).
+
+    **Returns:** `{"<name> (max|min)": {"value", "limit", "satisfied"}}`.
+    """
+    metric_limits = iter([] if limits is None else [float(x) for x in limits])
+    report = {}
+    for c in problem.constraints:
+        for kind, limit in c.limits():
+            if c.is_metric:
+                limit = next(metric_limits) if limits is not None else limit
+                value = float(metrics[c.name])
+            else:
+                value = float(design[c.name])
+            ok = value <= limit if kind == "max" else value >= limit
+            report[f"{c.name} ({kind})"] = {"value": value, "limit": float(limit),
+                                           "satisfied": bool(ok)}
+    return report

@@ -1,0 +1,89 @@
+"""How a solve ended: the `Status` enumeration, and raising on failure under `jit`."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = [
+    "SolveError",
+    "Status",
+    "failure_message",
+    "raise_on_failure",
+    "status_codes",
+    "status_item",
+    "status_messages",
+    "status_table",
+]
+
+
+class Status(eqx.Enumeration):
+    """How a solve ended (an `equinox.Enumeration`; `Peaks.status`, `History.status`).
+
+    Compare with `==` (`peaks.status == rj.Status.ok`, elementwise under `vmap`); the
+    message of one item is `rj.Status[item]`, of a batch `status_messages(item)`.
+    """
+
+    ok = "ok"
+    max_steps = (
+        "max_steps reached before t1: increase SolverOptions.max_steps or loosen the tolerances"
+    )
+    nonfinite = "the state became NaN or inf"
+    step_underflow = "the step size underflowed (t + dt == t) before t1"
+    failed = "the diffrax solve failed"
+
+
+#: What `peaks`, `simulate` and `peak_jacobian` raise when a solve fails and
+#: `throw=True`: equinox's runtime error, raised by `equinox.error_if` inside the compiled
+#: program, so it works inside a user's `jit` too. Its message holds the `Status` message.
+SolveError = eqx.EquinoxRuntimeError
+
+
+def raise_on_failure(token: Any, status: Any) -> Any:
+    """`token`, with a runtime error (`SolveError`) attached that fires if any element of
+    `status` is not `Status.ok`, carrying that status's message. Works under `jit` and
+    `vmap`, and for a batch of statuses (the message is that of the largest code)."""
+    (codes,) = jax.tree.leaves(status)
+    ok = status_codes(Status.ok)
+    failed = codes != ok
+    worst = jax.tree.map(lambda _: jnp.max(jnp.where(failed, codes, ok)), Status.ok)
+    return worst.error_if(token, jnp.any(failed))
+
+
+def status_codes(status: Any) -> np.ndarray:
+    """The integer codes of a (possibly batched) `Status` item, on the host."""
+    (codes,) = jax.tree.leaves(status)
+    return np.asarray(codes)
+
+
+def status_messages(status: Any) -> list[str]:
+    """The message of each element of a (possibly batched) `Status` item, flattened."""
+    return [Status[status_item(code)] for code in status_codes(status).reshape(-1)]
+
+
+def status_item(codes: Any) -> Any:
+    """A `Status` item holding the integer `codes` (host arrays gathered from several
+    batches, or traced codes)."""
+    as_array = jnp.asarray if isinstance(codes, jax.Array) else np.asarray
+    return jax.tree.map(lambda _: as_array(codes, dtype=np.int32), Status.ok)
+
+
+def status_table() -> dict[int, str]:
+    """Every `Status` code with its message (for files that store the codes)."""
+    codes = np.arange(len(Status), dtype=np.int32)
+    return dict(zip(codes.tolist(), status_messages(status_item(codes)), strict=True))
+
+
+def failure_message(error: BaseException) -> str:
+    """The `Status` message a `SolveError` carries, without equinox's debugging notes (or
+    the error's first line, for any other error)."""
+    text = str(error)
+    ok = int(status_codes(Status.ok))
+    for code, message in status_table().items():
+        if code != ok and message in text:
+            return message
+    return text.strip().splitlines()[0] if text.strip() else type(error).__name__

@@ -1,0 +1,61 @@
+"""Applications built on the recoil-jax engine: the `recoil-jax` command line, the
+optimisation studies, the benchmarks and the figures.
+
+They use the engine only through its public API (`import recoil_jax`); the engine never
+imports them. Each is loaded on first use, so that `recoil-jax simulate` does not pay for
+matplotlib or scipy.
+"""
+
+import importlib
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # what the lazy loader below provides, for type checkers
+    from ._bench import run_bench as run_bench
+    from ._bench_tuning import run_tuning_bench as run_tuning_bench
+    from ._cli import main as main
+    from ._figures import (
+        plot_convergence as plot_convergence,
+        plot_heatmap as plot_heatmap,
+        plot_history as plot_history,
+        plot_series as plot_series,
+    )
+    from ._reproduce import reproduce as reproduce
+    from ._studies import (
+        load_study as load_study,
+        resolve_study as resolve_study,
+        run_study as run_study,
+    )
+
+__all__ = [
+    "load_study",
+    "main",
+    "plot_convergence",
+    "plot_heatmap",
+    "plot_history",
+    "plot_series",
+    "reproduce",
+    "resolve_study",
+    "run_bench",
+    "run_study",
+    "run_tuning_bench",
+]
+
+_HOMES = {
+    "main": "._cli",
+    "load_study": "._studies",
+    "resolve_study": "._studies",
+    "run_study": "._studies",
+    "run_bench": "._bench",
+    "run_tuning_bench": "._bench_tuning",
+    "reproduce": "._reproduce",
+    "plot_convergence": "._figures",
+    "plot_heatmap": "._figures",
+    "plot_history": "._figures",
+    "plot_series": "._figures",
+}
+
+
+def __getattr__(name: str):
+    if name in _HOMES:
+        return getattr(importlib.import_module(_HOMES[name], __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

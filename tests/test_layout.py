@@ -1,0 +1,98 @@
+"""The layout the code promises: the engine never imports the applications, the
+applications use only the engine's public API, modules import from each other only what
+the source module declares in `__all__` (never a private name), and every form of a
+parameter or metric name derives from its registry."""
+
+import ast
+import dataclasses
+import importlib
+from pathlib import Path
+
+import pytest
+
+import recoil_jax as rj
+
+PACKAGE = Path(rj.__file__).parent
+ENGINE = sorted(p for p in PACKAGE.glob("_*.py") if p.name != "__init__.py")
+APPS = sorted((PACKAGE / "apps").glob("_*.py"))
+
+
+def _imports(path: Path):
+    """`(module, name)` for every `from module import name` in `path` (relative imports
+    resolved to `recoil_jax...`), and every `import module`."""
+    tree = ast.parse(path.read_text())
+    package = "recoil_jax.apps" if path.parent.name == "apps" else "recoil_jax"
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            module = node.module or ""
+            if node.level:
+                base = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
+                module = f"{base}.{module}" if module else base
+            for alias in node.names:
+                yield module, alias.name
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                yield alias.name, None
+
+
+def test_engine_never_imports_the_applications():
+    for path in ENGINE:
+        for module, _ in _imports(path):
+            assert not module.startswith("recoil_jax.apps"), (path.name, module)
+
+
+def test_applications_use_only_the_public_api():
+    for path in APPS:
+        for module, name in _imports(path):
+            if module.startswith("recoil_jax") and not module.startswith("recoil_jax.apps"):
+                assert module == "recoil_jax" and name is None, (path.name, module, name)
+
+
+@pytest.mark.parametrize("path", ENGINE + APPS, ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_cross_module_imports_are_declared(path):
+    """Between the package's own modules, only names in the source module's `__all__`
+    are imported, and never a private (underscored) name."""
+    for module, name in _imports(path):
+        if not module.startswith("recoil_jax.") or name is None:
+            continue
+        assert not name.startswith("_"), (path.name, module, name)
+        source = importlib.import_module(module)
+        declared = getattr(source, "__all__", None)
+        assert declared is not None, f"{module} declares no __all__"
+        assert name in declared, (path.name, module, name)
+
+
+def test_every_module_declares_what_it_exports():
+    for path in ENGINE + [p for p in APPS if p.name != "__init__.py"]:
+        package = "recoil_jax.apps" if path.parent.name == "apps" else "recoil_jax"
+        module = importlib.import_module(f"{package}.{path.stem}")
+        for name in module.__all__:
+            assert hasattr(module, name), (path.stem, name)
+
+
+def test_metric_names_derive_from_the_registry():
+    # The JSON / CSV keys users read stay exactly as they were.
+    assert list(rj.PEAK_FIELDS.values()) == [
+        "peak_displacement_m", "peak_displacement_time_s", "peak_anchoring_force_N",
+        "peak_anchoring_force_time_s", "peak_contact_force_N", "peak_contact_force_time_s",
+        "min_stroke_m", "max_stroke_m", "num_steps"]
+    peaks_fields = [f.name for f in dataclasses.fields(rj.Peaks)]
+    assert peaks_fields == [*rj.PEAK_FIELDS, "num_attempts", "status"]
+    assert [f.name for f in dataclasses.fields(rj.PeakGradients)] == [*rj.METRICS, "wrt"]
+    # The model tracks, and bounds, exactly the registered metrics.
+    params, smoothing = rj.RecoilParams(), rj.Smoothing()
+    args = rj.model_args(params, smoothing)
+    y = rj.initial_state(params)
+    assert list(rj.tracked_metrics(y, args)) == list(rj.METRICS)
+    assert set(rj.future_metric_bounds(y, args, 1.0)) == set(rj.METRICS)
+    assert {m.signal for m in rj.METRICS.values()} <= set(rj.signals(y, args))
+
+
+def test_parameter_names_derive_from_the_registry():
+    groups = {"barrel": rj.Barrel, "absorber": rj.Absorber, "contact": rj.Contact}
+    for group, cls in groups.items():
+        fields = [f.name for f in dataclasses.fields(cls)]
+        assert fields == [n for n, p in rj.PARAMETERS.items() if p.group == group]
+        for name in fields:
+            assert float(getattr(cls(), name)) == rj.PARAMETERS[name].default
+    assert list(rj.params_to_values(rj.RecoilParams())) == list(rj.PARAMETERS)
