@@ -57,8 +57,10 @@ for case in rj.paper_cases():
     ours = rj.peaks(rj.case_params(case))
     paper = case["paper"].get("peak_anchoring_force_N")
     reference = case["reference"]["peak_anchoring_force_N"]
-    print(f"{case['case']:28s} {paper if paper else float('nan'):11.0f} {reference:11.2f} "
-          f"{float(ours.peak_anchoring_force):11.2f}")
+    print(
+        f"{case['case']:28s} {paper if paper else float('nan'):11.0f} {reference:11.2f} "
+        f"{float(ours.peak_anchoring_force):11.2f}"
+    )
 
 # %% [markdown]
 # ## Time histories: no absorber against the paper's best absorber (m = 1500 kg, 62 mm)

@@ -50,8 +50,9 @@ fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
 mesh = axes[0].pcolormesh(1e3 * gaps, masses, force, shading="nearest")
 fig.colorbar(mesh, ax=axes[0], label="peak anchoring force (N)")
 limit = np.nanpercentile(np.abs(dforce_dgap), 98)
-mesh = axes[1].pcolormesh(1e3 * gaps, masses, dforce_dgap, shading="nearest", cmap="RdBu_r",
-                          vmin=-limit, vmax=limit)
+mesh = axes[1].pcolormesh(
+    1e3 * gaps, masses, dforce_dgap, shading="nearest", cmap="RdBu_r", vmin=-limit, vmax=limit
+)
 fig.colorbar(mesh, ax=axes[1], label="d(peak F_AN)/d(gap) (N/m)")
 for ax in axes:
     ax.set_xlabel("gap (mm)")
@@ -65,8 +66,10 @@ fig.tight_layout()
 
 # %%
 no_impact = result.peaks["peak_contact_force"].reshape(result.grid_shape) == 0
-print(f"{no_impact.mean():.0%} of the grid has no impact; gap gradient there: "
-      f"{np.abs(dforce_dgap[no_impact]).max() if no_impact.any() else 0.0}")
+print(
+    f"{no_impact.mean():.0%} of the grid has no impact; gap gradient there: "
+    f"{np.abs(dforce_dgap[no_impact]).max() if no_impact.any() else 0.0}"
+)
 
 # %% [markdown]
 # ## Where the peak switches: a kink at the optimum
@@ -92,19 +95,25 @@ fig.tight_layout()
 # `SmoothMax` replaces max_t F_AN(t) by T·log((1/t1)∫exp(F_AN/T)dt): both local maxima
 # contribute, so the kink is rounded off over a few T. It sits a little below the peak.
 
+
 # %%
 def smooth_force(gap, temperature):
     params = rj.RecoilParams(absorber=rj.Absorber(m=1500.0, gap=gap))
-    fn = rj.differentiable_peaks(params, ("gap",),
-                                 smooth_max=rj.SmoothMax(("peak_anchoring_force",), [temperature]))
+    fn = rj.differentiable_peaks(
+        params, ("gap",), smooth_max=rj.SmoothMax(("peak_anchoring_force",), [temperature])
+    )
     return fn(jnp.atleast_1d(gap))[0]["smooth_peak_anchoring_force"]
+
 
 smooth = jax.jit(jax.vmap(smooth_force, in_axes=(0, None)))
 fig, ax = plt.subplots(figsize=(8, 4.5))
 ax.plot(1e3 * gaps_fine, line.peaks["peak_anchoring_force"], "k", label="peak")
 for temperature in (5.0, 20.0):
-    ax.plot(1e3 * gaps_fine, smooth(jnp.asarray(gaps_fine), temperature),
-            label=f"smooth max, T = {temperature:g} N")
+    ax.plot(
+        1e3 * gaps_fine,
+        smooth(jnp.asarray(gaps_fine), temperature),
+        label=f"smooth max, T = {temperature:g} N",
+    )
 ax.set_xlabel("gap (mm)")
 ax.set_ylabel("N")
 ax.legend()
@@ -115,10 +124,11 @@ ax.legend()
 
 # %%
 wrt = tuple(rj.PARAMETERS)
-peaks, grads = rj.peak_jacobian(rj.RecoilParams(absorber=rj.Absorber(m=1500.0, gap=0.062)),
-                                wrt=wrt)
-scaled = {name: float(grads.peak_anchoring_force[j]) * rj.parameter_scale(name)
-          for j, name in enumerate(wrt)}
+peaks, grads = rj.peak_jacobian(rj.RecoilParams(absorber=rj.Absorber(m=1500.0, gap=0.062)), wrt=wrt)
+scaled = {
+    name: float(grads.peak_anchoring_force[j]) * rj.parameter_scale(name)
+    for j, name in enumerate(wrt)
+}
 fig, ax = plt.subplots(figsize=(8, 4))
 ax.bar(list(scaled), list(scaled.values()))
 ax.set_ylabel("dF_AN/dθ × range (N)")

@@ -43,15 +43,25 @@ STARTS = 4 if FAST else 16
 # %%
 problem = rj.DesignProblem(
     params=rj.RecoilParams(absorber=rj.Absorber(m=1500.0, gap=0.03)),
-    objective=rj.Objective({"peak_anchoring_force": 1.0},
-                           temperatures={"peak_anchoring_force": 10.0}),
-    tune=("gap",), bounds={"gap": (0.0, 0.12)})
+    objective=rj.Objective(
+        {"peak_anchoring_force": 1.0}, temperatures={"peak_anchoring_force": 10.0}
+    ),
+    tune=("gap",),
+    bounds={"gap": (0.0, 0.12)},
+)
 result = rj.optimise(problem, starts=STARTS, steps=STEPS)
-print(f"best gap {1e3 * result.best_theta[0, 0]:.2f} mm, "
-      f"peak F_AN {result.best_objective[0]:.2f} N")
+print(
+    f"best gap {1e3 * result.best_theta[0, 0]:.2f} mm, peak F_AN {result.best_objective[0]:.2f} N"
+)
 for cluster in result.clusters():
-    print(cluster["count"], "starts ended at", cluster["design"], "->", cluster["objective"],
-          "(no impact)" if cluster["no_impact"] else "")
+    print(
+        cluster["count"],
+        "starts ended at",
+        cluster["design"],
+        "->",
+        cluster["objective"],
+        "(no impact)" if cluster["no_impact"] else "",
+    )
 
 fig, ax = plt.subplots(figsize=(8, 4))
 ax.plot(1e3 * result.history["theta"][:, :, 0])
@@ -69,14 +79,21 @@ ax.set_title("every start's gap, step by step")
 problem = rj.DesignProblem(
     params=rj.RecoilParams(absorber=rj.Absorber(m=1500.0, gap=0.062)),
     objective=rj.Objective({"peak_anchoring_force": 1.0}),
-    constraints=(rj.Constraint("m", upper=1500.0), rj.Constraint("max_stroke", upper=0.15)))
-result = rj.optimise(problem, starts=STARTS, steps=STEPS,
-                     optimiser=optax.adam(optax.cosine_decay_schedule(0.1, STEPS, alpha=0.01)))
+    constraints=(rj.Constraint("m", upper=1500.0), rj.Constraint("max_stroke", upper=0.15)),
+)
+result = rj.optimise(
+    problem,
+    starts=STARTS,
+    steps=STEPS,
+    optimiser=optax.adam(optax.cosine_decay_schedule(0.1, STEPS, alpha=0.01)),
+)
 design = result.best_design()
 metrics = rj.peaks(result.best_params(), options=problem.options).metrics()
 print({k: round(design[k], 4) for k in problem.tune})
-print(f"peak F_AN {metrics['peak_anchoring_force']:.1f} N (paper's design: 5514.1 N), "
-      f"max stroke {metrics['max_stroke']:.4f} m")
+print(
+    f"peak F_AN {metrics['peak_anchoring_force']:.1f} N (paper's design: 5514.1 N), "
+    f"max stroke {metrics['max_stroke']:.4f} m"
+)
 print(rj.constraint_report(problem, design, metrics))
 
 # %% [markdown]
@@ -84,12 +101,15 @@ print(rj.constraint_report(problem, design, metrics))
 # One vmapped run: every mass is a scenario with its own starts.
 
 # %%
-masses = np.array([250.0, 750.0, 1500.0] if FAST else [100.0, 250.0, 500.0, 750.0, 1000.0,
-                                                       1500.0, 2000.0, 3000.0])
+masses = np.array(
+    [250.0, 750.0, 1500.0] if FAST else [100.0, 250.0, 500.0, 750.0, 1000.0, 1500.0, 2000.0, 3000.0]
+)
 front_problem = rj.DesignProblem(
     params=rj.RecoilParams(absorber=rj.Absorber(m=1500.0, gap=0.062)),
-    objective=rj.Objective({"peak_anchoring_force": 1.0}), tune=("gap", "k_r", "c_r"),
-    constraints=(rj.Constraint("max_stroke", upper=0.15),))
+    objective=rj.Objective({"peak_anchoring_force": 1.0}),
+    tune=("gap", "k_r", "c_r"),
+    constraints=(rj.Constraint("max_stroke", upper=0.15),),
+)
 scenarios = rj.params_from_values(m=masses, gap=np.full_like(masses, 0.062))
 front = rj.optimise(front_problem, scenarios=scenarios, starts=max(2, STARTS // 2), steps=STEPS)
 fig, ax = plt.subplots(figsize=(8, 4))
@@ -104,18 +124,28 @@ ax.set_ylabel("lowest peak anchoring force (N)")
 # %%
 robust_problem = rj.DesignProblem(
     params=rj.RecoilParams(absorber=rj.Absorber(m=1500.0, gap=0.062)),
-    objective=rj.Objective({"peak_anchoring_force": 1.0},
-                           scatter=("v0", (-0.05, -0.025, 0.0, 0.025, 0.05))),
-    tune=("gap", "k_r", "c_r"), constraints=(rj.Constraint("max_stroke", upper=0.15),))
+    objective=rj.Objective(
+        {"peak_anchoring_force": 1.0}, scatter=("v0", (-0.05, -0.025, 0.0, 0.025, 0.05))
+    ),
+    tune=("gap", "k_r", "c_r"),
+    constraints=(rj.Constraint("max_stroke", upper=0.15),),
+)
 robust = rj.optimise(robust_problem, starts=max(2, STARTS // 2), steps=STEPS)
 offsets = np.linspace(-0.05, 0.05, 5 if FAST else 21)
 fig, ax = plt.subplots(figsize=(8, 4))
-for label, params in (("nominal optimum", result.best_params()), ("robust optimum",
-                                                                   robust.best_params())):
+for label, params in (
+    ("nominal optimum", result.best_params()),
+    ("robust optimum", robust.best_params()),
+):
     v0 = float(params.barrel.v0)
-    forces = [float(rj.peaks(rj.RecoilParams(barrel=rj.Barrel(v0=v0 * (1 + o)),
-                                             absorber=params.absorber)).peak_anchoring_force)
-              for o in offsets]
+    forces = [
+        float(
+            rj.peaks(
+                rj.RecoilParams(barrel=rj.Barrel(v0=v0 * (1 + o)), absorber=params.absorber)
+            ).peak_anchoring_force
+        )
+        for o in offsets
+    ]
     ax.plot(100 * offsets, forces, "o-", label=f"{label}: worst {max(forces):.0f} N")
 ax.set_xlabel("v0 offset (%)")
 ax.set_ylabel("peak anchoring force (N)")

@@ -91,8 +91,7 @@ def polish(solver, args, vector_fn, best, best_time, best_step):
             a, b, c = values(jnp.stack([t - h, t, t + h]))
             curvature = a - 2.0 * b + c
             concave = curvature < 0
-            shift = jnp.where(concave, 0.5 * h * (a - c) / jnp.where(concave, curvature, -1.0),
-                              0.0)
+            shift = jnp.where(concave, 0.5 * h * (a - c) / jnp.where(concave, curvature, -1.0), 0.0)
             t = jnp.clip(t + jnp.clip(shift, -h, h), step["t0"], step["t0"] + safe_dt)
             return t, 0.1 * h
 

@@ -25,7 +25,8 @@ __all__ = ["design_metrics", "differentiable_peaks"]
 
 def _solve(theta, params, wrt, smoothing, options, smooth_max):
     peaks, grads, smooth_values, smooth_grads = sensitivity_solve(
-        with_values(params, wrt, theta), smoothing, options, wrt, smooth_max)
+        with_values(params, wrt, theta), smoothing, options, wrt, smooth_max
+    )
     values = {name: getattr(peaks, name) for name in METRICS}
     jacobian = {name: getattr(grads, name) for name in METRICS}
     if smooth_max is not None:
@@ -92,9 +93,14 @@ def differentiable_peaks(
     def fn(theta):
         # The tuned leaves of `params` are replaced by `theta`: cut any tangent they carry.
         base = with_values(params, wrt, jax.lax.stop_gradient(values_of(params, wrt)))
-        metrics, code = design_metrics(jnp.asarray(theta, dtype=float), params=base, wrt=wrt,
-                                       smoothing=smoothing, options=options,
-                                       smooth_max=smooth_max)
+        metrics, code = design_metrics(
+            jnp.asarray(theta, dtype=float),
+            params=base,
+            wrt=wrt,
+            smoothing=smoothing,
+            options=options,
+            smooth_max=smooth_max,
+        )
         return metrics, status_item(code)
 
     return fn

@@ -92,8 +92,7 @@ def check_wrt(params: RecoilParams, wrt: tuple[str, ...]) -> None:
             )
         if getattr(params, PARAMETERS[name].group) is None:
             raise ParameterError(
-                f"{name} is an absorber parameter, but this is the simplified model "
-                "(absorber=None)"
+                f"{name} is an absorber parameter, but this is the simplified model (absorber=None)"
             )
     if len(set(wrt)) != len(wrt):
         raise ParameterError(f"wrt names a parameter twice: {wrt}")
@@ -194,9 +193,12 @@ def _sensitivity_vf(t, z, args, wrt):
     # Linearised in the parameters `wrt` only: the others are constants here, so no
     # tangent flows through them.
     f_y, f_jvp = jax.linearize(
-        lambda y_, theta: _augmented_vf(t, y_, with_values(params, wrt, theta), smoothing,
-                                        smooth_max, t1),
-        y, values_of(params, wrt))
+        lambda y_, theta: _augmented_vf(
+            t, y_, with_values(params, wrt, theta), smoothing, smooth_max, t1
+        ),
+        y,
+        values_of(params, wrt),
+    )
     d_sensitivities = jax.vmap(f_jvp)(sensitivities, _directions(wrt))
     return jnp.concatenate([f_y, d_sensitivities.reshape(-1)])
 
@@ -209,7 +211,7 @@ def _sensitivity_term(wrt: tuple[str, ...]) -> diffrax.ODETerm:
 
 def _sensitivity_metrics(z, args):
     params, smoothing, smooth_max, _ = args
-    return _augmented_metrics(z[:_state_size(smooth_max)], params, smoothing, smooth_max)
+    return _augmented_metrics(z[: _state_size(smooth_max)], params, smoothing, smooth_max)
 
 
 def _sensitivity_bounds(z, args, time_left):
@@ -221,6 +223,7 @@ def _sensitivity_bounds(z, args, time_left):
 def _sensitivity_setup(params, smoothing, wrt, smooth_max, t1):
     """`(z0, args)` of the sensitivity system up to `t1`: the state, then one sensitivity
     column per parameter in `wrt` (scaled by its range)."""
+
     def initial(theta):
         return _augmented_initial_state(with_values(params, wrt, theta), smoothing, smooth_max)
 
@@ -243,19 +246,18 @@ def _sensitivity_post(args, run: PeakRun, wrt):
         y, sensitivities = state[:n], state[n:].reshape(-1, n)
 
         def metric(y_, theta_):
-            values = _augmented_metrics(y_, with_values(params, wrt, theta_), smoothing,
-                                        smooth_max)
+            values = _augmented_metrics(y_, with_values(params, wrt, theta_), smoothing, smooth_max)
             return jnp.stack([values[name] for name in run.names])[i]
 
         return jax.vmap(lambda s, d: jax.jvp(metric, (y, theta), (s, d))[1])(
-            sensitivities, _directions(wrt))
+            sensitivities, _directions(wrt)
+        )
 
     indices = jnp.arange(run.best_state.shape[0])
     directional = jax.vmap(gradient_of_metric)(indices, run.best_state)
     scales = jnp.asarray([parameter_scale(name) for name in wrt])
     grads = run.by_name(directional / scales)
-    gradients = PeakGradients.of({name: m.sign * grads[name] for name, m in METRICS.items()},
-                                 wrt)
+    gradients = PeakGradients.of({name: m.sign * grads[name] for name, m in METRICS.items()}, wrt)
     peaks = peaks_of_run(run)
     if smooth_max is None:
         return peaks, gradients, None, None
@@ -263,7 +265,8 @@ def _sensitivity_post(args, run: PeakRun, wrt):
     temperatures = smooth_max.temperatures
     smooth_values = temperatures * jnp.stack([best[smooth_name(m)] for m in smooth_max.metrics])
     smooth_grads = temperatures[:, None] * jnp.stack(
-        [grads[smooth_name(m)] for m in smooth_max.metrics])
+        [grads[smooth_name(m)] for m in smooth_max.metrics]
+    )
     return peaks, gradients, smooth_values, smooth_grads
 
 
@@ -275,22 +278,26 @@ def sensitivity_solve(params, smoothing, options, wrt, smooth_max=None):
     z0, args = _sensitivity_setup(params, smoothing, wrt, smooth_max, t1)
     # A smooth maximum integrates over all of [0, t1]: no stopping once the peaks settle.
     bounds = _sensitivity_bounds if smooth_max is None else None
-    run = integrate_peaks(_sensitivity_term(wrt), z0, args, t1, _sensitivity_metrics, options,
-                          bounds)
+    run = integrate_peaks(
+        _sensitivity_term(wrt), z0, args, t1, _sensitivity_metrics, options, bounds
+    )
     return _sensitivity_post(args, run, wrt)
 
 
 def _peak_gradients_batch(params, t1, smoothing, options, wrt, lanes):
-    loop = PeakLoop(_sensitivity_term(wrt), _sensitivity_metrics, options,
-                    _sensitivity_bounds)
+    loop = PeakLoop(_sensitivity_term(wrt), _sensitivity_metrics, options, _sensitivity_bounds)
 
     def setup(design):
         p, end = design
         return *_sensitivity_setup(p, smoothing, wrt, None, end), end
 
-    return queued_map(loop, setup,
-                      lambda design, args, run: _sensitivity_post(args, run, wrt)[:2],
-                      (params, t1), lanes)
+    return queued_map(
+        loop,
+        setup,
+        lambda design, args, run: _sensitivity_post(args, run, wrt)[:2],
+        (params, t1),
+        lanes,
+    )
 
 
 #: `jax.vmap(peak_gradients)` over a batch (a leading axis on every leaf of `params`, and

@@ -69,16 +69,51 @@ class Metric:
 METRICS: dict[str, Metric] = {
     m.name: m
     for m in (
-        Metric(name="peak_displacement", unit="m", signal="x_M", extreme="max", timed=True,
-               smoothable=True, meaning="peak barrel displacement"),
-        Metric(name="peak_anchoring_force", unit="N", signal="F_AN", extreme="max",
-               timed=True, smoothable=True, meaning="peak anchoring force"),
-        Metric(name="peak_contact_force", unit="N", signal="F_ct", extreme="max",
-               timed=True, smoothable=False, meaning="peak contact force"),
-        Metric(name="min_stroke", unit="m", signal="stroke", extreme="min", timed=False,
-               smoothable=False, meaning="least absorber travel x_m - x_M"),
-        Metric(name="max_stroke", unit="m", signal="stroke", extreme="max", timed=False,
-               smoothable=False, meaning="largest absorber travel x_m - x_M"),
+        Metric(
+            name="peak_displacement",
+            unit="m",
+            signal="x_M",
+            extreme="max",
+            timed=True,
+            smoothable=True,
+            meaning="peak barrel displacement",
+        ),
+        Metric(
+            name="peak_anchoring_force",
+            unit="N",
+            signal="F_AN",
+            extreme="max",
+            timed=True,
+            smoothable=True,
+            meaning="peak anchoring force",
+        ),
+        Metric(
+            name="peak_contact_force",
+            unit="N",
+            signal="F_ct",
+            extreme="max",
+            timed=True,
+            smoothable=False,
+            meaning="peak contact force",
+        ),
+        Metric(
+            name="min_stroke",
+            unit="m",
+            signal="stroke",
+            extreme="min",
+            timed=False,
+            smoothable=False,
+            meaning="least absorber travel x_m - x_M",
+        ),
+        Metric(
+            name="max_stroke",
+            unit="m",
+            signal="stroke",
+            extreme="max",
+            timed=False,
+            smoothable=False,
+            meaning="largest absorber travel x_m - x_M",
+        ),
     )
 }
 
@@ -139,8 +174,9 @@ class Peaks(eqx.Module):
     status: Any
 
     @classmethod
-    def of(cls, values: dict[str, Any], times: dict[str, Any], num_steps, num_attempts,
-           status) -> Peaks:
+    def of(
+        cls, values: dict[str, Any], times: dict[str, Any], num_steps, num_attempts, status
+    ) -> Peaks:
         """Build from `values` and `times` keyed by metric name (every metric of
         `METRICS`; times of the timed ones)."""
         fields = {name: values[name] for name in METRICS}
@@ -185,5 +221,7 @@ class PeakGradients(eqx.Module):
     def to_dict(self) -> dict[str, dict[str, float]]:
         """`{metric key: {parameter: derivative}}` for one (unbatched) design, with the
         JSON keys of `METRICS` (`peak_anchoring_force_N`, ...)."""
-        return {m.key: {n: float(getattr(self, m.name)[j]) for j, n in enumerate(self.wrt)}
-                for m in METRICS.values()}
+        return {
+            m.key: {n: float(getattr(self, m.name)[j]) for j, n in enumerate(self.wrt)}
+            for m in METRICS.values()
+        }

@@ -186,21 +186,29 @@ def future_metric_bounds(y, args, time_left) -> dict[str, jnp.ndarray]:
         # U(δ) <= k_c (δ + w)₊^(n+1) / (n+1), since the smoothed ramp r(s) <= (s + w)₊.
         relative = x_M - x_m
         reach = jnp.maximum(relative - absorber.gap + width_contact, 0.0)
-        energy = energy + (0.5 * absorber.m * v_m**2 + 0.5 * absorber.k_r * relative**2
-                           + contact.k_c * positive_power(reach, contact.n_c + 1.0)
-                           / (contact.n_c + 1.0))
+        energy = energy + (
+            0.5 * absorber.m * v_m**2
+            + 0.5 * absorber.k_r * relative**2
+            + contact.k_c * positive_power(reach, contact.n_c + 1.0) / (contact.n_c + 1.0)
+        )
     two_energy = 2.0 * energy
     damper_offset = spread * 3.0 * width_v / 16.0
     displacement = jnp.sqrt(two_energy / barrel.k)
     anchoring = jnp.sqrt((barrel.k + barrel.c_out**2 / barrel.M) * two_energy) + damper_offset
     if absorber is None:
         zero = jnp.zeros_like(displacement)
-        return {"peak_displacement": displacement, "peak_anchoring_force": anchoring,
-                "peak_contact_force": zero, "min_stroke": zero, "max_stroke": zero}
+        return {
+            "peak_displacement": displacement,
+            "peak_anchoring_force": anchoring,
+            "peak_contact_force": zero,
+            "min_stroke": zero,
+            "max_stroke": zero,
+        }
     relative_max = jnp.sqrt(two_energy / absorber.k_r)
     # U(δ) >= k_c δ₊^(n+1) / (n+1), since r(s) >= max(s, 0).
-    penetration = positive_power((contact.n_c + 1.0) * energy / contact.k_c,
-                                 1.0 / (contact.n_c + 1.0))
+    penetration = positive_power(
+        (contact.n_c + 1.0) * energy / contact.k_c, 1.0 / (contact.n_c + 1.0)
+    )
     penetration = jnp.minimum(penetration, relative_max - absorber.gap)
     reachable = penetration > -width_contact
     rate = jnp.sqrt(two_energy * (1.0 / barrel.M + 1.0 / absorber.m))
@@ -211,9 +219,13 @@ def future_metric_bounds(y, args, time_left) -> dict[str, jnp.ndarray]:
     valid = contact.lambda_c * width_v < 1.0
     inf = jnp.full_like(displacement, jnp.inf)
     # x_M − x_m = gap + δ, and `penetration` already respects relative_max.
-    bounds = {"peak_displacement": displacement, "peak_anchoring_force": anchoring,
-              "peak_contact_force": contact_force, "min_stroke": absorber.gap + penetration,
-              "max_stroke": relative_max}
+    bounds = {
+        "peak_displacement": displacement,
+        "peak_anchoring_force": anchoring,
+        "peak_contact_force": contact_force,
+        "min_stroke": absorber.gap + penetration,
+        "max_stroke": relative_max,
+    }
     return {name: jnp.where(valid, bound, inf) for name, bound in bounds.items()}
 
 

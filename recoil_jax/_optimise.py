@@ -66,8 +66,9 @@ class _Settings:
     max_penalty: float
 
 
-def _make_step(problem: DesignProblem, optimiser: optax.GradientTransformation,
-               settings: _Settings):
+def _make_step(
+    problem: DesignProblem, optimiser: optax.GradientTransformation, settings: _Settings
+):
     """The vmapped, jitted step of every run, and the function whose traces count the
     compilations (`eqx.debug.get_num_traces`)."""
     lower, upper = (jnp.asarray(b) for b in problem.box())
@@ -79,13 +80,12 @@ def _make_step(problem: DesignProblem, optimiser: optax.GradientTransformation,
         # Anneal the smooth-max temperatures geometrically to `anneal` of their start.
         progress = state.step / max(steps - 1, 1)
         metrics, status, smooth, exact, violations = evaluate_design(
-            problem, theta, params, settings.anneal**progress, limits)
-        scale = jnp.where(state.step == 0, jax.lax.stop_gradient(jnp.abs(smooth)),
-                          state.scale)
+            problem, theta, params, settings.anneal**progress, limits
+        )
+        scale = jnp.where(state.step == 0, jax.lax.stop_gradient(jnp.abs(smooth)), state.scale)
         scale = jnp.where(scale > 0, scale, 1.0)
         lam, rho = state.multipliers, state.penalty
-        augmented = jnp.sum(jnp.maximum(lam + rho * violations, 0.0) ** 2 - lam**2) / (
-            2.0 * rho)
+        augmented = jnp.sum(jnp.maximum(lam + rho * violations, 0.0) ** 2 - lam**2) / (2.0 * rho)
         (code,) = jax.tree.leaves(status)
         record = _StepRecord(theta, metrics, code, smooth, exact, violations)
         return smooth / scale + augmented, (record, scale)
@@ -93,7 +93,8 @@ def _make_step(problem: DesignProblem, optimiser: optax.GradientTransformation,
     @eqx.debug.assert_max_traces(max_traces=1)
     def one(state: _State, params, limits, active):
         (value, (record, scale)), grad = jax.value_and_grad(loss, has_aux=True)(
-            state.u, state, params, limits)
+            state.u, state, params, limits
+        )
         solved = (record.status == ok) & jnp.isfinite(value) & jnp.all(jnp.isfinite(grad))
         move = active & solved
         updates, opt_state = optimiser.update(grad, state.opt_state, state.u)
@@ -107,13 +108,16 @@ def _make_step(problem: DesignProblem, optimiser: optax.GradientTransformation,
         # steps; the penalty grows while any limit is still violated.
         at_update = move & ((state.step + 1) % settings.update_every == 0)
         multipliers = jnp.where(
-            at_update, jnp.maximum(state.multipliers + state.penalty * record.violations, 0.0),
-            state.multipliers)
+            at_update,
+            jnp.maximum(state.multipliers + state.penalty * record.violations, 0.0),
+            state.multipliers,
+        )
         violated = jnp.any(record.violations > 0)
-        penalty = jnp.where(at_update & violated,
-                            jnp.minimum(state.penalty * settings.penalty_growth,
-                                        settings.max_penalty),
-                            state.penalty)
+        penalty = jnp.where(
+            at_update & violated,
+            jnp.minimum(state.penalty * settings.penalty_growth, settings.max_penalty),
+            state.penalty,
+        )
         new = _State(u, opt_state, multipliers, penalty, scale, state.step + move)
         return new, record
 
@@ -180,25 +184,39 @@ class OptimiseResult:
         for r in order:
             value = self.run_best_objective[r]
             if not np.isfinite(value):
-                groups.append({"objective": None, "count": 1, "runs": [int(r)],
-                               "design": None, "converged": int(self.converged[r]),
-                               "no_impact": int(self._no_impact(r))})
+                groups.append(
+                    {
+                        "objective": None,
+                        "count": 1,
+                        "runs": [int(r)],
+                        "design": None,
+                        "converged": int(self.converged[r]),
+                        "no_impact": int(self._no_impact(r)),
+                    }
+                )
                 continue
             for g in groups:
                 if g["objective"] is not None and abs(value - g["objective"]) <= rtol * abs(
-                        g["objective"]):
+                    g["objective"]
+                ):
                     g["count"] += 1
                     g["runs"].append(int(r))
                     g["converged"] += int(self.converged[r])
                     g["no_impact"] += int(self._no_impact(r))
                     break
             else:
-                groups.append({"objective": float(value), "count": 1, "runs": [int(r)],
-                               "design": dict(zip(self.tune, map(float,
-                                                                 self.run_best_theta[r]),
-                                                  strict=True)),
-                               "converged": int(self.converged[r]),
-                               "no_impact": int(self._no_impact(r))})
+                groups.append(
+                    {
+                        "objective": float(value),
+                        "count": 1,
+                        "runs": [int(r)],
+                        "design": dict(
+                            zip(self.tune, map(float, self.run_best_theta[r]), strict=True)
+                        ),
+                        "converged": int(self.converged[r]),
+                        "no_impact": int(self._no_impact(r)),
+                    }
+                )
         return groups
 
     def _no_impact(self, run: int) -> bool:
@@ -235,8 +253,11 @@ def _stationary(records, patience: int, ftol: float, vtol: float) -> np.ndarray:
     return flat & (worst <= vtol)
 
 
-def _scenarios(problem: DesignProblem, scenarios: RecoilParams | None,
-               scenario_limits: Mapping[str, Sequence[float]] | None):
+def _scenarios(
+    problem: DesignProblem,
+    scenarios: RecoilParams | None,
+    scenario_limits: Mapping[str, Sequence[float]] | None,
+):
     """The base design `(S, ...)` and metric limits `(S, C)` of each scenario."""
     constraints = problem.metric_constraints
     limits = np.asarray([[limit for _, _, limit in constraints]], dtype=float).reshape(1, -1)
@@ -249,8 +270,10 @@ def _scenarios(problem: DesignProblem, scenarios: RecoilParams | None,
     names = [name for name, _, _ in constraints]
     for name, values in (scenario_limits or {}).items():
         if name not in names:
-            raise ParameterError(f"scenario_limits names {name!r}, which has no metric "
-                                 f"constraint; constrained: {', '.join(names) or 'none'}")
+            raise ParameterError(
+                f"scenario_limits names {name!r}, which has no metric "
+                f"constraint; constrained: {', '.join(names) or 'none'}"
+            )
         if not np.all(np.isfinite(np.asarray(values, dtype=float))):
             raise ParameterError(f"scenario_limits for {name} must be finite numbers")
         sizes.add(len(values))
@@ -258,8 +281,10 @@ def _scenarios(problem: DesignProblem, scenarios: RecoilParams | None,
         raise ParameterError(f"scenarios of different lengths: {sorted(sizes)}")
     count = sizes.pop() if sizes else 1
     # Every parameter is a scalar per design: shared values broadcast over the scenarios.
-    params = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x, dtype=float), (count,)),
-                          problem.params if scenarios is None else scenarios)
+    params = jax.tree.map(
+        lambda x: jnp.broadcast_to(jnp.asarray(x, dtype=float), (count,)),
+        problem.params if scenarios is None else scenarios,
+    )
     limits = np.repeat(limits, count, axis=0)
     for name, values in (scenario_limits or {}).items():
         limits[:, names.index(name)] = np.asarray(values, dtype=float)
@@ -348,8 +373,7 @@ def optimise(
     run_limits = jnp.asarray(np.repeat(limits, starts, axis=0))
 
     lower, upper = problem.box()
-    u0 = jnp.asarray(_to_u(_start_points(problem, params, n_scenarios, starts, seed), lower,
-                           upper))
+    u0 = jnp.asarray(_to_u(_start_points(problem, params, n_scenarios, starts, seed), lower, upper))
     state = _State(
         u=u0,
         opt_state=jax.vmap(optimiser.init)(u0),
@@ -358,8 +382,9 @@ def optimise(
         scale=jnp.ones((runs,)),
         step=jnp.zeros((runs,), dtype=int),
     )
-    step_fn, traced = _make_step(problem, optimiser, _Settings(
-        steps, anneal, update_every, penalty_growth, max_penalty))
+    step_fn, traced = _make_step(
+        problem, optimiser, _Settings(steps, anneal, update_every, penalty_growth, max_penalty)
+    )
     samples = 1 if problem.objective.scatter is None else len(problem.objective.scatter[1])
 
     bar = Progress("optimise", steps, "steps", progress)
@@ -373,17 +398,20 @@ def optimise(
         record = jax.tree.map(np.asarray, record)
         records.append(record)
         failed = record.status != ok
-        stop = active & (failed | ((k + 1 >= min_steps) & _stationary(records, patience, ftol,
-                                                                     vtol)))
+        stop = active & (
+            failed | ((k + 1 >= min_steps) & _stationary(records, patience, ftol, vtol))
+        )
         converged_step = np.where(stop & ~failed, k, converged_step)
         active &= ~stop
         if callback is not None:
             callback(k, {"objective": record.objective, "active": active.copy()})
         feasible = np.all(record.violations <= 0, axis=-1) & ~failed
-        best_so_far = min(best_so_far, float(np.min(np.where(feasible, record.objective,
-                                                              np.inf))))
-        bar.update(k + 1, f"{int(active.sum())}/{runs} runs active, best feasible objective "
-                   f"{best_so_far:.6g}", final=not active.any())
+        best_so_far = min(best_so_far, float(np.min(np.where(feasible, record.objective, np.inf))))
+        bar.update(
+            k + 1,
+            f"{int(active.sum())}/{runs} runs active, best feasible objective {best_so_far:.6g}",
+            final=not active.any(),
+        )
         if not active.any():
             break
 

@@ -107,33 +107,120 @@ PAPER_BARREL_MASS = 5600.0
 PARAMETERS: dict[str, Parameter] = {
     p.name: p
     for p in (
-        Parameter(name="M", group="barrel", default=PAPER_BARREL_MASS, unit="kg", lower=0.0,
-                  lower_open=True, documented=(1e3, 2e4), meaning="barrel mass"),
-        Parameter(name="k", group="barrel", default=27500.0, unit="N/m", lower=0.0,
-                  lower_open=True, documented=(1e3, 1e6), meaning="recoil spring stiffness"),
-        Parameter(name="c_out", group="barrel", default=6239.0, unit="N*s/m", lower=0.0,
-                  documented=(0.0, 5e4), meaning="recoil damping, v_M > 0"),
-        Parameter(name="c_ret", group="barrel", default=14050.0, unit="N*s/m", lower=0.0,
-                  documented=(0.0, 5e4), meaning="return damping, v_M < 0"),
-        Parameter(name="v0", group="barrel",
-                  default=PAPER_PROJECTILE_MASS * PAPER_MUZZLE_VELOCITY / PAPER_BARREL_MASS,
-                  unit="m/s", lower=0.0, lower_open=True, documented=(0.1, 2.0),
-                  meaning="initial barrel velocity"),
-        Parameter(name="m", group="absorber", default=1500.0, unit="kg", lower=0.0,
-                  lower_open=True, documented=(10.0, 5000.0), meaning="absorber mass"),
-        Parameter(name="gap", group="absorber", default=0.062, unit="m", lower=0.0,
-                  documented=(0.0, 0.2), meaning="clearance to wall A"),
-        Parameter(name="k_r", group="absorber", default=13000.0, unit="N/m", lower=0.0,
-                  lower_open=True, documented=(1e3, 1e5),
-                  meaning="absorber-barrel spring stiffness"),
-        Parameter(name="c_r", group="absorber", default=3675.0, unit="N*s/m", lower=0.0,
-                  documented=(0.0, 2e4), meaning="absorber-barrel damping"),
-        Parameter(name="k_c", group="contact", default=2.1e8, unit="N/m^n_c", lower=0.0,
-                  lower_open=True, documented=(1e6, 1e10), meaning="contact stiffness"),
-        Parameter(name="n_c", group="contact", default=1.3, unit="", lower=1.0,
-                  documented=(1.0, 2.0), meaning="contact exponent"),
-        Parameter(name="lambda_c", group="contact", default=0.6, unit="s/m", lower=0.0,
-                  documented=(0.0, 2.0), meaning="Hunt-Crossley damping factor"),
+        Parameter(
+            name="M",
+            group="barrel",
+            default=PAPER_BARREL_MASS,
+            unit="kg",
+            lower=0.0,
+            lower_open=True,
+            documented=(1e3, 2e4),
+            meaning="barrel mass",
+        ),
+        Parameter(
+            name="k",
+            group="barrel",
+            default=27500.0,
+            unit="N/m",
+            lower=0.0,
+            lower_open=True,
+            documented=(1e3, 1e6),
+            meaning="recoil spring stiffness",
+        ),
+        Parameter(
+            name="c_out",
+            group="barrel",
+            default=6239.0,
+            unit="N*s/m",
+            lower=0.0,
+            documented=(0.0, 5e4),
+            meaning="recoil damping, v_M > 0",
+        ),
+        Parameter(
+            name="c_ret",
+            group="barrel",
+            default=14050.0,
+            unit="N*s/m",
+            lower=0.0,
+            documented=(0.0, 5e4),
+            meaning="return damping, v_M < 0",
+        ),
+        Parameter(
+            name="v0",
+            group="barrel",
+            default=PAPER_PROJECTILE_MASS * PAPER_MUZZLE_VELOCITY / PAPER_BARREL_MASS,
+            unit="m/s",
+            lower=0.0,
+            lower_open=True,
+            documented=(0.1, 2.0),
+            meaning="initial barrel velocity",
+        ),
+        Parameter(
+            name="m",
+            group="absorber",
+            default=1500.0,
+            unit="kg",
+            lower=0.0,
+            lower_open=True,
+            documented=(10.0, 5000.0),
+            meaning="absorber mass",
+        ),
+        Parameter(
+            name="gap",
+            group="absorber",
+            default=0.062,
+            unit="m",
+            lower=0.0,
+            documented=(0.0, 0.2),
+            meaning="clearance to wall A",
+        ),
+        Parameter(
+            name="k_r",
+            group="absorber",
+            default=13000.0,
+            unit="N/m",
+            lower=0.0,
+            lower_open=True,
+            documented=(1e3, 1e5),
+            meaning="absorber-barrel spring stiffness",
+        ),
+        Parameter(
+            name="c_r",
+            group="absorber",
+            default=3675.0,
+            unit="N*s/m",
+            lower=0.0,
+            documented=(0.0, 2e4),
+            meaning="absorber-barrel damping",
+        ),
+        Parameter(
+            name="k_c",
+            group="contact",
+            default=2.1e8,
+            unit="N/m^n_c",
+            lower=0.0,
+            lower_open=True,
+            documented=(1e6, 1e10),
+            meaning="contact stiffness",
+        ),
+        Parameter(
+            name="n_c",
+            group="contact",
+            default=1.3,
+            unit="",
+            lower=1.0,
+            documented=(1.0, 2.0),
+            meaning="contact exponent",
+        ),
+        Parameter(
+            name="lambda_c",
+            group="contact",
+            default=0.6,
+            unit="s/m",
+            lower=0.0,
+            documented=(0.0, 2.0),
+            meaning="Hunt-Crossley damping factor",
+        ),
     )
 }
 
@@ -264,10 +351,18 @@ class Barrel(_Validated):
     ) -> Barrel:
         """Barrel whose initial velocity comes from momentum conservation at the shot:
         `v0 = projectile_mass * muzzle_velocity / M` (kg, m/s, kg)."""
-        check_value("Barrel.from_shot", "projectile_mass", projectile_mass,
-                    Limits(unit="kg", lower=0.0, lower_open=True))
-        check_value("Barrel.from_shot", "muzzle_velocity", muzzle_velocity,
-                    Limits(unit="m/s", lower=0.0, lower_open=True))
+        check_value(
+            "Barrel.from_shot",
+            "projectile_mass",
+            projectile_mass,
+            Limits(unit="kg", lower=0.0, lower_open=True),
+        )
+        check_value(
+            "Barrel.from_shot",
+            "muzzle_velocity",
+            muzzle_velocity,
+            Limits(unit="m/s", lower=0.0, lower_open=True),
+        )
         check_value("Barrel", "M", M, cls.LIMITS["M"])
         return cls(M=M, v0=projectile_mass * muzzle_velocity / M, **kwargs)
 
@@ -317,8 +412,7 @@ class RecoilParams(eqx.Module):
     contact: Contact = Contact()
 
 
-_GROUPS: dict[str, type[_Validated]] = {"barrel": Barrel, "absorber": Absorber,
-                                        "contact": Contact}
+_GROUPS: dict[str, type[_Validated]] = {"barrel": Barrel, "absorber": Absorber, "contact": Contact}
 
 
 class Smoothing(_Validated):
@@ -346,13 +440,27 @@ class Smoothing(_Validated):
     hard: bool = eqx.field(default=False, static=True)
 
     LIMITS: ClassVar[Mapping[str, Limits]] = {
-        "damping_width": Limits(unit="m/s", lower=0.0, lower_open=True,
-                                documented=(1e-4, 1e-1),
-                                meaning="damping and clamp smoothing width"),
-        "contact_width": Limits(unit="m", lower=0.0, lower_open=True, documented=(1e-6, 1e-3),
-                                meaning="contact onset smoothing width"),
-        "contact_width_fraction": Limits(unit="", lower=0.0, lower_open=True, upper=1.0,
-                                         meaning="contact width / characteristic penetration"),
+        "damping_width": Limits(
+            unit="m/s",
+            lower=0.0,
+            lower_open=True,
+            documented=(1e-4, 1e-1),
+            meaning="damping and clamp smoothing width",
+        ),
+        "contact_width": Limits(
+            unit="m",
+            lower=0.0,
+            lower_open=True,
+            documented=(1e-6, 1e-3),
+            meaning="contact onset smoothing width",
+        ),
+        "contact_width_fraction": Limits(
+            unit="",
+            lower=0.0,
+            lower_open=True,
+            upper=1.0,
+            meaning="contact width / characteristic penetration",
+        ),
     }
 
     @classmethod
@@ -363,8 +471,7 @@ class Smoothing(_Validated):
 
 #: Limits of the end time, the one solver setting that may differ between the points
 #: of a sweep (`t1` on the command line and in `sweep --points`).
-T1_LIMITS = Limits(unit="s", lower=0.0, lower_open=True, documented=(0.1, 60.0),
-                   meaning="end time")
+T1_LIMITS = Limits(unit="s", lower=0.0, lower_open=True, documented=(0.1, 60.0), meaning="end time")
 
 
 class SolverOptions(_Validated):
@@ -389,8 +496,9 @@ class SolverOptions(_Validated):
 
     LIMITS: ClassVar[Mapping[str, Limits]] = {
         "t1": T1_LIMITS,
-        "rtol": Limits(unit="", lower=0.0, lower_open=True, upper=1.0,
-                       meaning="relative tolerance"),
+        "rtol": Limits(
+            unit="", lower=0.0, lower_open=True, upper=1.0, meaning="relative tolerance"
+        ),
         "atol": Limits(unit="", lower=0.0, lower_open=True, meaning="absolute tolerance"),
     }
 
@@ -480,13 +588,15 @@ def with_values(params: RecoilParams, names: Sequence[str], values: Any) -> Reco
         value = values[j]
         check_value(p.owner, name, value, p)
         params = eqx.tree_at(
-            lambda q, g=p.group, f=name: getattr(getattr(q, g), f), params,
-            jnp.asarray(value, dtype=float))
+            lambda q, g=p.group, f=name: getattr(getattr(q, g), f),
+            params,
+            jnp.asarray(value, dtype=float),
+        )
     return params
 
 
 def values_of(params: RecoilParams, names: Sequence[str]) -> jax.Array:
     """The parameters `names` of `params` as one array, shape `(len(names),)`."""
-    return jnp.stack([
-        jnp.asarray(getattr(getattr(params, PARAMETERS[n].group), n), dtype=float)
-        for n in names])
+    return jnp.stack(
+        [jnp.asarray(getattr(getattr(params, PARAMETERS[n].group), n), dtype=float) for n in names]
+    )

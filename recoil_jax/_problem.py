@@ -71,16 +71,17 @@ class Objective(eqx.Module):
             metric(name)
         for name in self.temperatures:
             if name not in self.weights:
-                raise ParameterError(f"Objective.temperatures names {name!r}, which the "
-                                     "objective does not weight")
+                raise ParameterError(
+                    f"Objective.temperatures names {name!r}, which the objective does not weight"
+                )
         SmoothMax(tuple(self.temperatures), list(self.temperatures.values()))
         if self.scatter is not None:
             name, offsets = self.scatter
             parameter(name)
             if not offsets or any(not -1.0 < o < 10.0 for o in offsets):
                 raise ParameterError(
-                    "Objective.scatter offsets must be relative offsets > -1, e.g. "
-                    "(-0.05, 0, 0.05)")
+                    "Objective.scatter offsets must be relative offsets > -1, e.g. (-0.05, 0, 0.05)"
+                )
 
     def smooth_max(self, temperature_scale=1.0) -> SmoothMax | None:
         """The `SmoothMax` of the objective's temperatures times `temperature_scale`."""
@@ -111,12 +112,14 @@ class Constraint(eqx.Module):
         if self.name not in METRICS and self.name not in PARAMETERS:
             raise ParameterError(
                 f"Constraint on unknown quantity {self.name!r}; metrics: "
-                f"{', '.join(METRICS)}; parameters: {', '.join(PARAMETERS)}")
+                f"{', '.join(METRICS)}; parameters: {', '.join(PARAMETERS)}"
+            )
         if self.upper is None and self.lower is None:
             raise ParameterError(f"Constraint on {self.name} has neither upper nor lower")
         if self.upper is not None and self.lower is not None and self.lower > self.upper:
-            raise ParameterError(f"Constraint on {self.name}: lower {self.lower} > upper "
-                                 f"{self.upper}")
+            raise ParameterError(
+                f"Constraint on {self.name}: lower {self.lower} > upper {self.upper}"
+            )
 
     @property
     def is_metric(self) -> bool:
@@ -165,7 +168,8 @@ class DesignProblem(eqx.Module):
         for name, lo, hi in zip(self.tune, lower, upper, strict=True):
             if not lo < hi:
                 raise ParameterError(
-                    f"the constraints leave no room for {name}: bounds ({lo:g}, {hi:g})")
+                    f"the constraints leave no room for {name}: bounds ({lo:g}, {hi:g})"
+                )
 
     def box(self) -> tuple[np.ndarray, np.ndarray]:
         """The bounds of the tuned parameters, tightened by their constraints."""
@@ -184,12 +188,17 @@ class DesignProblem(eqx.Module):
     @property
     def metric_constraints(self) -> list[tuple[str, str, float]]:
         """`[(metric, kind, limit)]` handled by the augmented Lagrangian."""
-        return [(c.name, kind, limit) for c in self.constraints if c.is_metric
-                for kind, limit in c.limits()]
+        return [
+            (c.name, kind, limit)
+            for c in self.constraints
+            if c.is_metric
+            for kind, limit in c.limits()
+        ]
 
 
-def evaluate_design(problem: DesignProblem, theta, params=None,
-                    temperature_scale: Any = 1.0, limits=None):
+def evaluate_design(
+    problem: DesignProblem, theta, params=None, temperature_scale: Any = 1.0, limits=None
+):
     """Evaluate the tuned values `theta` (shape `(len(problem.tune),)`) of `problem`.
 
     Differentiable in `theta` (through the forward sensitivities); unjitted.
@@ -212,9 +221,14 @@ def evaluate_design(problem: DesignProblem, theta, params=None,
     smooth_max = objective.smooth_max(temperature_scale)
 
     def metrics_at(p):
-        metrics, code = design_metrics(theta, params=p, wrt=problem.tune,
-                                       smoothing=problem.smoothing, options=problem.options,
-                                       smooth_max=smooth_max)
+        metrics, code = design_metrics(
+            theta,
+            params=p,
+            wrt=problem.tune,
+            smoothing=problem.smoothing,
+            options=problem.options,
+            smooth_max=smooth_max,
+        )
         return metrics, status_item(code)
 
     if objective.scatter is None:
@@ -223,7 +237,8 @@ def evaluate_design(problem: DesignProblem, theta, params=None,
         name, offsets = objective.scatter
         nominal = values_of(params, (name,))
         scattered = jax.vmap(lambda o: with_values(params, (name,), nominal * (1.0 + o)))(
-            jnp.asarray(offsets))
+            jnp.asarray(offsets)
+        )
         per_sample, statuses = jax.vmap(metrics_at)(scattered)
         # Worst case over the scatter: of the objective, and of each limited metric.
         smooth_values = objective(per_sample, smooth=True)
@@ -231,10 +246,20 @@ def evaluate_design(problem: DesignProblem, theta, params=None,
         metrics = {k: jnp.max(v) for k, v in per_sample.items()}
         metrics["min_stroke"] = jnp.min(per_sample["min_stroke"])
         status = jax.tree.map(jnp.max, statuses)
-        return (metrics, status, jnp.max(smooth_values), jnp.max(exact_values),
-                _violations(problem, metrics, limits))
-    return (metrics, status, objective(metrics, smooth=True), objective(metrics),
-            _violations(problem, metrics, limits))
+        return (
+            metrics,
+            status,
+            jnp.max(smooth_values),
+            jnp.max(exact_values),
+            _violations(problem, metrics, limits),
+        )
+    return (
+        metrics,
+        status,
+        objective(metrics, smooth=True),
+        objective(metrics),
+        _violations(problem, metrics, limits),
+    )
 
 
 def _violations(problem: DesignProblem, metrics, limits) -> jax.Array:
@@ -247,8 +272,9 @@ def _violations(problem: DesignProblem, metrics, limits) -> jax.Array:
     return jnp.stack(out) if out else jnp.zeros((0,))
 
 
-def constraint_report(problem: DesignProblem, design: Mapping[str, float],
-                      metrics: Mapping[str, float], limits=None) -> dict[str, dict]:
+def constraint_report(
+    problem: DesignProblem, design: Mapping[str, float], metrics: Mapping[str, float], limits=None
+) -> dict[str, dict]:
     """Whether each limit of `problem` holds.
 
     **Arguments:**
@@ -270,6 +296,9 @@ def constraint_report(problem: DesignProblem, design: Mapping[str, float],
             else:
                 value = float(design[c.name])
             ok = value <= limit if kind == "max" else value >= limit
-            report[f"{c.name} ({kind})"] = {"value": value, "limit": float(limit),
-                                           "satisfied": bool(ok)}
+            report[f"{c.name} ({kind})"] = {
+                "value": value,
+                "limit": float(limit),
+                "satisfied": bool(ok),
+            }
     return report

@@ -38,8 +38,10 @@ class Progress:
         left = (self.total - done) / rate if rate > 0 and not final else 0.0
         width = 30
         filled = int(width * min(done, self.total) / self.total)
-        line = (f"{self.label} [{'#' * filled}{'.' * (width - filled)}] {done}/{self.total} "
-                f"{self.unit}, {elapsed:.1f} s, {rate:.0f}/s"
-                + ("" if final else f", ~{left:.0f} s left") + (f", {note}" if note else ""))
-        print(line, end="\r" if self.tty and not final else "\n", file=self.stream,
-              flush=True)
+        line = (
+            f"{self.label} [{'#' * filled}{'.' * (width - filled)}] {done}/{self.total} "
+            f"{self.unit}, {elapsed:.1f} s, {rate:.0f}/s"
+            + ("" if final else f", ~{left:.0f} s left")
+            + (f", {note}" if note else "")
+        )
+        print(line, end="\r" if self.tty and not final else "\n", file=self.stream, flush=True)

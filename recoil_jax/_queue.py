@@ -35,7 +35,8 @@ def queued_map(loop: PeakLoop, setup, post, designs, lanes: int):
     # Every lane starts idle; the first refill loads the first `lanes` designs (so the
     # setup is traced once, inside the refill).
     lane_state, lane_args = jax.tree.map(
-        lambda x: jnp.zeros((lanes, *x.shape), x.dtype), jax.eval_shape(start, 0))
+        lambda x: jnp.zeros((lanes, *x.shape), x.dtype), jax.eval_shape(start, 0)
+    )
     finals = jax.tree.map(lambda x: jnp.zeros((n, *x.shape[1:]), x.dtype), lane_state)
     carry = (lane_state, lane_args, jnp.full(lanes, -1), jnp.array(0), finals, jnp.array(0))
     threshold = max(1, lanes // 16)
@@ -64,8 +65,7 @@ def queued_map(loop: PeakLoop, setup, post, designs, lanes: int):
             return state, args, jnp.where(fill, new_index, index), next_index + count
 
         now = (count >= threshold) | ((count > 0) & ~jnp.any(index >= 0))
-        return jax.lax.cond(now, load, lambda operands: operands,
-                            (state, args, index, next_index))
+        return jax.lax.cond(now, load, lambda operands: operands, (state, args, index, next_index))
 
     def body(carry):
         state, args, index, next_index, finals, done = carry
@@ -75,9 +75,10 @@ def queued_map(loop: PeakLoop, setup, post, designs, lanes: int):
         active = index >= 0
         stepped = jax.vmap(loop.body)(state, args)
         state = jax.tree.map(
-            lambda new, old: jnp.where(active.reshape((-1,) + (1,) * (new.ndim - 1)), new,
-                                       old),
-            stepped, state)
+            lambda new, old: jnp.where(active.reshape((-1,) + (1,) * (new.ndim - 1)), new, old),
+            stepped,
+            state,
+        )
         finished = active & ~jax.vmap(running)(state)
         slot = jnp.where(finished, index, n)  # out of range: dropped
         finals = jax.tree.map(lambda buf, x: buf.at[slot].set(x, mode="drop"), finals, state)

@@ -50,7 +50,12 @@ class _HardModel:
 
     def __init__(self, p: Mapping[str, float]):
         self.M, self.k, self.c_out, self.c_ret, self.v0 = (
-            p["M"], p["k"], p["c_out"], p["c_ret"], p["v0"])
+            p["M"],
+            p["k"],
+            p["c_out"],
+            p["c_ret"],
+            p["v0"],
+        )
         self.absorber = p["m"] > 0
         self.m = p["m"] if self.absorber else 1.0
         self.gap = p.get("gap", 0.0)
@@ -89,7 +94,8 @@ class _HardModel:
             accel = a[1] - a[3]
             d_contact = self.k_c * (
                 self.n_c * delta ** (self.n_c - 1.0) * rate * (1.0 + self.lam * rate)
-                + delta**self.n_c * self.lam * accel)
+                + delta**self.n_c * self.lam * accel
+            )
         return d_anchor, d_contact
 
     def peak_events(self) -> list[_Event]:
@@ -106,14 +112,27 @@ class _HardModel:
         """Terminal events that fire only when leaving the current mode's region, so a
         segment that starts on a switching surface cannot re-detect it. In order:
         velocity, contact, clamp (those that apply)."""
-        events = [_Event(lambda t, y, mode: y[1], direction=-1.0 if mode.moving_out else 1.0,
-                         terminal=True)]
+        events = [
+            _Event(
+                lambda t, y, mode: y[1], direction=-1.0 if mode.moving_out else 1.0, terminal=True
+            )
+        ]
         if self.absorber:
-            events.append(_Event(lambda t, y, mode: y[0] - y[2] - self.gap,
-                                 direction=-1.0 if mode.contact else 1.0, terminal=True))
+            events.append(
+                _Event(
+                    lambda t, y, mode: y[0] - y[2] - self.gap,
+                    direction=-1.0 if mode.contact else 1.0,
+                    terminal=True,
+                )
+            )
             if mode.contact and self.lam > 0:
-                events.append(_Event(lambda t, y, mode: 1.0 + self.lam * (y[1] - y[3]),
-                                     direction=1.0 if mode.clamped else -1.0, terminal=True))
+                events.append(
+                    _Event(
+                        lambda t, y, mode: 1.0 + self.lam * (y[1] - y[3]),
+                        direction=1.0 if mode.clamped else -1.0,
+                        terminal=True,
+                    )
+                )
         return events
 
     def initial_mode(self, y) -> _Mode:
@@ -214,7 +233,13 @@ def reference_peaks(
             )
         switches = model.switch_events(mode)
         sol = solve_ivp(
-            model.rhs, (t, t1), y, method=method, rtol=rtol, atol=atol, args=(mode,),
+            model.rhs,
+            (t, t1),
+            y,
+            method=method,
+            rtol=rtol,
+            atol=atol,
+            args=(mode,),
             events=peak_events + switches,
         )
         if sol.status < 0:

@@ -38,8 +38,13 @@ def peaks_of_run(run: PeakRun) -> Peaks:
     """The `Peaks` of a loop run that tracked `tracked_metrics` (maxima of `sign · signal`,
     so a minimum comes back with its sign restored)."""
     best, times = run.by_name(run.best), run.by_name(run.best_time)
-    return Peaks.of({name: m.sign * best[name] for name, m in METRICS.items()}, times,
-                    run.num_steps, run.num_attempts, run.status)
+    return Peaks.of(
+        {name: m.sign * best[name] for name, m in METRICS.items()},
+        times,
+        run.num_steps,
+        run.num_attempts,
+        run.status,
+    )
 
 
 def peak_metrics(
@@ -64,8 +69,15 @@ def peak_metrics(
     never raised here: see `peaks`).
     """
     args = model_args(params, smoothing)
-    run = integrate_peaks(RECOIL_TERM, initial_state(params), args, end_time(params, options),
-                          tracked_metrics, options, future_metric_bounds)
+    run = integrate_peaks(
+        RECOIL_TERM,
+        initial_state(params),
+        args,
+        end_time(params, options),
+        tracked_metrics,
+        options,
+        future_metric_bounds,
+    )
     return peaks_of_run(run)
 
 
@@ -138,8 +150,7 @@ def _simulate_jit(params, smoothing, options, ts, throw: bool) -> History:
     f = jax.vmap(lambda y: forces(y, params, smoothing, args[2]))(ys)
     ok = solution.result == diffrax.RESULTS.successful
     max_steps = solution.result == diffrax.RESULTS.max_steps_reached
-    status = Status.where(ok, Status.ok,
-                          Status.where(max_steps, Status.max_steps, Status.failed))
+    status = Status.where(ok, Status.ok, Status.where(max_steps, Status.max_steps, Status.failed))
     status = Status.where(ok & ~jnp.all(jnp.isfinite(ys)), Status.nonfinite, status)
     history = History(
         ts=ts,
@@ -180,16 +191,16 @@ def simulate(
     return _simulate_jit(params, smoothing, options, ts, throw)
 
 
-def _peaks_batch(params: RecoilParams, t1, smoothing: Smoothing, options: SolverOptions,
-                 lanes: int) -> Peaks:
+def _peaks_batch(
+    params: RecoilParams, t1, smoothing: Smoothing, options: SolverOptions, lanes: int
+) -> Peaks:
     loop = PeakLoop(RECOIL_TERM, tracked_metrics, options, future_metric_bounds)
 
     def setup(design):
         p, end = design
         return initial_state(p), model_args(p, smoothing), end
 
-    return queued_map(loop, setup, lambda design, args, run: peaks_of_run(run), (params, t1),
-                      lanes)
+    return queued_map(loop, setup, lambda design, args, run: peaks_of_run(run), (params, t1), lanes)
 
 
 #: `jax.vmap(peak_metrics)` over a batch of designs (a leading axis on every leaf of

@@ -89,8 +89,11 @@ def _rms_norm(x):
 
 def make_controller(options: SolverOptions) -> diffrax.PIDController:
     return diffrax.PIDController(
-        rtol=jnp.asarray(options.rtol), atol=jnp.asarray(options.atol),
-        pcoeff=_PCOEFF, icoeff=_ICOEFF, norm=_rms_norm,
+        rtol=jnp.asarray(options.rtol),
+        atol=jnp.asarray(options.atol),
+        pcoeff=_PCOEFF,
+        icoeff=_ICOEFF,
+        norm=_rms_norm,
     )
 
 
@@ -167,10 +170,9 @@ class PeakLoop:
         z1, z_error, dense_info, solver_state, _ = solver.step(
             term, c.t, c.t_next, c.y, args, c.solver_state, c.made_jump
         )
-        keep, t_prev, t_next, made_jump, controller_state, _ = (
-            self.controller.adapt_step_size(
-                c.t, c.t_next, c.y, z1, args, z_error, self.error_order, c.controller_state
-            ))
+        keep, t_prev, t_next, made_jump, controller_state, _ = self.controller.adapt_step_size(
+            c.t, c.t_next, c.y, z1, args, z_error, self.error_order, c.controller_state
+        )
         t_prev = jnp.minimum(t_prev, t1)
         t_next = jnp.where(
             t_next > t1_floor, jnp.where(keep, t1, t_prev + 0.5 * (t1 - t_prev)), t_next
@@ -188,12 +190,14 @@ class PeakLoop:
         step = dict(t0=c.t, t1=c.t_next, **dense_info)
         best_step = jax.tree.map(
             lambda new, old: jnp.where(
-                improve.reshape((-1,) + (1,) * (old.ndim - 1)), new[None], old),
-            step, c.best_step)
+                improve.reshape((-1,) + (1,) * (old.ndim - 1)), new[None], old
+            ),
+            step,
+            c.best_step,
+        )
         finite = jnp.all(jnp.isfinite(z1)) & jnp.isfinite(dt)
         status = Status.where(keep & ~finite, Status.nonfinite, c.status)
-        status = Status.where((t_prev < t1) & (t_next <= t_prev), Status.step_underflow,
-                              status)
+        status = Status.where((t_prev < t1) & (t_next <= t_prev), Status.step_underflow, status)
 
         def select(new, old):
             return jax.tree.map(lambda a, b: jnp.where(keep, a, b), new, old)
@@ -222,20 +226,37 @@ class PeakLoop:
         unfinished = (final.status == Status.ok) & (final.t < final.t1) & ~final.settled
         status = Status.where(unfinished, Status.max_steps, final.status)
         best, best_time, best_state = polish(
-            self.solver, args, lambda z, a: self._vector(final.names, z, a), final.best,
-            final.best_time, final.best_step)
-        return PeakRun(best=best, best_time=best_time, best_state=best_state,
-                       num_steps=final.num_steps, num_attempts=final.num_attempts,
-                       status=status, names=final.names)
+            self.solver,
+            args,
+            lambda z, a: self._vector(final.names, z, a),
+            final.best,
+            final.best_time,
+            final.best_step,
+        )
+        return PeakRun(
+            best=best,
+            best_time=best_time,
+            best_state=best_state,
+            num_steps=final.num_steps,
+            num_attempts=final.num_attempts,
+            status=status,
+            names=final.names,
+        )
 
 
-def integrate_peaks(term, z0, args, t1, metrics_fn: MetricsFn, options: SolverOptions,
-                    bounds_fn=None) -> PeakRun:
+def integrate_peaks(
+    term, z0, args, t1, metrics_fn: MetricsFn, options: SolverOptions, bounds_fn=None
+) -> PeakRun:
     """Integrate `term` from `z0` over `[0, t1]` with Tsit5 + PID in one while loop, keeping
     the running maxima of `metrics_fn(z, args)` (a dict of scalars) located between steps.
     With `bounds_fn` (see `PeakLoop`) it stops once the peaks are certain."""
     loop = PeakLoop(term, metrics_fn, options, bounds_fn)
     kind = "lax" if options.autodiff == "forward" else "checkpointed"
-    final = eqxi.while_loop(loop.running, lambda c: loop.body(c, args),
-                            loop.init(z0, args, t1), max_steps=options.max_steps, kind=kind)
+    final = eqxi.while_loop(
+        loop.running,
+        lambda c: loop.body(c, args),
+        loop.init(z0, args, t1),
+        max_steps=options.max_steps,
+        kind=kind,
+    )
     return loop.finish(final, args)

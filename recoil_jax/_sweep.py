@@ -93,8 +93,11 @@ class SweepResult:
         """The parameters of point `index`, as `simulate --json` reports them (no
         absorber parameters for the simplified model)."""
         simplified = self.values["m"][index] == 0
-        return {name: float(v[index]) for name, v in self.values.items()
-                if not (simplified and name in _ABSORBER and name != "m")}
+        return {
+            name: float(v[index])
+            for name, v in self.values.items()
+            if not (simplified and name in _ABSORBER and name != "m")
+        }
 
     def records(self, model: str = "smoothed") -> list[dict]:
         """One dict per point, in input order, with the keys of `recoil-jax simulate
@@ -106,16 +109,19 @@ class SweepResult:
         for i in range(len(self)):
             ok = bool(self.ok[i])
             record: dict[str, Any] = {
-                key: None if not ok else (int if field == "num_steps" else float)(
-                    self.peaks[field][i])
-                for field, key in PEAK_FIELDS.items()}
+                key: None
+                if not ok
+                else (int if field == "num_steps" else float)(self.peaks[field][i])
+                for field, key in PEAK_FIELDS.items()
+            }
             record["status"] = messages[i]
             record["model"] = model
             record["parameters"] = self.parameters(i)
             if self.gradients:
                 record["gradients"] = {
                     METRICS[name].key: {p: float(v[i]) if ok else None for p, v in by.items()}
-                    for name, by in self.gradients.items()}
+                    for name, by in self.gradients.items()
+                }
             out.append(record)
         return out
 
@@ -135,10 +141,12 @@ def _as_columns(designs) -> dict[str, np.ndarray]:
             if name not in defaults and name not in _SETTINGS:
                 _unknown(name)
         if "t1" in names and not all("t1" in d for d in designs):
-            raise ParameterError("t1 is given for some points but not all: give it for every "
-                                 "point, or for none")
-        columns = {n: np.array([float(d.get(n, defaults.get(n, np.nan))) for d in designs])
-                   for n in names}
+            raise ParameterError(
+                "t1 is given for some points but not all: give it for every point, or for none"
+            )
+        columns = {
+            n: np.array([float(d.get(n, defaults.get(n, np.nan))) for d in designs]) for n in names
+        }
     lengths = {len(v) for v in columns.values()}
     if len(lengths) > 1:
         raise ParameterError(f"sweep columns have different lengths: {sorted(lengths)}")
@@ -156,8 +164,9 @@ def _as_columns(designs) -> dict[str, np.ndarray]:
 
 
 def _unknown(name: str):
-    raise ParameterError(f"unknown parameter(s) {name}; known: {', '.join(PARAMETERS)} "
-                         f"and {', '.join(_SETTINGS)}")
+    raise ParameterError(
+        f"unknown parameter(s) {name}; known: {', '.join(PARAMETERS)} and {', '.join(_SETTINGS)}"
+    )
 
 
 def batch_params(designs) -> tuple[RecoilParams, dict[str, np.ndarray]]:
@@ -174,7 +183,8 @@ def batch_params(designs) -> tuple[RecoilParams, dict[str, np.ndarray]]:
     if "m" in columns and np.any(columns["m"] == 0) and not simplified:
         raise ParameterError(
             "m = 0 (simplified model) and m > 0 cannot be mixed in one RecoilParams; "
-            "sweep() runs them as two groups")
+            "sweep() runs them as two groups"
+        )
     defaults = params_to_values(params_from_values({"m": 0.0} if simplified else {}))
     values = {k: np.full(n, float(np.asarray(v))) for k, v in defaults.items()}
     values.update(columns)
@@ -210,14 +220,16 @@ def default_workers(devices: Sequence[Any]) -> int:
     core this process may use. One XLA CPU program keeps about one core busy, and
     programs called from different threads run at the same time."""
     if all(d.platform == "cpu" for d in devices):
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (
-            os.cpu_count() or 1)
+        cores = (
+            len(os.sched_getaffinity(0))
+            if hasattr(os, "sched_getaffinity")
+            else (os.cpu_count() or 1)
+        )
         return len(devices) * max(1, -(-cores // len(devices)))
     return len(devices)
 
 
-def _run_chunk(batch: RecoilParams, t1, smoothing, options, wrt, devices, lanes: int,
-               workers: int):
+def _run_chunk(batch: RecoilParams, t1, smoothing, options, wrt, devices, lanes: int, workers: int):
     """Run one chunk: split along the batch into `workers` equal, interleaved parts
     (each with the same mix of designs), each through the queued stepping loop (`lanes`
     designs in flight) on device `i % len(devices)`, from its own thread."""
@@ -228,8 +240,9 @@ def _run_chunk(batch: RecoilParams, t1, smoothing, options, wrt, devices, lanes:
     lanes = min(lanes, max(32, size // 16))
 
     def run(i):
-        part, end = jax.device_put(jax.tree.map(lambda x: x[i::workers], (batch, t1)),
-                                   devices[i % len(devices)])
+        part, end = jax.device_put(
+            jax.tree.map(lambda x: x[i::workers], (batch, t1)), devices[i % len(devices)]
+        )
         if wrt:
             out = peak_gradients_batch(part, end, smoothing, options, wrt, lanes)
         else:
@@ -239,12 +252,23 @@ def _run_chunk(batch: RecoilParams, t1, smoothing, options, wrt, devices, lanes:
     with ThreadPoolExecutor(workers) as pool:
         outputs = list(pool.map(run, range(workers)))
     # Undo the interleaving: design j of part i is entry i + j * workers of the chunk.
-    return jax.tree.map(
-        lambda *xs: np.stack(xs, axis=1).reshape(-1, *xs[0].shape[1:]), *outputs)
+    return jax.tree.map(lambda *xs: np.stack(xs, axis=1).reshape(-1, *xs[0].shape[1:]), *outputs)
 
 
-def _run_group(params: RecoilParams, t1: np.ndarray, order: np.ndarray, smoothing, options,
-               wrt, devices, lanes, workers, chunk_size, bar: Progress, done: int):
+def _run_group(
+    params: RecoilParams,
+    t1: np.ndarray,
+    order: np.ndarray,
+    smoothing,
+    options,
+    wrt,
+    devices,
+    lanes,
+    workers,
+    chunk_size,
+    bar: Progress,
+    done: int,
+):
     """Solve one group of designs (all with, or all without, an absorber) in the order
     `order`, chunk by chunk; returns `(peaks, gradients)` in the group's input order."""
     n = len(order)
@@ -252,11 +276,10 @@ def _run_group(params: RecoilParams, t1: np.ndarray, order: np.ndarray, smoothin
     chunk = min(chunk, -(-n // workers) * workers)  # no bigger than needed
     outputs = []
     for begin in range(0, n, chunk):
-        index = order[begin:begin + chunk]
+        index = order[begin : begin + chunk]
         padded = np.concatenate([index, np.full(chunk - len(index), index[-1])])
         batch = jax.tree.map(lambda leaf, p=padded: np.asarray(leaf)[p], params)
-        result = _run_chunk(batch, t1[padded], smoothing, options, wrt, devices, lanes,
-                            workers)
+        result = _run_chunk(batch, t1[padded], smoothing, options, wrt, devices, lanes, workers)
         outputs.append(jax.tree.map(lambda x, k=len(index): x[:k], result))
         bar.update(done + min(begin + chunk, n))
     inverse = np.empty(n, dtype=int)
@@ -337,8 +360,12 @@ def sweep(
     workers = workers or default_workers(devices)
     if workers < 1:
         raise ParameterError(f"workers = {workers} is invalid: valid >= 1")
-    bar = Progress("sweep", n, "designs", progress if progress is not None else n > max(
-        workers, chunk_size - chunk_size % workers))
+    bar = Progress(
+        "sweep",
+        n,
+        "designs",
+        progress if progress is not None else n > max(workers, chunk_size - chunk_size % workers),
+    )
 
     codes = np.zeros(n, dtype=np.int32)
     peaks = {field: np.zeros(n) for field in PEAK_FIELDS}
@@ -347,10 +374,21 @@ def sweep(
     done = 0
     for indices, params, group_values, t1, group_wrt in groups:
         sort = sort_by_gap and params.absorber is not None
-        order = np.argsort(group_values["gap"], kind="stable") if sort else np.arange(
-            len(indices))
-        result, grads = _run_group(params, t1, order, smoothing, options, group_wrt, devices,
-                                   lanes, workers, chunk_size, bar, done)
+        order = np.argsort(group_values["gap"], kind="stable") if sort else np.arange(len(indices))
+        result, grads = _run_group(
+            params,
+            t1,
+            order,
+            smoothing,
+            options,
+            group_wrt,
+            devices,
+            lanes,
+            workers,
+            chunk_size,
+            bar,
+            done,
+        )
         done += len(indices)
         codes[indices] = status_codes(result.status)
         for field in PEAK_FIELDS:
@@ -372,19 +410,26 @@ def sweep(
         if field != "num_steps":
             peaks[field] = np.where(failed, np.nan, peaks[field])
     if gradients is not None:
-        gradients = {name: {w: np.where(failed, np.nan, v) for w, v in by.items()}
-                     for name, by in gradients.items()}
+        gradients = {
+            name: {w: np.where(failed, np.nan, v) for w, v in by.items()}
+            for name, by in gradients.items()
+        }
     status = status_item(codes)
     if failed.any():
         reasons = sorted(set(status_messages(status_item(codes[failed]))))
-        print(f"sweep: {int(failed.sum())} of {n} designs failed ({'; '.join(reasons)}); "
-              "see SweepResult.failures()", file=sys.stderr)
-    return SweepResult(values=values, peaks=peaks, status=status, gradients=gradients,
-                       seconds=seconds)
+        print(
+            f"sweep: {int(failed.sum())} of {n} designs failed ({'; '.join(reasons)}); "
+            "see SweepResult.failures()",
+            file=sys.stderr,
+        )
+    return SweepResult(
+        values=values, peaks=peaks, status=status, gradients=gradients, seconds=seconds
+    )
 
 
-def sweep_grid(axes: Mapping[str, Sequence[float]], fixed: Mapping[str, float] | None = None,
-               **kwargs) -> SweepResult:
+def sweep_grid(
+    axes: Mapping[str, Sequence[float]], fixed: Mapping[str, float] | None = None, **kwargs
+) -> SweepResult:
     """`sweep` over the cartesian product of `axes` (see `grid`); the result knows its
     `swept` names and `grid_shape`."""
     columns, shape = grid(axes, fixed)

@@ -27,19 +27,23 @@ def closed_form_peak(M=5600.0, k=27500.0, c=6239.0, v0=6.86 * 564 / 5600):
     return v0 / wd * math.exp(-zeta * wn * t_peak) * math.sin(wd * t_peak), t_peak
 
 
-@pytest.mark.parametrize("smoothing", [rj.Smoothing(), rj.Smoothing.exact()],
-                         ids=["smoothed", "hard"])
-@pytest.mark.parametrize("barrel", [{}, {"M": 12000.0, "k": 9e4, "c_out": 2e4, "v0": 1.7}],
-                         ids=["paper", "other"])
+@pytest.mark.parametrize(
+    "smoothing", [rj.Smoothing(), rj.Smoothing.exact()], ids=["smoothed", "hard"]
+)
+@pytest.mark.parametrize(
+    "barrel", [{}, {"M": 12000.0, "k": 9e4, "c_out": 2e4, "v0": 1.7}], ids=["paper", "other"]
+)
 def test_simplified_model_matches_closed_form(smoothing, barrel):
-    x_peak, t_peak = closed_form_peak(**{("c" if k == "c_out" else k): v
-                                         for k, v in barrel.items()})
+    x_peak, t_peak = closed_form_peak(
+        **{("c" if k == "c_out" else k): v for k, v in barrel.items()}
+    )
     result = rj.peaks(rj.params_from_values(m=0.0, **barrel), smoothing)
     assert float(result.peak_displacement) == pytest.approx(x_peak, rel=1e-6)
     assert float(result.peak_displacement_time) == pytest.approx(t_peak, rel=1e-6)
     if not barrel:
         assert x_peak == pytest.approx(0.22148, abs=5e-6) and t_peak == pytest.approx(
-            0.6139, abs=5e-5)
+            0.6139, abs=5e-5
+        )
 
 
 def _cases_with_absorber(cases):
@@ -61,13 +65,15 @@ def test_paper_cases_match_reference(reference_cases, mode):
             ours = float(getattr(result, name)[i])
             assert ours == pytest.approx(ref[_key(name)], rel=tolerance), (case["case"], name)
         ours_contact = float(result.peak_contact_force[i])
-        assert ours_contact == pytest.approx(ref["peak_contact_force_N"], rel=1e-3,
-                                             abs=1e-9), case["case"]
+        assert ours_contact == pytest.approx(ref["peak_contact_force_N"], rel=1e-3, abs=1e-9), case[
+            "case"
+        ]
     simplified = next(c for c in reference_cases if c["params"]["m"] == 0)
     single = rj.peaks(rj.params_from_values(m=0.0), smoothing)
     for name in PEAKS:
         assert float(getattr(single, name)) == pytest.approx(
-            simplified["reference"][_key(name)], rel=tolerance)
+            simplified["reference"][_key(name)], rel=tolerance
+        )
 
 
 def test_table2_within_one_percent_of_paper(reference_cases):
@@ -97,21 +103,26 @@ def test_scipy_reference_solver_matches_shared_reference(reference_cases):
         for key, value in case["reference"].items():
             # The time of a (flat) maximum is ill-conditioned: looser than the value.
             rel = 1e-7 if key.endswith("time_s") else 1e-9
-            assert ours[by_key[key]] == pytest.approx(value, rel=rel, abs=1e-9), (
-                case["case"], key)
+            assert ours[by_key[key]] == pytest.approx(value, rel=rel, abs=1e-9), (case["case"], key)
 
 
 def _random_designs(count, seed):
     rng = np.random.default_rng(seed)
     designs = []
     for _ in range(count):
-        designs.append(dict(
-            M=float(10 ** rng.uniform(3, math.log10(2e4))), v0=float(rng.uniform(0.1, 2.0)),
-            m=float(10 ** rng.uniform(1, math.log10(5000))), gap=float(rng.uniform(0, 0.2)),
-            k_r=float(10 ** rng.uniform(3, 5)), c_r=float(rng.uniform(0, 2e4)),
-            k_c=float(10 ** rng.uniform(6, 10)), n_c=float(rng.uniform(1, 2)),
-            lambda_c=float(rng.uniform(0, 2)),
-        ))
+        designs.append(
+            dict(
+                M=float(10 ** rng.uniform(3, math.log10(2e4))),
+                v0=float(rng.uniform(0.1, 2.0)),
+                m=float(10 ** rng.uniform(1, math.log10(5000))),
+                gap=float(rng.uniform(0, 0.2)),
+                k_r=float(10 ** rng.uniform(3, 5)),
+                c_r=float(rng.uniform(0, 2e4)),
+                k_c=float(10 ** rng.uniform(6, 10)),
+                n_c=float(rng.uniform(1, 2)),
+                lambda_c=float(rng.uniform(0, 2)),
+            )
+        )
     return designs
 
 
@@ -167,12 +178,15 @@ def test_smoothing_error_shrinks_with_width(reference_cases):
     options = rj.SolverOptions(rtol=1e-10, atol=1e-13, max_steps=200_000)
     errors = []
     for scale in (16.0, 4.0, 1.0):
-        smoothing = rj.Smoothing(damping_width=1e-3 * scale,
-                                 contact_width_fraction=0.02 * scale)
+        smoothing = rj.Smoothing(damping_width=1e-3 * scale, contact_width_fraction=0.02 * scale)
         r = rj.peaks(rj.params_from_values(case["params"]), smoothing, options)
-        errors.append([abs(float(r.peak_contact_force) / ref["peak_contact_force_N"] - 1),
-                       abs(float(r.peak_anchoring_force) / ref["peak_anchoring_force_N"] - 1),
-                       abs(float(r.peak_displacement) / ref["peak_displacement_m"] - 1)])
+        errors.append(
+            [
+                abs(float(r.peak_contact_force) / ref["peak_contact_force_N"] - 1),
+                abs(float(r.peak_anchoring_force) / ref["peak_anchoring_force_N"] - 1),
+                abs(float(r.peak_displacement) / ref["peak_displacement_m"] - 1),
+            ]
+        )
     errors = np.array(errors)
     assert np.all(np.diff(errors, axis=0) < 0), errors
     assert errors[-1, 0] < errors[0, 0] / 10, errors

@@ -7,10 +7,15 @@ from recoil_jax.apps._bench import format_bench, run_bench
 
 @pytest.mark.slow
 def test_bench_smoke():
-    result = run_bench(batch_sizes=(1, 8), scipy_designs=2, jacobian_batch=4,
-                       log=lambda msg: None)
-    for key in ("sims_per_s", "batch_size", "scipy_sims_per_s", "jacobians_per_s",
-                "compile_s", "max_rel_error"):
+    result = run_bench(batch_sizes=(1, 8), scipy_designs=2, jacobian_batch=4, log=lambda msg: None)
+    for key in (
+        "sims_per_s",
+        "batch_size",
+        "scipy_sims_per_s",
+        "jacobians_per_s",
+        "compile_s",
+        "max_rel_error",
+    ):
         assert key in result
     assert result["sims_per_s"] > 0 and result["scipy_sims_per_s"] > 0
     assert result["jacobians_per_s"] > 0 and result["compile_s"] >= 0

@@ -12,8 +12,13 @@ import pytest
 import recoil_jax as rj
 from recoil_jax.apps import main
 
-REQUIRED_KEYS = {"peak_displacement_m", "peak_displacement_time_s", "peak_anchoring_force_N",
-                 "peak_anchoring_force_time_s", "peak_contact_force_N"}
+REQUIRED_KEYS = {
+    "peak_displacement_m",
+    "peak_displacement_time_s",
+    "peak_anchoring_force_N",
+    "peak_anchoring_force_time_s",
+    "peak_contact_force_N",
+}
 
 
 def _run_json(capsys, *argv):
@@ -48,15 +53,18 @@ def test_simulate_table_and_plot(capsys, tmp_path):
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-@pytest.mark.parametrize("argv, fragment", [
-    (["gap=-1"], "Absorber.gap = -1 m is invalid"),
-    (["t1=0"], "SolverOptions.t1 = 0 s is invalid"),
-    (["n_c=0.5"], "valid n_c >= 1"),
-    (["M=nan"], "must be finite"),
-    (["mass=3"], "unknown parameter 'mass'"),
-    (["gap"], "expected name=value"),
-    (["gap=wide"], "gap = 'wide' is not a number"),
-])
+@pytest.mark.parametrize(
+    "argv, fragment",
+    [
+        (["gap=-1"], "Absorber.gap = -1 m is invalid"),
+        (["t1=0"], "SolverOptions.t1 = 0 s is invalid"),
+        (["n_c=0.5"], "valid n_c >= 1"),
+        (["M=nan"], "must be finite"),
+        (["mass=3"], "unknown parameter 'mass'"),
+        (["gap"], "expected name=value"),
+        (["gap=wide"], "gap = 'wide' is not a number"),
+    ],
+)
 def test_simulate_bad_input(capsys, argv, fragment):
     assert main(["simulate", *argv]) == 2
     err = capsys.readouterr().err
@@ -73,8 +81,12 @@ def test_reproduce_writes_table_and_figures(capsys, tmp_path):
     table2 = [r for r in rows if r["quantity"] == "peak_anchoring_force_N" and r["paper"]]
     assert len(table2) == 9
     assert all(abs(float(r["ours_vs_paper"])) < 0.01 for r in table2)
-    for name in ("fig4_simplified_displacement", "fig7_contact_force_gap0",
-                 "fig8_contact_force_gap0_first_impact", "fig9_anchoring_force"):
+    for name in (
+        "fig4_simplified_displacement",
+        "fig7_contact_force_gap0",
+        "fig8_contact_force_gap0_first_impact",
+        "fig9_anchoring_force",
+    ):
         assert (tmp_path / f"{name}.png").read_bytes()[:4] == b"\x89PNG"
 
 
@@ -86,9 +98,9 @@ def _console_script():
 @pytest.mark.skipif(_console_script() is None, reason="console script not installed")
 def test_console_script():
     script = _console_script()
-    done = subprocess.run([script, "simulate", "m=0", "--json"], capture_output=True,
-                          text=True, check=True)
-    assert json.loads(done.stdout)["peak_anchoring_force_N"] == pytest.approx(6949.98,
-                                                                              rel=1e-5)
+    done = subprocess.run(
+        [script, "simulate", "m=0", "--json"], capture_output=True, text=True, check=True
+    )
+    assert json.loads(done.stdout)["peak_anchoring_force_N"] == pytest.approx(6949.98, rel=1e-5)
     bad = subprocess.run([script, "simulate", "k_c=-1"], capture_output=True, text=True)
     assert bad.returncode == 2 and "Contact.k_c" in bad.stderr

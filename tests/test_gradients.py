@@ -20,12 +20,22 @@ GRADIENT_DESIGNS = (
     [dict(m=m, gap=0.0) for m in (100.0, 500.0, 1000.0, 1500.0)]
     + [dict(m=1500.0, gap=g) for g in (0.01, 0.03, 0.05, 0.062, 0.07)]
     + [dict(m=1000.0, gap=0.059), dict(m=500.0, gap=0.044), dict(m=100.0, gap=0.005)]
-    + [dict(m=800.0, gap=0.02, k_r=5e4, c_r=500.0), dict(m=2500.0, gap=0.09, k_r=3e3),
-       dict(m=3000.0, gap=0.04, c_r=1.5e4), dict(m=300.0, gap=0.0, k_r=8e4, c_r=0.0),
-       dict(m=1200.0, gap=0.05, k_c=1e9, n_c=1.5, lambda_c=1.2),
-       dict(m=600.0, gap=0.0, k_c=5e6, n_c=1.8, lambda_c=0.2)]
-    + [dict(m=100.0, gap=0.05), dict(m=500.0, gap=0.15), dict(m=1000.0, gap=0.12),
-       dict(m=1500.0, gap=0.18), dict(m=50.0, gap=0.03), dict(m=4000.0, gap=0.2)]
+    + [
+        dict(m=800.0, gap=0.02, k_r=5e4, c_r=500.0),
+        dict(m=2500.0, gap=0.09, k_r=3e3),
+        dict(m=3000.0, gap=0.04, c_r=1.5e4),
+        dict(m=300.0, gap=0.0, k_r=8e4, c_r=0.0),
+        dict(m=1200.0, gap=0.05, k_c=1e9, n_c=1.5, lambda_c=1.2),
+        dict(m=600.0, gap=0.0, k_c=5e6, n_c=1.8, lambda_c=0.2),
+    ]
+    + [
+        dict(m=100.0, gap=0.05),
+        dict(m=500.0, gap=0.15),
+        dict(m=1000.0, gap=0.12),
+        dict(m=1500.0, gap=0.18),
+        dict(m=50.0, gap=0.03),
+        dict(m=4000.0, gap=0.2),
+    ]
 )
 NO_IMPACT = slice(18, 24)
 
@@ -37,8 +47,7 @@ def _metric_array(peaks):
 @pytest.fixture(scope="module")
 def jacobians():
     run = eqx.filter_jit(jax.vmap(rj.peak_gradients, in_axes=(0, None, None, None)))
-    peaks, grads = run(batch_params(GRADIENT_DESIGNS), rj.Smoothing(), rj.GRADIENT_OPTIONS,
-                       DESIGN)
+    peaks, grads = run(batch_params(GRADIENT_DESIGNS), rj.Smoothing(), rj.GRADIENT_OPTIONS, DESIGN)
     assert all_ok(peaks.status)
     return peaks, np.stack([np.asarray(getattr(grads, m)) for m in METRICS], axis=1)
 
@@ -107,8 +116,9 @@ def test_sensitivity_gradients_agree_with_jacfwd_where_steps_resolve():
 
     def peak(x):
         p = rj.RecoilParams(barrel=rj.Barrel(k=x[0], c_out=x[1], v0=x[2]), absorber=None)
-        r = rj.peak_metrics(p, rj.Smoothing(), rj.SolverOptions(rtol=1e-10, atol=1e-13,
-                                                                max_steps=100_000))
+        r = rj.peak_metrics(
+            p, rj.Smoothing(), rj.SolverOptions(rtol=1e-10, atol=1e-13, max_steps=100_000)
+        )
         return jnp.stack([r.peak_displacement, r.peak_anchoring_force])
 
     x = jnp.array([27500.0, 6239.0, 0.6909])
@@ -123,12 +133,17 @@ def _random_designs(count, seed):
     designs = []
     for i in range(count):
         d = dict(
-            M=float(10 ** rng.uniform(3, np.log10(2e4))), v0=float(rng.uniform(0.1, 2.0)),
-            k=float(10 ** rng.uniform(3, 6)), c_out=float(rng.uniform(0, 5e4)),
+            M=float(10 ** rng.uniform(3, np.log10(2e4))),
+            v0=float(rng.uniform(0.1, 2.0)),
+            k=float(10 ** rng.uniform(3, 6)),
+            c_out=float(rng.uniform(0, 5e4)),
             c_ret=float(rng.uniform(0, 5e4)),
-            m=float(10 ** rng.uniform(1, np.log10(5000))), gap=float(rng.uniform(0, 0.2)),
-            k_r=float(10 ** rng.uniform(3, 5)), c_r=float(rng.uniform(0, 2e4)),
-            k_c=float(10 ** rng.uniform(6, 10)), n_c=float(rng.uniform(1, 2)),
+            m=float(10 ** rng.uniform(1, np.log10(5000))),
+            gap=float(rng.uniform(0, 0.2)),
+            k_r=float(10 ** rng.uniform(3, 5)),
+            c_r=float(rng.uniform(0, 2e4)),
+            k_c=float(10 ** rng.uniform(6, 10)),
+            n_c=float(rng.uniform(1, 2)),
             lambda_c=float(rng.uniform(0, 2)),
         )
         if i % 3 == 0:

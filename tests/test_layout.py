@@ -73,9 +73,16 @@ def test_every_module_declares_what_it_exports():
 def test_metric_names_derive_from_the_registry():
     # The JSON / CSV keys users read stay exactly as they were.
     assert list(rj.PEAK_FIELDS.values()) == [
-        "peak_displacement_m", "peak_displacement_time_s", "peak_anchoring_force_N",
-        "peak_anchoring_force_time_s", "peak_contact_force_N", "peak_contact_force_time_s",
-        "min_stroke_m", "max_stroke_m", "num_steps"]
+        "peak_displacement_m",
+        "peak_displacement_time_s",
+        "peak_anchoring_force_N",
+        "peak_anchoring_force_time_s",
+        "peak_contact_force_N",
+        "peak_contact_force_time_s",
+        "min_stroke_m",
+        "max_stroke_m",
+        "num_steps",
+    ]
     peaks_fields = [f.name for f in dataclasses.fields(rj.Peaks)]
     assert peaks_fields == [*rj.PEAK_FIELDS, "num_attempts", "status"]
     assert [f.name for f in dataclasses.fields(rj.PeakGradients)] == [*rj.METRICS, "wrt"]

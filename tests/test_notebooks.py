@@ -24,9 +24,17 @@ def test_notebook_executes(path, monkeypatch):
     # Stored without outputs: the .py holds code and markdown only.
     assert all(not cell.get("outputs") for cell in notebook.cells)
     assert notebook.cells[0].cell_type == "markdown"  # opens with the physics
-    client = NotebookClient(notebook, timeout=600, kernel_name="python3",
-                            resources={"metadata": {"path": str(path.parent)}})
+    client = NotebookClient(
+        notebook,
+        timeout=600,
+        kernel_name="python3",
+        resources={"metadata": {"path": str(path.parent)}},
+    )
     client.execute(env=dict(os.environ))
-    errors = [output for cell in notebook.cells for output in cell.get("outputs", [])
-              if output.get("output_type") == "error"]
+    errors = [
+        output
+        for cell in notebook.cells
+        for output in cell.get("outputs", [])
+        if output.get("output_type") == "error"
+    ]
     assert not errors

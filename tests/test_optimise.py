@@ -37,8 +37,9 @@ def test_grad_through_differentiable_peaks_equals_sensitivity_jacobian():
     # gradient accuracy (rtol 1e-7; gradients to ~1e-5 relative), not bitwise.
     np.testing.assert_allclose(grad, expected, rtol=1e-5)
     np.testing.assert_allclose(forward, grad, rtol=1e-12)
-    np.testing.assert_allclose(value, peaks.peak_anchoring_force + 1e4 * peaks.max_stroke,
-                               rtol=1e-8)
+    np.testing.assert_allclose(
+        value, peaks.peak_anchoring_force + 1e4 * peaks.max_stroke, rtol=1e-8
+    )
 
 
 def _smooth_force(gap, temperature, options):
@@ -54,8 +55,11 @@ def test_smooth_max_value_and_gradient():
     towards it as T shrinks, and its gradient matches central differences (before, at
     and after the kink of the optimum). One compilation each: gap and T are traced."""
     gaps = jnp.array([0.055, 0.062, 0.07])
-    peak = np.asarray(rj.sweep({"m": np.full(3, 1500.0), "gap": np.asarray(gaps)},
-                               progress=False).peaks["peak_anchoring_force"])
+    peak = np.asarray(
+        rj.sweep({"m": np.full(3, 1500.0), "gap": np.asarray(gaps)}, progress=False).peaks[
+            "peak_anchoring_force"
+        ]
+    )
     value_and_grad = jax.jit(jax.vmap(jax.value_and_grad(_smooth_force), (0, None, None)))
     tight = rj.SolverOptions(rtol=1e-11, atol=1e-14, max_steps=200_000)
     tight_values = jax.jit(jax.vmap(_smooth_force, (0, None, None)))
@@ -65,8 +69,10 @@ def test_smooth_max_value_and_gradient():
         values, grads = value_and_grad(gaps, temperature, rj.GRADIENT_OPTIONS)
         below[temperature] = peak - np.asarray(values)
         assert np.all((below[temperature] > 0) & (below[temperature] < 10 * temperature))
-        fd = (np.asarray(tight_values(gaps + h, temperature, tight))
-              - np.asarray(tight_values(gaps - h, temperature, tight))) / (2 * h)
+        fd = (
+            np.asarray(tight_values(gaps + h, temperature, tight))
+            - np.asarray(tight_values(gaps - h, temperature, tight))
+        ) / (2 * h)
         # Scaled like the peak gradients: by the gap's range over the value.
         error = np.abs(np.asarray(grads) - fd) * 0.2 / peak
         assert np.all(error <= 1e-4), (np.asarray(grads), fd)
@@ -79,9 +85,12 @@ def test_paper_gap_optimum_matches_dense_grid_with_one_compilation():
     the step once, and keeps every iterate inside the bounds."""
     problem = rj.DesignProblem(
         params=rj.RecoilParams(absorber=rj.Absorber(m=1500.0, gap=0.03)),
-        objective=rj.Objective({"peak_anchoring_force": 1.0},
-                               temperatures={"peak_anchoring_force": 10.0}),
-        tune=("gap",), bounds={"gap": (0.0, 0.12)})
+        objective=rj.Objective(
+            {"peak_anchoring_force": 1.0}, temperatures={"peak_anchoring_force": 10.0}
+        ),
+        tune=("gap",),
+        bounds={"gap": (0.0, 0.12)},
+    )
     result = rj.optimise(problem, starts=4, steps=120, progress=False)
     assert result.compilations == 1
     assert result.steps > 1
@@ -103,11 +112,11 @@ def test_paper_gap_optimum_matches_dense_grid_with_one_compilation():
     assert objectives == sorted(objectives)
     for cluster in clusters:
         gap = cluster["design"]["gap"]
-        single = rj.peaks(rj.RecoilParams(absorber=rj.Absorber(m=1500.0, gap=gap)),
-                          options=rj.GRADIENT_OPTIONS)
+        single = rj.peaks(
+            rj.RecoilParams(absorber=rj.Absorber(m=1500.0, gap=gap)), options=rj.GRADIENT_OPTIONS
+        )
         # (The optimiser's solve also carries sensitivities, hence its own step grid.)
-        assert float(single.peak_anchoring_force) == pytest.approx(cluster["objective"],
-                                                                   rel=1e-6)
+        assert float(single.peak_anchoring_force) == pytest.approx(cluster["objective"], rel=1e-6)
         last_contact = result.history["peak_contact_force"][-1, cluster["runs"]]
         assert cluster["no_impact"] == int(np.sum(last_contact == 0.0))
 
@@ -121,7 +130,8 @@ def test_metric_constraint_is_held_and_active():
         objective=rj.Objective({"peak_anchoring_force": 1.0}),
         tune=("gap", "c_r"),
         bounds={"gap": (0.0, 0.12), "c_r": (500.0, 8000.0)},
-        constraints=(rj.Constraint("max_stroke", upper=limit),))
+        constraints=(rj.Constraint("max_stroke", upper=limit),),
+    )
     result = rj.optimise(problem, starts=3, steps=120, progress=False)
     design = result.best_params(0)
     peaks = rj.peaks(design, options=rj.GRADIENT_OPTIONS)
@@ -135,8 +145,10 @@ def test_metric_constraint_is_held_and_active():
 
 def test_parameter_constraint_tightens_bounds_exactly():
     problem = rj.DesignProblem(
-        params=PAPER_BEST, objective=rj.Objective({"peak_anchoring_force": 1.0}),
-        constraints=(rj.Constraint("m", upper=1200.0), rj.Constraint("gap", lower=0.01)))
+        params=PAPER_BEST,
+        objective=rj.Objective({"peak_anchoring_force": 1.0}),
+        constraints=(rj.Constraint("m", upper=1200.0), rj.Constraint("gap", lower=0.01)),
+    )
     lower, upper = problem.box()
     assert upper[problem.tune.index("m")] == 1200.0
     assert lower[problem.tune.index("gap")] == 0.01
@@ -145,15 +157,22 @@ def test_parameter_constraint_tightens_bounds_exactly():
 def test_scatter_objective_is_the_worst_case():
     offsets = (-0.05, 0.0, 0.05)
     problem = rj.DesignProblem(
-        params=PAPER_BEST, tune=("gap",),
-        objective=rj.Objective({"peak_anchoring_force": 1.0}, scatter=("v0", offsets)))
-    _, status, _, worst, _ = jax.jit(lambda th: rj.evaluate_design(problem, th))(
-        jnp.array([0.062]))
+        params=PAPER_BEST,
+        tune=("gap",),
+        objective=rj.Objective({"peak_anchoring_force": 1.0}, scatter=("v0", offsets)),
+    )
+    _, status, _, worst, _ = jax.jit(lambda th: rj.evaluate_design(problem, th))(jnp.array([0.062]))
     assert bool(status == rj.Status.ok)
     v0 = float(PAPER_BEST.barrel.v0)
-    separate = [float(rj.peaks(rj.RecoilParams(
-        barrel=rj.Barrel(v0=v0 * (1 + o)), absorber=PAPER_BEST.absorber),
-        options=rj.GRADIENT_OPTIONS).peak_anchoring_force) for o in offsets]
+    separate = [
+        float(
+            rj.peaks(
+                rj.RecoilParams(barrel=rj.Barrel(v0=v0 * (1 + o)), absorber=PAPER_BEST.absorber),
+                options=rj.GRADIENT_OPTIONS,
+            ).peak_anchoring_force
+        )
+        for o in offsets
+    ]
     np.testing.assert_allclose(float(worst), max(separate), rtol=1e-6)
 
 
@@ -162,10 +181,12 @@ def test_optimiser_accepts_any_optax_transformation():
     sign: near the paper's design less coupling damping c_r lowers the peak
     displacement."""
     problem = rj.DesignProblem(
-        params=PAPER_BEST, tune=("c_r",), bounds={"c_r": (1000.0, 6000.0)},
-        objective=rj.Objective({"peak_displacement": 1.0}))
-    result = rj.optimise(problem, optimiser=optax.sgd(0.5), starts=2, steps=5,
-                         progress=False)
+        params=PAPER_BEST,
+        tune=("c_r",),
+        bounds={"c_r": (1000.0, 6000.0)},
+        objective=rj.Objective({"peak_displacement": 1.0}),
+    )
+    result = rj.optimise(problem, optimiser=optax.sgd(0.5), starts=2, steps=5, progress=False)
     assert result.steps == 5 and result.compilations == 1
     objective, c_r = result.history["objective"], result.history["theta"][..., 0]
     assert np.all(np.diff(objective, axis=0) < 0)
@@ -174,22 +195,46 @@ def test_optimiser_accepts_any_optax_transformation():
     assert np.all(np.diff(c_r, axis=0) < 0)
 
 
-@pytest.mark.parametrize("build, match", [
-    (lambda: rj.Objective({"peak_force": 1.0}), "unknown metric"),
-    (lambda: rj.Objective({"peak_anchoring_force": 1.0},
-                          temperatures={"peak_anchoring_force": -1.0}), "valid > 0"),
-    (lambda: rj.Constraint("max_stroke"), "neither upper nor lower"),
-    (lambda: rj.Constraint("stroke", upper=1.0), "unknown quantity"),
-    (lambda: rj.DesignProblem(params=PAPER_BEST, tune=("gap", "mass"),
-                              objective=rj.Objective({"peak_displacement": 1.0})), "mass"),
-    (lambda: rj.DesignProblem(params=PAPER_BEST, tune=("gap",), bounds={"gap": (-1.0, 0.1)},
-                              objective=rj.Objective({"peak_displacement": 1.0})),
-     "bounds.gap = -1"),
-    (lambda: rj.DesignProblem(params=PAPER_BEST, tune=("gap",),
-                              constraints=(rj.Constraint("gap", upper=-0.1),),
-                              objective=rj.Objective({"peak_displacement": 1.0})),
-     "no room for gap"),
-])
+@pytest.mark.parametrize(
+    "build, match",
+    [
+        (lambda: rj.Objective({"peak_force": 1.0}), "unknown metric"),
+        (
+            lambda: rj.Objective(
+                {"peak_anchoring_force": 1.0}, temperatures={"peak_anchoring_force": -1.0}
+            ),
+            "valid > 0",
+        ),
+        (lambda: rj.Constraint("max_stroke"), "neither upper nor lower"),
+        (lambda: rj.Constraint("stroke", upper=1.0), "unknown quantity"),
+        (
+            lambda: rj.DesignProblem(
+                params=PAPER_BEST,
+                tune=("gap", "mass"),
+                objective=rj.Objective({"peak_displacement": 1.0}),
+            ),
+            "mass",
+        ),
+        (
+            lambda: rj.DesignProblem(
+                params=PAPER_BEST,
+                tune=("gap",),
+                bounds={"gap": (-1.0, 0.1)},
+                objective=rj.Objective({"peak_displacement": 1.0}),
+            ),
+            "bounds.gap = -1",
+        ),
+        (
+            lambda: rj.DesignProblem(
+                params=PAPER_BEST,
+                tune=("gap",),
+                constraints=(rj.Constraint("gap", upper=-0.1),),
+                objective=rj.Objective({"peak_displacement": 1.0}),
+            ),
+            "no room for gap",
+        ),
+    ],
+)
 def test_bad_problems_raise_clear_errors(build, match):
     with pytest.raises(rj.ParameterError, match=match):
         build()
@@ -199,8 +244,13 @@ def test_every_shipped_study_parses():
     from recoil_jax.apps import load_study
 
     studies = sorted((ROOT / "optimise").glob("*.toml"))
-    assert {p.stem for p in studies} >= {"paper_gap", "tuned_absorber", "min_displacement",
-                                         "pareto", "robust"}
+    assert {p.stem for p in studies} >= {
+        "paper_gap",
+        "tuned_absorber",
+        "min_displacement",
+        "pareto",
+        "robust",
+    }
     for path in studies:
         load_study(path)
 
@@ -235,8 +285,12 @@ grid = { gap = [0.04, 0.08, 5] }
     assert main(["optimise", str(study), "--out", str(out)]) == 0
     result = json.loads((out / "result.json").read_text())
     assert set(result["best"]) == set(rj.PARAMETERS)
-    assert set(result["metrics"]) >= {"peak_anchoring_force_N", "peak_displacement_m",
-                                      "max_stroke_m", "status"}
+    assert set(result["metrics"]) >= {
+        "peak_anchoring_force_N",
+        "peak_displacement_m",
+        "max_stroke_m",
+        "status",
+    }
     assert result["objective"] == pytest.approx(result["metrics"]["peak_anchoring_force_N"])
     stroke = result["constraints"]["max_stroke (max)"]
     assert stroke["limit"] == 0.13
@@ -294,9 +348,12 @@ def test_scenarios_and_epsilon_limits_run_in_one_vmap():
     """Fronts: one problem per absorber mass (batched params) and per limit (an
     ε-constraint), each scenario with its own starts, in one compiled step."""
     problem = rj.DesignProblem(
-        params=PAPER_BEST, tune=("gap",), bounds={"gap": (0.0, 0.12)},
+        params=PAPER_BEST,
+        tune=("gap",),
+        bounds={"gap": (0.0, 0.12)},
         objective=rj.Objective({"peak_anchoring_force": 1.0}),
-        constraints=(rj.Constraint("peak_contact_force", upper=2e5),))
+        constraints=(rj.Constraint("peak_contact_force", upper=2e5),),
+    )
     masses = np.array([500.0, 1500.0])
     scenarios = rj.params_from_values(m=masses, gap=np.full(2, 0.05))
     result = rj.optimise(problem, scenarios=scenarios, starts=2, steps=25, progress=False)
@@ -304,14 +361,16 @@ def test_scenarios_and_epsilon_limits_run_in_one_vmap():
     for s, m in enumerate(masses):
         assert result.best_design(s)["m"] == m
         peaks = rj.peaks(result.best_params(s), options=rj.GRADIENT_OPTIONS)
-        np.testing.assert_allclose(float(peaks.peak_anchoring_force), result.best_objective[s],
-                                   rtol=1e-5)
+        np.testing.assert_allclose(
+            float(peaks.peak_anchoring_force), result.best_objective[s], rtol=1e-5
+        )
     # A heavier absorber brings the force lower (the paper's Fig. 10).
     assert result.best_objective[1] < result.best_objective[0]
     # ε-constraint: a tighter contact-force limit can only cost force, and it holds.
     limits = [6.0e4, 4.5e4]  # active: the unconstrained optimum has ≈ 67 kN
-    tight = rj.optimise(problem, scenario_limits={"peak_contact_force": limits}, starts=2,
-                        steps=25, progress=False)
+    tight = rj.optimise(
+        problem, scenario_limits={"peak_contact_force": limits}, starts=2, steps=25, progress=False
+    )
     for s, limit in enumerate(limits):
         contact = rj.peaks(tight.best_params(s), options=rj.GRADIENT_OPTIONS).peak_contact_force
         assert float(contact) <= limit * (1 + 1e-6)
@@ -371,13 +430,16 @@ def test_studies_resolve_by_name_from_any_directory(tmp_path, monkeypatch):
         load_study("no_such_study")
 
 
-@pytest.mark.parametrize("front, match", [
-    ('vary = "m"\nvalues = []', "needs values"),
-    ('vary = "m"\nvalues = ["heavy"]', "must be numbers"),
-    ('vary = "gap"\nvalues = [0.01, -0.1]', r"Absorber\.gap\[1\] = -0\.1 m is invalid"),
-    ('vary = "max_stroke"\nvalues = [0.1, inf]', "must be finite"),
-    ('vary = "stroke"\nvalues = [0.1]', "give a parameter or a constrained metric"),
-])
+@pytest.mark.parametrize(
+    "front, match",
+    [
+        ('vary = "m"\nvalues = []', "needs values"),
+        ('vary = "m"\nvalues = ["heavy"]', "must be numbers"),
+        ('vary = "gap"\nvalues = [0.01, -0.1]', r"Absorber\.gap\[1\] = -0\.1 m is invalid"),
+        ('vary = "max_stroke"\nvalues = [0.1, inf]', "must be finite"),
+        ('vary = "stroke"\nvalues = [0.1]', "give a parameter or a constrained metric"),
+    ],
+)
 def test_bad_front_values_are_clear_errors(tmp_path, front, match):
     from recoil_jax.apps import load_study
 

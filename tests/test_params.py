@@ -31,8 +31,20 @@ def test_v0_from_shot():
 
 
 def test_flat_names_round_trip():
-    values = dict(M=6000.0, k=3e4, c_out=6000.0, c_ret=1.2e4, v0=0.8, m=900.0, gap=0.03,
-                  k_r=2e4, c_r=1000.0, k_c=1e9, n_c=1.5, lambda_c=0.3)
+    values = dict(
+        M=6000.0,
+        k=3e4,
+        c_out=6000.0,
+        c_ret=1.2e4,
+        v0=0.8,
+        m=900.0,
+        gap=0.03,
+        k_r=2e4,
+        c_r=1000.0,
+        k_c=1e9,
+        n_c=1.5,
+        lambda_c=0.3,
+    )
     p = rj.params_from_values(values)
     back = {k: float(v) for k, v in rj.params_to_values(p).items()}
     assert back == values
@@ -62,10 +74,16 @@ def test_leaves_are_float64_arrays():
         (lambda: rj.Contact(n_c=0.9), "Contact.n_c", "valid n_c >= 1"),
         (lambda: rj.Contact(lambda_c=-0.1), "Contact.lambda_c", "valid lambda_c >= 0"),
         (lambda: rj.Barrel(v0=0.0), "Barrel.v0", "valid v0 > 0 m/s"),
-        (lambda: rj.Smoothing(damping_width=0.0), "Smoothing.damping_width",
-         "valid damping_width > 0 m/s"),
-        (lambda: rj.Smoothing(contact_width=-1e-4), "Smoothing.contact_width",
-         "valid contact_width > 0 m"),
+        (
+            lambda: rj.Smoothing(damping_width=0.0),
+            "Smoothing.damping_width",
+            "valid damping_width > 0 m/s",
+        ),
+        (
+            lambda: rj.Smoothing(contact_width=-1e-4),
+            "Smoothing.contact_width",
+            "valid contact_width > 0 m",
+        ),
         (lambda: rj.SolverOptions(t1=0.0), "SolverOptions.t1", "valid t1 > 0 s"),
         (lambda: rj.SolverOptions(t1=-2.0), "SolverOptions.t1", "valid t1 > 0 s"),
     ],
@@ -91,8 +109,13 @@ def test_range_message_gives_value_and_documented_range():
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
 @pytest.mark.parametrize(
     "build",
-    [lambda v: rj.Barrel(M=v), lambda v: rj.Absorber(gap=v), lambda v: rj.Contact(n_c=v),
-     lambda v: rj.Smoothing(damping_width=v), lambda v: rj.SolverOptions(t1=v)],
+    [
+        lambda v: rj.Barrel(M=v),
+        lambda v: rj.Absorber(gap=v),
+        lambda v: rj.Contact(n_c=v),
+        lambda v: rj.Smoothing(damping_width=v),
+        lambda v: rj.SolverOptions(t1=v),
+    ],
 )
 def test_nan_and_inf_are_rejected(build, bad):
     with pytest.raises(rj.ParameterError, match="must be finite"):
@@ -122,10 +145,14 @@ def test_not_a_number_and_unknown_names():
 def test_documented_ranges_are_valid():
     """The ranges the issue requires are inside the valid domain and documented."""
     required = {
-        (rj.Absorber, "m"): (10, 5000), (rj.Absorber, "gap"): (0, 0.2),
-        (rj.Absorber, "k_r"): (1e3, 1e5), (rj.Absorber, "c_r"): (0, 2e4),
-        (rj.Contact, "k_c"): (1e6, 1e10), (rj.Contact, "n_c"): (1, 2),
-        (rj.Contact, "lambda_c"): (0, 2), (rj.Barrel, "v0"): (0.1, 2),
+        (rj.Absorber, "m"): (10, 5000),
+        (rj.Absorber, "gap"): (0, 0.2),
+        (rj.Absorber, "k_r"): (1e3, 1e5),
+        (rj.Absorber, "c_r"): (0, 2e4),
+        (rj.Contact, "k_c"): (1e6, 1e10),
+        (rj.Contact, "n_c"): (1, 2),
+        (rj.Contact, "lambda_c"): (0, 2),
+        (rj.Barrel, "v0"): (0.1, 2),
         (rj.Barrel, "M"): (1e3, 2e4),
     }
     for (cls, name), (lo, hi) in required.items():

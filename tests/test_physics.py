@@ -21,14 +21,23 @@ def _energy_history(params, smoothing, t1=3.0, n=3001):
         y = z[:4]
         f = rj.forces(y, params, smoothing, args[2])
         rate = y[1] - y[3]
-        power = (f.recoil_damper * y[1] + f.coupling_damper * rate
-                 + (f.contact - f.contact_elastic) * rate)
+        power = (
+            f.recoil_damper * y[1]
+            + f.coupling_damper * rate
+            + (f.contact - f.contact_elastic) * rate
+        )
         return jnp.concatenate([rj.vector_field(t, y, args), power[None]])
 
     z0 = jnp.concatenate([rj.initial_state(params), jnp.zeros(1)])
     ts = jnp.linspace(0.0, t1, n)
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(augmented), diffrax.Tsit5(), 0.0, t1, None, z0, args=args,
+        diffrax.ODETerm(augmented),
+        diffrax.Tsit5(),
+        0.0,
+        t1,
+        None,
+        z0,
+        args=args,
         saveat=diffrax.SaveAt(ts=ts),
         stepsize_controller=diffrax.PIDController(rtol=1e-11, atol=1e-14),
         max_steps=400_000,
@@ -50,22 +59,33 @@ def _contact_potential(deltas, params, smoothing):
         return exact(deltas)
     width = float(rj.contact_width(params, smoothing))
     gap = float(params.absorber.gap)
-    elastic_jit = jax.jit(lambda s: rj.forces(jnp.stack([s + gap, 0.0, 0.0, 0.0]), params,
-                                              smoothing).contact_elastic)
+    elastic_jit = jax.jit(
+        lambda s: rj.forces(jnp.stack([s + gap, 0.0, 0.0, 0.0]), params, smoothing).contact_elastic
+    )
 
     def in_band(d):
-        return quad(lambda s: float(elastic_jit(s)), -width, d, epsabs=1e-12,
-                    epsrel=1e-12)[0]
+        return quad(lambda s: float(elastic_jit(s)), -width, d, epsabs=1e-12, epsrel=1e-12)[0]
 
     at_width = in_band(width)
-    return np.array([0.0 if d <= -width else in_band(d) if d < width
-                     else at_width + exact(d) - exact(width) for d in deltas])
+    return np.array(
+        [
+            0.0 if d <= -width else in_band(d) if d < width else at_width + exact(d) - exact(width)
+            for d in deltas
+        ]
+    )
 
 
-@pytest.mark.parametrize("smoothing", [rj.Smoothing(), rj.Smoothing.exact()],
-                         ids=["smoothed", "hard"])
-@pytest.mark.parametrize("design", [dict(m=500.0, gap=0.0), dict(m=1500.0, gap=0.062),
-                                    dict(m=300.0, gap=0.01, lambda_c=2.0, v0=2.0, n_c=1.0)])
+@pytest.mark.parametrize(
+    "smoothing", [rj.Smoothing(), rj.Smoothing.exact()], ids=["smoothed", "hard"]
+)
+@pytest.mark.parametrize(
+    "design",
+    [
+        dict(m=500.0, gap=0.0),
+        dict(m=1500.0, gap=0.062),
+        dict(m=300.0, gap=0.01, lambda_c=2.0, v0=2.0, n_c=1.0),
+    ],
+)
 def test_energy_balance(design, smoothing):
     params = rj.params_from_values(design)
     zs, _ = _energy_history(params, smoothing)
@@ -88,26 +108,29 @@ def test_energy_balance(design, smoothing):
 
 def exact_restitution(a):
     """e from a − ln(1 + a) = −e a − ln(1 − e a), a = λ_c v_impact (model.md)."""
-    return brentq(lambda e: a - np.log1p(a) + e * a + np.log1p(-e * a), 1e-12,
-                  (1 - 1e-15) / a)
+    return brentq(lambda e: a - np.log1p(a) + e * a + np.log1p(-e * a), 1e-12, (1 - 1e-15) / a)
 
 
 def _free_impact(v0, m, lambda_c, smoothing, gap=1e-3):
     """Barrel at v0 strikes a resting absorber; springs negligible (valid stiffnesses
     must be positive: 1e-9 N/m moves nothing in 50 ms), dampers zero."""
     params = rj.params_from_values(
-        v0=v0, m=m, gap=gap, lambda_c=lambda_c, k=1e-9, k_r=1e-9, c_out=0.0, c_ret=0.0,
-        c_r=0.0)
+        v0=v0, m=m, gap=gap, lambda_c=lambda_c, k=1e-9, k_r=1e-9, c_out=0.0, c_ret=0.0, c_r=0.0
+    )
     ts = jnp.linspace(0.0, 0.05, 501)
-    history = rj.simulate(params, smoothing, rj.SolverOptions(t1=0.05, rtol=1e-10,
-                                                              atol=1e-13), ts=ts)
+    history = rj.simulate(
+        params, smoothing, rj.SolverOptions(t1=0.05, rtol=1e-10, atol=1e-13), ts=ts
+    )
     return params, history
 
 
-@pytest.mark.parametrize("smoothing", [rj.Smoothing(), rj.Smoothing.exact()],
-                         ids=["smoothed", "hard"])
-@pytest.mark.parametrize("v0, m, lambda_c", [(0.6909, 500.0, 0.6), (1.5, 100.0, 1.2),
-                                             (0.3, 3000.0, 2.0), (2.0, 1500.0, 0.2)])
+@pytest.mark.parametrize(
+    "smoothing", [rj.Smoothing(), rj.Smoothing.exact()], ids=["smoothed", "hard"]
+)
+@pytest.mark.parametrize(
+    "v0, m, lambda_c",
+    [(0.6909, 500.0, 0.6), (1.5, 100.0, 1.2), (0.3, 3000.0, 2.0), (2.0, 1500.0, 0.2)],
+)
 def test_free_impact_restitution_and_momentum(v0, m, lambda_c, smoothing):
     params, h = _free_impact(v0, m, lambda_c, smoothing)
     M = float(params.barrel.M)
@@ -132,10 +155,16 @@ def test_contact_never_pulls():
     """F_ct >= 0 everywhere, including fast separation where 1 + λ δ̇ < 0."""
     params = rj.params_from_values(m=500.0, gap=0.0, lambda_c=2.0)
     rng = np.random.default_rng(0)
-    ys = jnp.asarray(np.column_stack([rng.uniform(-0.01, 0.01, 2000),
-                                      rng.uniform(-3, 3, 2000),
-                                      rng.uniform(-0.01, 0.01, 2000),
-                                      rng.uniform(-3, 3, 2000)]))
+    ys = jnp.asarray(
+        np.column_stack(
+            [
+                rng.uniform(-0.01, 0.01, 2000),
+                rng.uniform(-3, 3, 2000),
+                rng.uniform(-0.01, 0.01, 2000),
+                rng.uniform(-3, 3, 2000),
+            ]
+        )
+    )
     for smoothing in (rj.Smoothing(), rj.Smoothing.exact()):
         f = jax.vmap(rj.forces, in_axes=(0, None, None))(ys, params, smoothing)
         assert float(jnp.min(f.contact)) >= 0.0
@@ -153,9 +182,11 @@ _BOUND_DESIGNS = [
 ]
 
 
-@pytest.mark.parametrize("smoothing", [rj.Smoothing(), rj.Smoothing.exact(),
-                                       rj.Smoothing(damping_width=0.1)],
-                         ids=["smoothed", "hard", "wide-damping-band"])
+@pytest.mark.parametrize(
+    "smoothing",
+    [rj.Smoothing(), rj.Smoothing.exact(), rj.Smoothing(damping_width=0.1)],
+    ids=["smoothed", "hard", "wide-damping-band"],
+)
 @pytest.mark.parametrize("design", _BOUND_DESIGNS)
 def test_energy_bounds_hold_for_the_rest_of_the_run(design, smoothing):
     """`future_metric_bounds` (which lets the peak loop stop early) bounds every metric
@@ -174,8 +205,13 @@ def test_energy_bounds_hold_for_the_rest_of_the_run(design, smoothing):
     ys = jnp.stack([h.x_M, h.v_M, h.x_m, h.v_m], axis=1)
     args = rj.model_args(params, smoothing)
     # In the order of `series`: x_M, F_AN, F_ct, stroke and its negative.
-    order = ("peak_displacement", "peak_anchoring_force", "peak_contact_force", "max_stroke",
-             "min_stroke")
+    order = (
+        "peak_displacement",
+        "peak_anchoring_force",
+        "peak_contact_force",
+        "max_stroke",
+        "min_stroke",
+    )
     by_name = jax.vmap(lambda y, t: rj.future_metric_bounds(y, args, t1 - t))(ys, ts)
     bounds = np.stack([np.asarray(by_name[name]) for name in order], axis=1)
     scale = np.max(np.abs(series), axis=0) + 1e-12

@@ -25,8 +25,12 @@ def test_hermite_max_matches_brute_force():
     np.testing.assert_allclose(value, brute.max(axis=0), atol=1e-7)
     np.testing.assert_allclose(s, grid[brute.argmax(axis=0), 0], atol=1e-3)
     # Degenerate cubics (flat, linear, quadratic) give finite values and gradients.
-    degenerate = [jnp.zeros(3), jnp.array([0.0, 1.0, 1.0]), jnp.array([1.0, 0.0, 0.0]),
-                  jnp.array([1.0, 0.0, 1.0])]
+    degenerate = [
+        jnp.zeros(3),
+        jnp.array([0.0, 1.0, 1.0]),
+        jnp.array([1.0, 0.0, 0.0]),
+        jnp.array([1.0, 0.0, 1.0]),
+    ]
     assert np.isfinite(rj.hermite_max(*degenerate)[0]).all()
     grads = jax.grad(lambda a: rj.hermite_max(a, a, a, a)[0].sum())(jnp.zeros(3))
     assert np.isfinite(grads).all()
@@ -44,8 +48,7 @@ def test_tsit5_last_stage_is_the_end_derivative():
     np.testing.assert_allclose(dense["k"][-1] / dt, rj.vector_field(dt, y1, args), rtol=1e-12)
 
 
-@pytest.mark.parametrize("design", [dict(m=0.0), dict(m=500.0, gap=0.0),
-                                    dict(m=1500.0, gap=0.062)])
+@pytest.mark.parametrize("design", [dict(m=0.0), dict(m=500.0, gap=0.0), dict(m=1500.0, gap=0.062)])
 def test_peaks_agree_with_dense_history(design):
     """Peaks lie between steps: no point of a fine history exceeds them, and the fine
     history comes within its own resolution of them. (The history is a separate
@@ -54,17 +57,18 @@ def test_peaks_agree_with_dense_history(design):
     options = rj.SolverOptions(rtol=1e-10, atol=1e-13, max_steps=100_000)
     result = rj.peaks(params, options=options)
     history = rj.simulate(params, options=options, ts=jnp.linspace(0.0, 1.0, 100001))
-    for peak, series in [(result.peak_displacement, history.x_M),
-                         (result.peak_anchoring_force, history.anchoring_force),
-                         (result.peak_contact_force, history.contact_force)]:
+    for peak, series in [
+        (result.peak_displacement, history.x_M),
+        (result.peak_anchoring_force, history.anchoring_force),
+        (result.peak_contact_force, history.contact_force),
+    ]:
         sampled = float(jnp.max(series))
         assert sampled <= float(peak) * (1 + 1e-8) + 1e-9
         assert sampled >= float(peak) * (1 - 1e-4) - 1e-9
     if params.absorber is not None:
         stroke = history.x_m - history.x_M
         assert float(jnp.max(stroke)) == pytest.approx(float(result.max_stroke), rel=1e-4)
-        assert float(jnp.min(stroke)) == pytest.approx(float(result.min_stroke), rel=1e-4,
-                                                       abs=1e-7)
+        assert float(jnp.min(stroke)) == pytest.approx(float(result.min_stroke), rel=1e-4, abs=1e-7)
 
 
 def test_failed_solve_is_reported_not_truncated():
@@ -80,10 +84,13 @@ def test_failed_solve_is_reported_not_truncated():
     with pytest.raises(rj.SolveError, match="max_steps"):
         rj.peak_jacobian(params, options=options)
     # In a batch, each point carries its own status.
-    batch = batch_peaks([dict(m=500.0, gap=0.0), dict(m=500.0, gap=0.15)],
-                        options=rj.SolverOptions(max_steps=100))
+    batch = batch_peaks(
+        [dict(m=500.0, gap=0.0), dict(m=500.0, gap=0.15)], options=rj.SolverOptions(max_steps=100)
+    )
     assert rj.status_messages(batch.status) == [
-        rj.Status[rj.Status.max_steps], rj.Status[rj.Status.ok]]
+        rj.Status[rj.Status.max_steps],
+        rj.Status[rj.Status.ok],
+    ]
 
 
 def test_failures_raise_inside_a_users_jit_and_vmap():
@@ -106,15 +113,26 @@ def test_failures_raise_inside_a_users_jit_and_vmap():
     with pytest.raises(jax.errors.JaxRuntimeError, match="max_steps reached before t1"):
         jax.jit(force)(jnp.asarray(0.0))
     # Without `throw` the status is returned, per point, and nothing is raised.
-    quiet = jax.jit(jax.vmap(lambda g: rj.peaks(
-        rj.RecoilParams(absorber=rj.Absorber(m=500.0, gap=g)), options=options,
-        throw=False).status))(jnp.asarray([0.15, 0.0]))
+    quiet = jax.jit(
+        jax.vmap(
+            lambda g: (
+                rj.peaks(
+                    rj.RecoilParams(absorber=rj.Absorber(m=500.0, gap=g)),
+                    options=options,
+                    throw=False,
+                ).status
+            )
+        )
+    )(jnp.asarray([0.15, 0.0]))
     assert rj.status_messages(quiet) == ["ok", rj.Status[rj.Status.max_steps]]
 
 
 def test_outputs_are_finite():
-    for design in (dict(m=0.0), dict(m=10.0, gap=0.0, n_c=1.0, lambda_c=0.0),
-                   dict(m=5000.0, gap=0.2, k_c=1e10, n_c=2.0, lambda_c=2.0, v0=2.0)):
+    for design in (
+        dict(m=0.0),
+        dict(m=10.0, gap=0.0, n_c=1.0, lambda_c=0.0),
+        dict(m=5000.0, gap=0.2, k_c=1e10, n_c=2.0, lambda_c=2.0, v0=2.0),
+    ):
         result = rj.peaks(rj.params_from_values(design))
         assert all(np.isfinite(np.asarray(leaf)).all() for leaf in jax.tree.leaves(result))
         history = rj.simulate(rj.params_from_values(design))
@@ -125,8 +143,12 @@ def test_batched_equals_loop():
     """vmap changes nothing but roundoff. XLA's batched and scalar transcendental
     functions can differ in the last bit, which may tip one accept/reject decision and so
     move a result by about the solver tolerance; at rtol 1e-10 that is far below 1e-8."""
-    designs = [dict(m=100.0, gap=0.0), dict(m=800.0, gap=0.03, k_r=5e4),
-               dict(m=1500.0, gap=0.062), dict(m=2500.0, gap=0.12, c_r=0.0)]
+    designs = [
+        dict(m=100.0, gap=0.0),
+        dict(m=800.0, gap=0.03, k_r=5e4),
+        dict(m=1500.0, gap=0.062),
+        dict(m=2500.0, gap=0.12, c_r=0.0),
+    ]
     options = rj.SolverOptions(rtol=1e-10, atol=1e-13, max_steps=50_000)
     batch = batch_peaks(designs, options=options)
     for i, design in enumerate(designs):
@@ -136,14 +158,14 @@ def test_batched_equals_loop():
                 continue
             rel = 1e-6 if field.endswith("time") else 1e-8  # a flat maximum's time: looser
             assert float(getattr(batch, field)[i]) == pytest.approx(
-                float(getattr(single, field)), rel=rel, abs=1e-10), field
+                float(getattr(single, field)), rel=rel, abs=1e-10
+            ), field
 
 
 def _peak_vector(x, autodiff="forward", rtol=1e-6):
     gap, m, k_r, c_r = x
     params = rj.RecoilParams(absorber=rj.Absorber(m=m, gap=gap, k_r=k_r, c_r=c_r))
-    options = rj.SolverOptions(rtol=rtol, atol=rtol * 1e-3, autodiff=autodiff,
-                               max_steps=100_000)
+    options = rj.SolverOptions(rtol=rtol, atol=rtol * 1e-3, autodiff=autodiff, max_steps=100_000)
     r = rj.peak_metrics(params, rj.Smoothing(), options)
     return jnp.stack([r.peak_displacement, r.peak_anchoring_force])
 
@@ -179,8 +201,9 @@ def test_jit_compiles_once_for_new_values():
 def test_vmap_over_smoothing_and_tolerance_leaves():
     """Widths and tolerances are leaves too (traced, vmappable)."""
     params = batch_params([dict(m=500.0, gap=0.0)] * 2)
-    smoothing = rj.Smoothing(damping_width=jnp.array([1e-3, 1e-3]),
-                             contact_width_fraction=jnp.array([0.02, 0.01]))
+    smoothing = rj.Smoothing(
+        damping_width=jnp.array([1e-3, 1e-3]), contact_width_fraction=jnp.array([0.02, 0.01])
+    )
     run = eqx.filter_jit(jax.vmap(rj.peak_metrics, in_axes=(0, 0, None)))
     result = run(params, smoothing, rj.SolverOptions())
     assert all_ok(result.status)
@@ -194,26 +217,46 @@ def test_stopping_when_the_peaks_are_certain_changes_no_peak():
     from recoil_jax._stepping import integrate_peaks
 
     rng = np.random.default_rng(7)
-    designs = [dict(m=float(m), gap=float(g), k_r=float(k), c_r=float(c))
-               for m, g, k, c in zip(rng.uniform(100, 3000, 48), rng.uniform(0, 0.15, 48),
-                                     rng.uniform(5e3, 5e4, 48), rng.uniform(0, 1e4, 48),
-                                     strict=True)]
+    designs = [
+        dict(m=float(m), gap=float(g), k_r=float(k), c_r=float(c))
+        for m, g, k, c in zip(
+            rng.uniform(100, 3000, 48),
+            rng.uniform(0, 0.15, 48),
+            rng.uniform(5e3, 5e4, 48),
+            rng.uniform(0, 1e4, 48),
+            strict=True,
+        )
+    ]
     designs[:2] = [dict(m=500.0, gap=0.0), dict(m=1500.0, gap=0.062)]
     smoothing, options = rj.Smoothing(), rj.SolverOptions()
 
     def solve(bounds_fn):
         def one(params):
-            run = integrate_peaks(rj.RECOIL_TERM, rj.initial_state(params),
-                                  rj.model_args(params, smoothing), 10.0,
-                                  rj.tracked_metrics, options, bounds_fn)
+            run = integrate_peaks(
+                rj.RECOIL_TERM,
+                rj.initial_state(params),
+                rj.model_args(params, smoothing),
+                10.0,
+                rj.tracked_metrics,
+                options,
+                bounds_fn,
+            )
             return peaks_of_run(run)
+
         return eqx.filter_jit(jax.vmap(one))(batch_params(designs))
 
     early, full = solve(rj.future_metric_bounds), solve(None)
     assert all_ok(early.status) and all_ok(full.status)
-    for field in ("peak_displacement", "peak_displacement_time", "peak_anchoring_force",
-                  "peak_anchoring_force_time", "peak_contact_force", "peak_contact_force_time",
-                  "min_stroke", "max_stroke"):
+    for field in (
+        "peak_displacement",
+        "peak_displacement_time",
+        "peak_anchoring_force",
+        "peak_anchoring_force_time",
+        "peak_contact_force",
+        "peak_contact_force_time",
+        "min_stroke",
+        "max_stroke",
+    ):
         np.testing.assert_array_equal(getattr(early, field), getattr(full, field), field)
     assert np.all(early.num_steps <= full.num_steps)
     assert early.num_steps.sum() < 0.6 * full.num_steps.sum()

@@ -42,8 +42,10 @@ def test_grid_sweep_matches_single_solves_and_reference(reference_cases):
 
 def test_order_chunking_and_sorting_do_not_change_results():
     rng = np.random.default_rng(5)
-    designs = [dict(m=float(m), gap=float(g)) for m, g in
-               zip(rng.uniform(50, 3000, 37), rng.uniform(0, 0.15, 37), strict=True)]
+    designs = [
+        dict(m=float(m), gap=float(g))
+        for m, g in zip(rng.uniform(50, 3000, 37), rng.uniform(0, 0.15, 37), strict=True)
+    ]
     a = rj.sweep(designs, chunk_size=16, sort_by_gap=True)
     b = rj.sweep(designs, chunk_size=64, sort_by_gap=False, workers=3)  # 3 parts, threads
     np.testing.assert_allclose(a.values["gap"], [d["gap"] for d in designs])
@@ -86,16 +88,16 @@ def test_no_absorber_beside_absorbers_runs_in_input_order():
     """`m = 0` (the simplified model) and absorbers in one sweep run as two groups and
     come back in input order, each point equal to its own solve; gradients with respect
     to absorber parameters are exactly 0 where there is no absorber."""
-    designs = [dict(m=1500.0, gap=0.05), dict(m=0.0), dict(m=500.0, gap=0.0),
-               dict(m=0.0, v0=0.5)]
+    designs = [dict(m=1500.0, gap=0.05), dict(m=0.0), dict(m=500.0, gap=0.0), dict(m=0.0, v0=0.5)]
     result = rj.sweep(designs, wrt=("gap", "v0"))
     assert np.all(result.ok)
     for i, design in enumerate(designs):
         single, grads = rj.peak_jacobian(
-            rj.params_from_values(design),
-            wrt=("v0",) if design["m"] == 0 else ("gap", "v0"))
+            rj.params_from_values(design), wrt=("v0",) if design["m"] == 0 else ("gap", "v0")
+        )
         assert result.peaks["peak_anchoring_force"][i] == pytest.approx(
-            float(single.peak_anchoring_force), rel=1e-6)
+            float(single.peak_anchoring_force), rel=1e-6
+        )
         dF_dv0 = result.gradients["peak_anchoring_force"]["v0"][i]
         assert dF_dv0 == pytest.approx(float(grads.peak_anchoring_force[-1]), rel=1e-5)
     assert result.gradients["peak_anchoring_force"]["gap"][[1, 3]].tolist() == [0.0, 0.0]
@@ -108,8 +110,7 @@ def test_no_absorber_beside_absorbers_runs_in_input_order():
 def test_end_time_per_point():
     """`t1` may differ between points (it is carried per design): each point equals its
     own solve to that end time."""
-    designs = [dict(m=500.0, gap=0.0, t1=0.3), dict(m=500.0, gap=0.0, t1=2.0),
-               dict(m=0.0, t1=0.2)]
+    designs = [dict(m=500.0, gap=0.0, t1=0.3), dict(m=500.0, gap=0.0, t1=2.0), dict(m=0.0, t1=0.2)]
     result = rj.sweep(designs)
     assert result.values["t1"].tolist() == [0.3, 2.0, 0.2]
     for i, design in enumerate(designs):
@@ -117,7 +118,8 @@ def test_end_time_per_point():
         options = rj.SolverOptions(t1=design.pop("t1"))
         single = rj.peaks(rj.params_from_values(design), options=options)
         assert result.peaks["peak_displacement"][i] == pytest.approx(
-            float(single.peak_displacement), rel=1e-9)
+            float(single.peak_displacement), rel=1e-9
+        )
     # The barrel is still recoiling at 0.3 s (its peak comes at ~0.65 s).
     assert result.peaks["peak_displacement"][0] < result.peaks["peak_displacement"][1]
 
@@ -158,8 +160,9 @@ _SHARDED = textwrap.dedent("""
 @pytest.mark.slow
 def test_sharded_over_four_host_devices_equals_single_device():
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4")
-    done = subprocess.run([sys.executable, "-c", _SHARDED], capture_output=True, text=True,
-                          env=env, timeout=600)
+    done = subprocess.run(
+        [sys.executable, "-c", _SHARDED], capture_output=True, text=True, env=env, timeout=600
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     out = json.loads(done.stdout.strip().splitlines()[-1])
     # The same steps and statuses; values equal up to roundoff (measured ~1e-15; the

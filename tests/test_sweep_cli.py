@@ -16,15 +16,20 @@ def test_grid_sweep_writes_files_and_figures(tmp_path, capsys):
     assert "swept 20 designs" in printed and "lowest peak anchoring force" in printed
     rows = list(csv.DictReader(open(out / "sweep.csv")))
     assert len(rows) == 20 and rows[0]["status"] == "ok"
-    assert {"m", "gap", "k_r", "peak_anchoring_force_N",
-            "d(peak_anchoring_force_N)/d(gap)"} <= set(rows[0])
+    assert {"m", "gap", "k_r", "peak_anchoring_force_N", "d(peak_anchoring_force_N)/d(gap)"} <= set(
+        rows[0]
+    )
     data = np.load(out / "sweep.npz")
     meta = json.loads(str(data["metadata"]))
     assert meta["swept"] == ["m", "gap"] and meta["grid_shape"] == [2, 10]
     assert data["peak_anchoring_force_N"].shape == (20,)
     assert np.all(data["param_k_r"] == 13000.0)
-    for name in ("fig6_peak_displacement_vs_gap", "fig10_peak_anchoring_force_vs_gap",
-                 "heatmap_peak_anchoring_force_N", "map_dF_AN_dgap"):
+    for name in (
+        "fig6_peak_displacement_vs_gap",
+        "fig10_peak_anchoring_force_vs_gap",
+        "heatmap_peak_anchoring_force_N",
+        "map_dF_AN_dgap",
+    ):
         assert (out / f"{name}.png").read_bytes()[:4] == b"\x89PNG"
 
 
@@ -39,20 +44,29 @@ def test_points_file_json_output_in_input_order(tmp_path, capsys, kind):
     assert main(["sweep", "--points", str(path), "--json"]) == 0
     records = json.loads(capsys.readouterr().out)
     assert [r["parameters"]["m"] for r in records] == [1500.0, 100.0, 1000.0]
-    keys = {"peak_displacement_m", "peak_displacement_time_s", "peak_anchoring_force_N",
-            "peak_anchoring_force_time_s", "peak_contact_force_N", "status"}
+    keys = {
+        "peak_displacement_m",
+        "peak_displacement_time_s",
+        "peak_anchoring_force_N",
+        "peak_anchoring_force_time_s",
+        "peak_contact_force_N",
+        "status",
+    }
     assert all(keys <= set(r) for r in records)
     assert records[0]["peak_anchoring_force_N"] == pytest.approx(5514.05, abs=0.05)
     assert records[2]["peak_anchoring_force_N"] == pytest.approx(6017.82, abs=0.05)
     assert all(r["status"] == "ok" for r in records)
 
 
-@pytest.mark.parametrize("argv, fragment", [
-    (["m=1,2", "gap=0:0.1"], "start:stop:count"),
-    (["gap=-0.1,0.1"], "Absorber.gap[0] = -0.1 m"),
-    (["m=100"], "nothing to sweep"),
-    (["mass=1,2"], "unknown parameter"),
-])
+@pytest.mark.parametrize(
+    "argv, fragment",
+    [
+        (["m=1,2", "gap=0:0.1"], "start:stop:count"),
+        (["gap=-0.1,0.1"], "Absorber.gap[0] = -0.1 m"),
+        (["m=100"], "nothing to sweep"),
+        (["mass=1,2"], "unknown parameter"),
+    ],
+)
 def test_sweep_bad_input(capsys, argv, fragment):
     assert main(["sweep", *argv]) == 2
     assert fragment in capsys.readouterr().err

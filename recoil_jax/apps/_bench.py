@@ -38,8 +38,9 @@ def _timed(fn, *args):
     return out, time.perf_counter() - start
 
 
-def run_bench(batch_sizes=(1, 64, 1024, 16384), scipy_designs: int = 20,
-              jacobian_batch: int = 4096, log=None) -> dict:
+def run_bench(
+    batch_sizes=(1, 64, 1024, 16384), scipy_designs: int = 20, jacobian_batch: int = 4096, log=None
+) -> dict:
     """Measure and return the figures (see `recoil-jax bench --help`)."""
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
     smoothing, options = rj.Smoothing(), rj.SolverOptions()
@@ -92,15 +93,24 @@ def run_bench(batch_sizes=(1, 64, 1024, 16384), scipy_designs: int = 20,
     index = np.linspace(0, len(columns["m"]) - 1, scipy_designs).astype(int)
     chosen = _take(columns, index)
     start = time.perf_counter()
-    baseline = [rj.reference_peaks({k: float(v[i]) for k, v in chosen.items()}, t1=10.0,
-                                rtol=1e-5, atol=1e-8, method="RK45")
-                for i in range(scipy_designs)]
+    baseline = [
+        rj.reference_peaks(
+            {k: float(v[i]) for k, v in chosen.items()},
+            t1=10.0,
+            rtol=1e-5,
+            atol=1e-8,
+            method="RK45",
+        )
+        for i in range(scipy_designs)
+    ]
     scipy_s = time.perf_counter() - start
     scipy_per_s = scipy_designs / scipy_s
     ours = rj.sweep(chosen, progress=False).peaks
-    errors = [abs(float(ours[key][i]) / ref[key] - 1.0)
-              for i, ref in enumerate(baseline)
-              for key in ("peak_displacement", "peak_anchoring_force")]
+    errors = [
+        abs(float(ours[key][i]) / ref[key] - 1.0)
+        for i, ref in enumerate(baseline)
+        for key in ("peak_displacement", "peak_anchoring_force")
+    ]
     log(f"  scipy solve_ivp (RK45, rtol 1e-5, serial): {scipy_per_s:.1f} sims/s")
 
     best = max(rows, key=lambda r: r["sims_per_s"])
@@ -145,7 +155,10 @@ def format_bench(result: dict) -> str:
 
 def main_bench(args) -> int:
     sizes = (1, 64, 1024) if args.quick else (1, 64, 1024, 16384)
-    result = run_bench(batch_sizes=sizes, scipy_designs=5 if args.quick else 20,
-                       jacobian_batch=64 if args.quick else 4096)
+    result = run_bench(
+        batch_sizes=sizes,
+        scipy_designs=5 if args.quick else 20,
+        jacobian_batch=64 if args.quick else 4096,
+    )
     print(json.dumps(result) if args.json else format_bench(result))
     return 0

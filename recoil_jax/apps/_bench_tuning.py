@@ -27,8 +27,9 @@ def _first_within(values: np.ndarray, target: float) -> int | None:
     return int(hits[0]) if hits.size else None
 
 
-def run_tuning_bench(study_path=None, nelder_mead_evaluations: int = 4000,
-                     tolerance: float = 1e-3, log=None) -> dict:
+def run_tuning_bench(
+    study_path=None, nelder_mead_evaluations: int = 4000, tolerance: float = 1e-3, log=None
+) -> dict:
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
     study = load_study(study_path or DEFAULT_STUDY)
     problem = study.problem
@@ -50,8 +51,9 @@ def run_tuning_bench(study_path=None, nelder_mead_evaluations: int = 4000,
 
     def penalised(x):
         theta = lower + (upper - lower) * np.clip(x, 0.0, 1.0)
-        peaks = rj.peaks(rj.with_values(problem.params, problem.tune, theta), smoothing,
-                         options, throw=False)
+        peaks = rj.peaks(
+            rj.with_values(problem.params, problem.tune, theta), smoothing, options, throw=False
+        )
         solved = bool(peaks.status == rj.Status.ok)
         value = float(problem.objective(peaks.metrics()))
         # The sum of the normalised violations of the metric limits.
@@ -64,9 +66,13 @@ def run_tuning_bench(study_path=None, nelder_mead_evaluations: int = 4000,
         return value * (1.0 + 100.0 * violation) if solved else 1e9
 
     def nelder_mead(x0, evaluations_cap):
-        minimize(penalised, x0, method="Nelder-Mead", bounds=[(0.0, 1.0)] * len(x0),
-                 options={"maxfev": evaluations_cap, "xatol": 1e-7, "fatol": 1e-4,
-                          "adaptive": True})
+        minimize(
+            penalised,
+            x0,
+            method="Nelder-Mead",
+            bounds=[(0.0, 1.0)] * len(x0),
+            options={"maxfev": evaluations_cap, "xatol": 1e-7, "fatol": 1e-4, "adaptive": True},
+        )
 
     starts = (result.history["theta"][0] - lower) / (upper - lower)  # (runs, P)
     penalised(starts[0])  # compile outside the timing
@@ -83,8 +89,9 @@ def run_tuning_bench(study_path=None, nelder_mead_evaluations: int = 4000,
         nelder_mead(x0, nelder_mead_evaluations // 4)
         per_start.append(np.asarray([f if ok else np.inf for f, ok in evaluations]))
 
-    best = min(float(np.min(values)), float(np.min(nm_values)),
-               min(float(np.min(v)) for v in per_start))
+    best = min(
+        float(np.min(values)), float(np.min(nm_values)), min(float(np.min(v)) for v in per_start)
+    )
     target = best * (1.0 + tolerance)
     runs = values.shape[1]
     best_so_far = np.min(values, axis=1)
@@ -136,28 +143,29 @@ def format_report(report: dict) -> str:
     def fmt(x):
         return "not reached" if x is None else f"{x}"
 
-    return "\n".join([
-        f"tuning benchmark on {report['study']}: target objective "
-        f"{report['target_objective']:.6g} (within 0.1 % of the best found, "
-        f"{report['best_objective']:.6g})",
-        f"  gradient (optax, {g['starts']} starts): best {g['best_objective']:.6g}; "
-        f"simulations to target {fmt(g['simulations_to_target'])} (all starts), "
-        f"{fmt(g['single_start_simulations_to_target'])} (the first start alone); "
-        f"{g['simulations_total']} in {g['seconds_total']} s in all",
-        f"  Nelder-Mead (scipy, 1 start): best {nm['best_objective']:.6g}; simulations to "
-        f"target {fmt(nm['simulations_to_target'])}; {nm['simulations_total']} in "
-        f"{nm['seconds_total']} s in all",
-        f"  Nelder-Mead from each of the same {report['nelder_mead_multistart']['starts']} "
-        f"starts in turn: {report['nelder_mead_multistart']['starts_reaching_target']} reach "
-        f"the target (gradient: "
-        f"{report['nelder_mead_multistart']['gradient_starts_reaching_target']}); "
-        f"simulations to target "
-        f"{fmt(report['nelder_mead_multistart']['simulations_to_target'])}",
-    ])
+    return "\n".join(
+        [
+            f"tuning benchmark on {report['study']}: target objective "
+            f"{report['target_objective']:.6g} (within 0.1 % of the best found, "
+            f"{report['best_objective']:.6g})",
+            f"  gradient (optax, {g['starts']} starts): best {g['best_objective']:.6g}; "
+            f"simulations to target {fmt(g['simulations_to_target'])} (all starts), "
+            f"{fmt(g['single_start_simulations_to_target'])} (the first start alone); "
+            f"{g['simulations_total']} in {g['seconds_total']} s in all",
+            f"  Nelder-Mead (scipy, 1 start): best {nm['best_objective']:.6g}; simulations to "
+            f"target {fmt(nm['simulations_to_target'])}; {nm['simulations_total']} in "
+            f"{nm['seconds_total']} s in all",
+            f"  Nelder-Mead from each of the same {report['nelder_mead_multistart']['starts']} "
+            f"starts in turn: {report['nelder_mead_multistart']['starts_reaching_target']} reach "
+            f"the target (gradient: "
+            f"{report['nelder_mead_multistart']['gradient_starts_reaching_target']}); "
+            f"simulations to target "
+            f"{fmt(report['nelder_mead_multistart']['simulations_to_target'])}",
+        ]
+    )
 
 
 def main_tuning_bench(args) -> int:
     report = run_tuning_bench(args.study)
     print(json.dumps(report) if args.json else format_report(report))
     return 0
-

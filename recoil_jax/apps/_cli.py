@@ -21,8 +21,7 @@ def parse_assignments(items: list[str]) -> dict[str, float]:
     for item in items:
         name, sep, text = item.partition("=")
         if not sep:
-            raise rj.ParameterError(f"expected name=value, got {item!r}; names: "
-                                    f"{' '.join(NAMES)}")
+            raise rj.ParameterError(f"expected name=value, got {item!r}; names: {' '.join(NAMES)}")
         if name not in NAMES:
             raise rj.ParameterError(f"unknown parameter {name!r}; names: {' '.join(NAMES)}")
         try:
@@ -44,8 +43,9 @@ def _simulate(args) -> int:
     used = {k: float(np.asarray(v)) for k, v in rj.params_to_values(params).items()}
     used["t1"] = t1
     if args.json:
-        print(json.dumps(result | {"model": "hard" if args.hard else "smoothed",
-                                   "parameters": used}))
+        print(
+            json.dumps(result | {"model": "hard" if args.hard else "smoothed", "parameters": used})
+        )
     else:
         model = "simplified (no absorber)" if params.absorber is None else "with absorber"
         print(f"recoil-jax: {model}, {'hard' if args.hard else 'smoothed'} switches")
@@ -55,20 +55,35 @@ def _simulate(args) -> int:
         for name in ("peak_displacement", "peak_anchoring_force", "peak_contact_force"):
             m = metrics[name]
             digits = 6 if m.unit == "m" else 2
-            rows.append((m.meaning, f"{result[m.key]:.{digits}f} {m.unit}",
-                         f"at {result[m.time_key]:.4f} s"))
+            rows.append(
+                (
+                    m.meaning,
+                    f"{result[m.key]:.{digits}f} {m.unit}",
+                    f"at {result[m.time_key]:.4f} s",
+                )
+            )
         low, high = metrics["min_stroke"], metrics["max_stroke"]
-        rows += [("absorber stroke x_m - x_M",
-                  f"{result[low.key]:+.4f} .. {result[high.key]:+.4f} m", ""),
-                 ("solver steps", f"{result['num_steps']}", "")]
+        rows += [
+            (
+                "absorber stroke x_m - x_M",
+                f"{result[low.key]:+.4f} .. {result[high.key]:+.4f} m",
+                "",
+            ),
+            ("solver steps", f"{result['num_steps']}", ""),
+        ]
         for name, value, when in rows:
             print(f"  {name:28s} {value:>22s}  {when}")
     if args.plot:
         from ._figures import plot_history
 
         history = rj.simulate(params, smoothing, options, ts=np.linspace(0.0, t1, 20001))
-        path = plot_history(history, args.plot, title=", ".join(
-            f"{k}={v:g}" for k, v in used.items() if k in ("m", "gap", "k_r", "c_r")))
+        path = plot_history(
+            history,
+            args.plot,
+            title=", ".join(
+                f"{k}={v:g}" for k, v in used.items() if k in ("m", "gap", "k_r", "c_r")
+            ),
+        )
         print(f"wrote {path}", file=sys.stderr)
     return 0
 
@@ -93,10 +108,11 @@ def _optimise(args) -> int:
     if args.json:
         print(json.dumps(report))
     else:
-        print(f"study {report['study']}: objective {report['objective']:.6g}, "
-              f"{report['simulations']} simulations, {report['seconds']:.1f} s")
-        print("  best: " + ", ".join(f"{k}={report['best'][k]:.6g}"
-                                     for k in report["tuned"]))
+        print(
+            f"study {report['study']}: objective {report['objective']:.6g}, "
+            f"{report['simulations']} simulations, {report['seconds']:.1f} s"
+        )
+        print("  best: " + ", ".join(f"{k}={report['best'][k]:.6g}" for k in report["tuned"]))
         for name, c in report["constraints"].items():
             state = "ok" if c["satisfied"] else "VIOLATED"
             print(f"  {name}: {c['value']:.6g} (limit {c['limit']:g}) {state}")
@@ -123,9 +139,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"%(prog)s {rj.__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     sim = sub.add_parser(
-        "simulate", help="simulate one design and print its peaks",
+        "simulate",
+        help="simulate one design and print its peaks",
         description="Simulate one design. Parameters as name=value (SI units): "
-        + " ".join(NAMES) + ". m=0 gives the simplified model (no absorber).",
+        + " ".join(NAMES)
+        + ". m=0 gives the simplified model (no absorber).",
     )
     sim.add_argument("assignments", nargs="*", metavar="name=value")
     sim.add_argument("--hard", action="store_true", help="exact model with hard switches")
@@ -133,7 +151,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--plot", metavar="FILE.png", help="plot x_M, x_m, F_AN, F_ct vs time")
     sim.set_defaults(func=_simulate)
     swp = sub.add_parser(
-        "sweep", help="peaks over a grid or a list of designs",
+        "sweep",
+        help="peaks over a grid or a list of designs",
         description="Sweep designs: name=a,b,c (a list), name=start:stop:count (a range, "
         "inclusive) or name=value (fixed), over the cartesian grid of the swept names; "
         "or --points FILE (CSV with a header of names, or a JSON list of objects). "
@@ -142,12 +161,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     swp.add_argument("assignments", nargs="*", metavar="name=values")
     swp.add_argument("--points", metavar="FILE", help="designs from CSV or JSON")
-    swp.add_argument("--json", action="store_true",
-                     help="print a JSON list, in input order (keys as simulate --json + status)")
+    swp.add_argument(
+        "--json",
+        action="store_true",
+        help="print a JSON list, in input order (keys as simulate --json + status)",
+    )
     swp.add_argument("--out", metavar="DIR", help="folder for sweep.csv, sweep.npz, figures")
     swp.set_defaults(func=_sweep)
     bench = sub.add_parser(
-        "bench", help="throughput and Jacobians/s against a scipy solve_ivp loop",
+        "bench",
+        help="throughput and Jacobians/s against a scipy solve_ivp loop",
         description="Vmapped solves/s at batch sizes 1, 64, 1024, 16384; 4-parameter "
         "Jacobians/s; compile time; a serial scipy solve_ivp loop (RK45, rtol 1e-5) on the "
         "same peaks as the baseline, and the largest relative difference from it.",
@@ -156,7 +179,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--quick", action="store_true", help="small batches (a smoke run)")
     bench.set_defaults(func=_bench)
     opt = sub.add_parser(
-        "optimise", help="run an optimisation study (optimise/<study>.toml)",
+        "optimise",
+        help="run an optimisation study (optimise/<study>.toml)",
         description="Tune design parameters with optax as the study file says; write "
         "result.json, convergence.png, best_history.png (and front/robust figures). "
         "STUDY is a path, or the name of a study shipped in optimise/ (e.g. paper_gap).",
@@ -166,17 +190,23 @@ def build_parser() -> argparse.ArgumentParser:
     opt.add_argument("--json", action="store_true", help="print result.json to stdout")
     opt.set_defaults(func=_optimise)
     tuning = sub.add_parser(
-        "bench-tuning", help="gradient-based tuning against Nelder-Mead (simulations)",
+        "bench-tuning",
+        help="gradient-based tuning against Nelder-Mead (simulations)",
         description="On a study (default tuned_absorber): simulations that optax "
         "multi-start tuning and scipy's Nelder-Mead each need to come within 0.1 %% of the "
         "best objective found, with the limits held.",
     )
-    tuning.add_argument("study", nargs="?", default="tuned_absorber",
-                        help="study file or shipped study name (default tuned_absorber)")
+    tuning.add_argument(
+        "study",
+        nargs="?",
+        default="tuned_absorber",
+        help="study file or shipped study name (default tuned_absorber)",
+    )
     tuning.add_argument("--json", action="store_true", help="print one JSON object")
     tuning.set_defaults(func=_bench_tuning)
     rep = sub.add_parser(
-        "reproduce", help="the paper's numbers beside ours, and its figures",
+        "reproduce",
+        help="the paper's numbers beside ours, and its figures",
         description="Compare with the paper's Table 2 and text and the hard-switch "
         "reference; write reproduce.csv and Fig. 4, 7, 8, 9 as PNG.",
     )
@@ -192,8 +222,7 @@ def main(argv: list[str] | None = None) -> int:
     # name=value items may come after the flags (`simulate m=500 --hard t1=2`).
     args, extra = parser.parse_known_args(argv)
     if extra:
-        if args.command not in ("simulate", "sweep") or any(
-                item.startswith("-") for item in extra):
+        if args.command not in ("simulate", "sweep") or any(item.startswith("-") for item in extra):
             parser.error(f"unrecognized arguments: {' '.join(extra)}")
         args.assignments = list(args.assignments) + extra
     try:

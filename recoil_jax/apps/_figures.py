@@ -36,8 +36,17 @@ def plot_history(history: rj.History, path, title: str = "") -> Path:
     return _save(fig, path)
 
 
-def plot_series(series, path, *, xlabel: str, ylabel: str, title: str = "",
-                xscale: float = 1.0, yscale: float = 1.0, mark=None) -> Path:
+def plot_series(
+    series,
+    path,
+    *,
+    xlabel: str,
+    ylabel: str,
+    title: str = "",
+    xscale: float = 1.0,
+    yscale: float = 1.0,
+    mark=None,
+) -> Path:
     """Line plot of labelled `(x, y)` series; `mark` = `(x, y, text)` annotates a point."""
     fig, ax = plt.subplots(figsize=(8, 4.5))
     for label, (x, y) in series.items():
@@ -57,8 +66,9 @@ def plot_series(series, path, *, xlabel: str, ylabel: str, title: str = "",
     return _save(fig, path)
 
 
-def plot_heatmap(x, y, values, path, *, xlabel: str, ylabel: str, label: str,
-                 diverging: bool = False) -> Path:
+def plot_heatmap(
+    x, y, values, path, *, xlabel: str, ylabel: str, label: str, diverging: bool = False
+) -> Path:
     """`values[i, j]` at `(x[j], y[i])` as a colour map (NaN: failed points, blank)."""
     fig, ax = plt.subplots(figsize=(7, 5))
     values = np.asarray(values, dtype=float)
@@ -80,20 +90,25 @@ def plot_convergence(result, path, title: str = "") -> Path:
     """Convergence of an `OptimiseResult`: per run, the best feasible objective so far
     and the worst normalised constraint violation, against the step."""
     history = result.history
-    objective = np.where(np.all(history["violations"] <= 0, axis=-1), history["objective"],
-                         np.inf)
+    objective = np.where(np.all(history["violations"] <= 0, axis=-1), history["objective"], np.inf)
     best_so_far = np.minimum.accumulate(objective, axis=0)
     steps = np.arange(1, objective.shape[0] + 1)
     has_limits = history["violations"].shape[-1] > 0
-    fig, axes = plt.subplots(2 if has_limits else 1, 1, figsize=(8, 7 if has_limits else 4.5),
-                             sharex=True, squeeze=False)
+    fig, axes = plt.subplots(
+        2 if has_limits else 1, 1, figsize=(8, 7 if has_limits else 4.5), sharex=True, squeeze=False
+    )
     ax = axes[0, 0]
     for r in range(objective.shape[1]):
-        ax.plot(steps, np.where(np.isfinite(best_so_far[:, r]), best_so_far[:, r], np.nan),
-                lw=0.8, alpha=0.6)
+        ax.plot(
+            steps,
+            np.where(np.isfinite(best_so_far[:, r]), best_so_far[:, r], np.nan),
+            lw=0.8,
+            alpha=0.6,
+        )
     overall = np.min(best_so_far, axis=1)
-    ax.plot(steps, np.where(np.isfinite(overall), overall, np.nan), "k", lw=2,
-            label="best of all runs")
+    ax.plot(
+        steps, np.where(np.isfinite(overall), overall, np.nan), "k", lw=2, label="best of all runs"
+    )
     finite = best_so_far[np.isfinite(best_so_far)]
     if finite.size:
         low = float(np.min(finite))

@@ -38,15 +38,17 @@ def comparison_rows(log=None) -> list[dict]:
         for quantity in quantities:
             paper = case["paper"].get(quantity)
             reference = case["reference"].get(quantity)
-            rows.append({
-                "case": case["case"],
-                "quantity": quantity,
-                "paper": paper,
-                "reference": reference,
-                "ours": ours[quantity],
-                "ours_vs_paper": _relative(ours[quantity], paper),
-                "ours_vs_reference": _relative(ours[quantity], reference),
-            })
+            rows.append(
+                {
+                    "case": case["case"],
+                    "quantity": quantity,
+                    "paper": paper,
+                    "reference": reference,
+                    "ours": ours[quantity],
+                    "ours_vs_paper": _relative(ours[quantity], paper),
+                    "ours_vs_reference": _relative(ours[quantity], reference),
+                }
+            )
     return rows
 
 
@@ -56,8 +58,10 @@ def format_table(rows: list[dict]) -> str:
             return "-"
         return {"g": f"{x:.6g}", "pct": f"{100 * x:+.3f} %", "e": f"{x:+.1e}"}[style]
 
-    header = f"{'case':24s} {'quantity':28s} {'paper':>10s} {'reference':>12s} {'ours':>12s}" \
-             f" {'vs paper':>10s} {'vs reference':>13s}"
+    header = (
+        f"{'case':24s} {'quantity':28s} {'paper':>10s} {'reference':>12s} {'ours':>12s}"
+        f" {'vs paper':>10s} {'vs reference':>13s}"
+    )
     lines = [header, "-" * len(header)]
     for r in rows:
         lines.append(
@@ -76,12 +80,16 @@ def write_figures(out: Path, log=None) -> list[Path]:
     history = rj.simulate(simplified, ts=ts)
     best = rj.peaks(simplified)
     x_peak, t_peak = float(best.peak_displacement), float(best.peak_displacement_time)
-    figures.append(plot_series(
-        {"simplified model": (history.ts, history.x_M)}, out / "fig4_simplified_displacement.png",
-        xlabel="time (s)", ylabel="barrel displacement $x_M$ (m)",
-        title="Fig. 4: simplified model, barrel displacement",
-        mark=(t_peak, x_peak, f"{x_peak:.4f} m at {t_peak:.3f} s"),
-    ))
+    figures.append(
+        plot_series(
+            {"simplified model": (history.ts, history.x_M)},
+            out / "fig4_simplified_displacement.png",
+            xlabel="time (s)",
+            ylabel="barrel displacement $x_M$ (m)",
+            title="Fig. 4: simplified model, barrel displacement",
+            mark=(t_peak, x_peak, f"{x_peak:.4f} m at {t_peak:.3f} s"),
+        )
+    )
     if log:
         log(f"  wrote {figures[-1]}")
     whole, first = {}, {}
@@ -92,27 +100,47 @@ def write_figures(out: Path, log=None) -> list[Path]:
         whole[f"m = {m:.0f} kg"] = (h.ts, h.contact_force)
         h = rj.simulate(params, ts=ts_first)
         first[f"m = {m:.0f} kg"] = (h.ts, h.contact_force)
-    figures.append(plot_series(
-        whole, out / "fig7_contact_force_gap0.png", xlabel="time (s)",
-        ylabel="contact force $F_{ct}$ (kN)", yscale=1e-3,
-        title="Fig. 7: contact force, gap = 0",
-    ))
-    figures.append(plot_series(
-        first, out / "fig8_contact_force_gap0_first_impact.png", xlabel="time (ms)",
-        ylabel="contact force $F_{ct}$ (kN)", xscale=1e3, yscale=1e-3,
-        title="Fig. 8: contact force, gap = 0, first impact",
-    ))
+    figures.append(
+        plot_series(
+            whole,
+            out / "fig7_contact_force_gap0.png",
+            xlabel="time (s)",
+            ylabel="contact force $F_{ct}$ (kN)",
+            yscale=1e-3,
+            title="Fig. 7: contact force, gap = 0",
+        )
+    )
+    figures.append(
+        plot_series(
+            first,
+            out / "fig8_contact_force_gap0_first_impact.png",
+            xlabel="time (ms)",
+            ylabel="contact force $F_{ct}$ (kN)",
+            xscale=1e3,
+            yscale=1e-3,
+            title="Fig. 8: contact force, gap = 0, first impact",
+        )
+    )
     proposed = rj.params_from_values(m=1500.0, gap=0.062)
     h_best = rj.simulate(proposed, ts=ts)
-    figures.append(plot_series(
-        {"simplified model": (history.ts, history.anchoring_force),
-         "with absorber m = 1500 kg, gap = 62 mm": (h_best.ts, h_best.anchoring_force)},
-        out / "fig9_anchoring_force.png", xlabel="time (s)",
-        ylabel="anchoring force $F_{AN}$ (kN)", yscale=1e-3,
-        title="Fig. 9: anchoring force",
-        mark=(float(best.peak_anchoring_force_time), float(best.peak_anchoring_force),
-              f"{float(best.peak_anchoring_force):.0f} N"),
-    ))
+    figures.append(
+        plot_series(
+            {
+                "simplified model": (history.ts, history.anchoring_force),
+                "with absorber m = 1500 kg, gap = 62 mm": (h_best.ts, h_best.anchoring_force),
+            },
+            out / "fig9_anchoring_force.png",
+            xlabel="time (s)",
+            ylabel="anchoring force $F_{AN}$ (kN)",
+            yscale=1e-3,
+            title="Fig. 9: anchoring force",
+            mark=(
+                float(best.peak_anchoring_force_time),
+                float(best.peak_anchoring_force),
+                f"{float(best.peak_anchoring_force):.0f} N",
+            ),
+        )
+    )
     if log:
         for path in figures[1:]:
             log(f"  wrote {path}")

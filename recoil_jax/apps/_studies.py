@@ -54,10 +54,26 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib  # pyright: ignore[reportMissingImports]
 
-_SECTIONS = {"description", "design", "tune", "objective", "constraints", "optimiser",
-             "front", "check"}
-_OPTIMISER_KEYS = {"starts", "steps", "learning_rate", "seed", "anneal", "patience",
-                   "update_every", "penalty"}
+_SECTIONS = {
+    "description",
+    "design",
+    "tune",
+    "objective",
+    "constraints",
+    "optimiser",
+    "front",
+    "check",
+}
+_OPTIMISER_KEYS = {
+    "starts",
+    "steps",
+    "learning_rate",
+    "seed",
+    "anneal",
+    "patience",
+    "update_every",
+    "penalty",
+}
 _CHECK_KEYS = {"grid", "local", "hard", "nominal"}
 
 #: Where the shipped studies live: `optimise/` beside the package, in a checkout or an
@@ -92,20 +108,23 @@ def resolve_study(study: str | Path) -> Path:
     if path.parent == Path(".") and shipped.exists():
         return shipped
     names = sorted(p.stem for p in SHIPPED.glob("*.toml"))
-    raise rj.ParameterError(f"study file {study} not found; shipped studies: "
-                            f"{', '.join(names) or 'none'}")
+    raise rj.ParameterError(
+        f"study file {study} not found; shipped studies: {', '.join(names) or 'none'}"
+    )
 
 
 def _front_values(path, front: dict, constrained: list[str]) -> list[float]:
     vary, values = front.get("vary"), front.get("values")
     if vary not in rj.PARAMETERS and vary not in constrained:
-        raise _error(path, f"[[front]] vary = {vary!r}: give a parameter or a constrained "
-                     f"metric ({', '.join(constrained) or 'none'})")
+        raise _error(
+            path,
+            f"[[front]] vary = {vary!r}: give a parameter or a constrained "
+            f"metric ({', '.join(constrained) or 'none'})",
+        )
     if not isinstance(values, list) or not values:
         raise _error(path, f"[[front]] vary = {vary!r} needs values = [...]")
     if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
-        raise _error(path, f"[[front]] vary = {vary!r}: values must be numbers, got "
-                     f"{values!r}")
+        raise _error(path, f"[[front]] vary = {vary!r}: values must be numbers, got {values!r}")
     values = [float(v) for v in values]
     if vary in rj.PARAMETERS:
         try:
@@ -127,8 +146,11 @@ def load_study(path) -> Study:
         raise _error(path, f"not valid TOML: {error}") from None
     unknown = set(config) - _SECTIONS
     if unknown:
-        raise _error(path, f"unknown section(s) {', '.join(sorted(unknown))}; known: "
-                     f"{', '.join(sorted(_SECTIONS))}")
+        raise _error(
+            path,
+            f"unknown section(s) {', '.join(sorted(unknown))}; known: "
+            f"{', '.join(sorted(_SECTIONS))}",
+        )
     for section in ("tune", "objective"):
         if section not in config:
             raise _error(path, f"missing [{section}]")
@@ -147,7 +169,7 @@ def load_study(path) -> Study:
     if scatter is not None:
         if len(scatter) != 1:
             raise _error(path, "[objective.scatter] takes one parameter = [offsets]")
-        (scatter_name, offsets), = scatter.items()
+        ((scatter_name, offsets),) = scatter.items()
         scatter = (scatter_name, tuple(float(o) for o in offsets))
     objective = rj.Objective(
         weights={k: float(v) for k, v in objective_config.items()},
@@ -158,29 +180,41 @@ def load_study(path) -> Study:
     for name, limits in config.get("constraints", {}).items():
         if not isinstance(limits, dict) or set(limits) - {"max", "min"}:
             raise _error(path, f"[constraints] {name} = {{max = .., min = ..}} expected")
-        constraints.append(rj.Constraint(name, upper=limits.get("max"),
-                                         lower=limits.get("min")))
+        constraints.append(rj.Constraint(name, upper=limits.get("max"), lower=limits.get("min")))
     params = rj.params_from_values(design)
-    problem = rj.DesignProblem(params=params, objective=objective, tune=tuple(tune),
-                               bounds=bounds, constraints=tuple(constraints))
+    problem = rj.DesignProblem(
+        params=params,
+        objective=objective,
+        tune=tuple(tune),
+        bounds=bounds,
+        constraints=tuple(constraints),
+    )
     optimiser = dict(config.get("optimiser", {}))
     if set(optimiser) - _OPTIMISER_KEYS:
-        raise _error(path, f"[optimiser] unknown key(s) "
-                     f"{', '.join(sorted(set(optimiser) - _OPTIMISER_KEYS))}; known: "
-                     f"{', '.join(sorted(_OPTIMISER_KEYS))}")
+        raise _error(
+            path,
+            f"[optimiser] unknown key(s) "
+            f"{', '.join(sorted(set(optimiser) - _OPTIMISER_KEYS))}; known: "
+            f"{', '.join(sorted(_OPTIMISER_KEYS))}",
+        )
     fronts = config.get("front", [])
     fronts = [fronts] if isinstance(fronts, dict) else list(fronts)
     constrained = [name for name, _, _ in problem.metric_constraints]
     for front in fronts:
         front["values"] = _front_values(path, front, constrained)
         if front["vary"] in tune:
-            raise _error(path, f"[[front]] vary = {front['vary']!r} is tuned; fix it to "
-                         "vary it")
+            raise _error(path, f"[[front]] vary = {front['vary']!r} is tuned; fix it to vary it")
     check = dict(config.get("check", {}))
     if set(check) - _CHECK_KEYS:
         raise _error(path, f"[check] unknown key(s) {', '.join(sorted(set(check) - _CHECK_KEYS))}")
-    return Study(name=path.stem, description=config.get("description", ""), problem=problem,
-                 optimiser=optimiser, fronts=fronts, check=check)
+    return Study(
+        name=path.stem,
+        description=config.get("description", ""),
+        problem=problem,
+        optimiser=optimiser,
+        fronts=fronts,
+        check=check,
+    )
 
 
 def optimise_kwargs(study: Study, progress: bool | None) -> dict:
@@ -188,9 +222,12 @@ def optimise_kwargs(study: Study, progress: bool | None) -> dict:
     o = study.optimiser
     steps = int(o.get("steps", 200))
     kwargs: dict[str, Any] = dict(
-                  starts=int(o.get("starts", 8)), steps=steps, seed=int(o.get("seed", 0)),
-                  optimiser=rj.default_optimiser(float(o.get("learning_rate", 0.1)), steps),
-                  progress=progress)
+        starts=int(o.get("starts", 8)),
+        steps=steps,
+        seed=int(o.get("seed", 0)),
+        optimiser=rj.default_optimiser(float(o.get("learning_rate", 0.1)), steps),
+        progress=progress,
+    )
     for key in ("anneal", "penalty"):
         if key in o:
             kwargs[key] = float(o[key])
@@ -202,16 +239,14 @@ def optimise_kwargs(study: Study, progress: bool | None) -> dict:
 
 def _peaks(problem: rj.DesignProblem, params, smoothing=None) -> rj.Peaks:
     """The peaks of `params` with the problem's solver options (and smoothing)."""
-    return rj.peaks(params, problem.smoothing if smoothing is None else smoothing,
-                    problem.options)
+    return rj.peaks(params, problem.smoothing if smoothing is None else smoothing, problem.options)
 
 
 def _scattered(problem: rj.DesignProblem, params, offsets) -> list[rj.Peaks]:
     assert problem.objective.scatter is not None
     name, _ = problem.objective.scatter
     nominal = float(rj.values_of(params, (name,))[0])
-    return [_peaks(problem, rj.with_values(params, (name,), [nominal * (1 + o)]))
-            for o in offsets]
+    return [_peaks(problem, rj.with_values(params, (name,), [nominal * (1 + o)])) for o in offsets]
 
 
 def _worst_case(problem: rj.DesignProblem, runs: list[rj.Peaks]) -> tuple[dict, float]:
@@ -229,12 +264,16 @@ def _best_summary(study: Study, result: rj.OptimiseResult, scenario: int) -> dic
     params = result.best_params(scenario)
     design = result.best_design(scenario)
     best = _peaks(problem, params)
-    summary = {"best": design, "metrics": best.to_dict(),
-               "objective": float(problem.objective(best.metrics()))}
+    summary = {
+        "best": design,
+        "metrics": best.to_dict(),
+        "objective": float(problem.objective(best.metrics())),
+    }
     limits = result.scenario_limits[scenario]
     if problem.objective.scatter is not None:
         worst, worst_objective = _worst_case(
-            problem, _scattered(problem, params, problem.objective.scatter[1]))
+            problem, _scattered(problem, params, problem.objective.scatter[1])
+        )
         summary["objective"] = worst_objective
         summary["worst_case_metrics"] = worst
         by_name = {name: worst[m.key] for name, m in rj.METRICS.items()}
@@ -256,8 +295,9 @@ def _feasible_objective(problem, sweep_result) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _sweep(problem, designs, **kwargs):
-    return rj.sweep(designs, smoothing=problem.smoothing, options=problem.options,
-                    progress=False, **kwargs)
+    return rj.sweep(
+        designs, smoothing=problem.smoothing, options=problem.options, progress=False, **kwargs
+    )
 
 
 def _grid_check(study: Study, result, axes: dict) -> tuple[dict, int]:
@@ -299,10 +339,14 @@ def _local_check(study: Study, result, fraction: float) -> tuple[dict, int]:
             labels.append(name)
     sweep_result = _sweep(problem, points)
     objective, _ = _feasible_objective(problem, sweep_result)
-    return {"fraction_of_bounds": fraction, "points": len(points),
-            "best_scan_objective": float(np.min(objective)),
-            "per_parameter": {n: float(np.min(objective[np.asarray(labels) == n]))
-                              for n in problem.tune}}, len(points)
+    return {
+        "fraction_of_bounds": fraction,
+        "points": len(points),
+        "best_scan_objective": float(np.min(objective)),
+        "per_parameter": {
+            n: float(np.min(objective[np.asarray(labels) == n])) for n in problem.tune
+        },
+    }, len(points)
 
 
 def run_study(path, out: str | Path | None = None, progress: bool | None = None) -> dict:
@@ -333,14 +377,15 @@ def run_study(path, out: str | Path | None = None, progress: bool | None = None)
     simulations = {"optimiser": int(result.simulations)}
     report["tuned"] = list(problem.tune)
     report["optimiser"] = {
-        "starts": result.starts, "steps": result.steps, "compilations": result.compilations,
+        "starts": result.starts,
+        "steps": result.steps,
+        "compilations": result.compilations,
         "seconds": round(result.seconds, 2),
         "converged_runs": int(result.converged.sum()),
         "where_starts_ended": result.clusters(0),
     }
     plot_convergence(result, out / "convergence.png", title=study.name)
-    history = rj.simulate(result.best_params(0), problem.smoothing,
-                          ts=np.linspace(0.0, 3.0, 3001))
+    history = rj.simulate(result.best_params(0), problem.smoothing, ts=np.linspace(0.0, 3.0, 3001))
     plot_history(history, out / "best_history.png", title=f"{study.name}: best design")
 
     check = study.check
@@ -353,18 +398,22 @@ def run_study(path, out: str | Path | None = None, progress: bool | None = None)
             "objective_at_nominal": float(problem.objective(hard.metrics())),
             "max_relative_difference": max(
                 abs(float(getattr(hard, name)) - float(getattr(smooth, name)))
-                / max(abs(float(getattr(smooth, name))), 1e-12) for name in rj.METRICS),
+                / max(abs(float(getattr(smooth, name))), 1e-12)
+                for name in rj.METRICS
+            ),
         }
         simulations["hard_check"] = 1
     if "grid" in check:
         report["grid_check"], n = _grid_check(study, result, check["grid"])
         report["grid_check"]["optimiser_minus_grid"] = (
-            report["objective"] - report["grid_check"]["grid_best_objective"])
+            report["objective"] - report["grid_check"]["grid_best_objective"]
+        )
         simulations["grid_check"] = n
     if "local" in check:
         report["local_check"], n = _local_check(study, result, float(check["local"]))
         report["local_check"]["optimiser_minus_best_scan"] = (
-            report["objective"] - report["local_check"]["best_scan_objective"])
+            report["objective"] - report["local_check"]["best_scan_objective"]
+        )
         simulations["local_check"] = n
     if check.get("nominal") and problem.objective.scatter is not None:
         report["nominal_comparison"], n = _nominal_comparison(study, result, kwargs, out)
@@ -389,7 +438,8 @@ def _run_front(study: Study, front: dict, kwargs: dict) -> tuple[dict, int]:
     vary, values = front["vary"], front["values"]
     if vary in rj.PARAMETERS:
         scenarios = jax.vmap(lambda v: rj.with_values(problem.params, (vary,), v[None]))(
-            np.asarray(values))
+            np.asarray(values)
+        )
         result = rj.optimise(problem, scenarios=scenarios, **kwargs)
     else:
         result = rj.optimise(problem, scenario_limits={vary: values}, **kwargs)
@@ -399,9 +449,16 @@ def _run_front(study: Study, front: dict, kwargs: dict) -> tuple[dict, int]:
             rows.append({vary: value, "feasible": False})
             continue
         summary = _best_summary(study, result, s)
-        rows.append({vary: value, "feasible": True, "objective": summary["objective"],
-                     "best": summary["best"], "metrics": summary["metrics"],
-                     "constraints": summary["constraints"]})
+        rows.append(
+            {
+                vary: value,
+                "feasible": True,
+                "objective": summary["objective"],
+                "best": summary["best"],
+                "metrics": summary["metrics"],
+                "constraints": summary["constraints"],
+            }
+        )
     return {"vary": vary, "points": rows}, int(result.simulations)
 
 
@@ -422,21 +479,36 @@ def _plot_front(table: dict, out: Path) -> None:
     x = [r[vary] for r in rows]
     force = [r["metrics"][force_key] for r in rows]
     displacement = [r["metrics"][displacement_key] for r in rows]
-    plot_series({"best design": (x, force)}, out / f"front_{vary}.png",
-                xlabel=_label(vary), ylabel=rj.METRICS["peak_anchoring_force"].label,
-                title=f"Pareto front: peak anchoring force vs {vary}")
-    plot_series({"best design": (displacement, force)},
-                out / f"front_{vary}_force_vs_displacement.png",
-                xlabel="peak barrel displacement (mm)",
-                ylabel=rj.METRICS["peak_anchoring_force"].label, xscale=1e3,
-                title="peak anchoring force vs peak displacement")
+    plot_series(
+        {"best design": (x, force)},
+        out / f"front_{vary}.png",
+        xlabel=_label(vary),
+        ylabel=rj.METRICS["peak_anchoring_force"].label,
+        title=f"Pareto front: peak anchoring force vs {vary}",
+    )
+    plot_series(
+        {"best design": (displacement, force)},
+        out / f"front_{vary}_force_vs_displacement.png",
+        xlabel="peak barrel displacement (mm)",
+        ylabel=rj.METRICS["peak_anchoring_force"].label,
+        xscale=1e3,
+        title="peak anchoring force vs peak displacement",
+    )
     stroke_key = rj.METRICS["max_stroke"].key
-    lines = [f"{vary},{force_key},{displacement_key},{stroke_key},"
-             + ",".join(rows[0]["best"])]
+    lines = [f"{vary},{force_key},{displacement_key},{stroke_key}," + ",".join(rows[0]["best"])]
     for r in rows:
-        lines.append(",".join(f"{v:.9g}" for v in [
-            r[vary], r["metrics"][force_key], r["metrics"][displacement_key],
-            r["metrics"][stroke_key], *r["best"].values()]))
+        lines.append(
+            ",".join(
+                f"{v:.9g}"
+                for v in [
+                    r[vary],
+                    r["metrics"][force_key],
+                    r["metrics"][displacement_key],
+                    r["metrics"][stroke_key],
+                    *r["best"].values(),
+                ]
+            )
+        )
     (out / f"front_{vary}.csv").write_text("\n".join(lines) + "\n")
 
 
@@ -449,19 +521,32 @@ def _nominal_comparison(study: Study, result, kwargs: dict, out: Path) -> tuple[
     assert problem.objective.scatter is not None
     name, offsets = problem.objective.scatter
     nominal_problem = dataclasses.replace(
-        problem, objective=dataclasses.replace(problem.objective, scatter=None))
+        problem, objective=dataclasses.replace(problem.objective, scatter=None)
+    )
     nominal = rj.optimise(nominal_problem, **kwargs)
     fine = np.linspace(min(offsets), max(offsets), 21)
     curves, report = {}, {}
-    for label, params in (("robust", result.best_params(0)),
-                          ("nominal", nominal.best_params(0))):
-        objectives = [float(problem.objective(r.metrics()))
-                      for r in _scattered(problem, params, fine)]
+    for label, params in (("robust", result.best_params(0)), ("nominal", nominal.best_params(0))):
+        objectives = [
+            float(problem.objective(r.metrics())) for r in _scattered(problem, params, fine)
+        ]
         curves[f"{label} design"] = (100 * fine, objectives)
-        report[label] = {"best": dict(zip(problem.tune, (float(x) for x in rj.values_of(
-                             params, problem.tune)), strict=True)),
-                         "objective_nominal": objectives[len(fine) // 2],
-                         "objective_worst": max(objectives)}
-    plot_series(curves, out / "robust_vs_nominal.png", xlabel=f"{name} offset (%)",
-                ylabel="objective", title="objective under scatter")
+        report[label] = {
+            "best": dict(
+                zip(
+                    problem.tune,
+                    (float(x) for x in rj.values_of(params, problem.tune)),
+                    strict=True,
+                )
+            ),
+            "objective_nominal": objectives[len(fine) // 2],
+            "objective_worst": max(objectives),
+        }
+    plot_series(
+        curves,
+        out / "robust_vs_nominal.png",
+        xlabel=f"{name} offset (%)",
+        ylabel="objective",
+        title="objective under scatter",
+    )
     return report, int(nominal.simulations) + 2 * len(fine)

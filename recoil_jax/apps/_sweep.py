@@ -49,13 +49,14 @@ def read_points(path) -> list[dict]:
         for name, value in point.items():
             if name not in NAMES:
                 raise rj.ParameterError(
-                    f"{path}, point {row}: unknown parameter {name!r}; known: "
-                    f"{', '.join(NAMES)}")
+                    f"{path}, point {row}: unknown parameter {name!r}; known: {', '.join(NAMES)}"
+                )
             try:
                 design[name] = float(value)
             except (TypeError, ValueError):
-                raise rj.ParameterError(f"{path}, point {row}: {name} = {value!r} is not a "
-                                        "number") from None
+                raise rj.ParameterError(
+                    f"{path}, point {row}: {name} = {value!r} is not a number"
+                ) from None
         designs.append(design)
     return designs
 
@@ -82,9 +83,13 @@ def write_results(result: rj.SweepResult, out: Path, meta: dict) -> list[Path]:
     for name, by_param in (result.gradients or {}).items():
         for parameter, v in by_param.items():
             arrays[f"grad_{rj.METRICS[name].key}__{parameter}"] = v
-    metadata = meta | {"swept": list(result.swept), "grid_shape": result.grid_shape,
-                       "n": len(result), "failed": len(result.failures()),
-                       "status_codes": rj.status_table()}
+    metadata = meta | {
+        "swept": list(result.swept),
+        "grid_shape": result.grid_shape,
+        "n": len(result),
+        "failed": len(result.failures()),
+        "status_codes": rj.status_table(),
+    }
     arrays["metadata"] = np.asarray(json.dumps(metadata))
     np.savez(out / "sweep.npz", **arrays)
     return [out / "sweep.csv", out / "sweep.npz"]
@@ -101,8 +106,10 @@ def write_figures(result: rj.SweepResult, out: Path) -> list[Path]:
         return figures
     shape, swept = result.grid_shape, result.swept
     grid_values = {n: result.values[n].reshape(shape) for n in swept}
-    plotted = {"peak_displacement": "fig6_peak_displacement_vs_gap",
-               "peak_anchoring_force": "fig10_peak_anchoring_force_vs_gap"}
+    plotted = {
+        "peak_displacement": "fig6_peak_displacement_vs_gap",
+        "peak_anchoring_force": "fig10_peak_anchoring_force_vs_gap",
+    }
     if "gap" in swept and len(swept) <= 2:
         other = [n for n in swept if n != "gap"]
         for name, filename in plotted.items():
@@ -119,8 +126,16 @@ def write_figures(result: rj.SweepResult, out: Path) -> list[Path]:
                     series[f"{other[0]} = {value:g}{unit and ' ' + unit}"] = (gaps, row)
             else:
                 series["design"] = (grid_values["gap"], data)
-            figures.append(plot_series(series, out / f"{filename}.png", xlabel="gap (mm)",
-                                       ylabel=label, xscale=1e3, title=label + " vs gap"))
+            figures.append(
+                plot_series(
+                    series,
+                    out / f"{filename}.png",
+                    xlabel="gap (mm)",
+                    ylabel=label,
+                    xscale=1e3,
+                    title=label + " vs gap",
+                )
+            )
     if len(swept) >= 2:
         x_name, y_name = swept[1], swept[0]
         # Heatmaps over the first two swept parameters (others at their first value).
@@ -129,16 +144,32 @@ def write_figures(result: rj.SweepResult, out: Path) -> list[Path]:
         y = grid_values[y_name][index][:, 0]
         for name in plotted:
             data = result.peaks[name].reshape(shape)[index]
-            figures.append(plot_heatmap(
-                x, y, data, out / f"heatmap_{rj.METRICS[name].key}.png",
-                xlabel=_label(x_name), ylabel=_label(y_name), label=rj.METRICS[name].label))
+            figures.append(
+                plot_heatmap(
+                    x,
+                    y,
+                    data,
+                    out / f"heatmap_{rj.METRICS[name].key}.png",
+                    xlabel=_label(x_name),
+                    ylabel=_label(y_name),
+                    label=rj.METRICS[name].label,
+                )
+            )
         gradients = (result.gradients or {}).get("peak_anchoring_force", {})
         if "gap" in gradients:
             data = gradients["gap"].reshape(shape)[index]
-            figures.append(plot_heatmap(
-                x, y, data, out / "map_dF_AN_dgap.png", xlabel=_label(x_name),
-                ylabel=_label(y_name), label="∂(peak anchoring force)/∂gap (N/m)",
-                diverging=True))
+            figures.append(
+                plot_heatmap(
+                    x,
+                    y,
+                    data,
+                    out / "map_dF_AN_dgap.png",
+                    xlabel=_label(x_name),
+                    ylabel=_label(y_name),
+                    label="∂(peak anchoring force)/∂gap (N/m)",
+                    diverging=True,
+                )
+            )
     return figures
 
 
@@ -165,28 +196,36 @@ def run_sweep(args) -> int:
             axes[name] = values
     if args.points:
         if axes:
-            raise rj.ParameterError("with --points, other parameters can only be fixed "
-                                    "(name=value), not swept")
+            raise rj.ParameterError(
+                "with --points, other parameters can only be fixed (name=value), not swept"
+            )
         designs = [fixed | design for design in read_points(args.points)]
         result = rj.sweep(designs, progress=not args.json)
     else:
         if not axes:
-            raise rj.ParameterError("nothing to sweep: give at least one list a,b,c or "
-                                    "range start:stop:count, or --points FILE")
+            raise rj.ParameterError(
+                "nothing to sweep: give at least one list a,b,c or "
+                "range start:stop:count, or --points FILE"
+            )
         wrt = ("gap",) if "gap" in axes else None
         result = rj.sweep_grid(axes, fixed, wrt=wrt, progress=not args.json)
     if args.json:
         print(json.dumps(result.records()))
     else:
         ok = int(result.ok.sum())
-        print(f"swept {len(result)} designs in {result.seconds:.1f} s "
-              f"({len(result) / max(result.seconds, 1e-9):.0f}/s): {ok} ok, "
-              f"{len(result) - ok} failed")
+        print(
+            f"swept {len(result)} designs in {result.seconds:.1f} s "
+            f"({len(result) / max(result.seconds, 1e-9):.0f}/s): {ok} ok, "
+            f"{len(result) - ok} failed"
+        )
         force = result.peaks["peak_anchoring_force"]
         best = int(np.nanargmin(np.where(result.ok, force, np.nan))) if ok else None
         if best is not None:
-            design = ", ".join(f"{k}={result.values[k][best]:g}" for k in
-                               (result.swept or ("m", "gap")) if k in result.values)
+            design = ", ".join(
+                f"{k}={result.values[k][best]:g}"
+                for k in (result.swept or ("m", "gap"))
+                if k in result.values
+            )
             print(f"lowest peak anchoring force: {force[best]:.2f} N at {design}")
     if args.out:
         out = Path(args.out)
