@@ -83,7 +83,7 @@ line = rj.sweep({"m": np.full_like(gaps_fine, 1500.0), "gap": gaps_fine}, wrt=("
 fig, axes = plt.subplots(3, 1, figsize=(8, 8), sharex=True)
 axes[0].plot(1e3 * gaps_fine, line.peaks["peak_anchoring_force"])
 axes[0].set_ylabel("peak F_AN (N)")
-axes[1].plot(1e3 * gaps_fine, line.peaks["peak_anchoring_force_time_s"], ".")
+axes[1].plot(1e3 * gaps_fine, line.peaks["peak_anchoring_force_time"], ".")
 axes[1].set_ylabel("time of the peak (s)")
 axes[2].plot(1e3 * gaps_fine, line.gradients["peak_anchoring_force"]["gap"])
 axes[2].set_ylabel("dF/dgap (N/m)")
