@@ -56,14 +56,20 @@ def placeholder_steps(t0, y0, count):
 
 
 _REFINE_ITERATIONS = 4
+_GRID = 16
+_ZOOMS = 4
 
 
 def polish(solver, args, vector_fn, best, best_time, best_step):
     """Refine each peak on the solver's own dense polynomial (Tsit5's 4th-order
-    interpolant of the step holding it), by successive parabolic interpolation started
-    from the Hermite estimate; kept where it raises the interpolated value. Maxima at a
-    step's end are solver points and keep their value. Derivative-free, so it adds
-    little to compile times under `jacfwd`/`grad`.
+    interpolant of the step holding it): the best of the Hermite estimate and nested
+    grids over the step (`_ZOOMS` levels of `_GRID` cells), then successive parabolic
+    interpolation from there;
+    kept where it raises the interpolated value. (The grid matters where a quantity is a
+    strongly nonlinear function of the state, as the orifice force is: there the cubic
+    Hermite estimate can sit far from the polynomial's maximum.) Maxima at a step's end
+    are solver points and keep their value. Derivative-free, so it adds little to compile
+    times under `jacfwd`/`grad`.
 
     `vector_fn(y, args)` is the stacked vector of tracked quantities, shape `(n,)`;
     `best`, `best_time` (`(n,)`) and `best_step` (per quantity, the dense info of the step
@@ -95,12 +101,26 @@ def polish(solver, args, vector_fn, best, best_time, best_step):
             t = jnp.clip(t + jnp.clip(shift, -h, h), step["t0"], step["t0"] + safe_dt)
             return t, 0.1 * h
 
-        t, _ = jax.lax.fori_loop(0, _REFINE_ITERATIONS, refine, (best_time, 1e-2 * safe_dt))
-        start, polished = values(jnp.stack([best_time, t]))
+        # The best of the Hermite estimate and nested grids over the step, each zooming
+        # into the two cells around the last one's best point.
+        begin, start = best_time, values(best_time[None])[0]
+        low, width = step["t0"], safe_dt
+        for _ in range(_ZOOMS):
+            grid = low + width * jnp.linspace(0.0, 1.0, _GRID + 1)
+            sampled = values(grid)
+            j = jnp.argmax(jnp.where(jnp.isfinite(sampled), sampled, -jnp.inf))
+            found = sampled[j] > start
+            begin = jnp.where(found, grid[j], begin)
+            start = jnp.where(found, sampled[j], start)
+            spacing = width / _GRID
+            low = jnp.clip(begin - spacing, step["t0"], step["t0"] + safe_dt - 2.0 * spacing)
+            width = 2.0 * spacing
+        t, _ = jax.lax.fori_loop(0, _REFINE_ITERATIONS, refine, (begin, width / 2.0))
+        polished = values(t[None])[0]
         interior = has_step & (best_time > step["t0"]) & (best_time < step["t1"])
         better = (polished > start) & jnp.isfinite(polished)
         value_i = jnp.where(interior, jnp.where(better, polished, start), best)
-        time_i = jnp.where(interior & better, t, best_time)
+        time_i = jnp.where(interior, jnp.where(better, t, begin), best_time)
         state_i = jnp.where(has_step, state(time_i), step["y0"])
         return value_i, time_i, state_i
 

@@ -30,6 +30,10 @@ from ._model import (
     contact_width,
     future_metric_bounds,
     initial_state,
+    load_jump,
+    load_stops,
+    metric_ceilings,
+    restart_step,
     tracked_metrics,
     vector_field,
 )
@@ -42,12 +46,13 @@ from ._params import (
     end_time,
     is_concrete,
     values_of,
+    with_default_tolerances,
     with_values,
 )
 from ._queue import queued_map
-from ._solve import peaks_of_run
+from ._solve import model_samples, peaks_of_run
 from ._status import raise_on_failure
-from ._stepping import PeakLoop, PeakRun, integrate_peaks
+from ._stepping import Events, PeakLoop, PeakRun, integrate_peaks
 
 __all__ = [
     "DESIGN_PARAMETERS",
@@ -81,18 +86,36 @@ def parameter_scale(name: str) -> float:
 
 
 def check_wrt(params: RecoilParams, wrt: tuple[str, ...]) -> None:
-    """Raise `ParameterError` unless `wrt` names distinct parameters that `params` has."""
+    """Raise `ParameterError` unless `wrt` names distinct real-valued parameters that
+    `params` has."""
     if not wrt:
         raise ParameterError("wrt is empty: name at least one parameter")
     for name in wrt:
         if name not in PARAMETERS:
             raise ParameterError(
                 f"cannot differentiate with respect to {name!r}; known parameters: "
-                f"{', '.join(PARAMETERS)}"
+                f"{PARAMETERS.names()}"
             )
-        if getattr(params, PARAMETERS[name].group) is None:
+        p = PARAMETERS[name]
+        if p.integer:
             raise ParameterError(
-                f"{name} is an absorber parameter, but this is the simplified model (absorber=None)"
+                f"cannot differentiate with respect to {name}: it is an integer count"
+            )
+        module = getattr(params, p.group)
+        if module is None:
+            if p.group == "absorber":
+                raise ParameterError(
+                    f"{name} is an absorber parameter, but this is the simplified model "
+                    "(absorber=None)"
+                )
+            raise ParameterError(
+                f"{name} belongs to the {p.group}, which this design does not have: give "
+                f"one of its parameters to add it"
+            )
+        if p.index is not None and p.index >= module.knots:
+            raise ParameterError(
+                f"{name}: this design's orifice has {module.knots} knots (orifice_0 ... "
+                f"orifice_{module.knots - 1})"
             )
     if len(set(wrt)) != len(wrt):
         raise ParameterError(f"wrt names a parameter twice: {wrt}")
@@ -214,10 +237,69 @@ def _sensitivity_metrics(z, args):
     return _augmented_metrics(z[: _state_size(smooth_max)], params, smoothing, smooth_max)
 
 
-def _sensitivity_bounds(z, args, time_left):
+def _sensitivity_bounds(z, args, t, t1):
     """`future_metric_bounds` of the state part of `z` (without smooth maxima)."""
     params, smoothing, _, _ = args
-    return future_metric_bounds(z[:_N_STATE], _model_args(params, smoothing), time_left)
+    return future_metric_bounds(z[:_N_STATE], _model_args(params, smoothing), t, t1)
+
+
+def _stops(params):
+    stops = load_stops(params)
+    assert stops is not None  # only called for designs with stops
+    return stops
+
+
+def _augmented_jump(t, y, params):
+    """`load_jump` of the state part; the smooth-max integrals do not jump."""
+    return y.at[:_N_STATE].set(load_jump(t, y[:_N_STATE], params))
+
+
+def _sensitivity_jump(before, t, z, args, wrt):
+    """The state and its sensitivities right after the stop `t` (from `z` at `before`,
+    one ULP earlier). For a jump `y⁺ = g(y⁻, θ)` at a time `τ(θ)`, the sensitivities jump
+    by `S⁺ = g_y (S⁻ + f⁻ τ_θ) + g_θ − f⁺ τ_θ`: the round's firing time moves with
+    `fire_interval`, and `f⁻ ≠ f⁺` where a force table starts or ends off zero."""
+    params, smoothing, smooth_max, t1 = args
+    n = _state_size(smooth_max)
+    y, sensitivities = z[:n], z[n:].reshape(-1, n)
+    theta = values_of(params, wrt)
+    index = jnp.argmin(jnp.abs(_stops(params) - t))
+
+    def stop_time(theta_):
+        return _stops(with_values(params, wrt, theta_))[index]
+
+    def jump(y_, theta_):
+        return _augmented_jump(t, y_, with_values(params, wrt, theta_))
+
+    after = jump(y, theta)
+    f_before = _augmented_vf(before, y, params, smoothing, smooth_max, t1)
+    f_after = _augmented_vf(t, after, params, smoothing, smooth_max, t1)
+
+    def column(s, d):
+        moved = jax.jvp(stop_time, (theta,), (d,))[1]
+        jumped = jax.jvp(jump, (y, theta), (s + f_before * moved, d))[1]
+        return jumped - f_after * moved
+
+    columns = jax.vmap(column)(sensitivities, _directions(wrt))
+    return jnp.concatenate([after, columns.reshape(-1)])
+
+
+@functools.cache
+def _sensitivity_events(wrt: tuple[str, ...]) -> Events:
+    """The load's stops, jumps and restarts for the sensitivity system (one per `wrt`)."""
+    return Events(
+        stops=lambda args: load_stops(args[0]),
+        jump=functools.partial(_sensitivity_jump, wrt=wrt),
+        restart=lambda args: restart_step(args[0]),
+    )
+
+
+def _events(params, wrt):
+    return None if params.load is None else _sensitivity_events(wrt)
+
+
+def _ceilings(args):
+    return metric_ceilings(args[0])
 
 
 def _sensitivity_setup(params, smoothing, wrt, smooth_max, t1):
@@ -238,23 +320,37 @@ def _sensitivity_post(args, run: PeakRun, wrt):
     """Gradients at the located peaks by the envelope theorem: `∇_y g · S(t*) + ∂g/∂θ`.
     Returns the peaks, their gradients, and (with a smooth max) the smooth maxima `(k,)`
     and their gradients `(k, len(wrt))`."""
-    params, smoothing, smooth_max, _ = args
+    params, smoothing, smooth_max, t1 = args
     n = _state_size(smooth_max)
     theta = values_of(params, wrt)
+    stops = None if params.load is None else load_stops(params)
 
-    def gradient_of_metric(i, state):
+    def gradient_of_metric(i, state, time):
         y, sensitivities = state[:n], state[n:].reshape(-1, n)
 
         def metric(y_, theta_):
             values = _augmented_metrics(y_, with_values(params, wrt, theta_), smoothing, smooth_max)
             return jnp.stack([values[name] for name in run.names])[i]
 
-        return jax.vmap(lambda s, d: jax.jvp(metric, (y, theta), (s, d))[1])(
+        directional = jax.vmap(lambda s, d: jax.jvp(metric, (y, theta), (s, d))[1])(
             sensitivities, _directions(wrt)
         )
+        if stops is None:
+            return directional
+        # A peak right after a round's firing (a velocity jump) stays at that instant,
+        # which moves with the parameters: add the metric's rate times the move.
+        index = jnp.argmin(jnp.abs(stops - time))
+        f = _augmented_vf(time, y, params, smoothing, smooth_max, t1)
+        rate = jax.jvp(lambda y_: metric(y_, theta), (y,), (f,))[1]
+        moved = jax.vmap(
+            lambda d: jax.jvp(
+                lambda th: _stops(with_values(params, wrt, th))[index], (theta,), (d,)
+            )[1]
+        )(_directions(wrt))
+        return directional + jnp.where(_stops(params)[index] == time, rate * moved, 0.0)
 
     indices = jnp.arange(run.best_state.shape[0])
-    directional = jax.vmap(gradient_of_metric)(indices, run.best_state)
+    directional = jax.vmap(gradient_of_metric)(indices, run.best_state, run.best_time)
     scales = jnp.asarray([parameter_scale(name) for name in wrt])
     grads = run.by_name(directional / scales)
     gradients = PeakGradients.of({name: m.sign * grads[name] for name, m in METRICS.items()}, wrt)
@@ -275,17 +371,35 @@ def sensitivity_solve(params, smoothing, options, wrt, smooth_max=None):
     maxima `(k,)` and their gradients `(k, len(wrt))`: one solve of the state with its
     sensitivities. Unjitted; `wrt` and `smooth_max.metrics` are static."""
     t1 = end_time(params, options)
+    options = with_default_tolerances(params, options)
     z0, args = _sensitivity_setup(params, smoothing, wrt, smooth_max, t1)
     # A smooth maximum integrates over all of [0, t1]: no stopping once the peaks settle.
     bounds = _sensitivity_bounds if smooth_max is None else None
     run = integrate_peaks(
-        _sensitivity_term(wrt), z0, args, t1, _sensitivity_metrics, options, bounds
+        _sensitivity_term(wrt),
+        z0,
+        args,
+        t1,
+        _sensitivity_metrics,
+        options,
+        bounds,
+        _events(params, wrt),
+        _ceilings,
+        **model_samples(params),
     )
     return _sensitivity_post(args, run, wrt)
 
 
 def _peak_gradients_batch(params, t1, smoothing, options, wrt, lanes):
-    loop = PeakLoop(_sensitivity_term(wrt), _sensitivity_metrics, options, _sensitivity_bounds)
+    loop = PeakLoop(
+        _sensitivity_term(wrt),
+        _sensitivity_metrics,
+        with_default_tolerances(params, options),
+        _sensitivity_bounds,
+        _events(params, wrt),
+        _ceilings,
+        **model_samples(params),
+    )
 
     def setup(design):
         p, end = design

@@ -13,18 +13,30 @@ import diffrax
 import jax.numpy as jnp
 
 from ._metrics import METRICS
-from ._params import RecoilParams, Smoothing
+from ._params import Buffer, Load, RecoilParams, Recuperator, Smoothing
 
 __all__ = [
+    "BOTTOM",
     "RECOIL_TERM",
     "Forces",
+    "breech_force",
+    "buffer_force",
     "characteristic_penetration",
     "contact_width",
     "forces",
     "future_metric_bounds",
     "initial_state",
+    "knot_crossing",
+    "load_jump",
+    "load_stops",
+    "metric_ceilings",
     "model_args",
+    "orifice_area",
     "positive_power",
+    "recuperator_energy",
+    "recuperator_force",
+    "remaining_impulse",
+    "restart_step",
     "signals",
     "smooth_relu",
     "tracked_metrics",
@@ -58,9 +70,10 @@ def positive_power(x, exponent):
 
 
 class Forces(NamedTuple):
-    """Internal forces of the system at one state (N). Signs: as they act on the barrel's
-    equation `M a_M = −recoil_spring − recoil_damper − coupling_spring − coupling_damper
-    − contact`."""
+    """The forces of the system at one state (N). Signs: as they act on the barrel's
+    equation `M a_M = breech − anchoring − coupling_spring − coupling_damper − contact`,
+    with `anchoring = recoil_spring + recoil_damper + buffer + recuperator`. Elements the
+    design does not have are `None`."""
 
     recoil_spring: jnp.ndarray  # k x_M
     recoil_damper: jnp.ndarray  # c(v_M) v_M
@@ -68,11 +81,18 @@ class Forces(NamedTuple):
     coupling_damper: jnp.ndarray  # c_r (v_M − v_m)
     contact: jnp.ndarray  # F_ct (>= 0, pushes the absorber forward)
     contact_elastic: jnp.ndarray  # k_c δ₊^n_c, the conservative part of F_ct
+    buffer: jnp.ndarray | None = None  # F_h, the hydraulic buffer's orifice force
+    recuperator: jnp.ndarray | None = None  # F_g, the gas recuperator
+    breech: jnp.ndarray | None = None  # F_b(t), the breech force (pulse or table loads)
 
     @property
     def anchoring(self):
-        """F_AN = k x_M + c(v_M) v_M: the load into the mounting (wall P)."""
-        return self.recoil_spring + self.recoil_damper
+        """F_AN = k x_M + c(v_M) v_M + F_h + F_g: the load into the mounting (wall P)."""
+        total = self.recoil_spring + self.recoil_damper
+        for part in (self.buffer, self.recuperator):
+            if part is not None:
+                total = total + part
+        return total
 
 
 def contact_width(params: RecoilParams, smoothing: Smoothing):
@@ -96,8 +116,84 @@ def characteristic_penetration(params: RecoilParams):
     return ((contact.n_c + 1.0) * energy / contact.k_c) ** (1.0 / (contact.n_c + 1.0))
 
 
-def forces(y, params: RecoilParams, smoothing: Smoothing, width_contact=None) -> Forces:
-    """All internal forces at state `y` (shape `(4,)`), smoothed as `smoothing` says.
+def orifice_area(x, buffer: Buffer, width_fraction=0.0):
+    """The orifice area `A_o(x)` (m²): linear between the knots at `x_a i/(K−1)`,
+    constant outside `[0, x_a]`, written as a sum of ramps at the knots,
+    `A_0 + Σ_i (s_i − s_{i−1}) max(0, x − x_i)` with `s_i` the slope after knot `i`. With
+    `width_fraction > 0` each ramp is `smooth_relu` over that fraction of the knot
+    spacing, so the profile is C² (exact outside the bands)."""
+    knots = jnp.asarray(buffer.orifice)
+    count = knots.shape[-1]
+    spacing = buffer.orifice_length / (count - 1)
+    positions = spacing * jnp.arange(count)
+    slopes = jnp.diff(knots) / spacing
+    turns = jnp.diff(jnp.concatenate([jnp.zeros(1), slopes, jnp.zeros(1)]))
+    ramps = smooth_relu(x - positions, width_fraction * spacing)
+    return knots[0] + jnp.sum(turns * ramps)
+
+
+def buffer_coefficient(buffer: Buffer):
+    """`ρ A_p³ / (2 C_d²)` (kg·m³): `F_h = coefficient · v|v| / A_o²`."""
+    return buffer.oil_density * buffer.piston_area**3 / (2.0 * buffer.discharge_coefficient**2)
+
+
+def buffer_force(x, v, buffer: Buffer, width_fraction=0.0):
+    """The throttling orifice's force `F_h = ρ A_p³ v|v| / (2 C_d² A_o(x)²)` (N); the
+    profile's knots smoothed over `width_fraction` of their spacing."""
+    area = orifice_area(x, buffer, width_fraction)
+    return buffer_coefficient(buffer) * v * jnp.abs(v) / area**2
+
+
+# The gas column is held at 0.99 L_r at most, so the force stays finite: a solve fails
+# (Status.bottomed_out) well before, once x_M reaches BOTTOM · L_r.
+BOTTOM = 0.95
+_HOLD = 0.99
+
+
+def recuperator_force(x, recuperator: Recuperator):
+    """The gas spring `F_g = F_r ((L_r / (L_r − x))^γ − 1)` (N), for `x < 0.99 L_r`."""
+    length = recuperator.recuperator_length
+    held = jnp.minimum(x, _HOLD * length)
+    ratio = length / (length - held)
+    return recuperator.recuperator_force * (ratio**recuperator.polytropic_index - 1.0)
+
+
+def recuperator_energy(x, recuperator: Recuperator):
+    """The gas spring's potential `∫_0^x F_g` (J), >= 0, for `x < 0.99 L_r`:
+    `F_r (L_r (r^(γ−1) − 1)/(γ − 1) − x)` with `r = L_r / (L_r − x)` (`L_r ln r − x` at γ = 1)."""
+    length = recuperator.recuperator_length
+    held = jnp.minimum(x, _HOLD * length)
+    log_ratio = jnp.log(length / (length - held))
+    g = recuperator.polytropic_index - 1.0
+    positive = g > 1e-12
+    safe_g = jnp.where(positive, g, 1.0)
+    integral = jnp.where(positive, jnp.expm1(g * log_ratio) / safe_g, log_ratio)
+    return recuperator.recuperator_force * (length * integral - held)
+
+
+def breech_force(t, params: RecoilParams):
+    """The breech force `F_b(t)` (N) of the design's rounds, fired at `j · fire_interval`:
+    a gamma pulse of momentum `M v0` each (`pulse_time > 0`), or the force table; zero
+    for impulse loads (their momentum enters as velocity jumps) and before each round."""
+    load = params.load
+    assert load is not None
+    delay = t - jnp.arange(load.shots) * load.fire_interval
+    if load.table is not None:
+        table = load.table
+        return jnp.sum(jnp.interp(delay, table.t, table.F, left=0.0, right=0.0))
+    tp = load.pulse_time
+    pulse = tp > 0
+    safe_tp = jnp.where(pulse, tp, 1.0)
+    started = delay >= 0
+    u = jnp.where(started, delay, 0.0) / safe_tp
+    momentum = params.barrel.M * params.barrel.v0
+    each = jnp.where(started, momentum / safe_tp * u * jnp.exp(-u), 0.0)
+    return jnp.where(pulse, jnp.sum(each), 0.0)
+
+
+def forces(y, params: RecoilParams, smoothing: Smoothing, width_contact=None, t=None) -> Forces:
+    """All forces at state `y` (shape `(4,)`), smoothed as `smoothing` says; the breech
+    force (designs with a pulse or table load) needs the time `t` (s).
 
     `width_contact` (m) may be passed precomputed (it depends only on the parameters).
     """
@@ -107,10 +203,18 @@ def forces(y, params: RecoilParams, smoothing: Smoothing, width_contact=None) ->
     # c(v) v = c_ret v + (c_out − c_ret) max(0, v): continuous, only its slope switches.
     recoil_damper = barrel.c_ret * v_M + (barrel.c_out - barrel.c_ret) * smooth_relu(v_M, width_v)
     recoil_spring = barrel.k * x_M
+    hardware = {}
+    if params.buffer is not None and params.buffer.orifice is not None:
+        fraction = 0.0 if smoothing.hard else smoothing.knot_width_fraction
+        hardware["buffer"] = buffer_force(x_M, v_M, params.buffer, fraction)
+    if params.recuperator is not None:
+        hardware["recuperator"] = recuperator_force(x_M, params.recuperator)
+    if params.load is not None and t is not None:
+        hardware["breech"] = breech_force(t, params)
     absorber = params.absorber
     if absorber is None:
         zero = jnp.zeros_like(x_M)
-        return Forces(recoil_spring, recoil_damper, zero, zero, zero, zero)
+        return Forces(recoil_spring, recoil_damper, zero, zero, zero, zero, **hardware)
     contact = params.contact
     if width_contact is None:
         width_contact = contact_width(params, smoothing)
@@ -128,6 +232,7 @@ def forces(y, params: RecoilParams, smoothing: Smoothing, width_contact=None) ->
         coupling_damper=absorber.c_r * (v_M - v_m),
         contact=elastic * damping_factor,
         contact_elastic=elastic,
+        **hardware,
     )
 
 
@@ -154,26 +259,35 @@ def tracked_metrics(y, args) -> dict[str, jnp.ndarray]:
     return {name: m.sign * values[m.signal] for name, m in METRICS.items()}
 
 
-def future_metric_bounds(y, args, time_left) -> dict[str, jnp.ndarray]:
-    """Upper bounds, valid for the rest of the run, on every tracked metric
+def future_metric_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
+    """Upper bounds, valid from time `t` to the end `t1` (s), on every tracked metric
     (`tracked_metrics`: x_M, F_AN, F_ct, x_m − x_M and x_M − x_m), by metric name, from
     the mechanical energy at state `y`.
 
-    The energy `E = ½M v_M² + ½m v_m² + ½k x_M² + ½k_r (x_M − x_m)² + U(δ)` (with the
-    contact potential `U`) never increases: the dampers, the contact's Hunt–Crossley
-    part and its no-pull clamp only dissipate. The one exception is the smoothed damping
-    switch, which can create at most `0.0215 |c_out − c_ret| w²` watts (0.0215 bounds
-    `|v| (r(v) − max(v, 0)) / w²` over the band); that is added for `time_left` seconds.
+    The energy `E = ½M v_M² + ½m v_m² + ½k x_M² + ½k_r (x_M − x_m)² + U(δ) + U_g(x_M)`
+    (with the contact potential `U` and the recuperator's `U_g`) never increases by
+    itself: the dampers, the buffer, the contact's Hunt–Crossley part and its no-pull
+    clamp only dissipate. Two things can add energy:
+
+    - the smoothed damping switch, at most `0.0215 |c_out − c_ret| w²` watts (0.0215
+      bounds `|v| (r(v) − max(v, 0)) / w²` over the band), added for the time left;
+    - the breech force still to come: with `I` the momentum still to be delivered
+      (`remaining_impulse`), `√E` grows by at most `I / √(2M)` (its power is
+      `F_b v <= |F_b| √(2E/M)`; an impulse `M v0` raises the kinetic energy's root by
+      `v0 √(M/2)`), so `√E* = √(E + switch energy) + I / √(2M)`.
+
     With `E*` bounding every later energy (Cauchy–Schwarz throughout):
 
-    - `x_M ≤ √(2E*/k)` and `F_AN ≤ √((k + c_out²/M) 2E*) + |c_out − c_ret| 3w/16`;
+    - `x_M ≤ √(2E*/k)` and `F_AN ≤ √((k + c_out²/M) 2E*) + |c_out − c_ret| 3w/16`, plus
+      the buffer's `ρA_p³ (2E*/M) / (2C_d² min A_o²)` and the recuperator's
+      `F_g(√(2E*/k))`;
     - `|x_M − x_m| ≤ √(2E*/k_r)`, `δ ≤ ((n_c+1) E*/k_c)^(1/(n_c+1))` and
       `|δ̇| ≤ √(2E* (1/M + 1/m))`, which bound the stroke and `F_ct`;
     - `F_ct = 0` once the wall can no longer reach the absorber.
 
     Returns `+inf` bounds where the dissipation argument fails (`λ_c w ≥ 1`). The peak
     loop stops once every bound is below its running peak. `args = model_args(params,
-    smoothing)`; `time_left` (s).
+    smoothing)`.
     """
     params, smoothing, width_contact = args
     barrel, absorber, contact = params.barrel, params.absorber, params.contact
@@ -181,7 +295,9 @@ def future_metric_bounds(y, args, time_left) -> dict[str, jnp.ndarray]:
     width_v = 0.0 if smoothing.hard else smoothing.damping_width
     spread = jnp.abs(barrel.c_out - barrel.c_ret)
     energy = 0.5 * barrel.M * v_M**2 + 0.5 * barrel.k * x_M**2
-    energy = energy + spread * _SWITCH_POWER * width_v**2 * jnp.maximum(time_left, 0.0)
+    energy = energy + spread * _SWITCH_POWER * width_v**2 * jnp.maximum(t1 - t, 0.0)
+    if params.recuperator is not None:
+        energy = energy + recuperator_energy(x_M, params.recuperator)
     if absorber is not None:
         # U(δ) <= k_c (δ + w)₊^(n+1) / (n+1), since the smoothed ramp r(s) <= (s + w)₊.
         relative = x_M - x_m
@@ -191,10 +307,22 @@ def future_metric_bounds(y, args, time_left) -> dict[str, jnp.ndarray]:
             + 0.5 * absorber.k_r * relative**2
             + contact.k_c * positive_power(reach, contact.n_c + 1.0) / (contact.n_c + 1.0)
         )
+    if params.load is not None:
+        root = jnp.sqrt(energy) + remaining_impulse(t, params) / jnp.sqrt(2.0 * barrel.M)
+        energy = root**2
     two_energy = 2.0 * energy
     damper_offset = spread * 3.0 * width_v / 16.0
     displacement = jnp.sqrt(two_energy / barrel.k)
     anchoring = jnp.sqrt((barrel.k + barrel.c_out**2 / barrel.M) * two_energy) + damper_offset
+    if params.buffer is not None and params.buffer.orifice is not None:
+        smallest = jnp.min(jnp.asarray(params.buffer.orifice))
+        anchoring = (
+            anchoring + buffer_coefficient(params.buffer) * (two_energy / barrel.M) / smallest**2
+        )
+    if params.recuperator is not None:
+        anchoring = anchoring + jnp.maximum(
+            recuperator_force(displacement, params.recuperator), 0.0
+        )
     if absorber is None:
         zero = jnp.zeros_like(displacement)
         return {
@@ -229,12 +357,47 @@ def future_metric_bounds(y, args, time_left) -> dict[str, jnp.ndarray]:
     return {name: jnp.where(valid, bound, inf) for name, bound in bounds.items()}
 
 
+def knot_crossing(t0, dt, evaluate, y0, y1, params: RecoilParams):
+    """The time in the step `[t0, t0 + dt]` at which the barrel crosses the orifice knot
+    next in its direction of motion, shape `(1,)` (`t0` if it crosses none): where the
+    orifice force may have a corner. From the straight line between the step's ends, then
+    one Newton step on the dense polynomial `evaluate(t)`."""
+    buffer = params.buffer
+    assert buffer is not None
+    count = jnp.shape(buffer.orifice)[-1]
+    spacing = buffer.orifice_length / (count - 1)
+    x0, x1 = y0[0], y1[0]
+    forward = x1 > x0
+    index = jnp.where(forward, jnp.floor(x0 / spacing) + 1.0, jnp.ceil(x0 / spacing) - 1.0)
+    knot = jnp.clip(index, 0.0, count - 1.0) * spacing
+    moved = x1 - x0
+    crossed = (moved != 0) & ((knot - x0) * (knot - x1) < 0)
+    fraction = jnp.where(crossed, (knot - x0) / jnp.where(moved != 0, moved, 1.0), 0.0)
+    t = t0 + fraction * dt
+    state = evaluate(t)
+    speed = state[1]
+    newton = jnp.where(speed != 0, (knot - state[0]) / jnp.where(speed != 0, speed, 1.0), 0.0)
+    t = jnp.clip(t + newton, t0, t0 + dt)
+    return jnp.where(crossed, t, t0)[None]
+
+
+def metric_ceilings(params: RecoilParams) -> dict[str, jnp.ndarray] | None:
+    """Values a tracked metric must stay below, by name, or None: the barrel must not
+    bottom the recuperator's gas column (`x_M < 0.95 L_r`)."""
+    if params.recuperator is None:
+        return None
+    return {"peak_displacement": BOTTOM * params.recuperator.recuperator_length}
+
+
 def vector_field(t, y, args):
     """`dy/dt` for `args = (params, smoothing, contact_width)`; the diffrax vector field."""
-    del t
     params, smoothing, width_contact = args
-    f = forces(y, params, smoothing, width_contact)
-    a_M = -(f.anchoring + f.coupling_spring + f.coupling_damper + f.contact) / params.barrel.M
+    f = forces(y, params, smoothing, width_contact, t=t)
+    internal = f.anchoring + f.coupling_spring + f.coupling_damper + f.contact
+    if f.breech is None:
+        a_M = -internal / params.barrel.M
+    else:
+        a_M = (f.breech - internal) / params.barrel.M
     if params.absorber is None:
         a_m = jnp.zeros_like(a_M)
     else:
@@ -251,8 +414,82 @@ def model_args(params: RecoilParams, smoothing: Smoothing):
     return (params, smoothing, contact_width(params, smoothing))
 
 
+def _impulse(load: Load):
+    """Whether each round is an impulse (a velocity jump of `v0`): no table and
+    `pulse_time == 0`."""
+    return jnp.logical_and(load.table is None, load.pulse_time <= 0)
+
+
 def initial_state(params: RecoilParams):
-    """`y(0) = (0, v0, 0, 0)`."""
+    """`y(0) = (0, v0, 0, 0)` for an impulse load; at rest for a pulse or table load."""
     v0 = jnp.asarray(params.barrel.v0, dtype=float)
     zero = jnp.zeros_like(v0)
+    if params.load is not None:
+        v0 = jnp.where(_impulse(params.load), v0, zero)
     return jnp.stack([zero, v0, zero, zero])
+
+
+def load_stops(params: RecoilParams):
+    """The times (s) at which a step must end, shape `(n,)`, or None (no load): the
+    firing of every later round, and with a force table each of its points for every
+    round, so that no short pulse or kink is stepped over."""
+    load = params.load
+    if load is None:
+        return None
+    firing = jnp.arange(load.shots) * jnp.asarray(load.fire_interval, dtype=float)
+    if load.table is None:
+        return firing[1:] if load.shots > 1 else None
+    knots = (firing[:, None] + jnp.asarray(load.table.t)[None, :]).reshape(-1)
+    return jnp.concatenate([firing[1:], knots])
+
+
+def load_jump(t, y, params: RecoilParams):
+    """The state right after a stop at time `t`: at a later round's firing under an
+    impulse load the barrel's velocity jumps by `v0`; otherwise unchanged."""
+    load = params.load
+    if load is None or load.shots == 1:
+        return y
+    firing = jnp.arange(1, load.shots) * jnp.asarray(load.fire_interval, dtype=float)
+    fired = jnp.any(firing == t) & _impulse(load)
+    return y.at[1].add(jnp.where(fired, params.barrel.v0, 0.0))
+
+
+def restart_step(params: RecoilParams):
+    """The longest first step at the start and after a stop (s): a fraction of the
+    pulse's rise time, so that the step-size controller cannot step over a pulse; no
+    limit (inf) for impulse and table loads (a table's points are stops)."""
+    load = params.load
+    if load is None or load.table is not None:
+        return jnp.inf
+    return jnp.where(load.pulse_time > 0, 0.25 * load.pulse_time, jnp.inf)
+
+
+def remaining_impulse(t, params: RecoilParams):
+    """An upper bound on the breech's momentum still to come after time `t` (N·s):
+    `∫_t^∞ |F_b|` plus the impulses of later rounds (0 without a load)."""
+    load = params.load
+    if load is None:
+        return 0.0
+    firing = jnp.arange(load.shots) * jnp.asarray(load.fire_interval, dtype=float)
+    delay = t - firing
+    momentum = params.barrel.M * params.barrel.v0
+    table = load.table
+    if table is not None:
+        times, force = jnp.asarray(table.t), jnp.abs(jnp.asarray(table.F))
+        # |F| is convex on each linear piece: the trapezoid of |F| bounds its integral.
+        pieces = 0.5 * (force[1:] + force[:-1]) * jnp.diff(times)
+        after = jnp.concatenate([jnp.cumsum(pieces[::-1])[::-1], jnp.zeros(1)])
+
+        def rest(d):
+            i = jnp.clip(jnp.searchsorted(times, d, side="right") - 1, 0, times.shape[0] - 2)
+            here = jnp.abs(jnp.interp(d, times, jnp.asarray(table.F)))
+            partial = 0.5 * (here + force[i + 1]) * (times[i + 1] - d) + after[i + 1]
+            return jnp.where(d <= times[0], after[0], jnp.where(d >= times[-1], 0.0, partial))
+
+        return jnp.sum(jnp.vectorize(rest)(delay))
+    tp = load.pulse_time
+    pulse = tp > 0
+    u = jnp.maximum(delay, 0.0) / jnp.where(pulse, tp, 1.0)
+    pulses = jnp.sum(momentum * (1.0 + u) * jnp.exp(-u))
+    impulses = momentum * jnp.sum(firing > t)
+    return jnp.where(pulse, pulses, impulses)

@@ -16,9 +16,12 @@ concrete inputs were built.
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import math
+import re
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any, ClassVar
 
 import equinox as eqx
@@ -28,15 +31,22 @@ import jax.numpy as jnp
 import numpy as np
 
 __all__ = [
+    "MAX_KNOTS",
+    "MIN_KNOTS",
     "PARAMETERS",
     "T1_LIMITS",
     "Absorber",
     "Barrel",
+    "Buffer",
     "Contact",
+    "ForceTable",
     "Limits",
+    "Load",
     "Parameter",
     "ParameterError",
+    "ParameterRegistry",
     "RecoilParams",
+    "Recuperator",
     "Smoothing",
     "SolverOptions",
     "check_value",
@@ -47,6 +57,7 @@ __all__ = [
     "params_from_values",
     "params_to_values",
     "values_of",
+    "with_default_tolerances",
     "with_values",
 ]
 
@@ -86,6 +97,13 @@ class Parameter(Limits):
     name: str
     group: str
     default: float
+    field: str = ""  # attribute in the group's pytree (default: the name)
+    index: int | None = None  # position in an array field (an orifice knot)
+    integer: bool = False  # an integer count (static: one compilation per value)
+
+    @property
+    def attribute(self) -> str:
+        return self.field or self.name
 
     @property
     def owner(self) -> str:
@@ -103,8 +121,8 @@ PAPER_PROJECTILE_MASS = 6.86
 PAPER_MUZZLE_VELOCITY = 564.0
 PAPER_BARREL_MASS = 5600.0
 
-#: The design parameters by flat name, in the order the command line lists them.
-PARAMETERS: dict[str, Parameter] = {
+# The scalar design parameters, in the order the command line lists them.
+_SCALARS: dict[str, Parameter] = {
     p.name: p
     for p in (
         Parameter(
@@ -221,8 +239,153 @@ PARAMETERS: dict[str, Parameter] = {
             documented=(0.0, 2.0),
             meaning="Hunt-Crossley damping factor",
         ),
+        Parameter(
+            name="pulse_time",
+            group="load",
+            default=0.0,
+            unit="s",
+            lower=0.0,
+            documented=(0.0, 0.02),
+            meaning="rise time of the breech-force pulse; 0 is the impulse",
+        ),
+        Parameter(
+            name="shots",
+            group="load",
+            default=1,
+            unit="",
+            lower=1.0,
+            integer=True,
+            documented=(1, 10),
+            meaning="rounds fired",
+        ),
+        Parameter(
+            name="fire_interval",
+            group="load",
+            default=0.5,
+            unit="s",
+            lower=0.0,
+            lower_open=True,
+            documented=(0.1, 5.0),
+            meaning="time between rounds",
+        ),
+        Parameter(
+            name="oil_density",
+            group="buffer",
+            default=870.0,
+            unit="kg/m^3",
+            lower=0.0,
+            lower_open=True,
+            documented=(700.0, 1000.0),
+            meaning="oil density of the hydraulic buffer",
+        ),
+        Parameter(
+            name="piston_area",
+            group="buffer",
+            default=0.0,
+            unit="m^2",
+            lower=0.0,
+            documented=(0.0, 0.02),
+            meaning="buffer piston area; 0 is no buffer",
+        ),
+        Parameter(
+            name="discharge_coefficient",
+            group="buffer",
+            default=0.7,
+            unit="",
+            lower=0.0,
+            lower_open=True,
+            upper=1.0,
+            documented=(0.5, 1.0),
+            meaning="orifice discharge coefficient",
+        ),
+        Parameter(
+            name="orifice_length",
+            group="buffer",
+            default=0.25,
+            unit="m",
+            lower=0.0,
+            lower_open=True,
+            documented=(0.05, 0.5),
+            meaning="stroke over which the orifice profile is given",
+        ),
+        Parameter(
+            name="recuperator_force",
+            group="recuperator",
+            default=0.0,
+            unit="N",
+            lower=0.0,
+            documented=(0.0, 2e4),
+            meaning="recuperator gas pressure times piston area; 0 is none",
+        ),
+        Parameter(
+            name="recuperator_length",
+            group="recuperator",
+            default=1.0,
+            unit="m",
+            lower=0.0,
+            lower_open=True,
+            documented=(0.3, 3.0),
+            meaning="recuperator gas column length",
+        ),
+        Parameter(
+            name="polytropic_index",
+            group="recuperator",
+            default=1.3,
+            unit="",
+            lower=1.0,
+            upper=1.67,
+            documented=(1.0, 1.67),
+            meaning="polytropic index of the recuperator gas",
+        ),
     )
 }
+
+#: Orifice knots: at least 2, at most this many (`orifice_0` ... `orifice_31`).
+MAX_KNOTS = 32
+MIN_KNOTS = 2
+_KNOT = Parameter(
+    name="orifice_<i>",
+    group="buffer",
+    field="orifice",
+    default=float("nan"),
+    unit="m^2",
+    lower=0.0,
+    lower_open=True,
+    documented=(1e-5, 1e-2),
+    meaning="orifice area at knot i, x = orifice_length * i / (K - 1)",
+)
+_KNOT_NAME = re.compile(r"orifice_(0|[1-9][0-9]?)")
+
+
+class ParameterRegistry(Mapping[str, Parameter]):
+    """The design parameters by flat name. Iterating gives the scalar parameters in the
+    order the command line lists them; the orifice knots `orifice_0` ... `orifice_31`
+    (`orifice_<i>`) are looked up by name like the others."""
+
+    def __init__(self, scalars: dict[str, Parameter]):
+        self._scalars = scalars
+
+    def __getitem__(self, name: str) -> Parameter:
+        if name in self._scalars:
+            return self._scalars[name]
+        match = _KNOT_NAME.fullmatch(name) if isinstance(name, str) else None
+        if match and int(match.group(1)) < MAX_KNOTS:
+            return dataclasses.replace(_KNOT, name=name, index=int(match.group(1)))
+        raise KeyError(name)
+
+    def __iter__(self):
+        return iter(self._scalars)
+
+    def __len__(self) -> int:
+        return len(self._scalars)
+
+    def names(self) -> str:
+        """Every name, for messages: the scalars, then the knot family."""
+        return ", ".join([*self._scalars, "orifice_<i>"])
+
+
+#: The design parameters by flat name (see `ParameterRegistry`).
+PARAMETERS = ParameterRegistry(_SCALARS)
 
 
 def parameter(name: str) -> Parameter:
@@ -231,9 +394,7 @@ def parameter(name: str) -> Parameter:
     try:
         return PARAMETERS[name]
     except KeyError:
-        raise ParameterError(
-            f"unknown parameter {name!r}; known: {', '.join(PARAMETERS)}"
-        ) from None
+        raise ParameterError(f"unknown parameter {name!r}; known: {PARAMETERS.names()}") from None
 
 
 def is_concrete(value: Any) -> bool:
@@ -403,16 +564,167 @@ class Contact(_Validated):
     LIMITS: ClassVar[Mapping[str, Limits]] = _group_limits("contact")
 
 
+class ForceTable(eqx.Module):
+    """A tabulated breech force of one round: `F` (N) at times `t` (s, from the round's
+    firing), linear between points and zero outside them; shape `(n,)` each, `n >= 2`,
+    `t` strictly increasing from `t[0] >= 0`. The table's integral is the round's
+    momentum (`Barrel.v0` is not used). `ForceTable.from_csv` reads a CSV file with the
+    header `t_s,F_N`."""
+
+    t: Any = eqx.field(converter=_as_float_array)
+    F: Any = eqx.field(converter=_as_float_array)
+
+    def __check_init__(self):
+        if not is_concrete((self.t, self.F)):
+            return
+        check_value("ForceTable", "t", self.t, Limits(unit="s", lower=0.0))
+        check_value("ForceTable", "F", self.F, Limits(unit="N", lower=-math.inf))
+        t, F = np.asarray(self.t), np.asarray(self.F)
+        if t.ndim < 1 or F.shape != t.shape or t.shape[-1] < 2:
+            raise ParameterError(
+                f"ForceTable: t and F must be of the same length >= 2, got shapes "
+                f"{t.shape} and {F.shape}"
+            )
+        times = t.reshape(-1, t.shape[-1])[0]  # a batch shares one table
+        steps = np.diff(times)
+        if np.any(steps <= 0):
+            i = int(np.argmax(steps <= 0)) + 1
+            raise ParameterError(
+                f"ForceTable.t[{i}] = {times[i]:g} s is invalid: times must increase "
+                f"strictly (t[{i - 1}] = {times[i - 1]:g} s)"
+            )
+
+    @classmethod
+    def from_csv(cls, path) -> ForceTable:
+        """Read a table from a CSV file whose header is `t_s,F_N` (seconds, newtons)."""
+        path = Path(path)
+        try:
+            rows = list(csv.DictReader(path.read_text().splitlines()))
+        except FileNotFoundError:
+            raise ParameterError(f"force table {path} not found") from None
+        if not rows or set(rows[0]) != {"t_s", "F_N"}:
+            raise ParameterError(f"{path}: expected a CSV with the header t_s,F_N")
+        try:
+            t = [float(r["t_s"]) for r in rows]
+            F = [float(r["F_N"]) for r in rows]
+        except (TypeError, ValueError):
+            raise ParameterError(f"{path}: every t_s and F_N must be a number") from None
+        return cls(t=t, F=F)
+
+
+class Load(_Validated):
+    """The breech force and the firing rhythm (`docs/model.md`, *Load*).
+
+    - `pulse_time` (s): 0 is the paper's impulse (the barrel starts at `v0`); `t_p > 0` is
+      a gamma pulse of the same momentum, `F_b = (M v0 / t_p) (t/t_p) exp(-t/t_p)`, with the
+      barrel starting at rest.
+    - `shots` (static): rounds fired, at `t_j = j · fire_interval`; each adds a velocity
+      jump of `v0` (impulse), or its own pulse or table.
+    - `fire_interval` (s): time between rounds.
+    - `table`: a `ForceTable` of one round, which replaces the pulse or impulse.
+    """
+
+    pulse_time: Any = _registered("pulse_time")
+    shots: int = eqx.field(default=1, static=True)
+    fire_interval: Any = _registered("fire_interval")
+    table: ForceTable | None = None
+
+    LIMITS: ClassVar[Mapping[str, Limits]] = {
+        n: p for n, p in _group_limits("load").items() if n != "shots"
+    }
+
+    def __check_init__(self):
+        super().__check_init__()
+        if isinstance(self.shots, bool) or not isinstance(self.shots, int) or self.shots < 1:
+            raise ParameterError(
+                f"Load.shots = {self.shots!r} is invalid: valid shots is an integer >= 1 "
+                "(rounds fired)"
+            )
+
+
+class Buffer(_Validated):
+    """The hydraulic recoil buffer with a throttling orifice (`docs/model.md`,
+    *Hydraulic buffer*): `F_h = ρ A_p³ v|v| / (2 C_d² A_o(x)²)`.
+
+    - `oil_density` ρ (kg/m³), `piston_area` A_p (m², 0: no buffer force),
+      `discharge_coefficient` C_d, `orifice_length` x_a (m).
+    - `orifice` (m², shape `(K,)`, 2 <= K <= 32): the orifice area at `x = x_a i/(K-1)`,
+      linear between knots and constant outside `[0, x_a]`; flat names `orifice_<i>`.
+    """
+
+    oil_density: Any = _registered("oil_density")
+    piston_area: Any = _registered("piston_area")
+    discharge_coefficient: Any = _registered("discharge_coefficient")
+    orifice_length: Any = _registered("orifice_length")
+    orifice: Any = _leaf(None)
+
+    LIMITS: ClassVar[Mapping[str, Limits]] = _group_limits("buffer")
+
+    def __check_init__(self):
+        super().__check_init__()
+        if self.orifice is None:
+            if is_concrete(self.piston_area) and np.any(np.asarray(self.piston_area) > 0):
+                raise ParameterError(
+                    "Buffer.piston_area > 0 needs the orifice: give the knots orifice_0 ... "
+                    f"orifice_<K-1> ({MIN_KNOTS} <= K <= {MAX_KNOTS}), areas in m^2"
+                )
+            return
+        count = self.knots
+        if not MIN_KNOTS <= count <= MAX_KNOTS:
+            raise ParameterError(
+                f"Buffer.orifice has {count} knots: valid {MIN_KNOTS} to {MAX_KNOTS} "
+                "(orifice_0 ... orifice_<K-1>)"
+            )
+        if is_concrete(self.orifice):
+            knots = np.asarray(self.orifice, dtype=np.float64).reshape(-1, count)
+            for i in range(count):
+                name = f"orifice_{i}"
+                check_value("Buffer", name, knots[:, i].squeeze(), PARAMETERS[name])
+
+    @property
+    def knots(self) -> int:
+        """K, the number of orifice knots (0 without an orifice)."""
+        return 0 if self.orifice is None else int(jnp.shape(self.orifice)[-1])
+
+
+class Recuperator(_Validated):
+    """The gas recuperator, a nonlinear air spring (`docs/model.md`, *Gas recuperator*):
+    `F_g = F_r ((L_r / (L_r - x_M))^γ - 1)`.
+
+    - `recuperator_force` F_r (N), `recuperator_length` L_r (m), `polytropic_index` γ.
+
+    A solve in which `x_M` reaches `0.95 L_r` fails with `Status.bottomed_out`.
+    """
+
+    recuperator_force: Any = _registered("recuperator_force")
+    recuperator_length: Any = _registered("recuperator_length")
+    polytropic_index: Any = _registered("polytropic_index")
+
+    LIMITS: ClassVar[Mapping[str, Limits]] = _group_limits("recuperator")
+
+
 class RecoilParams(eqx.Module):
     """All physical parameters of one design. `absorber=None` is the simplified model
-    (barrel, spring and damper only)."""
+    (barrel, spring and damper only). The hardware beyond the paper is optional:
+    `load=None` is one impulse of `v0`, `buffer=None` no hydraulic buffer,
+    `recuperator=None` no gas recuperator, each as in the paper."""
 
     barrel: Barrel = Barrel()
     absorber: Absorber | None = Absorber()
     contact: Contact = Contact()
+    load: Load | None = None
+    buffer: Buffer | None = None
+    recuperator: Recuperator | None = None
 
 
-_GROUPS: dict[str, type[_Validated]] = {"barrel": Barrel, "absorber": Absorber, "contact": Contact}
+_GROUPS: dict[str, type[_Validated]] = {
+    "barrel": Barrel,
+    "absorber": Absorber,
+    "contact": Contact,
+    "load": Load,
+    "buffer": Buffer,
+    "recuperator": Recuperator,
+}
 
 
 class Smoothing(_Validated):
@@ -428,15 +740,18 @@ class Smoothing(_Validated):
       `contact_width_fraction` × the characteristic penetration of a head-on impact,
       `δ* = ((n_c+1) μ v0² / (2 k_c))^(1/(n_c+1))` with `μ = M m / (M + m)`,
       so the relative smoothing error is the same over the whole range of `k_c`, `n_c`, `m`, `v0`.
+    - `knot_width_fraction`: the kinks of the orifice profile at its knots, over this
+      fraction of the knot spacing.
     - `hard=True` (static): the exact model with hard switches, same code path with
       zero widths (not differentiable at the switches; for reference and checks).
 
     See `docs/model.md`, *Smoothing*.
     """
 
-    damping_width: Any = _leaf(1e-3)
+    damping_width: Any = _leaf(1e-4)
     contact_width: Any = _leaf(None)
     contact_width_fraction: Any = _leaf(0.005)
+    knot_width_fraction: Any = _leaf(1e-4)
     hard: bool = eqx.field(default=False, static=True)
 
     LIMITS: ClassVar[Mapping[str, Limits]] = {
@@ -453,6 +768,13 @@ class Smoothing(_Validated):
             lower_open=True,
             documented=(1e-6, 1e-3),
             meaning="contact onset smoothing width",
+        ),
+        "knot_width_fraction": Limits(
+            unit="",
+            lower=0.0,
+            lower_open=True,
+            upper=0.5,
+            meaning="orifice knot smoothing width / knot spacing",
         ),
         "contact_width_fraction": Limits(
             unit="",
@@ -479,7 +801,10 @@ class SolverOptions(_Validated):
 
     - `t1` (s): end of the simulation; `None` (default) is the model's end time,
       `default_end_time` (10 s).
-    - `rtol`, `atol`: tolerances of the step-size controller (atol in SI units of the
+    - `rtol`, `atol`: tolerances of the step-size controller; `None` (default) is
+      1e-6 and 1e-9 for the paper's model, and 1e-7 and 1e-10 for designs with a load,
+      buffer or recuperator, whose peaks then agree with the hard-switch reference to
+      1e-4 (`with_default_tolerances`). atol is in SI units of the
       state: m and m/s).
     - `max_steps` (static): bound on solver steps (accepted + rejected); reaching it is
       reported as a failure, never a truncated result.
@@ -489,8 +814,8 @@ class SolverOptions(_Validated):
     """
 
     t1: Any = _leaf(None)
-    rtol: Any = _leaf(1e-6)
-    atol: Any = _leaf(1e-9)
+    rtol: Any = _leaf(None)
+    atol: Any = _leaf(None)
     max_steps: int = eqx.field(default=65536, static=True)
     autodiff: str = eqx.field(default="forward", static=True)
 
@@ -517,8 +842,29 @@ class SolverOptions(_Validated):
 
 
 def default_end_time(params: RecoilParams) -> Any:
-    """The model's end time when `SolverOptions.t1` is not given: 10 s (the paper's)."""
-    return jnp.full(jnp.shape(params.barrel.v0), 10.0)
+    """The model's end time when `SolverOptions.t1` is not given: 10 s after the last
+    round, `10 + (shots - 1) · fire_interval` (10 s, the paper's, for one round)."""
+    ten = jnp.full(jnp.shape(params.barrel.v0), 10.0)
+    load = params.load
+    if load is None or load.shots == 1:
+        return ten
+    return ten + (load.shots - 1) * jnp.asarray(load.fire_interval, dtype=float)
+
+
+def with_default_tolerances(params: RecoilParams, options: SolverOptions) -> SolverOptions:
+    """`options` with the tolerances it leaves to the design filled in: rtol 1e-6 and
+    atol 1e-9 for the paper's model; 1e-7 and 1e-10 with a load, buffer or recuperator
+    (pulses of hundreds of kN and the orifice's `v²/A²` need a tighter tolerance for the
+    peaks to hold 1e-4)."""
+    if options.rtol is not None and options.atol is not None:
+        return options
+    hardware = any(getattr(params, g) is not None for g in ("load", "buffer", "recuperator"))
+    rtol, atol = (1e-7, 1e-10) if hardware else (1e-6, 1e-9)
+    return dataclasses.replace(
+        options,
+        rtol=rtol if options.rtol is None else options.rtol,
+        atol=atol if options.atol is None else options.atol,
+    )
 
 
 def end_time(params: RecoilParams, options: SolverOptions) -> Any:
@@ -527,25 +873,44 @@ def end_time(params: RecoilParams, options: SolverOptions) -> Any:
     return jnp.asarray(t1, dtype=float)
 
 
+def _knots(names: dict[str, Any]) -> Any:
+    """The orifice knots given by flat name, as one array `(..., K)`; holes are errors."""
+    indices = sorted(PARAMETERS[n].index or 0 for n in names)
+    missing = [i for i in range(len(indices)) if i not in indices]
+    if missing:
+        raise ParameterError(
+            f"orifice knots must be numbered from 0 without holes: orifice_{missing[0]} is "
+            f"missing (given: {', '.join(f'orifice_{i}' for i in indices)})"
+        )
+    if len(indices) < MIN_KNOTS:
+        raise ParameterError(
+            f"orifice_0 alone is not a profile: give at least {MIN_KNOTS} knots "
+            "(orifice_0, orifice_1, ...)"
+        )
+    return jnp.stack(
+        [jnp.asarray(names[f"orifice_{i}"], dtype=float) for i in range(len(indices))], axis=-1
+    )
+
+
 def params_from_values(values: Mapping[str, Any] | None = None, **kwargs: Any) -> RecoilParams:
     """Build `RecoilParams` from flat parameter names (`PARAMETERS`).
 
     **Arguments:**
 
     - `values`, `**kwargs`: flat name → value (scalars, or arrays for a batch); names not
-      given take their defaults. `m = 0` gives the simplified model (no absorber).
+      given take their defaults. `m = 0` gives the simplified model (no absorber). The
+      load, buffer and recuperator are present when any of their parameters is given.
 
     **Returns:** the validated `RecoilParams`.
 
-    **Raises:** `ParameterError` for an unknown name, a value outside its valid range, or
-    absorber parameters given with `m = 0`.
+    **Raises:** `ParameterError` for an unknown name, a value outside its valid range,
+    absorber parameters given with `m = 0`, orifice knots with a hole or without
+    `piston_area`, or different `shots` in one batch.
     """
     values = {**(values or {}), **kwargs}
-    for name in values:
-        parameter(name)
     grouped: dict[str, dict[str, Any]] = {g: {} for g in _GROUPS}
     for name, value in values.items():
-        grouped[PARAMETERS[name].group][name] = value
+        grouped[parameter(name).group][name] = value
     m = grouped["absorber"].get("m", None)
     simplified = m is not None and is_concrete(m) and bool(np.all(np.asarray(m) == 0))
     if simplified:
@@ -558,16 +923,48 @@ def params_from_values(values: Mapping[str, Any] | None = None, **kwargs: Any) -
         absorber = None
     else:
         absorber = Absorber(**grouped["absorber"])
+    optional: dict[str, Any] = {}
+    load = dict(grouped["load"])
+    if load:
+        if "shots" in load:
+            shots = np.unique(np.asarray(load["shots"], dtype=float))
+            if shots.size != 1:
+                raise ParameterError(
+                    f"shots differ within one RecoilParams ({', '.join(f'{x:g}' for x in shots)}):"
+                    " shots is static; sweep() runs each value as its own group"
+                )
+            check_value("Load", "shots", shots[0], PARAMETERS["shots"])
+            if shots[0] != int(shots[0]):
+                raise ParameterError(
+                    f"Load.shots = {shots[0]:g} is invalid: valid shots is an integer >= 1 "
+                    "(rounds fired)"
+                )
+            load["shots"] = int(shots[0])
+        optional["load"] = Load(**load)
+    buffer = dict(grouped["buffer"])
+    if buffer:
+        knots = {n: buffer.pop(n) for n in list(buffer) if PARAMETERS[n].index is not None}
+        if knots and "piston_area" not in buffer:
+            first = min(knots, key=lambda n: PARAMETERS[n].index or 0)
+            raise ParameterError(
+                f"{first} is given without piston_area: the orifice throttles the buffer's "
+                "oil, so give piston_area (m^2) too"
+            )
+        optional["buffer"] = Buffer(**buffer, orifice=_knots(knots) if knots else None)
+    if grouped["recuperator"]:
+        optional["recuperator"] = Recuperator(**grouped["recuperator"])
     return RecoilParams(
         barrel=Barrel(**grouped["barrel"]),
         absorber=absorber,
         contact=Contact(**grouped["contact"]),
+        **optional,
     )
 
 
 def params_to_values(params: RecoilParams) -> dict[str, Any]:
     """Inverse of `params_from_values`: the flat name → value mapping (m = 0 for the
-    simplified model, whose other absorber parameters are absent)."""
+    simplified model, whose other absorber parameters are absent; absent hardware groups
+    give no names; the orifice knots come as `orifice_<i>`)."""
     out: dict[str, Any] = {}
     for name, p in PARAMETERS.items():
         module = getattr(params, p.group)
@@ -576,7 +973,23 @@ def params_to_values(params: RecoilParams) -> dict[str, Any]:
                 out[name] = 0.0
             continue
         out[name] = getattr(module, name)
+    if params.buffer is not None and params.buffer.orifice is not None:
+        for i in range(params.buffer.knots):
+            out[f"orifice_{i}"] = params.buffer.orifice[..., i]
     return out
+
+
+def _get(params: RecoilParams, p: Parameter) -> Any:
+    value = getattr(getattr(params, p.group), p.attribute)
+    return value if p.index is None else value[..., p.index]
+
+
+def _check_present(params: RecoilParams, p: Parameter) -> None:
+    module = getattr(params, p.group)
+    if module is None or (p.index is not None and p.index >= module.knots):
+        raise ParameterError(f"{p.name} is not part of this design (its {p.group} is absent)")
+    if p.integer:
+        raise ParameterError(f"{p.name} is an integer count: it cannot be set by value here")
 
 
 def with_values(params: RecoilParams, names: Sequence[str], values: Any) -> RecoilParams:
@@ -585,18 +998,20 @@ def with_values(params: RecoilParams, names: Sequence[str], values: Any) -> Reco
     inside transformations, are not)."""
     for j, name in enumerate(names):
         p = parameter(name)
+        _check_present(params, p)
         value = values[j]
         check_value(p.owner, name, value, p)
-        params = eqx.tree_at(
-            lambda q, g=p.group, f=name: getattr(getattr(q, g), f),
-            params,
-            jnp.asarray(value, dtype=float),
-        )
+        value = jnp.asarray(value, dtype=float)
+        if p.index is None:
+            params = eqx.tree_at(
+                lambda q, p=p: getattr(getattr(q, p.group), p.attribute), params, value
+            )
+        else:
+            knots = jnp.asarray(getattr(params, p.group).orifice).at[..., p.index].set(value)
+            params = eqx.tree_at(lambda q: q.buffer.orifice, params, knots)
     return params
 
 
 def values_of(params: RecoilParams, names: Sequence[str]) -> jax.Array:
     """The parameters `names` of `params` as one array, shape `(len(names),)`."""
-    return jnp.stack(
-        [jnp.asarray(getattr(getattr(params, PARAMETERS[n].group), n), dtype=float) for n in names]
-    )
+    return jnp.stack([jnp.asarray(_get(params, parameter(n)), dtype=float) for n in names])

@@ -2,9 +2,12 @@
 
 Shares no model code with the JAX model: the equations are written out again here in
 NumPy. Each switch (contact onset `δ = 0`, damping sign `v_M = 0`, the no-pull clamp
-`1 + λ_c δ̇ = 0`) ends an integration segment at an exactly located event, so every
-segment is smooth and the integrator keeps its full order. Peaks are located as events of
-their time derivatives (and checked at every segment end), not read off a grid.
+`1 + λ_c δ̇ = 0`, the barrel crossing an orifice knot) ends an integration segment at an
+exactly located event, and each round's firing and each point of a force table ends one
+too, so every segment is smooth and the integrator keeps its full order. Peaks are located
+as events of their time derivatives (and checked at every segment end), not read off a
+grid. A barrel that reaches 0.95 of the recuperator's gas column is reported
+(`status`), like the JAX model does.
 
 Used by the tests as ground truth across the documented ranges, and as the serial
 baseline of the benchmarks.
@@ -22,6 +25,8 @@ from ._params import params_from_values, params_to_values
 
 __all__ = ["reference_peaks"]
 
+_BOTTOM = 0.95  # the recuperator's gas column may be compressed to this fraction
+
 
 @dataclasses.dataclass(frozen=True)
 class _Mode:
@@ -30,25 +35,28 @@ class _Mode:
     moving_out: bool  # v_M > 0: damping c_out
     contact: bool  # δ > 0
     clamped: bool  # 1 + λ δ̇ < 0 while in contact: F_ct = 0
+    piece: int = 0  # the orifice piece x_M lies in: -1 below 0, K-1 beyond x_a
 
 
 @dataclasses.dataclass(frozen=True)
 class _Event:
     """A `solve_ivp` event: the zeros of `surface(t, y, mode)` crossed in `direction`
-    (0: either way); `terminal` ends the segment there."""
+    (0: either way); `terminal` ends the segment there, `kind` says which switch."""
 
     surface: Callable[[float, np.ndarray, _Mode], float]
     direction: float = 0.0
     terminal: bool = False
+    kind: str = ""
 
     def __call__(self, t, y, mode) -> float:
         return self.surface(t, y, mode)
 
 
 class _HardModel:
-    """The model with hard switches, for flat parameter values."""
+    """The model with hard switches, for flat parameter values and an optional force
+    table `(t, F)` of one round."""
 
-    def __init__(self, p: Mapping[str, float]):
+    def __init__(self, p: Mapping[str, float], table=None):
         self.M, self.k, self.c_out, self.c_ret, self.v0 = (
             p["M"],
             p["k"],
@@ -62,6 +70,68 @@ class _HardModel:
         self.k_r = p.get("k_r", 0.0)
         self.c_r = p.get("c_r", 0.0)
         self.k_c, self.n_c, self.lam = p["k_c"], p["n_c"], p["lambda_c"]
+        # Load: rounds at j·T; impulse (pulse_time = 0), gamma pulse, or table.
+        self.shots = int(p.get("shots", 1))
+        self.interval = p.get("fire_interval", 0.5)
+        self.pulse_time = p.get("pulse_time", 0.0)
+        self.table = None if table is None else (np.asarray(table[0]), np.asarray(table[1]))
+        self.impulse = self.table is None and self.pulse_time == 0.0
+        # Hydraulic buffer.
+        knots = [p[f"orifice_{i}"] for i in range(32) if f"orifice_{i}" in p]
+        self.knots = np.asarray(knots)
+        area = p.get("piston_area", 0.0)
+        self.buffer = len(knots) > 0
+        if self.buffer:
+            self.knot_x = p["orifice_length"] * np.arange(len(knots)) / (len(knots) - 1)
+            cd = p["discharge_coefficient"]
+            self.coefficient = p["oil_density"] * area**3 / (2.0 * cd**2)
+        # Gas recuperator.
+        self.recuperator = "recuperator_force" in p
+        if self.recuperator:
+            self.F_r = p["recuperator_force"]
+            self.L_r = p["recuperator_length"]
+            self.gamma = p["polytropic_index"]
+
+    # --- forces -----------------------------------------------------------------------
+    def firing_times(self) -> np.ndarray:
+        return self.interval * np.arange(self.shots)
+
+    def breech(self, t) -> float:
+        if self.impulse:
+            return 0.0
+        total = 0.0
+        for tj in self.firing_times():
+            tau = t - tj
+            if self.table is not None:
+                times, force = self.table
+                if times[0] <= tau <= times[-1]:
+                    total += float(np.interp(tau, times, force))
+            elif tau >= 0.0:
+                u = tau / self.pulse_time
+                total += self.M * self.v0 / self.pulse_time * u * np.exp(-u)
+        return total
+
+    def area(self, x, mode: _Mode) -> tuple[float, float]:
+        """The orifice area and its slope dA/dx on the mode's piece."""
+        K = len(self.knots)
+        if mode.piece < 0:
+            return self.knots[0], 0.0
+        if mode.piece >= K - 1:
+            return self.knots[-1], 0.0
+        i = mode.piece
+        slope = (self.knots[i + 1] - self.knots[i]) / (self.knot_x[i + 1] - self.knot_x[i])
+        return self.knots[i] + slope * (x - self.knot_x[i]), slope
+
+    def orifice(self, y, mode: _Mode) -> float:
+        if not self.buffer:
+            return 0.0
+        area, _ = self.area(y[0], mode)
+        return self.coefficient * y[1] * abs(y[1]) / area**2
+
+    def gas(self, x) -> float:
+        if not self.recuperator:
+            return 0.0
+        return self.F_r * ((self.L_r / (self.L_r - x)) ** self.gamma - 1.0)
 
     def damping(self, mode: _Mode) -> float:
         return self.c_out if mode.moving_out else self.c_ret
@@ -72,21 +142,29 @@ class _HardModel:
         delta = max(y[0] - y[2] - self.gap, 0.0)
         return self.k_c * delta**self.n_c * (1.0 + self.lam * (y[1] - y[3]))
 
+    def anchoring(self, y, mode: _Mode) -> float:
+        return self.k * y[0] + self.damping(mode) * y[1] + self.orifice(y, mode) + self.gas(y[0])
+
     def rhs(self, t, y, mode: _Mode):
         x_M, v_M, x_m, v_m = y
         coupling = (self.k_r * (x_M - x_m) + self.c_r * (v_M - v_m)) if self.absorber else 0.0
         f_ct = self.contact_force(y, mode)
-        a_M = (-self.damping(mode) * v_M - self.k * x_M - coupling - f_ct) / self.M
+        a_M = (self.breech(t) - self.anchoring(y, mode) - coupling - f_ct) / self.M
         a_m = (coupling + f_ct) / self.m if self.absorber else 0.0
         return np.array([v_M, a_M, v_m, a_m])
 
-    def anchoring(self, y, mode: _Mode) -> float:
-        return self.k * y[0] + self.damping(mode) * y[1]
-
-    def rates(self, y, mode: _Mode) -> tuple[float, float]:
+    def rates(self, t, y, mode: _Mode) -> tuple[float, float]:
         """Time derivatives of F_AN and F_ct within a mode."""
-        a = self.rhs(0.0, y, mode)
+        a = self.rhs(t, y, mode)
         d_anchor = self.k * y[1] + self.damping(mode) * a[1]
+        if self.buffer:
+            area, slope = self.area(y[0], mode)
+            d_anchor += self.coefficient * (
+                2.0 * abs(y[1]) * a[1] / area**2 - 2.0 * y[1] * abs(y[1]) * slope * y[1] / area**3
+            )
+        if self.recuperator:
+            ratio = self.L_r / (self.L_r - y[0])
+            d_anchor += self.F_r * self.gamma * ratio**self.gamma / (self.L_r - y[0]) * y[1]
         d_contact = 0.0
         if self.absorber and mode.contact and not mode.clamped:
             delta = max(y[0] - y[2] - self.gap, 0.0)
@@ -98,23 +176,26 @@ class _HardModel:
             )
         return d_anchor, d_contact
 
+    # --- events -----------------------------------------------------------------------
     def peak_events(self) -> list[_Event]:
         """Non-terminal surfaces where a tracked quantity may peak: the falling zeros of
         v_M, dF_AN/dt and dF_ct/dt, and every zero of the stroke rate."""
         return [
             _Event(lambda t, y, mode: y[1], direction=-1.0),
-            _Event(lambda t, y, mode: self.rates(y, mode)[0], direction=-1.0),
-            _Event(lambda t, y, mode: self.rates(y, mode)[1], direction=-1.0),
+            _Event(lambda t, y, mode: self.rates(t, y, mode)[0], direction=-1.0),
+            _Event(lambda t, y, mode: self.rates(t, y, mode)[1], direction=-1.0),
             _Event(lambda t, y, mode: y[1] - y[3]),
         ]
 
     def switch_events(self, mode: _Mode) -> list[_Event]:
         """Terminal events that fire only when leaving the current mode's region, so a
-        segment that starts on a switching surface cannot re-detect it. In order:
-        velocity, contact, clamp (those that apply)."""
+        segment that starts on a switching surface cannot re-detect it."""
         events = [
             _Event(
-                lambda t, y, mode: y[1], direction=-1.0 if mode.moving_out else 1.0, terminal=True
+                lambda t, y, mode: y[1],
+                direction=-1.0 if mode.moving_out else 1.0,
+                terminal=True,
+                kind="velocity",
             )
         ]
         if self.absorber:
@@ -123,6 +204,7 @@ class _HardModel:
                     lambda t, y, mode: y[0] - y[2] - self.gap,
                     direction=-1.0 if mode.contact else 1.0,
                     terminal=True,
+                    kind="contact",
                 )
             )
             if mode.contact and self.lam > 0:
@@ -131,28 +213,62 @@ class _HardModel:
                         lambda t, y, mode: 1.0 + self.lam * (y[1] - y[3]),
                         direction=1.0 if mode.clamped else -1.0,
                         terminal=True,
+                        kind="clamp",
                     )
                 )
+        if self.buffer:
+            K = len(self.knots)
+            if mode.piece >= 0:
+                low = self.knot_x[min(mode.piece, K - 1)]
+                events.append(_Event(lambda t, y, mode, b=low: y[0] - b, -1.0, True, "piece down"))
+            if mode.piece <= K - 2:
+                high = self.knot_x[mode.piece + 1]
+                events.append(_Event(lambda t, y, mode, b=high: y[0] - b, 1.0, True, "piece up"))
+        if self.recuperator:
+            bottom = _BOTTOM * self.L_r
+            events.append(_Event(lambda t, y, mode: y[0] - bottom, 1.0, True, "bottom"))
         return events
+
+    def piece(self, x, v) -> int:
+        """The orifice piece of position `x` (on a knot, the one `v` moves into)."""
+        if not self.buffer:
+            return 0
+        if x == 0.0 or np.any(x == self.knot_x):  # on a knot: step off it the way v goes
+            x = x + np.copysign(1e-12 * self.knot_x[-1], v if v != 0 else 1.0)
+        if x < 0:
+            return -1
+        return int(min(np.searchsorted(self.knot_x, x, side="right") - 1, len(self.knots) - 1))
 
     def initial_mode(self, y) -> _Mode:
         delta = y[0] - y[2] - self.gap
         contact = self.absorber and (delta > 0 or (delta == 0 and y[1] - y[3] > 0))
         clamped = contact and self.lam * (y[1] - y[3]) < -1.0
-        return _Mode(moving_out=y[1] > 0, contact=bool(contact), clamped=bool(clamped))
+        moving_out = y[1] > 0 or (y[1] == 0 and self.breech(0.0) > 0)
+        return _Mode(
+            moving_out=bool(moving_out),
+            contact=bool(contact),
+            clamped=bool(clamped),
+            piece=self.piece(y[0], y[1]),
+        )
 
-    def next_mode(self, mode: _Mode, fired: list[bool], y) -> _Mode:
-        """The mode after the switch events flagged in `fired` (same order as
-        `switch_events`)."""
-        velocity, contact, clamp = [*fired, False, False][:3]
-        moving_out = (not mode.moving_out) if velocity else mode.moving_out
-        in_contact = (not mode.contact) if contact else mode.contact
-        clamped = (not mode.clamped) if clamp else mode.clamped
+    def next_mode(self, mode: _Mode, fired: set[str], y) -> _Mode:
+        """The mode after the switch events of the kinds in `fired`."""
+        moving_out = (not mode.moving_out) if "velocity" in fired else mode.moving_out
+        in_contact = (not mode.contact) if "contact" in fired else mode.contact
+        clamped = (not mode.clamped) if "clamp" in fired else mode.clamped
         if not in_contact:
             clamped = False
-        elif contact:  # a new contact
+        elif "contact" in fired:  # a new contact
             clamped = self.lam * (y[1] - y[3]) < -1.0
-        return _Mode(moving_out=moving_out, contact=in_contact, clamped=bool(clamped))
+        piece = mode.piece + ("piece up" in fired) - ("piece down" in fired)
+        return _Mode(moving_out=moving_out, contact=in_contact, clamped=bool(clamped), piece=piece)
+
+    def stops(self, t1: float) -> np.ndarray:
+        """Segment ends known in advance: later rounds, and every table point."""
+        times = list(self.firing_times()[1:])
+        if self.table is not None:
+            times += [tj + ti for tj in self.firing_times() for ti in self.table[0]]
+        return np.unique([s for s in times if 0.0 < s < t1])
 
 
 class _RunningPeaks:
@@ -193,48 +309,57 @@ class _RunningPeaks:
 
 def reference_peaks(
     values: Mapping[str, float] | None = None,
-    t1: float = 10.0,
+    t1: float | None = None,
     rtol: float = 1e-12,
     atol: float = 1e-14,
     method: str = "DOP853",
     max_segments: int = 20000,
+    force_table=None,
 ) -> dict:
     """Peaks of the hard-switch model, by an independent scipy solver.
 
     **Arguments:**
 
     - `values`: flat parameter values (names as `params_from_values`; defaults fill in).
-    - `t1`: end time (s).
+    - `t1`: end time (s); default 10 s after the last round.
     - `rtol`, `atol`, `method`: `scipy.integrate.solve_ivp` settings per segment.
-    - `max_segments`: the most integration segments (one per switch event).
+    - `max_segments`: the most integration segments (one per switch event or stop).
+    - `force_table`: `(t, F)` of one round (s, N), replacing the impulse or pulse.
 
     **Returns:** the metrics by name with the times of the timed ones
     (`peak_anchoring_force`, `peak_anchoring_force_time`, ..., `min_stroke`,
-    `max_stroke`), and `segments`.
+    `max_stroke`), `segments`, and `status`: `"ok"`, or `"bottomed_out"` when x_M
+    reaches 0.95 of the recuperator's gas column (the peaks are then those up to there).
 
-    **Raises:** `RuntimeError` if more than `max_segments` switch events occur (contact
+    **Raises:** `RuntimeError` if more than `max_segments` segments are needed (contact
     chatter when the system comes to rest on the contact boundary, at gap 0 after
     ~1.5 s: use a shorter `t1` for such designs), or if scipy fails.
     """
     flat = params_to_values(params_from_values(values or {}))
-    model = _HardModel({name: float(np.asarray(v)) for name, v in flat.items()})
+    model = _HardModel({name: float(np.asarray(v)) for name, v in flat.items()}, force_table)
+    if t1 is None:
+        t1 = 10.0 + (model.shots - 1) * model.interval
     peak_events = model.peak_events()
     running = _RunningPeaks()
-    t, y = 0.0, np.array([0.0, model.v0, 0.0, 0.0])
+    t = 0.0
+    y = np.array([0.0, model.v0 if model.impulse else 0.0, 0.0, 0.0])
     mode = model.initial_mode(y)
     running.consider(model, t, y, mode)
+    stops = [*model.stops(t1), t1]
     segments = 0
-    while t < t1:
+    status = "ok"
+    while t < t1 and status == "ok":
         segments += 1
         if segments > max_segments:
             raise RuntimeError(
                 f"reference solver: more than {max_segments} switch events before t1 = {t1} "
                 f"(stopped at t = {t:.6g} s); use a shorter t1"
             )
+        end = next(s for s in stops if s > t)
         switches = model.switch_events(mode)
         sol = solve_ivp(
             model.rhs,
-            (t, t1),
+            (t, end),
             y,
             method=method,
             rtol=rtol,
@@ -251,6 +376,23 @@ def reference_peaks(
         t, y = sol.t[-1], sol.y[:, -1].copy()
         running.consider(model, t, y, mode)
         if sol.status == 1:
-            fired = [sol.t_events[len(peak_events) + i].size > 0 for i in range(len(switches))]
+            fired = {
+                event.kind
+                for i, event in enumerate(switches)
+                if sol.t_events[len(peak_events) + i].size > 0
+            }
+            if "bottom" in fired:
+                status = "bottomed_out"
             mode = model.next_mode(mode, fired, y)
-    return running.metrics() | {"segments": segments}
+        elif t < t1:  # a stop: a round fires (a velocity jump for an impulse load)
+            if model.impulse and np.any(
+                np.isclose(t, model.firing_times()[1:], rtol=0, atol=1e-12)
+            ):
+                y[1] += model.v0
+            mode = (
+                model.initial_mode(y)
+                if not model.buffer
+                else dataclasses.replace(model.initial_mode(y), piece=mode.piece)
+            )
+            running.consider(model, t, y, mode)
+    return running.metrics() | {"segments": segments, "status": status}

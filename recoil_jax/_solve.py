@@ -5,33 +5,85 @@ from __future__ import annotations
 
 from typing import Any
 
-import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._metrics import METRICS, Peaks
 from ._model import (
     RECOIL_TERM,
+    Forces,
     forces,
     future_metric_bounds,
     initial_state,
+    knot_crossing,
+    load_jump,
+    load_stops,
+    metric_ceilings,
     model_args,
+    restart_step,
     tracked_metrics,
 )
-from ._params import RecoilParams, Smoothing, SolverOptions, end_time
+from ._params import (
+    ParameterError,
+    RecoilParams,
+    Smoothing,
+    SolverOptions,
+    end_time,
+    is_concrete,
+    with_default_tolerances,
+)
 from ._queue import queued_map
-from ._status import Status, raise_on_failure
-from ._stepping import PeakLoop, PeakRun, integrate_peaks, make_controller, make_solver
+from ._status import raise_on_failure
+from ._stepping import Events, PeakLoop, PeakRun, integrate_peaks
 
 __all__ = [
+    "MODEL_EVENTS",
     "History",
+    "model_ceilings",
+    "model_events",
+    "model_samples",
     "peak_metrics",
     "peaks",
     "peaks_batch",
     "peaks_of_run",
     "simulate",
 ]
+
+
+#: The model's load events, for `args = model_args(params, smoothing)`.
+MODEL_EVENTS = Events(
+    stops=lambda args: load_stops(args[0]),
+    jump=lambda before, t, y, args: load_jump(t, y, args[0]),
+    restart=lambda args: restart_step(args[0]),
+)
+
+
+def model_events(params: RecoilParams) -> Events | None:
+    """`MODEL_EVENTS` for a design with a load; None (no stops) without one."""
+    return None if params.load is None else MODEL_EVENTS
+
+
+def model_samples(params: RecoilParams) -> dict:
+    """Where else in each step the peaks are looked for (`samples`, `kinks_fn` of
+    `PeakLoop`): with a throttling orifice, whose force (`∝ v²/A(x)²`) is far from cubic
+    over a step and has a corner at each knot (smoothed over a band narrower than a
+    step), at 3 interior points and where the barrel crosses a knot; else nowhere."""
+    buffer = params.buffer
+    if buffer is None or buffer.orifice is None:
+        return {}
+    return {
+        "samples": 3,
+        "kinks_fn": lambda t0, dt, evaluate, z0, z1, args: knot_crossing(
+            t0, dt, evaluate, z0, z1, args[0]
+        ),
+    }
+
+
+def model_ceilings(args):
+    """`metric_ceilings` of the model's `args`."""
+    return metric_ceilings(args[0])
 
 
 def peaks_of_run(run: PeakRun) -> Peaks:
@@ -75,8 +127,11 @@ def peak_metrics(
         args,
         end_time(params, options),
         tracked_metrics,
-        options,
+        with_default_tolerances(params, options),
         future_metric_bounds,
+        model_events(params),
+        model_ceilings,
+        **model_samples(params),
     )
     return peaks_of_run(run)
 
@@ -115,8 +170,12 @@ def peaks(
 class History(eqx.Module):
     """Time histories on the save grid `ts` (shape `(n,)`, s); each field has shape `(n,)`.
 
-    `x_M, v_M, x_m, v_m` (m, m/s), `anchoring_force` F_AN (N), `contact_force` F_ct (N);
-    `status` (a `Status`) says whether the solve reached `t1`.
+    - `x_M, v_M, x_m, v_m` (m, m/s): the state.
+    - `anchoring_force` F_AN (N), `contact_force` F_ct (N).
+    - `forces`: every force of the design (`Forces`: spring, damper, buffer, recuperator,
+      breech, coupling, contact; `None` for elements it does not have), shape `(n,)` each.
+    - `peaks`: the `Peaks` of the same solve, over all of `[0, t1]`.
+    - `status` (a `Status`) says whether the solve reached `t1`.
     """
 
     ts: jax.Array
@@ -126,32 +185,28 @@ class History(eqx.Module):
     v_m: jax.Array
     anchoring_force: jax.Array
     contact_force: jax.Array
+    forces: Forces
+    peaks: Peaks
     status: Any
 
 
 @eqx.filter_jit
 def _simulate_jit(params, smoothing, options, ts, throw: bool) -> History:
     args = model_args(params, smoothing)
-    solution = diffrax.diffeqsolve(
+    run = integrate_peaks(
         RECOIL_TERM,
-        make_solver(options),
-        t0=0.0,
-        t1=end_time(params, options),
-        dt0=None,
-        y0=initial_state(params),
-        args=args,
-        saveat=diffrax.SaveAt(ts=ts),
-        stepsize_controller=make_controller(options),
-        max_steps=options.max_steps,
-        throw=False,
+        initial_state(params),
+        args,
+        end_time(params, options),
+        tracked_metrics,
+        with_default_tolerances(params, options),
+        events=model_events(params),
+        ceilings_fn=model_ceilings,
+        save_ts=ts,
+        **model_samples(params),
     )
-    ys = solution.ys
-    assert ys is not None
-    f = jax.vmap(lambda y: forces(y, params, smoothing, args[2]))(ys)
-    ok = solution.result == diffrax.RESULTS.successful
-    max_steps = solution.result == diffrax.RESULTS.max_steps_reached
-    status = Status.where(ok, Status.ok, Status.where(max_steps, Status.max_steps, Status.failed))
-    status = Status.where(ok & ~jnp.all(jnp.isfinite(ys)), Status.nonfinite, status)
+    ys = run.saved
+    f = jax.vmap(lambda t, y: forces(y, params, smoothing, args[2], t=t))(ts, ys)
     history = History(
         ts=ts,
         x_M=ys[:, 0],
@@ -160,9 +215,11 @@ def _simulate_jit(params, smoothing, options, ts, throw: bool) -> History:
         v_m=ys[:, 3],
         anchoring_force=f.anchoring,
         contact_force=f.contact,
-        status=status,
+        forces=f,
+        peaks=peaks_of_run(run),
+        status=run.status,
     )
-    return raise_on_failure(history, status) if throw else history
+    return raise_on_failure(history, run.status) if throw else history
 
 
 def simulate(
@@ -173,28 +230,46 @@ def simulate(
     *,
     throw: bool = True,
 ) -> History:
-    """Time histories of one design (diffrax's `diffeqsolve` with dense saving), jitted.
+    """Time histories of one design, jitted: the same stepping as `peaks` (run to `t1`),
+    with the state written at `ts` from the solver's dense polynomial.
 
     **Arguments:**
 
     - `params`, `smoothing`, `options`: as `peak_metrics`.
-    - `ts`: the save times (s), shape `(n,)`; default 4001 points over `[0, t1]`.
+    - `ts`: the save times (s), shape `(n,)`, sorted, within `[0, t1]`; default 4001
+      points over `[0, t1]`.
     - `throw`: raise if the solve fails (default).
 
     **Returns:** `History` on `ts`.
 
-    **Raises:** `SolveError` (with `throw=True`) if the solve fails; inside `jit` too.
+    **Raises:** `ParameterError` for save times that are not sorted or outside `[0, t1]`;
+    `SolveError` (with `throw=True`) if the solve fails, inside `jit` too.
     """
+    t1 = end_time(params, options)
     if ts is None:
-        ts = jnp.linspace(0.0, end_time(params, options), 4001)
+        ts = jnp.linspace(0.0, t1, 4001)
     ts = jnp.asarray(ts, dtype=float)
+    if is_concrete((ts, t1)):
+        times, end = np.asarray(ts), float(np.max(np.asarray(t1)))
+        if times.ndim != 1 or np.any(np.diff(times) < 0) or times.min() < 0 or times.max() > end:
+            raise ParameterError(
+                f"simulate: ts must be sorted save times within [0, t1 = {end:g} s]"
+            )
     return _simulate_jit(params, smoothing, options, ts, throw)
 
 
 def _peaks_batch(
     params: RecoilParams, t1, smoothing: Smoothing, options: SolverOptions, lanes: int
 ) -> Peaks:
-    loop = PeakLoop(RECOIL_TERM, tracked_metrics, options, future_metric_bounds)
+    loop = PeakLoop(
+        RECOIL_TERM,
+        tracked_metrics,
+        with_default_tolerances(params, options),
+        future_metric_bounds,
+        model_events(params),
+        model_ceilings,
+        **model_samples(params),
+    )
 
     def setup(design):
         p, end = design

@@ -34,7 +34,9 @@ class Status(eqx.Enumeration):
     )
     nonfinite = "the state became NaN or inf"
     step_underflow = "the step size underflowed (t + dt == t) before t1"
-    failed = "the diffrax solve failed"
+    bottomed_out = (
+        "the barrel bottomed out the gas recuperator: x_M reached 0.95 recuperator_length"
+    )
 
 
 #: What `peaks`, `simulate` and `peak_jacobian` raise when a solve fails and

@@ -11,7 +11,7 @@ that the lane scheduler (`queued_map`) can run many designs through the same loo
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import diffrax
 import equinox as eqx
@@ -23,13 +23,38 @@ from ._dense import hermite_max, placeholder_steps, polish
 from ._params import SolverOptions
 from ._status import Status
 
-__all__ = ["PeakLoop", "PeakRun", "integrate_peaks", "make_controller", "make_solver"]
+__all__ = [
+    "Events",
+    "PeakLoop",
+    "PeakRun",
+    "integrate_peaks",
+    "make_controller",
+    "make_solver",
+]
 
 # PID coefficients: damp the step-size oscillation at impacts (measured on a prototype).
 _PCOEFF, _ICOEFF = 0.3, 0.4
 
 #: `metrics_fn(y, args) -> {name: scalar}`: the quantities whose running maxima are kept.
 MetricsFn = Callable[[Any, Any], dict[str, Any]]
+
+
+class Events(NamedTuple):
+    """Known times at which the dynamics change (a load's rounds, a force table's points),
+    as three static functions of the loop's `args`:
+
+    - `stops(args)`: the times (s, shape `(n,)`) at which a step must end, or None. A
+      step ends one ULP before a stop (evaluations on its left side see the left limits),
+      and the next starts at the stop itself;
+    - `jump(t_before, t, z, args)`: the state at the stop `t`, from the state `z` one ULP
+      before it (a velocity jump, or `z` itself);
+    - `restart(args)`: the longest first step at t = 0 and after a stop (s), so that a
+      short pulse is not stepped over.
+    """
+
+    stops: Callable[[Any], Any]
+    jump: Callable[[Any, Any, Any, Any], Any]
+    restart: Callable[[Any], Any]
 
 
 class _Carry(eqx.Module):
@@ -50,6 +75,8 @@ class _Carry(eqx.Module):
     status: Any  # Status
     settled: jax.Array  # no quantity can exceed its running max any more
     names: tuple[str, ...] = eqx.field(static=True)
+    saved: Any = None  # (n_ts, n_state): the state at the save times, when saving
+    save_index: Any = None  # the first save time not yet written
 
 
 class PeakRun(eqx.Module):
@@ -64,6 +91,7 @@ class PeakRun(eqx.Module):
     num_attempts: jax.Array
     status: Any
     names: tuple[str, ...] = eqx.field(static=True)
+    saved: Any = None  # (n_ts, n_state), with `save_ts`
 
     def by_name(self, stacked) -> dict[str, Any]:
         """Rows of an array stacked in the order of `names`, keyed by name."""
@@ -105,17 +133,48 @@ def _end_times(t1):
     return t1, t1_floor
 
 
+def _before(t):
+    """The float just below `t`."""
+    return jnp.nextafter(t, jnp.full_like(t, -jnp.inf))
+
+
 class PeakLoop:
     """The stepping loop of `integrate_peaks`, in pieces. `term`, `metrics_fn`, `options`
-    and `bounds_fn` are static; the end time `t1` is per design (it is carried).
+    and the hooks are static; the end time `t1` is per design (it is carried).
 
-    `bounds_fn(z, args, time_left)`, if given, returns upper bounds on every tracked
-    quantity (by name) for the rest of the run; the loop stops (status ok) once none can
-    beat its running max, since the peaks over `[0, t1]` are then known."""
+    - `bounds_fn(z, args, t, t1)`, if given, returns upper bounds on every tracked
+      quantity (by name) for the rest of the run; the loop stops (status ok) once none
+      can beat its running max, since the peaks over `[0, t1]` are then known.
+    - `events` (`Events`), if given: the stops, jumps and restarts of a load.
+    - `ceilings_fn(args)`, if given, returns values (by name) that a tracked quantity
+      must stay below (or None); reaching one ends the solve with
+      `Status.bottomed_out`.
+    - `samples`: interior points of each step at which the tracked quantities are also
+      evaluated on the dense polynomial, beside the cubic Hermite estimate from the step's
+      ends (for quantities that are far from cubic over a step, such as the orifice
+      force); 0 for none.
+    - `kinks_fn(t0, dt, evaluate, z0, z1, args)`, if given, returns times in the step
+      (shape `(m,)`) where a tracked quantity may have a corner (the barrel crossing an
+      orifice knot); they are evaluated like the samples. `evaluate(t)` is the step's
+      dense polynomial.
+    - `save_ts` (shape `(n,)`, sorted), if given: the state is also written at these
+      times (`PeakRun.saved`), from the solver's dense polynomial.
+    """
 
-    def __init__(self, term, metrics_fn: MetricsFn, options: SolverOptions, bounds_fn=None):
+    def __init__(
+        self,
+        term,
+        metrics_fn: MetricsFn,
+        options: SolverOptions,
+        bounds_fn=None,
+        events: Events | None = None,
+        ceilings_fn=None,
+        samples: int = 0,
+        kinks_fn=None,
+    ):
         self.term, self.metrics_fn, self.options = term, metrics_fn, options
-        self.bounds_fn = bounds_fn
+        self.bounds_fn, self.events, self.ceilings_fn = bounds_fn, events, ceilings_fn
+        self.samples, self.kinks_fn = samples, kinks_fn
         self.solver, self.controller = make_solver(options), make_controller(options)
         self.error_order = self.solver.order(term) + 1
 
@@ -126,7 +185,10 @@ class PeakLoop:
     def _metric_and_rate(self, names, z, f, args):
         return jax.jvp(lambda x: self._vector(names, x, args), (z,), (f,))
 
-    def init(self, z0, args, t1) -> _Carry:
+    def _stops(self, args):
+        return None if self.events is None else self.events.stops(args)
+
+    def init(self, z0, args, t1, save_ts=None) -> _Carry:
         term, solver = self.term, self.solver
         t0 = jnp.zeros((), dtype=float)
         t1, _ = _end_times(t1)
@@ -134,9 +196,15 @@ class PeakLoop:
             term, t0, t1, z0, None, args, solver.func, self.error_order
         )
         t_next = jnp.minimum(t_next, t1)
+        if self.events is not None:
+            t_next = jnp.minimum(t_next, t0 + self.events.restart(args))
         f0 = term.vf(t0, z0, args)
         names = tuple(self.metrics_fn(z0, args))
         metric0, rate0 = self._metric_and_rate(names, z0, f0, args)
+        saved = save_index = None
+        if save_ts is not None:
+            saved = jnp.zeros((save_ts.shape[0], *z0.shape), z0.dtype)
+            saved, save_index = _write_saves(save_ts, saved, jnp.array(0), t0, lambda t: z0)
         return _Carry(
             t=t0,
             t_next=t_next,
@@ -158,20 +226,31 @@ class PeakLoop:
             status=Status.ok,
             settled=jnp.array(False),
             names=names,
+            saved=saved,
+            save_index=save_index,
         )
 
     def running(self, c: _Carry):
         return (c.t < c.t1) & (c.status == Status.ok) & ~c.settled
 
-    def body(self, c: _Carry, args) -> _Carry:
+    def body(self, c: _Carry, args, save_ts=None) -> _Carry:
         term, solver = self.term, self.solver
         t1, t1_floor = _end_times(c.t1)
-        dt = c.t_next - c.t
+        t_end = c.t_next
+        stops = self._stops(args)
+        upcoming, landing = jnp.inf, jnp.array(False)  # (set below when there are stops)
+        if stops is not None:
+            # The next stop: end the step one ULP before it, if the step would reach it.
+            upcoming = jnp.min(jnp.where(stops > c.t, stops, jnp.inf))
+            before = _before(upcoming)
+            landing = (upcoming < t1) & (c.t_next >= before)
+            t_end = jnp.where(landing, before, c.t_next)
+        dt = t_end - c.t
         z1, z_error, dense_info, solver_state, _ = solver.step(
-            term, c.t, c.t_next, c.y, args, c.solver_state, c.made_jump
+            term, c.t, t_end, c.y, args, c.solver_state, c.made_jump
         )
         keep, t_prev, t_next, made_jump, controller_state, _ = self.controller.adapt_step_size(
-            c.t, c.t_next, c.y, z1, args, z_error, self.error_order, c.controller_state
+            c.t, t_end, c.y, z1, args, z_error, self.error_order, c.controller_state
         )
         t_prev = jnp.minimum(t_prev, t1)
         t_next = jnp.where(
@@ -179,15 +258,38 @@ class PeakLoop:
         )
         # Tsit5 is FSAL: its last stage is dt * f(t + dt, z1).
         metric1, rate1 = self._metric_and_rate(c.names, z1, dense_info["k"][-1] / dt, args)
-        step_best, s = hermite_max(c.metric, c.metric_rate * dt, metric1, rate1 * dt)
+        if not self.samples:
+            step_best, s = hermite_max(c.metric, c.metric_rate * dt, metric1, rate1 * dt)
+        else:
+            interpolation = solver.interpolation_cls(t0=c.t, t1=t_end, **dense_info)
+            # Sampled on the dense polynomial instead: the end rates of a quantity that is
+            # far from cubic over the step can push the Hermite maximum far above (or
+            # below) the polynomial's, and the largest estimate would win the peak.
+            step_best, s = _sampled_max(
+                lambda t: self._vector(c.names, interpolation.evaluate(t), args),
+                c.t,
+                dt,
+                self.samples,
+                c.metric,
+                metric1,
+            )
+            if self.kinks_fn is not None:
+                kinks = self.kinks_fn(c.t, dt, interpolation.evaluate, c.y, z1, args)
+                at_kinks = jax.vmap(
+                    lambda t: self._vector(c.names, interpolation.evaluate(t), args)
+                )(kinks)
+                j = jnp.argmax(at_kinks, axis=0)
+                higher = jnp.max(at_kinks, axis=0) > step_best
+                step_best = jnp.where(higher, jnp.max(at_kinks, axis=0), step_best)
+                s = jnp.where(higher, (kinks[j] - c.t) / dt, s)
         improve = keep & (step_best > c.best)
         best = jnp.where(improve, step_best, c.best)
         settled = c.settled
         if self.bounds_fn is not None:
-            bounds = self.bounds_fn(z1, args, t1 - c.t_next)
+            bounds = self.bounds_fn(z1, args, t_end, t1)
             bounds = jnp.stack([bounds[name] for name in c.names])
             settled = settled | (keep & jnp.all(bounds <= best))
-        step = dict(t0=c.t, t1=c.t_next, **dense_info)
+        step = dict(t0=c.t, t1=t_end, **dense_info)
         best_step = jax.tree.map(
             lambda new, old: jnp.where(
                 improve.reshape((-1,) + (1,) * (old.ndim - 1)), new[None], old
@@ -198,6 +300,37 @@ class PeakLoop:
         finite = jnp.all(jnp.isfinite(z1)) & jnp.isfinite(dt)
         status = Status.where(keep & ~finite, Status.nonfinite, c.status)
         status = Status.where((t_prev < t1) & (t_next <= t_prev), Status.step_underflow, status)
+        ceilings = None if self.ceilings_fn is None else self.ceilings_fn(args)
+        if ceilings is not None:
+            limits = jnp.stack([ceilings.get(name, jnp.inf) for name in c.names])
+            status = Status.where(keep & jnp.any(step_best >= limits), Status.bottomed_out, status)
+        saved, save_index = c.saved, c.save_index
+        if save_ts is not None:
+            interpolation = solver.interpolation_cls(t0=c.t, t1=t_end, **dense_info)
+            saved, save_index = _write_saves(
+                save_ts, saved, save_index, jnp.where(keep, t_end, c.t), interpolation.evaluate
+            )
+        if stops is not None:
+            # Landed one ULP before a stop: continue from the stop itself, with the state
+            # after any jump, a fresh FSAL stage, and a first step of at most `restart`.
+            assert self.events is not None
+            hit = keep & landing
+            jumped = self.events.jump(t_end, upcoming, z1, args)
+            f_jumped = term.vf(upcoming, jumped, args)
+            m_jumped, r_jumped = self._metric_and_rate(c.names, jumped, f_jumped, args)
+            restart = jnp.minimum(t_next - t_prev, self.events.restart(args))
+            t_next = jnp.where(hit, jnp.minimum(upcoming + restart, t1), t_next)
+            t_prev = jnp.where(hit, upcoming, t_prev)
+            z1 = jnp.where(hit, jumped, z1)
+            solver_state = jax.tree.map(
+                lambda a, b: jnp.where(hit, a, b), (jnp.array(False), f_jumped), solver_state
+            )
+            metric1 = jnp.where(hit, m_jumped, metric1)
+            rate1 = jnp.where(hit, r_jumped, rate1)
+            if save_ts is not None:
+                saved, save_index = _write_saves(
+                    save_ts, saved, save_index, jnp.where(hit, upcoming, c.t), lambda t: jumped
+                )
 
         def select(new, old):
             return jax.tree.map(lambda a, b: jnp.where(keep, a, b), new, old)
@@ -220,6 +353,8 @@ class PeakLoop:
             status=status,
             settled=settled,
             names=c.names,
+            saved=saved,
+            save_index=save_index,
         )
 
     def finish(self, final: _Carry, args) -> PeakRun:
@@ -241,21 +376,73 @@ class PeakLoop:
             num_attempts=final.num_attempts,
             status=status,
             names=final.names,
+            saved=final.saved,
         )
 
 
+def _sampled_max(vector_at, t0, dt, samples, first, last):
+    """The maximum over a step of each tracked quantity, from its values at the ends
+    (`first`, `last`), at `samples` interior points of the dense polynomial
+    (`vector_at(t)`), and at the vertex of the parabola through the largest and its
+    neighbours (evaluated there, not taken from the parabola, which overshoots at a
+    corner). Returns `(values, s)`, `s` the position in the step (0 to 1)."""
+    fractions = jnp.arange(1, samples + 1) / (samples + 1.0)
+    interior = jax.vmap(lambda u: vector_at(t0 + u * dt))(fractions)
+    values = jnp.concatenate([first[None], interior, last[None]])  # (samples + 2, n)
+    grid = jnp.concatenate([jnp.zeros(1), fractions, jnp.ones(1)])
+    j = jnp.clip(jnp.argmax(values, axis=0), 1, samples)
+    a, b, c = (jnp.take_along_axis(values, (j + k)[None], axis=0)[0] for k in (-1, 0, 1))
+    curvature = a - 2.0 * b + c
+    concave = curvature < 0
+    shift = jnp.where(concave, 0.5 * (a - c) / jnp.where(concave, curvature, -1.0), 0.0)
+    vertex = grid[j] + jnp.clip(shift, -1.0, 1.0) / (samples + 1.0)  # (n,)
+    at_vertex = jax.vmap(lambda u: vector_at(t0 + u * dt))(vertex)  # (n, n)
+    at_vertex = jnp.diagonal(at_vertex)  # quantity i at its own vertex
+    best = jnp.max(values, axis=0)
+    s_best = grid[jnp.argmax(values, axis=0)]
+    higher = at_vertex > best
+    return jnp.where(higher, at_vertex, best), jnp.where(higher, vertex, s_best)
+
+
+def _write_saves(save_ts, saved, index, until, state_at):
+    """Write `state_at(t)` for the save times from `index` up to `until` (inclusive)."""
+
+    def more(carry):
+        i, _ = carry
+        return (i < save_ts.shape[0]) & (save_ts[jnp.minimum(i, save_ts.shape[0] - 1)] <= until)
+
+    def write(carry):
+        i, buffer = carry
+        return i + 1, buffer.at[i].set(state_at(save_ts[i]))
+
+    index, saved = jax.lax.while_loop(more, write, (index, saved))
+    return saved, index
+
+
 def integrate_peaks(
-    term, z0, args, t1, metrics_fn: MetricsFn, options: SolverOptions, bounds_fn=None
+    term,
+    z0,
+    args,
+    t1,
+    metrics_fn: MetricsFn,
+    options: SolverOptions,
+    bounds_fn=None,
+    events: Events | None = None,
+    ceilings_fn=None,
+    save_ts=None,
+    samples: int = 0,
+    kinks_fn=None,
 ) -> PeakRun:
     """Integrate `term` from `z0` over `[0, t1]` with Tsit5 + PID in one while loop, keeping
     the running maxima of `metrics_fn(z, args)` (a dict of scalars) located between steps.
-    With `bounds_fn` (see `PeakLoop`) it stops once the peaks are certain."""
-    loop = PeakLoop(term, metrics_fn, options, bounds_fn)
+    With `bounds_fn` (see `PeakLoop`) it stops once the peaks are certain; `events`,
+    `ceilings_fn`, `samples`, `kinks_fn` and `save_ts` as `PeakLoop`."""
+    loop = PeakLoop(term, metrics_fn, options, bounds_fn, events, ceilings_fn, samples, kinks_fn)
     kind = "lax" if options.autodiff == "forward" else "checkpointed"
     final = eqxi.while_loop(
         loop.running,
-        lambda c: loop.body(c, args),
-        loop.init(z0, args, t1),
+        lambda c: loop.body(c, args, save_ts),
+        loop.init(z0, args, t1, save_ts),
         max_steps=options.max_steps,
         kind=kind,
     )

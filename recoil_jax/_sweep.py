@@ -11,6 +11,7 @@ from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
+import equinox as eqx
 import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
@@ -20,6 +21,8 @@ from ._metrics import METRICS, PEAK_FIELDS
 from ._params import (
     PARAMETERS,
     T1_LIMITS,
+    ForceTable,
+    Load,
     ParameterError,
     RecoilParams,
     Smoothing,
@@ -41,6 +44,7 @@ __all__ = [
     "shard_batch",
     "sweep",
     "sweep_grid",
+    "with_table",
 ]
 
 #: Names a design may carry besides the parameters: the end time, per point.
@@ -91,12 +95,12 @@ class SweepResult:
 
     def parameters(self, index: int) -> dict[str, float]:
         """The parameters of point `index`, as `simulate --json` reports them (no
-        absorber parameters for the simplified model)."""
-        simplified = self.values["m"][index] == 0
+        absorber parameters for the simplified model, no knots it does not have)."""
+        simplified = "m" in self.values and self.values["m"][index] == 0
         return {
             name: float(v[index])
             for name, v in self.values.items()
-            if not (simplified and name in _ABSORBER and name != "m")
+            if not (simplified and name in _ABSORBER and name != "m") and not np.isnan(v[index])
         }
 
     def records(self, model: str = "smoothed") -> list[dict]:
@@ -128,7 +132,7 @@ class SweepResult:
 
 def _as_columns(designs) -> dict[str, np.ndarray]:
     """Designs as `name -> (n,)` float columns (names checked; missing values in a list of
-    dicts take the defaults)."""
+    dicts take the defaults; a missing orifice knot is NaN, i.e. absent)."""
     if isinstance(designs, Mapping):
         columns = {k: np.atleast_1d(np.asarray(v, dtype=float)) for k, v in designs.items()}
     else:
@@ -136,17 +140,18 @@ def _as_columns(designs) -> dict[str, np.ndarray]:
         if not designs:
             raise ParameterError("no designs to sweep")
         names = sorted({k for d in designs for k in d})
-        defaults = {name: p.default for name, p in PARAMETERS.items()}
         for name in names:
-            if name not in defaults and name not in _SETTINGS:
+            if name not in PARAMETERS and name not in _SETTINGS:
                 _unknown(name)
         if "t1" in names and not all("t1" in d for d in designs):
             raise ParameterError(
                 "t1 is given for some points but not all: give it for every point, or for none"
             )
-        columns = {
-            n: np.array([float(d.get(n, defaults.get(n, np.nan))) for d in designs]) for n in names
-        }
+
+        def default(name):
+            return PARAMETERS[name].default if name in PARAMETERS else np.nan
+
+        columns = {n: np.array([float(d.get(n, default(n))) for d in designs]) for n in names}
     lengths = {len(v) for v in columns.values()}
     if len(lengths) > 1:
         raise ParameterError(f"sweep columns have different lengths: {sorted(lengths)}")
@@ -157,7 +162,15 @@ def _as_columns(designs) -> dict[str, np.ndarray]:
             p = PARAMETERS[name]
             if name == "m":  # m = 0 is the simplified model: check the others in place
                 column = np.where(column == 0, p.default, column)
+            if p.index is not None:  # NaN: this point has fewer knots
+                column = np.where(np.isnan(column), p.lower + 1.0, column)
             check_value(p.owner, name, column, p)
+            if p.integer and np.any(column != np.round(column)):
+                i = int(np.argmax(column != np.round(column)))
+                raise ParameterError(
+                    f"{p.owner}.{name}[{i}] = {column[i]:g} is invalid: valid {name} is an "
+                    f"integer >= {p.lower:g} ({p.meaning})"
+                )
         else:
             _unknown(name)
     return columns
@@ -165,27 +178,69 @@ def _as_columns(designs) -> dict[str, np.ndarray]:
 
 def _unknown(name: str):
     raise ParameterError(
-        f"unknown parameter(s) {name}; known: {', '.join(PARAMETERS)} and {', '.join(_SETTINGS)}"
+        f"unknown parameter(s) {name}; known: {PARAMETERS.names()} and {', '.join(_SETTINGS)}"
     )
+
+
+def _is_knot(name: str) -> bool:
+    return name in PARAMETERS and PARAMETERS[name].index is not None
+
+
+def _structure_groups(columns: dict[str, np.ndarray]) -> list[tuple[np.ndarray, dict]]:
+    """The designs split by the structure of their pytree, which one compiled program
+    serves: with or without an absorber (`m = 0`), the number of rounds (`shots`, static)
+    and the number of orifice knots. Returns `(indices, columns)` per group, in order of
+    first appearance; a knot column is kept only in the groups that have that knot."""
+    n = len(next(iter(columns.values())))
+    simplified = columns["m"] == 0 if "m" in columns else np.zeros(n, dtype=bool)
+    shots = columns.get("shots", np.ones(n))
+    knots = sorted((PARAMETERS[c].index or 0, c) for c in columns if _is_knot(c))
+    present = np.array([~np.isnan(columns[c]) for _, c in knots]).reshape(len(knots), n)
+    # Knots per design: the leading ones present (a missing knot is NaN).
+    count = np.argmin(np.vstack([present, np.zeros((1, n), bool)]), axis=0)
+    for i in range(n):
+        if present[count[i] :, i].any():
+            raise ParameterError(
+                f"design {i}: orifice knots must be numbered from 0 without holes: "
+                f"{knots[count[i]][1]} is missing"
+            )
+    keys = list(zip(simplified.tolist(), shots.tolist(), count.tolist(), strict=True))
+    groups = []
+    for key in dict.fromkeys(keys):
+        indices = np.flatnonzero([k == key for k in keys])
+        group = {
+            c: v[indices]
+            for c, v in columns.items()
+            if not (_is_knot(c) and (PARAMETERS[c].index or 0) >= key[2])
+        }
+        groups.append((indices, group))
+    return groups
 
 
 def batch_params(designs) -> tuple[RecoilParams, dict[str, np.ndarray]]:
     """Designs (a list of `{name: value}` dicts, or `name -> (n,)` columns) as one
     `RecoilParams` whose every leaf has shape `(n,)` (names not given take the paper's
     values), ready for `jax.vmap(..., in_axes=0)`; also returns the flat columns. Every
-    value is validated (a bad one raises `ParameterError` naming its index). `m = 0` in
-    every design is the simplified model; mixing it with `m > 0` in one `RecoilParams` is
-    an error (`sweep` runs such designs as two groups)."""
+    value is validated (a bad one raises `ParameterError` naming its index). The designs
+    must share one structure: all with or all without an absorber (`m = 0`), one number
+    of rounds and of orifice knots (`sweep` runs mixed designs as separate groups)."""
     columns = _as_columns(designs)
     columns.pop("t1", None)
+    if len(_structure_groups(columns)) > 1:
+        raise ParameterError(
+            "these designs differ in structure (m = 0 beside m > 0, different shots or "
+            "numbers of orifice knots) and cannot share one RecoilParams; sweep() runs "
+            "them as separate groups"
+        )
     n = len(next(iter(columns.values())))
     simplified = "m" in columns and np.all(columns["m"] == 0)
-    if "m" in columns and np.any(columns["m"] == 0) and not simplified:
-        raise ParameterError(
-            "m = 0 (simplified model) and m > 0 cannot be mixed in one RecoilParams; "
-            "sweep() runs them as two groups"
-        )
-    defaults = params_to_values(params_from_values({"m": 0.0} if simplified else {}))
+    # Every parameter of every group the designs have gets a full column of defaults.
+    seed = {"m": 0.0} if simplified else {}
+    for name in columns:
+        p = PARAMETERS[name]
+        if p.group in ("load", "buffer", "recuperator") and p.index is None:
+            seed.setdefault(name, p.default)
+    defaults = params_to_values(params_from_values(seed))
     values = {k: np.full(n, float(np.asarray(v))) for k, v in defaults.items()}
     values.update(columns)
     if simplified:
@@ -227,6 +282,34 @@ def default_workers(devices: Sequence[Any]) -> int:
         )
         return len(devices) * max(1, -(-cores // len(devices)))
     return len(devices)
+
+
+def with_table(params: RecoilParams, table: ForceTable) -> RecoilParams:
+    """`params` (one design, or a batch with a leading axis on every leaf) with the
+    breech force `table` (one round) for every design; a load with the default rhythm is
+    added where there is none."""
+    batch = np.shape(params.barrel.v0)
+    load = params.load
+    if load is None:
+        load = Load(
+            pulse_time=np.full(batch, PARAMETERS["pulse_time"].default),
+            fire_interval=np.full(batch, PARAMETERS["fire_interval"].default),
+        )
+    batched = ForceTable(
+        t=np.broadcast_to(np.asarray(table.t), (*batch, *np.shape(table.t))),
+        F=np.broadcast_to(np.asarray(table.F), (*batch, *np.shape(table.F))),
+    )
+    load = eqx.tree_at(lambda q: q.table, load, batched, is_leaf=lambda x: x is None)
+    return eqx.tree_at(lambda p: p.load, params, load, is_leaf=lambda x: x is None)
+
+
+def _has(params: RecoilParams, name: str) -> bool:
+    """Whether `params` has the real-valued parameter `name` (its group, its knot)."""
+    p = PARAMETERS[name] if name in PARAMETERS else None
+    if p is None or p.integer:
+        return False
+    module = getattr(params, p.group)
+    return module is not None and (p.index is None or p.index < module.knots)
 
 
 def _run_chunk(batch: RecoilParams, t1, smoothing, options, wrt, devices, lanes: int, workers: int):
@@ -300,6 +383,7 @@ def sweep(
     sort_by_gap: bool = True,
     devices: Sequence[Any] | None = None,
     workers: int | None = None,
+    force_table: ForceTable | None = None,
 ) -> SweepResult:
     """Peaks (and, with `wrt`, their gradients) of many designs.
 
@@ -321,6 +405,8 @@ def sweep(
     - `progress`: a progress line on stderr (default: when there is more than one chunk).
     - `sort_by_gap`: run designs in order of `gap`, so that the impact-heavy ones start
       early; results come back in input order regardless.
+    - `force_table`: a `ForceTable` of one round, the breech force of every design
+      (replacing the impulse or pulse).
     - `devices`, `workers`: each chunk is split into `workers` interleaved parts (default
       `default_workers`: one per device, and on CPU one per core), each run from its own
       thread on one of `devices` (default: all local devices).
@@ -335,26 +421,29 @@ def sweep(
     options = options or (GRADIENT_OPTIONS if wrt else SolverOptions())
     columns = _as_columns(designs)  # validates every point, before any compilation
     n = len(next(iter(columns.values())))
-    simplified = columns["m"] == 0 if "m" in columns else np.zeros(n, dtype=bool)
     groups = []  # (indices into the input, params, values, end times, wrt)
-    for mask in (~simplified, simplified):
-        if not mask.any():
-            continue
-        indices = np.flatnonzero(mask)
-        group = {k: v[indices] for k, v in columns.items()}
+    for indices, group in _structure_groups(columns):
         params, values = batch_params(group)
+        if force_table is not None:
+            params = with_table(params, force_table)
         if "t1" in group:
             t1 = group["t1"]
         elif options.t1 is not None:
             t1 = np.full(len(indices), float(options.t1))
         else:
             t1 = np.asarray(default_end_time(params))
-        group_wrt = wrt
-        if wrt and params.absorber is None:
-            group_wrt = tuple(w for w in wrt if w not in _ABSORBER) or None
-        elif wrt:
-            check_wrt(params, wrt)
+        group_wrt = None
+        if wrt:
+            # Parameters this group does not have (an absorber's for m = 0, knots beyond
+            # its orifice) change nothing: their derivatives are 0.
+            group_wrt = tuple(w for w in wrt if _has(params, w)) or None
         groups.append((indices, params, values, t1, group_wrt))
+    for w in wrt or ():
+        if not any(w in (g[4] or ()) for g in groups):
+            check_wrt(groups[0][1], (w,))  # raises, naming why
+    for g in groups:
+        if g[4]:
+            check_wrt(g[1], g[4])
 
     devices = list(devices) if devices is not None else jax.local_devices()
     workers = workers or default_workers(devices)
@@ -370,7 +459,7 @@ def sweep(
     codes = np.zeros(n, dtype=np.int32)
     peaks = {field: np.zeros(n) for field in PEAK_FIELDS}
     gradients = {name: {w: np.zeros(n) for w in wrt} for name in METRICS} if wrt else None
-    values = {name: np.full(n, np.nan) for name in PARAMETERS}
+    values: dict[str, np.ndarray] = {}
     done = 0
     for indices, params, group_values, t1, group_wrt in groups:
         sort = sort_by_gap and params.absorber is not None
@@ -399,7 +488,7 @@ def sweep(
                 for j, w in enumerate(grads.wrt):
                     gradients[name][w][indices] = matrix[:, j]
         for name, column in group_values.items():
-            values[name][indices] = column
+            values.setdefault(name, np.full(n, np.nan))[indices] = column
     seconds = bar.elapsed
     # Every requested value as given (absorber parameters of m = 0 points included).
     values = {name: v for name, v in values.items() if not np.all(np.isnan(v))}

@@ -22,5 +22,7 @@ def test_bench_smoke():
     # Both solve the same model to rtol ~1e-5: peaks agree well inside 1e-3.
     assert result["max_rel_error"] < 1e-3
     assert "x the scipy loop" in format_bench(result)
+    assert result["hardware_sims_per_s"] > 0 and result["hardware_failed"] == 0
+    assert result["hardware_mean_steps"] > 0
     assert [row["batch_size"] for row in result["batches"]] == [1, 8]
     assert result["batch_size"] in (1, 8)

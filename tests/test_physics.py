@@ -212,7 +212,7 @@ def test_energy_bounds_hold_for_the_rest_of_the_run(design, smoothing):
         "max_stroke",
         "min_stroke",
     )
-    by_name = jax.vmap(lambda y, t: rj.future_metric_bounds(y, args, t1 - t))(ys, ts)
+    by_name = jax.vmap(lambda y, t: rj.future_metric_bounds(y, args, t, t1))(ys, ts)
     bounds = np.stack([np.asarray(by_name[name]) for name in order], axis=1)
     scale = np.max(np.abs(series), axis=0) + 1e-12
     slack = (bounds - future_max) / scale

@@ -202,7 +202,9 @@ def test_vmap_over_smoothing_and_tolerance_leaves():
     """Widths and tolerances are leaves too (traced, vmappable)."""
     params = batch_params([dict(m=500.0, gap=0.0)] * 2)
     smoothing = rj.Smoothing(
-        damping_width=jnp.array([1e-3, 1e-3]), contact_width_fraction=jnp.array([0.02, 0.01])
+        damping_width=jnp.array([1e-3, 1e-3]),
+        contact_width_fraction=jnp.array([0.02, 0.01]),
+        knot_width_fraction=jnp.array([1e-4, 1e-4]),
     )
     run = eqx.filter_jit(jax.vmap(rj.peak_metrics, in_axes=(0, 0, None)))
     result = run(params, smoothing, rj.SolverOptions())
@@ -228,7 +230,7 @@ def test_stopping_when_the_peaks_are_certain_changes_no_peak():
         )
     ]
     designs[:2] = [dict(m=500.0, gap=0.0), dict(m=1500.0, gap=0.062)]
-    smoothing, options = rj.Smoothing(), rj.SolverOptions()
+    smoothing, options = rj.Smoothing(), rj.SolverOptions(rtol=1e-6, atol=1e-9)
 
     def solve(bounds_fn):
         def one(params):

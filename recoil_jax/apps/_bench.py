@@ -13,7 +13,7 @@ import numpy as np
 
 import recoil_jax as rj
 
-__all__ = ["bench_designs", "format_bench", "main_bench", "run_bench"]
+__all__ = ["bench_designs", "format_bench", "hardware_designs", "main_bench", "run_bench"]
 
 
 def bench_designs(count: int, seed: int = 0) -> dict[str, np.ndarray]:
@@ -26,6 +26,25 @@ def bench_designs(count: int, seed: int = 0) -> dict[str, np.ndarray]:
         "k_r": rng.uniform(5e3, 5e4, count),
         "c_r": rng.uniform(0.0, 1e4, count),
     }
+
+
+def hardware_designs(count: int, seed: int = 1) -> dict[str, np.ndarray]:
+    """Designs with all the hardware on: the absorber designs of `bench_designs`, fired
+    in a 3-round burst of 5 ms pulses, with an 8-knot throttling orifice and a gas
+    recuperator (knots, recuperator force and interval drawn at random)."""
+    rng = np.random.default_rng(seed)
+    columns = bench_designs(count, seed)
+    columns |= {
+        "shots": np.full(count, 3.0),
+        "fire_interval": rng.uniform(0.8, 1.5, count),
+        "pulse_time": np.full(count, 0.005),
+        "piston_area": np.full(count, 0.01),
+        "orifice_length": np.full(count, 0.2),
+        "recuperator_force": rng.uniform(1000.0, 5000.0, count),
+        "recuperator_length": np.full(count, 1.0),
+    }
+    columns |= {f"orifice_{i}": rng.uniform(2e-4, 6e-4, count) for i in range(8)}
+    return columns
 
 
 def _take(columns, index):
@@ -88,6 +107,17 @@ def run_bench(
     jacobians_per_s = jacobian_batch / jac_run
     log(f"  jacobians (4 parameters, batch {jacobian_batch}): {jacobians_per_s:.0f}/s")
 
+    # All the hardware on, at the largest batch (and its steps per design beside the
+    # paper model's).
+    hardware = hardware_designs(largest)
+    timed_sweep(hardware)
+    hardware_result, hardware_s = min((timed_sweep(hardware) for _ in range(2)), key=lambda r: r[1])
+    hardware_per_s = largest / hardware_s
+    log(
+        f"  hardware designs (3-round burst, 8 knots, recuperator), batch {largest}: "
+        f"{hardware_per_s:.0f} sims/s"
+    )
+
     # The baseline: scipy's RK45 at rtol 1e-5, event-located switches, one design at a
     # time, on designs spread over the same set; ours on the same designs.
     index = np.linspace(0, len(columns["m"]) - 1, scipy_designs).astype(int)
@@ -123,6 +153,10 @@ def run_bench(
         "one_worker_sims_per_s": one_worker_per_s,
         "workers": rj.default_workers(jax.local_devices()),
         "jacobians_per_s": jacobians_per_s,
+        "hardware_sims_per_s": hardware_per_s,
+        "hardware_batch_size": largest,
+        "hardware_mean_steps": float(np.mean(hardware_result.peaks["num_steps"])),
+        "hardware_failed": len(hardware_result.failures()),
         "jacobian_compile_s": max(jac_first - jac_run, 0.0),
         "compile_s": compile_s,
         "max_rel_error": max(errors),
@@ -145,6 +179,10 @@ def format_bench(result: dict) -> str:
         f"plain vmap of the stepping loop (batch 1024): {result['plain_vmap_sims_per_s']:.0f} "
         "sims/s",
         f"jacobians (gap, m, k_r, c_r): {result['jacobians_per_s']:.0f}/s",
+        f"all the hardware (3-round burst of 5 ms pulses, 8-knot orifice, recuperator): "
+        f"{result['hardware_sims_per_s']:.0f} sims/s at batch {result['hardware_batch_size']}, "
+        f"{result['hardware_mean_steps']:.0f} steps a design, "
+        f"{result['hardware_failed']} failed",
         f"compile: {result['compile_s']:.2f} s (solve), {result['jacobian_compile_s']:.2f} s "
         "(jacobian)",
         f"max relative error vs the scipy baseline's peaks: {result['max_rel_error']:.1e}",

@@ -9,21 +9,31 @@ import sys
 
 import recoil_jax as rj
 
-__all__ = ["NAMES", "build_parser", "main", "parse_assignments"]
+__all__ = ["SETTINGS", "build_parser", "known", "main", "names", "parse_assignments"]
 
-#: Names `name=value` items may use: the parameters, and the end time.
-NAMES = [*rj.PARAMETERS, "t1"]
+#: Names `name=value` items may use besides the parameters (`rj.PARAMETERS`).
+SETTINGS = ("t1",)
+
+
+def known(name: str) -> bool:
+    """Whether `name=value` may use `name`: a parameter (orifice knots included) or `t1`."""
+    return name in rj.PARAMETERS or name in SETTINGS
+
+
+def names() -> str:
+    """Every name, for messages."""
+    return f"{rj.PARAMETERS.names()}, {', '.join(SETTINGS)}"
 
 
 def parse_assignments(items: list[str]) -> dict[str, float]:
-    """`name=value` items as a dict of numbers; names must be in `NAMES`."""
+    """`name=value` items as a dict of numbers; names must be `known`."""
     values: dict[str, float] = {}
     for item in items:
         name, sep, text = item.partition("=")
         if not sep:
-            raise rj.ParameterError(f"expected name=value, got {item!r}; names: {' '.join(NAMES)}")
-        if name not in NAMES:
-            raise rj.ParameterError(f"unknown parameter {name!r}; names: {' '.join(NAMES)}")
+            raise rj.ParameterError(f"expected name=value, got {item!r}; names: {names()}")
+        if not known(name):
+            raise rj.ParameterError(f"unknown parameter {name!r}; names: {names()}")
         try:
             values[name] = float(text)
         except ValueError:
@@ -37,6 +47,8 @@ def _simulate(args) -> int:
     values = parse_assignments(args.assignments)
     options = rj.SolverOptions(t1=values.pop("t1", None))
     params = rj.params_from_values(values)
+    if args.force_table:
+        params = rj.with_table(params, rj.ForceTable.from_csv(args.force_table))
     smoothing = rj.Smoothing.exact() if args.hard else rj.Smoothing()
     result = rj.peaks(params, smoothing, options).to_dict()
     t1 = float(rj.end_time(params, options))
@@ -142,13 +154,18 @@ def build_parser() -> argparse.ArgumentParser:
         "simulate",
         help="simulate one design and print its peaks",
         description="Simulate one design. Parameters as name=value (SI units): "
-        + " ".join(NAMES)
+        + names()
         + ". m=0 gives the simplified model (no absorber).",
     )
     sim.add_argument("assignments", nargs="*", metavar="name=value")
     sim.add_argument("--hard", action="store_true", help="exact model with hard switches")
     sim.add_argument("--json", action="store_true", help="print one JSON object")
-    sim.add_argument("--plot", metavar="FILE.png", help="plot x_M, x_m, F_AN, F_ct vs time")
+    sim.add_argument(
+        "--plot", metavar="FILE.png", help="plot displacements and every force against time"
+    )
+    sim.add_argument(
+        "--force-table", metavar="FILE.csv", help="breech force of one round (header t_s,F_N)"
+    )
     sim.set_defaults(func=_simulate)
     swp = sub.add_parser(
         "sweep",
@@ -156,7 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Sweep designs: name=a,b,c (a list), name=start:stop:count (a range, "
         "inclusive) or name=value (fixed), over the cartesian grid of the swept names; "
         "or --points FILE (CSV with a header of names, or a JSON list of objects). "
-        "Names: " + " ".join(NAMES) + ". m=0 (no absorber) may be mixed with m > 0. "
+        "Names: " + names() + ". m=0 (no absorber) may be mixed with m > 0. "
         "Writes sweep.csv, sweep.npz (arrays + metadata) and figures to --out.",
     )
     swp.add_argument("assignments", nargs="*", metavar="name=values")
@@ -167,6 +184,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="print a JSON list, in input order (keys as simulate --json + status)",
     )
     swp.add_argument("--out", metavar="DIR", help="folder for sweep.csv, sweep.npz, figures")
+    swp.add_argument(
+        "--force-table", metavar="FILE.csv", help="breech force of one round (header t_s,F_N)"
+    )
     swp.set_defaults(func=_sweep)
     bench = sub.add_parser(
         "bench",

@@ -16,17 +16,40 @@ __all__ = ["plot_convergence", "plot_heatmap", "plot_history", "plot_series"]
 
 
 def plot_history(history: rj.History, path, title: str = "") -> Path:
-    """Time histories of x_M and x_m, F_AN and F_ct, stacked; saved as PNG at `path`."""
+    """Time histories, stacked: the barrel's and absorber's displacements; the anchoring
+    force with each element that carries it (recoil spring, damper, hydraulic buffer,
+    gas recuperator); the breech force of each round and the contact force. Elements the
+    design does not have are left out. Saved as PNG at `path`."""
     ts = np.asarray(history.ts)
-    fig, axes = plt.subplots(3, 1, figsize=(8, 8), sharex=True)
+    f = history.forces
+    fig, axes = plt.subplots(3, 1, figsize=(9, 9), sharex=True)
     axes[0].plot(ts, 1e3 * np.asarray(history.x_M), label="barrel $x_M$")
     axes[0].plot(ts, 1e3 * np.asarray(history.x_m), label="absorber $x_m$")
     axes[0].set_ylabel("displacement (mm)")
     axes[0].legend(loc="upper right")
-    axes[1].plot(ts, 1e-3 * np.asarray(history.anchoring_force), color="C2")
-    axes[1].set_ylabel("anchoring force $F_{AN}$ (kN)")
-    axes[2].plot(ts, 1e-3 * np.asarray(history.contact_force), color="C3")
-    axes[2].set_ylabel("contact force $F_{ct}$ (kN)")
+    parts = {
+        "anchoring $F_{AN}$": history.anchoring_force,
+        "spring $k x_M$": f.recoil_spring,
+        "damper $c(v)v$": f.recoil_damper,
+        "orifice $F_h$": f.buffer,
+        "recuperator $F_g$": f.recuperator,
+    }
+    for i, (label, force) in enumerate(parts.items()):
+        if force is not None:
+            axes[1].plot(
+                ts,
+                1e-3 * np.asarray(force),
+                label=label,
+                lw=2 if i == 0 else 1,
+                color="k" if i == 0 else None,
+            )
+    axes[1].set_ylabel("force into the mounting (kN)")
+    axes[1].legend(loc="upper right", fontsize=8)
+    if f.breech is not None:
+        axes[2].plot(ts, 1e-3 * np.asarray(f.breech), label="breech $F_b$", color="C4")
+    axes[2].plot(ts, 1e-3 * np.asarray(history.contact_force), label="contact $F_{ct}$", color="C3")
+    axes[2].set_ylabel("force (kN)")
+    axes[2].legend(loc="upper right", fontsize=8)
     axes[2].set_xlabel("time (s)")
     for ax in axes:
         ax.grid(alpha=0.3)

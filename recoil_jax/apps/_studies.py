@@ -128,7 +128,7 @@ def _front_values(path, front: dict, constrained: list[str]) -> list[float]:
     values = [float(v) for v in values]
     if vary in rj.PARAMETERS:
         try:
-            rj.params_from_values({vary: np.asarray(values)})
+            rj.params_from_values({str(vary): np.asarray(values)})
         except rj.ParameterError as error:
             raise _error(path, f"[[front]] {error}") from None
     elif not np.all(np.isfinite(values)):

@@ -12,7 +12,7 @@ import numpy as np
 
 import recoil_jax as rj
 
-from ._cli import NAMES
+from ._cli import known, names
 
 __all__ = ["parse_axis", "read_points", "run_sweep", "write_figures", "write_results"]
 
@@ -47,9 +47,9 @@ def read_points(path) -> list[dict]:
     for row, point in enumerate(points):
         design = {}
         for name, value in point.items():
-            if name not in NAMES:
+            if not known(name):
                 raise rj.ParameterError(
-                    f"{path}, point {row}: unknown parameter {name!r}; known: {', '.join(NAMES)}"
+                    f"{path}, point {row}: unknown parameter {name!r}; known: {names()}"
                 )
             try:
                 design[name] = float(value)
@@ -187,20 +187,21 @@ def run_sweep(args) -> int:
         name, sep, text = item.partition("=")
         if not sep:
             raise rj.ParameterError(f"expected name=value, got {item!r}")
-        if name not in NAMES:
-            raise rj.ParameterError(f"unknown parameter {name!r}; names: {' '.join(NAMES)}")
+        if not known(name):
+            raise rj.ParameterError(f"unknown parameter {name!r}; names: {names()}")
         values = parse_axis(name, text)
         if len(values) == 1:
             fixed[name] = float(values[0])
         else:
             axes[name] = values
+    table = rj.ForceTable.from_csv(args.force_table) if args.force_table else None
     if args.points:
         if axes:
             raise rj.ParameterError(
                 "with --points, other parameters can only be fixed (name=value), not swept"
             )
         designs = [fixed | design for design in read_points(args.points)]
-        result = rj.sweep(designs, progress=not args.json)
+        result = rj.sweep(designs, progress=not args.json, force_table=table)
     else:
         if not axes:
             raise rj.ParameterError(
@@ -208,7 +209,7 @@ def run_sweep(args) -> int:
                 "range start:stop:count, or --points FILE"
             )
         wrt = ("gap",) if "gap" in axes else None
-        result = rj.sweep_grid(axes, fixed, wrt=wrt, progress=not args.json)
+        result = rj.sweep_grid(axes, fixed, wrt=wrt, progress=not args.json, force_table=table)
     if args.json:
         print(json.dumps(result.records()))
     else:
