@@ -60,16 +60,15 @@ _GRID = 16
 _ZOOMS = 4
 
 
-def polish(solver, args, vector_fn, best, best_time, best_step):
+def polish(solver, args, vector_fn, best, best_time, best_step, search: bool = False):
     """Refine each peak on the solver's own dense polynomial (Tsit5's 4th-order
-    interpolant of the step holding it): the best of the Hermite estimate and nested
-    grids over the step (`_ZOOMS` levels of `_GRID` cells), then successive parabolic
-    interpolation from there;
-    kept where it raises the interpolated value. (The grid matters where a quantity is a
-    strongly nonlinear function of the state, as the orifice force is: there the cubic
-    Hermite estimate can sit far from the polynomial's maximum.) Maxima at a step's end
-    are solver points and keep their value. Derivative-free, so it adds little to compile
-    times under `jacfwd`/`grad`.
+    interpolant of the step holding it) by successive parabolic interpolation, started
+    from the Hermite estimate, or with `search` (static) from the best of it and nested
+    grids over the step (`_ZOOMS` levels of `_GRID` cells); kept where it raises the
+    interpolated value. (The search is for quantities that are strongly nonlinear
+    functions of the state, as the orifice force is: there the estimate can sit far from
+    the polynomial's maximum.) Maxima at a step's end are solver points and keep their
+    value. Derivative-free, so it adds little to compile times under `jacfwd`/`grad`.
 
     `vector_fn(y, args)` is the stacked vector of tracked quantities, shape `(n,)`;
     `best`, `best_time` (`(n,)`) and `best_step` (per quantity, the dense info of the step
@@ -105,7 +104,9 @@ def polish(solver, args, vector_fn, best, best_time, best_step):
         # into the two cells around the last one's best point.
         begin, start = best_time, values(best_time[None])[0]
         low, width = step["t0"], safe_dt
-        for _ in range(_ZOOMS):
+        if not search:
+            width = 2e-2 * safe_dt  # the refinement's first spacing: 1 % of the step
+        for _ in range(_ZOOMS if search else 0):
             grid = low + width * jnp.linspace(0.0, 1.0, _GRID + 1)
             sampled = values(grid)
             j = jnp.argmax(jnp.where(jnp.isfinite(sampled), sampled, -jnp.inf))

@@ -262,9 +262,23 @@ def _scenarios(
     constraints = problem.metric_constraints
     limits = np.asarray([[limit for _, _, limit in constraints]], dtype=float).reshape(1, -1)
     sizes = set()
+    source = problem.params if scenarios is None else scenarios
+
+    def batched(leaf, base) -> bool:
+        # A leaf varies per scenario when it has one axis more than the design's (a
+        # scalar parameter, or the orifice's knots); otherwise it is shared.
+        return np.ndim(leaf) == np.ndim(base) + 1
+
     if scenarios is not None:
-        # Leaves with a leading axis vary per scenario; scalars are shared.
-        sizes |= {int(np.shape(x)[0]) for x in jax.tree.leaves(scenarios) if np.ndim(x)}
+        if jax.tree.structure(scenarios) != jax.tree.structure(problem.params):
+            raise ParameterError("scenarios must have the structure of problem.params")
+        sizes |= {
+            int(np.shape(x)[0])
+            for x, b in zip(
+                jax.tree.leaves(scenarios), jax.tree.leaves(problem.params), strict=True
+            )
+            if batched(x, b)
+        }
         if not sizes:
             raise ParameterError("scenarios: no parameter has a leading scenario axis")
     names = [name for name, _, _ in constraints]
@@ -280,10 +294,15 @@ def _scenarios(
     if len(sizes) > 1:
         raise ParameterError(f"scenarios of different lengths: {sorted(sizes)}")
     count = sizes.pop() if sizes else 1
-    # Every parameter is a scalar per design: shared values broadcast over the scenarios.
+    # Shared values broadcast over the scenarios.
     params = jax.tree.map(
-        lambda x: jnp.broadcast_to(jnp.asarray(x, dtype=float), (count,)),
-        problem.params if scenarios is None else scenarios,
+        lambda x, b: (
+            jnp.asarray(x, dtype=float)
+            if batched(x, b)
+            else jnp.broadcast_to(jnp.asarray(x, dtype=float), (count, *np.shape(x)))
+        ),
+        source,
+        problem.params,
     )
     limits = np.repeat(limits, count, axis=0)
     for name, values in (scenario_limits or {}).items():

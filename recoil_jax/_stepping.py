@@ -367,6 +367,7 @@ class PeakLoop:
             final.best,
             final.best_time,
             final.best_step,
+            search=self.samples > 0,
         )
         return PeakRun(
             best=best,

@@ -9,7 +9,15 @@ import sys
 
 import recoil_jax as rj
 
-__all__ = ["SETTINGS", "build_parser", "known", "main", "names", "parse_assignments"]
+__all__ = [
+    "SETTINGS",
+    "build_parser",
+    "describe",
+    "known",
+    "main",
+    "names",
+    "parse_assignments",
+]
 
 #: Names `name=value` items may use besides the parameters (`rj.PARAMETERS`).
 SETTINGS = ("t1",)
@@ -89,15 +97,27 @@ def _simulate(args) -> int:
         from ._figures import plot_history
 
         history = rj.simulate(params, smoothing, options, ts=np.linspace(0.0, t1, 20001))
-        path = plot_history(
-            history,
-            args.plot,
-            title=", ".join(
-                f"{k}={v:g}" for k, v in used.items() if k in ("m", "gap", "k_r", "c_r")
-            ),
-        )
+        path = plot_history(history, args.plot, title=describe(used))
         print(f"wrote {path}", file=sys.stderr)
     return 0
+
+
+def describe(values: dict[str, float]) -> str:
+    """A one-line description of a design, for figure titles."""
+    parts = []
+    if values.get("m", 0.0) > 0:
+        parts.append(f"absorber m={values['m']:g} kg, gap={1e3 * values['gap']:g} mm")
+    else:
+        parts.append("no absorber")
+    if "shots" in values:
+        load = f"{values['pulse_time'] * 1e3:g} ms pulses" if values["pulse_time"] else "impulses"
+        parts.append(f"{values['shots']:g} rounds of {load} every {values['fire_interval']:g} s")
+    knots = sum(1 for name in values if name.startswith("orifice_") and name[8:].isdigit())
+    if knots and values.get("piston_area", 0.0) > 0:
+        parts.append(f"{knots}-knot orifice")
+    if values.get("recuperator_force", 0.0) > 0:
+        parts.append(f"recuperator {values['recuperator_force']:g} N")
+    return ", ".join(parts)
 
 
 def _reproduce(args) -> int:
