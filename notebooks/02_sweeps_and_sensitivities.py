@@ -123,8 +123,9 @@ ax.legend()
 # Scaled by each parameter's documented range: which parameters matter most?
 
 # %%
-wrt = tuple(rj.PARAMETERS)
-peaks, grads = rj.peak_jacobian(rj.RecoilParams(absorber=rj.Absorber(m=1500.0, gap=0.062)), wrt=wrt)
+best = rj.RecoilParams(absorber=rj.Absorber(m=1500.0, gap=0.062))
+wrt = tuple(rj.params_to_values(best))  # every parameter this design has
+peaks, grads = rj.peak_jacobian(best, wrt=wrt)
 scaled = {
     name: float(grads.peak_anchoring_force[j]) * rj.parameter_scale(name)
     for j, name in enumerate(wrt)

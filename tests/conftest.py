@@ -46,3 +46,13 @@ def all_ok(status) -> bool:
     import recoil_jax as rj
 
     return bool(np.all(status == rj.Status.ok))
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_code():
+    """Drop JAX's compiled executables after each test module: one process runs hundreds
+    of compilations, and their accumulated code is what the full suite holds in memory."""
+    yield
+    import jax
+
+    jax.clear_caches()

@@ -158,7 +158,8 @@ def _random_designs(count, seed):
 def test_values_and_gradients_finite_over_1000_random_designs():
     designs = _random_designs(1000, seed=3)
     run = eqx.filter_jit(jax.vmap(rj.peak_gradients, in_axes=(0, None, None, None)))
-    wrt = tuple(rj.PARAMETERS)  # every parameter
+    # every parameter of the paper's model (the hardware groups have their own tests)
+    wrt = tuple(n for n, p in rj.PARAMETERS.items() if p.group in ("barrel", "absorber", "contact"))
     peaks, grads = run(batch_params(designs), rj.Smoothing(), rj.SolverOptions(), wrt)
     assert all_ok(peaks.status)
     for leaf in jax.tree.leaves((peaks, grads)):

@@ -16,6 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PAPER_BEST = rj.RecoilParams(absorber=rj.Absorber(m=1500.0, gap=0.062))
 
 
+@pytest.mark.slow
 def test_grad_through_differentiable_peaks_equals_sensitivity_jacobian():
     """jax.grad (reverse), jax.jacfwd and value_and_grad of a function built on the
     metrics reproduce the forward-sensitivity Jacobian."""
@@ -134,7 +135,9 @@ def test_metric_constraint_is_held_and_active():
     )
     result = rj.optimise(problem, starts=3, steps=120, progress=False)
     design = result.best_params(0)
-    peaks = rj.peaks(design, options=rj.GRADIENT_OPTIONS)
+    # Held on an accurate solve: at rtol 1e-7 a stroke (a difference of two displacements)
+    # carries ~5e-6 relative error, the size of the margin the optimiser leaves.
+    peaks = rj.peaks(design, problem.smoothing, rj.SolverOptions(rtol=1e-10, atol=1e-13))
     assert float(peaks.max_stroke) <= limit
     assert float(peaks.max_stroke) >= 0.98 * limit
     # Better than the paper's design, which breaks the limit only barely less well.
@@ -176,6 +179,7 @@ def test_scatter_objective_is_the_worst_case():
     np.testing.assert_allclose(float(worst), max(separate), rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_optimiser_accepts_any_optax_transformation():
     """A plain optax SGD drives every run downhill, step after step, along the gradient
     sign: near the paper's design less coupling damping c_r lowers the peak
@@ -284,7 +288,8 @@ grid = { gap = [0.04, 0.08, 5] }
     out = tmp_path / "out"
     assert main(["optimise", str(study), "--out", str(out)]) == 0
     result = json.loads((out / "result.json").read_text())
-    assert set(result["best"]) == set(rj.PARAMETERS)
+    # Every parameter of the design (the paper's model: no hardware groups).
+    assert set(result["best"]) == set(rj.params_to_values(rj.RecoilParams(absorber=rj.Absorber())))
     assert set(result["metrics"]) >= {
         "peak_anchoring_force_N",
         "peak_displacement_m",

@@ -71,6 +71,7 @@ def test_peaks_agree_with_dense_history(design):
         assert float(jnp.min(stroke)) == pytest.approx(float(result.min_stroke), rel=1e-4, abs=1e-7)
 
 
+@pytest.mark.slow
 def test_failed_solve_is_reported_not_truncated():
     params = rj.params_from_values(m=500.0, gap=0.0)
     options = rj.SolverOptions(max_steps=50)
@@ -93,6 +94,7 @@ def test_failed_solve_is_reported_not_truncated():
     ]
 
 
+@pytest.mark.slow
 def test_failures_raise_inside_a_users_jit_and_vmap():
     """`throw=True` checks inside the compiled program (equinox's error_if), so it works
     under a user's `jit` and `vmap`: `SolveError` under `eqx.filter_jit`, JAX's runtime
@@ -127,6 +129,7 @@ def test_failures_raise_inside_a_users_jit_and_vmap():
     assert rj.status_messages(quiet) == ["ok", rj.Status[rj.Status.max_steps]]
 
 
+@pytest.mark.slow
 def test_outputs_are_finite():
     for design in (
         dict(m=0.0),

@@ -107,6 +107,7 @@ def test_no_absorber_beside_absorbers_runs_in_input_order():
     assert records[1]["parameters"]["m"] == 0.0
 
 
+@pytest.mark.slow
 def test_end_time_per_point():
     """`t1` may differ between points (it is carried per design): each point equals its
     own solve to that end time."""
