@@ -89,6 +89,12 @@ from ._problem import (
     evaluate_design as evaluate_design,
 )
 from ._reference import reference_peaks as reference_peaks
+from ._search import (
+    MinimiseResult as MinimiseResult,
+    log_coordinates as log_coordinates,
+    minimise as minimise,
+    search as search,
+)
 from ._solve import (
     History as History,
     peak_metrics as peak_metrics,

@@ -321,8 +321,9 @@ def test_bad_study_file_exits_with_a_message(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_tuning_benchmark_smoke(tmp_path):
-    """The gradient-free comparison runs and reports simulations for both methods."""
-    from recoil_jax.apps._bench_tuning import format_report, run_tuning_bench
+    """Every method runs on the same problem within its budget and reports the keys of
+    `bench-tuning --json`; the best known value is the best any of them found."""
+    from recoil_jax.apps._bench_tuning import METHODS, format_report, run_tuning_bench
 
     study = tmp_path / "tiny.toml"
     study.write_text("""
@@ -337,15 +338,27 @@ peak_anchoring_force = 1.0
 [constraints]
 max_stroke = { max = 0.15 }
 [optimiser]
-starts = 2
-steps = 20
+method = "search"
+samples = 32
+starts = 1
 """)
-    report = run_tuning_bench(study, nelder_mead_evaluations=40, log=lambda _: None)
-    assert report["study"] == "tiny"
-    assert report["gradient"]["simulations_total"] == 40
-    assert 0 < report["nelder_mead"]["simulations_total"] <= 41
-    assert report["best_objective"] <= report["gradient"]["best_objective"]
-    assert "Nelder-Mead" in format_report(report)
+    budget = 5.0
+    report = run_tuning_bench({str(study): budget}, out=tmp_path, log=lambda _: None)
+    problem = report["problems"]["tiny"]  # keyed by the study's name
+    assert problem["dimension"] == 2 and set(problem["methods"]) == set(METHODS)
+    bests = []
+    for method, run in problem["methods"].items():
+        assert set(run) >= {"best", "wall_s", "solves", "gradient_solves", "to_target_s"}
+        assert run["wall_s"] <= budget + 0.01
+        assert (run["gradient_solves"] > 0) == (method == "recoil-jax")
+        if run["best"] is not None:
+            bests.append(run["best"])
+            assert run["best"] >= problem["best_known"]
+    assert min(bests) == problem["best_known"]
+    assert problem["target"] == pytest.approx(problem["best_known"] * 1.001)
+    assert problem["methods"]["recoil-jax"]["to_target_s"] is not None
+    assert (tmp_path / "bench_tuning_tiny.png").stat().st_size > 10_000
+    assert "differential_evolution" in format_report(report)
 
 
 @pytest.mark.slow

@@ -12,7 +12,13 @@ import numpy as np
 
 import recoil_jax as rj
 
-__all__ = ["plot_convergence", "plot_heatmap", "plot_history", "plot_series"]
+__all__ = [
+    "plot_convergence",
+    "plot_heatmap",
+    "plot_history",
+    "plot_search_convergence",
+    "plot_series",
+]
 
 
 def plot_history(history: rj.History, path, title: str = "") -> Path:
@@ -69,9 +75,13 @@ def plot_series(
     xscale: float = 1.0,
     yscale: float = 1.0,
     mark=None,
+    ylim=None,
 ) -> Path:
-    """Line plot of labelled `(x, y)` series; `mark` = `(x, y, text)` annotates a point."""
+    """Line plot of labelled `(x, y)` series; `mark` = `(x, y, text)` annotates a point;
+    `ylim` = `(low, high)` in the series' units."""
     fig, ax = plt.subplots(figsize=(8, 4.5))
+    if ylim is not None:
+        ax.set_ylim(yscale * ylim[0], yscale * ylim[1])
     for label, (x, y) in series.items():
         ax.plot(xscale * np.asarray(x), yscale * np.asarray(y), label=label)
     if mark is not None:
@@ -82,6 +92,38 @@ def plot_series(
     ax.set_ylabel(ylabel)
     if len(series) > 1:
         ax.legend()
+    ax.grid(alpha=0.3)
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_search_convergence(result: rj.MinimiseResult, path, title: str = "") -> Path:
+    """Convergence of `rj.search`: each evaluated design's objective (sampled designs and
+    gradient solves, infeasible ones faint) and the best feasible objective so far,
+    against wall time."""
+    trace = result.trace
+    seconds, objective = trace["seconds"], trace["objective"]
+    feasible, gradient = trace["feasible"].astype(bool), trace["gradient"].astype(bool)
+    best = result.best_so_far()
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for mask, label, style in (
+        (~gradient & feasible, "sampled design (plain solve)", dict(color="C0", s=6)),
+        (gradient & feasible, "local phase (gradient solve)", dict(color="C1", s=8)),
+        (~feasible, "infeasible", dict(color="0.7", s=4)),
+    ):
+        if mask.any():
+            ax.scatter(seconds[mask], objective[mask], label=label, **style)  # pyright: ignore
+    ax.step(seconds, np.where(np.isfinite(best), best, np.nan), "k", where="post", lw=2,
+            label="best feasible so far")  # fmt: skip
+    finite = best[np.isfinite(best)]
+    if finite.size:
+        low, high = float(np.min(finite)), float(np.max(finite))
+        ax.set_ylim(low - 0.02 * (high - low + abs(low) * 1e-3), high + 0.3 * (high - low))
+    ax.set_xlabel("wall time (s), compilation included")
+    ax.set_ylabel("objective")
+    ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     if title:
         ax.set_title(title)

@@ -14,8 +14,11 @@ peak_anchoring_force = 20.0
 v0 = [-0.05, 0.0, 0.05]
 [constraints]                 # name = {max = .., min = ..}: metrics or parameters
 max_stroke = {max = 0.15}
-[optimiser]                   # starts, steps, learning_rate, seed, anneal, patience
-starts = 8
+[optimiser]                   # method = "search" (global + SLSQP): samples, starts,
+starts = 8                    #   maxiter, seed, max_seconds; "adam" (default; fronts,
+                              #   scatter): starts, steps, learning_rate, seed, anneal,
+                              #   patience
+
 [[front]]                     # optional, repeatable: one optimisation per value (vmapped)
 vary = "m"                    #   a parameter, or a constrained metric (ε-constraint)
 values = [250, 500, 1000]
@@ -25,6 +28,11 @@ local = 0.02                  # 1-D scans ± this fraction of each bound's width
 hard = true                   # the hard-switch model
 nominal = true                # (scatter) the nominal optimum under the same scatter
 ```
+
+A `[design]` that gives a tuned parameter is a start (`search` starts one local run
+there); one that sets only fixed hardware is not. Tuned parameters it does not give take
+the middle of their bounds (geometric for log coordinates), which only sets the design's
+shape (e.g. the number of orifice knots).
 
 A study is named by its path, or by the name of a study shipped in the repository's
 `optimise/` folder (`resolve_study`), so that neither depends on the working directory.
@@ -47,7 +55,15 @@ import numpy as np
 
 import recoil_jax as rj
 
-__all__ = ["SHIPPED", "Study", "load_study", "optimise_kwargs", "resolve_study", "run_study"]
+__all__ = [
+    "SHIPPED",
+    "Study",
+    "load_study",
+    "optimise_kwargs",
+    "resolve_study",
+    "run_study",
+    "search_kwargs",
+]
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -65,6 +81,10 @@ _SECTIONS = {
     "check",
 }
 _OPTIMISER_KEYS = {
+    "method",
+    "samples",
+    "maxiter",
+    "max_seconds",
     "starts",
     "steps",
     "learning_rate",
@@ -74,6 +94,7 @@ _OPTIMISER_KEYS = {
     "update_every",
     "penalty",
 }
+_SEARCH_KEYS = {"method", "samples", "starts", "maxiter", "seed", "max_seconds"}
 _CHECK_KEYS = {"grid", "local", "hard", "nominal"}
 
 #: Where the shipped studies live: `optimise/` beside the package, in a checkout or an
@@ -91,6 +112,7 @@ class Study:
     optimiser: dict = field(default_factory=dict)
     fronts: list[dict] = field(default_factory=list)
     check: dict = field(default_factory=dict)
+    has_start: bool = True  # whether [design] gives a tuned parameter (a start)
 
 
 def _error(path, message: str) -> rj.ParameterError:
@@ -181,6 +203,12 @@ def load_study(path) -> Study:
         if not isinstance(limits, dict) or set(limits) - {"max", "min"}:
             raise _error(path, f"[constraints] {name} = {{max = .., min = ..}} expected")
         constraints.append(rj.Constraint(name, upper=limits.get("max"), lower=limits.get("min")))
+    has_start = any(name in design for name in tune)
+    for name in tune:
+        if name not in design:
+            lo, hi = bounds[name]
+            log = bool(rj.log_coordinates(np.asarray([lo]), np.asarray([hi]))[0])
+            design[name] = float(np.sqrt(lo * hi)) if log else 0.5 * (lo + hi)
     params = rj.params_from_values(design)
     problem = rj.DesignProblem(
         params=params,
@@ -197,6 +225,17 @@ def load_study(path) -> Study:
             f"{', '.join(sorted(set(optimiser) - _OPTIMISER_KEYS))}; known: "
             f"{', '.join(sorted(_OPTIMISER_KEYS))}",
         )
+    method = optimiser.setdefault("method", "adam")
+    if method not in ("adam", "search"):
+        raise _error(path, f'[optimiser] method = {method!r}: valid "adam" or "search"')
+    search_only = {"samples", "maxiter", "max_seconds"}
+    allowed = _SEARCH_KEYS if method == "search" else _OPTIMISER_KEYS - search_only
+    if set(optimiser) - allowed:
+        raise _error(
+            path,
+            f"[optimiser] key(s) {', '.join(sorted(set(optimiser) - allowed))} do not apply "
+            f"to method = {method!r}; it takes {', '.join(sorted(allowed))}",
+        )
     fronts = config.get("front", [])
     fronts = [fronts] if isinstance(fronts, dict) else list(fronts)
     constrained = [name for name, _, _ in problem.metric_constraints]
@@ -204,6 +243,10 @@ def load_study(path) -> Study:
         front["values"] = _front_values(path, front, constrained)
         if front["vary"] in tune:
             raise _error(path, f"[[front]] vary = {front['vary']!r} is tuned; fix it to vary it")
+    if method == "search" and (fronts or scatter is not None):
+        raise _error(
+            path, 'method = "search" takes neither [[front]] nor a scatter; use "adam" for those'
+        )
     check = dict(config.get("check", {}))
     if set(check) - _CHECK_KEYS:
         raise _error(path, f"[check] unknown key(s) {', '.join(sorted(set(check) - _CHECK_KEYS))}")
@@ -214,7 +257,20 @@ def load_study(path) -> Study:
         optimiser=optimiser,
         fronts=fronts,
         check=check,
+        has_start=has_start,
     )
+
+
+def search_kwargs(study: Study, progress: bool | None) -> dict:
+    """The keyword arguments of `rj.search` that the study's `[optimiser]` sets."""
+    o = study.optimiser
+    kwargs: dict[str, Any] = dict(use_design=study.has_start, progress=progress)
+    for key in ("samples", "starts", "maxiter", "seed"):
+        if key in o:
+            kwargs[key] = int(o[key])
+    if "max_seconds" in o:
+        kwargs["max_seconds"] = float(o["max_seconds"])
+    return kwargs
 
 
 def optimise_kwargs(study: Study, progress: bool | None) -> dict:
@@ -235,6 +291,29 @@ def optimise_kwargs(study: Study, progress: bool | None) -> dict:
         if key in o:
             kwargs[key] = int(o[key])
     return kwargs
+
+
+def _search_summary(result: rj.MinimiseResult) -> dict:
+    """What `result.json` says of a `search` run."""
+    samples = result.samples
+    feasible = samples["ok"].astype(bool) & (samples["violation"] <= 0)
+    return {
+        "method": "search",
+        "samples": len(samples["z"]),
+        "feasible_samples": int(feasible.sum()),
+        "local_runs": [
+            {
+                "objective_at_end": float(run["objective"]),
+                "iterations": run["iterations"],
+                "message": run["message"],
+            }
+            for run in result.starts
+        ],
+        "solves": result.solves,
+        "gradient_solves": result.gradient_solves,
+        "compilations": result.compilations,
+        "seconds": round(result.seconds, 2),
+    }
 
 
 def _peaks(problem: rj.DesignProblem, params, smoothing=None) -> rj.Peaks:
@@ -259,7 +338,9 @@ def _worst_case(problem: rj.DesignProblem, runs: list[rj.Peaks]) -> tuple[dict, 
     return worst, max(float(problem.objective(r.metrics())) for r in runs)
 
 
-def _best_summary(study: Study, result: rj.OptimiseResult, scenario: int) -> dict:
+def _best_summary(
+    study: Study, result: rj.OptimiseResult | rj.MinimiseResult, scenario: int
+) -> dict:
     problem = study.problem
     params = result.best_params(scenario)
     design = result.best_design(scenario)
@@ -360,7 +441,7 @@ def run_study(path, out: str | Path | None = None, progress: bool | None = None)
 
     **Returns:** the dict written to `result.json`.
     """
-    from ._figures import plot_convergence, plot_history
+    from ._figures import plot_convergence, plot_history, plot_search_convergence
 
     study = load_study(path)
     out = Path(out) if out is not None else Path("results") / study.name
@@ -371,23 +452,42 @@ def run_study(path, out: str | Path | None = None, progress: bool | None = None)
     if progress is not False:
         print(f"study {study.name}: {study.description}", file=sys.stderr)
 
-    result = rj.optimise(problem, **kwargs)
     report: dict[str, Any] = {"study": study.name, "description": study.description}
-    report |= _best_summary(study, result, 0)
-    simulations = {"optimiser": int(result.simulations)}
+    result: rj.OptimiseResult | rj.MinimiseResult
+    if study.optimiser["method"] == "search":
+        result = rj.search(problem, **search_kwargs(study, progress))
+        simulations = {"optimiser": result.solves, "optimiser_gradients": result.gradient_solves}
+        report["optimiser"] = _search_summary(result)
+        plot_search_convergence(result, out / "convergence.png", title=study.name)
+        if not result.feasible:
+            # Nothing held every limit: say so; there is no best design to report.
+            report |= {"feasible": False, "best": None, "tuned": list(problem.tune)}
+            report["simulations"] = int(sum(simulations.values()))
+            report["simulations_by_part"] = simulations
+            report["seconds"] = round(time.perf_counter() - started, 2)
+            (out / "result.json").write_text(json.dumps(report, indent=2) + "\n")
+            return report
+        report |= {"feasible": True} | _best_summary(study, result, 0)
+    else:
+        result = rj.optimise(problem, **kwargs)
+        report |= _best_summary(study, result, 0)
+        simulations = {"optimiser": int(result.simulations)}
+        report["optimiser"] = {
+            "method": "adam",
+            "starts": result.starts,
+            "steps": result.steps,
+            "compilations": result.compilations,
+            "seconds": round(result.seconds, 2),
+            "converged_runs": int(result.converged.sum()),
+            "where_starts_ended": result.clusters(0),
+        }
+        plot_convergence(result, out / "convergence.png", title=study.name)
     report["tuned"] = list(problem.tune)
-    report["optimiser"] = {
-        "starts": result.starts,
-        "steps": result.steps,
-        "compilations": result.compilations,
-        "seconds": round(result.seconds, 2),
-        "converged_runs": int(result.converged.sum()),
-        "where_starts_ended": result.clusters(0),
-    }
-    plot_convergence(result, out / "convergence.png", title=study.name)
     history = rj.simulate(result.best_params(0), problem.smoothing, ts=np.linspace(0.0, 3.0, 3001))
     plot_history(history, out / "best_history.png", title=f"{study.name}: best design")
 
+    if _is_throttling(report["best"]):
+        report["force_stroke"] = _force_stroke(problem, result.best_params(0), out)
     check = study.check
     if check.get("hard"):
         hard = _peaks(problem, result.best_params(0), rj.Smoothing.exact())
@@ -460,6 +560,71 @@ def _run_front(study: Study, front: dict, kwargs: dict) -> tuple[dict, int]:
             }
         )
     return {"vary": vary, "points": rows}, int(result.simulations)
+
+
+_BUFFER = ("piston_area", "oil_density", "discharge_coefficient", "orifice_length")
+
+
+def _is_throttling(design: dict) -> bool:
+    """A single round on the simplified model with a throttling orifice."""
+    return (
+        design.get("piston_area", 0.0) > 0
+        and design.get("m", 0.0) == 0
+        and (design.get("shots", 1) == 1)
+    )
+
+
+def _force_stroke(problem: rj.DesignProblem, params, out: Path) -> dict:
+    """The anchoring force over the recoil stroke of a throttling design, beside the
+    constant-force ideal `E0/L` (the least peak force that stops the impulse's energy
+    `E0 = M v0²/2` within the stroke `L`) and the paper's linear damper without the
+    buffer, its `c_out` tuned (Brent) to the same stroke. Writes `force_stroke.png`."""
+    from scipy.optimize import brentq
+
+    from ._figures import plot_series
+
+    design = {k: v for k, v in rj.params_to_values(params).items()}
+    best = _peaks(problem, params)
+    stroke = float(best.peak_displacement)
+    energy = 0.5 * design["M"] * design["v0"] ** 2
+    ideal = energy / stroke
+    plain = {k: v for k, v in design.items() if k not in _BUFFER and not k.startswith("orifice_")}
+
+    def overshoot(c_out):
+        params = rj.params_from_values({**plain, "c_out": c_out})
+        return float(_peaks(problem, params).peak_displacement) - stroke
+
+    lo, hi = rj.PARAMETERS["c_out"].documented or (0.0, 1e6)
+    c_out, _ = brentq(overshoot, lo, hi, xtol=1e-6 * hi, full_output=True)
+    damper = rj.params_from_values({**plain, "c_out": c_out})
+
+    def recoil(params, time):
+        history = rj.simulate(params, problem.smoothing, ts=np.linspace(0.0, time, 801))
+        return np.asarray(history.x_M), np.asarray(history.anchoring_force)
+
+    curves = {
+        "tuned orifice": recoil(params, float(best.peak_displacement_time)),
+        f"linear damper, c_out = {c_out:.0f} N·s/m": recoil(
+            damper, float(_peaks(problem, damper).peak_displacement_time)
+        ),
+        f"constant-force ideal E0/L = {ideal:.1f} N": ([0.0, stroke], [ideal, ideal]),
+    }
+    plot_series(
+        curves,
+        out / "force_stroke.png",
+        xlabel="barrel travel x_M (mm)",
+        ylabel="anchoring force F_AN (kN)",
+        xscale=1e3,
+        yscale=1e-3,
+        title="anchoring force over the recoil stroke",
+    )
+    damper_peak = float(_peaks(problem, damper).peak_anchoring_force)
+    return {
+        "ideal_force_N": ideal,
+        "stroke_m": stroke,
+        "above_ideal": float(best.peak_anchoring_force) / ideal - 1.0,
+        "linear_damper": {"c_out": c_out, "peak_anchoring_force_N": damper_peak},
+    }
 
 
 def _label(name: str) -> str:
