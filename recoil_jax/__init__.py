@@ -14,6 +14,10 @@ import jax as _jax
 # (Set before the submodules import, hence E402 below.)
 _jax.config.update("jax_enable_x64", True)
 
+from ._cache import (
+    compilation_cache_dir as compilation_cache_dir,
+    enable_compilation_cache as enable_compilation_cache,
+)
 from ._dense import hermite_max as hermite_max
 from ._design import differentiable_peaks as differentiable_peaks
 from ._gradients import (

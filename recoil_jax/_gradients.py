@@ -243,6 +243,25 @@ def _sensitivity_bounds(z, args, t, t1):
     return future_metric_bounds(z[:_N_STATE], _model_args(params, smoothing), t, t1)
 
 
+#: A smooth maximum stops integrating once the rest of `[t, t1]` can add less than this to
+#: its log-integral (a relative change of the smooth maximum's exponential).
+_SMOOTH_TAIL = 1e-12
+
+
+def _smooth_sensitivity_bounds(z, args, t, t1):
+    """`_sensitivity_bounds`, and for each smooth maximum its log-integral `L` where the
+    rest of the run cannot raise it by `_SMOOTH_TAIL` (else `+inf`): with `B` bounding
+    the metric from `t` on, `L(t1) <= L(t) + log(1 + (t1 - t)/t1 · exp(B/T - L(t)))`."""
+    _, _, smooth_max, _ = args
+    bounds = _sensitivity_bounds(z, args, t, t1)
+    for j, name in enumerate(smooth_max.metrics):
+        log_integral = z[_N_STATE + j]
+        exponent = jnp.minimum(bounds[name] / smooth_max.temperatures[j] - log_integral, 700.0)
+        tail = jnp.maximum(t1 - t, 0.0) / t1 * jnp.exp(exponent)
+        bounds[smooth_name(name)] = jnp.where(tail < _SMOOTH_TAIL, log_integral, jnp.inf)
+    return bounds
+
+
 def _stops(params):
     stops = load_stops(params)
     assert stops is not None  # only called for designs with stops
@@ -373,8 +392,7 @@ def sensitivity_solve(params, smoothing, options, wrt, smooth_max=None):
     t1 = end_time(params, options)
     options = with_default_tolerances(params, options)
     z0, args = _sensitivity_setup(params, smoothing, wrt, smooth_max, t1)
-    # A smooth maximum integrates over all of [0, t1]: no stopping once the peaks settle.
-    bounds = _sensitivity_bounds if smooth_max is None else None
+    bounds = _sensitivity_bounds if smooth_max is None else _smooth_sensitivity_bounds
     run = integrate_peaks(
         _sensitivity_term(wrt),
         z0,

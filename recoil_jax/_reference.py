@@ -19,7 +19,6 @@ import dataclasses
 from collections.abc import Callable, Mapping
 
 import numpy as np
-from scipy.integrate import solve_ivp
 
 from ._params import params_from_values, params_to_values
 
@@ -335,6 +334,8 @@ def reference_peaks(
     chatter when the system comes to rest on the contact boundary, at gap 0 after
     ~1.5 s: use a shorter `t1` for such designs), or if scipy fails.
     """
+    import scipy.integrate  # when used: `import recoil_jax` stays quick
+
     flat = params_to_values(params_from_values(values or {}))
     model = _HardModel({name: float(np.asarray(v)) for name, v in flat.items()}, force_table)
     if t1 is None:
@@ -357,7 +358,7 @@ def reference_peaks(
             )
         end = next(s for s in stops if s > t)
         switches = model.switch_events(mode)
-        sol = solve_ivp(
+        sol = scipy.integrate.solve_ivp(
             model.rhs,
             (t, end),
             y,

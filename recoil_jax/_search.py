@@ -30,8 +30,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.optimize import minimize
-from scipy.stats import qmc
 
 from ._params import ParameterError, RecoilParams, params_to_values, values_of, with_values
 from ._problem import DesignProblem, evaluate_design
@@ -211,6 +209,10 @@ def minimise(
 
     **Returns:** `MinimiseResult`.
     """
+    # scipy is imported when used: `import recoil_jax` stays quick for the command line.
+    import scipy.optimize
+    import scipy.stats
+
     if dimension < 1 or starts < 0 or samples < 0 or maxiter < 1:
         raise ParameterError(
             f"minimise: need dimension >= 1, starts >= 0, samples >= 0, maxiter >= 1 "
@@ -268,7 +270,7 @@ def minimise(
                 f0, g0, df0, dg0 = evaluate(z, level)
                 scale = abs(f0) if f0 != 0 else 1.0
                 fallback = (f0 + 10.0 * scale, np.abs(g0) + 1.0, df0, dg0)
-                result = minimize(
+                result = scipy.optimize.minimize(
                     lambda x, lv=level, s=scale: (evaluate(x, lv)[0] / s, evaluate(x, lv)[2] / s),
                     z,
                     jac=True,
@@ -303,9 +305,9 @@ def minimise(
         else:
             given_warmup = None
         if n_samples and not out_of_time():
-            z = qmc.Sobol(dimension, scramble=True, rng=np.random.default_rng(seed)).random(
-                n_samples
-            )
+            z = scipy.stats.qmc.Sobol(
+                dimension, scramble=True, rng=np.random.default_rng(seed)
+            ).random(n_samples)
             objective, violations, ok = (np.asarray(a) for a in evaluate_batch(z))
             violation = _worst(violations, len(z))
             record.add(z, objective, violation, ok, False, "sample")

@@ -1,9 +1,15 @@
 import json
+import os
 from pathlib import Path
 
 import pytest
 
 import recoil_jax  # enables float64 before any test builds arrays
+
+# The command line keeps compiled programs on disk; in-process CLI tests must not turn
+# that on for the whole test session (or write to the user's cache). Tests of the cache
+# set it per subprocess.
+os.environ["RECOIL_JAX_CACHE"] = "off"
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 

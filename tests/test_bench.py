@@ -7,7 +7,14 @@ from recoil_jax.apps._bench import format_bench, run_bench
 
 @pytest.mark.slow
 def test_bench_smoke():
-    result = run_bench(batch_sizes=(1, 8), scipy_designs=2, jacobian_batch=4, log=lambda msg: None)
+    result = run_bench(
+        batch_sizes=(1, 8),
+        scipy_designs=2,
+        jacobian_batch=4,
+        gradient_sizes=(2,),
+        cli_commands=(("simulate", "m=0", "--json"),),
+        log=lambda msg: None,
+    )
     for key in (
         "sims_per_s",
         "batch_size",
@@ -26,3 +33,13 @@ def test_bench_smoke():
     assert result["hardware_mean_steps"] > 0
     assert [row["batch_size"] for row in result["batches"]] == [1, 8]
     assert result["batch_size"] in (1, 8)
+    (row,) = result["gradient_modes"]
+    assert row["parameters"] == 2
+    assert row["plain_ms"] > 0 and row["forward_ms"] > 0 and row["reverse_ms"] > 0
+    assert row["max_abs_gradient"] > 0  # a comparison of something, not of zeros
+    # Forward sensitivities and the derivative of the discrete steps: same gradient to
+    # within the solver's accuracy, on a design of the study (no kink at its peak).
+    assert row["max_rel_difference"] < 1e-2
+    (cli,) = result["cli_cache"]
+    assert cli["first_s"] > 0 and cli["second_s"] > 0
+    assert "then" in format_bench(result)

@@ -2,6 +2,7 @@
 
 import csv
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -104,3 +105,48 @@ def test_console_script():
     assert json.loads(done.stdout)["peak_anchoring_force_N"] == pytest.approx(6949.98, rel=1e-5)
     bad = subprocess.run([script, "simulate", "k_c=-1"], capture_output=True, text=True)
     assert bad.returncode == 2 and "Contact.k_c" in bad.stderr
+
+
+def _cache_entries(folder: Path) -> set[str]:
+    return {p.name for p in folder.rglob("*") if p.is_file()}
+
+
+@pytest.mark.skipif(_console_script() is None, reason="console script not installed")
+def test_compilation_cache_makes_a_repeated_command_compile_nothing(tmp_path):
+    """The first `simulate` writes its compiled (and exported) programs to the cache
+    folder; the same command again, and another design, find every one of them there
+    (no new entry) and print the peaks `rj.peaks` gives; `--no-cache` and
+    RECOIL_JAX_CACHE=off write nothing."""
+    script = _console_script()
+    command = [script, "simulate", "m=1000", "gap=0.05", "--json"]
+    cache = tmp_path / "cache"
+    env = os.environ | {"RECOIL_JAX_CACHE": str(cache)}
+    first = subprocess.run(command, capture_output=True, text=True, check=True, env=env)
+    written = _cache_entries(cache)
+    assert written, "the first run cached nothing"
+    second = subprocess.run(command, capture_output=True, text=True, check=True, env=env)
+    assert _cache_entries(cache) == written
+    assert json.loads(second.stdout) == json.loads(first.stdout)
+    # Another design of the same structure runs the same exported program: its peaks
+    # are this process's `rj.peaks`, to the last digit.
+    other_design = [script, "simulate", "m=500", "gap=0.044", "k_r=2e4", "--json"]
+    third = subprocess.run(other_design, capture_output=True, text=True, check=True, env=env)
+    assert _cache_entries(cache) == written
+    params = rj.params_from_values(m=500.0, gap=0.044, k_r=2e4)
+    expected = rj.peaks(params).to_dict()
+    assert {k: json.loads(third.stdout)[k] for k in expected} == expected
+
+    other = tmp_path / "other"
+    subprocess.run(
+        [*command, "--no-cache"],
+        check=True,
+        capture_output=True,
+        env=env | {"RECOIL_JAX_CACHE": str(other)},
+    )
+    subprocess.run(
+        command,
+        check=True,
+        capture_output=True,
+        env=os.environ | {"RECOIL_JAX_CACHE": "off", "XDG_CACHE_HOME": str(other)},
+    )
+    assert not other.exists() or not _cache_entries(other)

@@ -164,3 +164,35 @@ def test_values_and_gradients_finite_over_1000_random_designs():
     assert all_ok(peaks.status)
     for leaf in jax.tree.leaves((peaks, grads)):
         assert np.all(np.isfinite(np.asarray(leaf)))
+
+
+def test_smooth_maximum_stops_early_without_changing_value_or_gradient(monkeypatch):
+    """The smooth maximum stops once the energy bound says the rest of the run can add
+    less than 1e-12 to its log-integral: fewer steps than integrating to t1, the same
+    value and gradient (a throttling buffer at T = 10 N, where the stop saves most)."""
+    from recoil_jax import _gradients
+
+    knots = {f"orifice_{i}": 5e-4 * (1.0 - 0.04 * i) for i in range(8)}
+    params = rj.params_from_values(
+        m=0.0, piston_area=0.01, oil_density=870.0, discharge_coefficient=0.7,
+        orifice_length=0.15, **knots,
+    )  # fmt: skip
+    wrt = tuple(knots)
+    smooth = rj.SmoothMax(("peak_anchoring_force",), jnp.array([10.0]))
+
+    def solve():
+        # A fresh function each time: the tail threshold is read when traced.
+        return eqx.filter_jit(
+            lambda p: _gradients.sensitivity_solve(
+                p, rj.Smoothing(), rj.GRADIENT_OPTIONS, wrt, smooth
+            )
+        )(params)
+
+    early = solve()
+    monkeypatch.setattr(_gradients, "_SMOOTH_TAIL", 0.0)  # never stops: integrates to t1
+    full = solve()
+    assert all_ok(early[0].status) and all_ok(full[0].status)
+    assert int(early[0].num_steps) < 0.8 * int(full[0].num_steps)
+    np.testing.assert_allclose(early[2], full[2], rtol=1e-12)
+    np.testing.assert_allclose(early[3], full[3], rtol=1e-9)
+    assert float(full[2][0]) < float(full[0].peak_anchoring_force)

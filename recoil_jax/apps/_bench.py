@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import sys
 import time
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -13,7 +14,17 @@ import numpy as np
 
 import recoil_jax as rj
 
-__all__ = ["bench_designs", "format_bench", "hardware_designs", "main_bench", "run_bench"]
+__all__ = [
+    "CLI_COMMANDS",
+    "GRADIENT_STUDY",
+    "bench_designs",
+    "cli_cache_timings",
+    "format_bench",
+    "gradient_modes",
+    "hardware_designs",
+    "main_bench",
+    "run_bench",
+]
 
 
 def bench_designs(count: int, seed: int = 0) -> dict[str, np.ndarray]:
@@ -57,8 +68,115 @@ def _timed(fn, *args):
     return out, time.perf_counter() - start
 
 
+#: The problem of the gradient-mode comparison: P of its tuned parameters are
+#: differentiated, P up to all 22.
+GRADIENT_STUDY = "burst_recuperator"
+
+
+def gradient_modes(sizes=(1, 4, 8, 16, 22), repeats: int = 5, log=None) -> list[dict]:
+    """Milliseconds per gradient of the peak anchoring force with respect to P tuned
+    parameters of `GRADIENT_STUDY` (at its start design; the orifice knots first), for
+    each P in `sizes`:
+    a plain solve, forward sensitivities (P columns, error-controlled; what the
+    optimisers use) and reverse mode through the solver's steps (`autodiff="reverse"`,
+    diffrax's checkpointed loop; one backward pass for any P), with the largest
+    relative difference between the two gradients."""
+    import dataclasses
+
+    from ._studies import load_study
+
+    log = log or (lambda msg: None)
+    problem = load_study(GRADIENT_STUDY).problem
+    params, smoothing, options = problem.params, problem.smoothing, problem.options
+    reverse_options = dataclasses.replace(options, autodiff="reverse")
+
+    def best_ms(fn, *args):
+        jax.block_until_ready(fn(*args))
+        return 1e3 * min(_timed(fn, *args)[1] for _ in range(repeats))
+
+    # The orifice knots first: they act on every design (an absorber that the wall does
+    # not reach at the start design would give zero gradients).
+    order = sorted(problem.tune, key=lambda name: not name.startswith("orifice_"))
+    rows = []
+    for size in sizes:
+        wrt = tuple(order[:size])
+        theta = jax.numpy.asarray(rj.values_of(params, wrt))
+
+        def force(theta, options, wrt=wrt):
+            design = rj.with_values(params, wrt, theta)
+            return rj.peak_metrics(design, smoothing, options).peak_anchoring_force
+
+        def forward(theta, wrt=wrt):
+            design = rj.with_values(params, wrt, theta)
+            _, gradients = rj.peak_jacobian(design, smoothing, options, wrt, throw=False)
+            return gradients.peak_anchoring_force
+
+        plain = eqx.filter_jit(force)
+        reverse = eqx.filter_jit(jax.grad(force))
+        forward = eqx.filter_jit(forward)
+        row = {
+            "parameters": size,
+            "plain_ms": best_ms(plain, theta, options),
+            "forward_ms": best_ms(forward, theta),
+            "reverse_ms": best_ms(reverse, theta, reverse_options),
+        }
+        exact, discrete = np.asarray(forward(theta)), np.asarray(reverse(theta, reverse_options))
+        row["max_abs_gradient"] = float(np.max(np.abs(exact)))
+        row["max_rel_difference"] = float(
+            np.max(np.abs(discrete - exact)) / max(row["max_abs_gradient"], 1e-300)
+        )
+        rows.append(row)
+        log(
+            f"  gradient, {size:2d} parameters: plain {row['plain_ms']:.1f} ms, forward "
+            f"sensitivities {row['forward_ms']:.1f} ms, reverse {row['reverse_ms']:.1f} ms"
+        )
+        jax.clear_caches()  # each P is its own program: keep memory flat
+    return rows
+
+
+#: The commands whose first and second run `cli_cache_timings` measures.
+CLI_COMMANDS = (
+    ("simulate", "m=1000", "gap=0.05", "--json"),
+    ("sweep", "m=500:1500:11", "gap=0.05", "--json"),
+    ("optimise", "tuned_absorber", "--json"),
+)
+
+
+def cli_cache_timings(commands=CLI_COMMANDS, log=None) -> list[dict]:
+    """Wall seconds of each command's first and second run, each in a fresh process,
+    with the compilation cache in a new empty folder: the second run loads what the
+    first compiled."""
+    import os
+    import subprocess
+    import tempfile
+
+    log = log or (lambda msg: None)
+    rows = []
+    with tempfile.TemporaryDirectory() as folder:
+        env = os.environ | {"RECOIL_JAX_CACHE": str(Path(folder) / "cache")}
+        for command in commands:
+            argv = [sys.executable, "-m", "recoil_jax.apps._cli", *command]
+            if command[0] == "optimise":
+                argv += ["--out", str(Path(folder) / "study")]
+            seconds = []
+            for _ in range(2):
+                start = time.perf_counter()
+                subprocess.run(argv, check=True, capture_output=True, env=env)
+                seconds.append(time.perf_counter() - start)
+            rows.append(
+                {"command": " ".join(command), "first_s": seconds[0], "second_s": seconds[1]}
+            )
+            log(f"  recoil-jax {' '.join(command)}: {seconds[0]:.2f} s, then {seconds[1]:.2f} s")
+    return rows
+
+
 def run_bench(
-    batch_sizes=(1, 64, 1024, 16384), scipy_designs: int = 20, jacobian_batch: int = 4096, log=None
+    batch_sizes=(1, 64, 1024, 16384),
+    scipy_designs: int = 20,
+    jacobian_batch: int = 4096,
+    gradient_sizes=(1, 4, 8, 16, 22),
+    cli_commands=CLI_COMMANDS,
+    log=None,
 ) -> dict:
     """Measure and return the figures (see `recoil-jax bench --help`)."""
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
@@ -143,6 +261,9 @@ def run_bench(
     ]
     log(f"  scipy solve_ivp (RK45, rtol 1e-5, serial): {scipy_per_s:.1f} sims/s")
 
+    gradient_rows = gradient_modes(gradient_sizes, log=log)
+    cli_rows = cli_cache_timings(cli_commands, log=log)
+
     best = max(rows, key=lambda r: r["sims_per_s"])
     return {
         "sims_per_s": best["sims_per_s"],
@@ -161,6 +282,8 @@ def run_bench(
         "compile_s": compile_s,
         "max_rel_error": max(errors),
         "batches": rows,
+        "gradient_modes": gradient_rows,
+        "cli_cache": cli_rows,
         "devices": [str(d) for d in jax.local_devices()],
         "dtype": "float64",
     }
@@ -187,7 +310,20 @@ def format_bench(result: dict) -> str:
         "(jacobian)",
         f"max relative error vs the scipy baseline's peaks: {result['max_rel_error']:.1e}",
         f"devices: {', '.join(result['devices'])}",
+        f"gradient of the peak anchoring force ({GRADIENT_STUDY}), ms: parameters, plain "
+        "solve, forward sensitivities, reverse through the steps, their largest difference",
     ]
+    for row in result["gradient_modes"]:
+        lines.append(
+            f"{row['parameters']:10d} {row['plain_ms']:8.1f} {row['forward_ms']:8.1f} "
+            f"{row['reverse_ms']:8.1f} {row['max_rel_difference']:10.1e}"
+        )
+    lines.append("command line, first and second run (compilation cache on):")
+    for row in result["cli_cache"]:
+        lines.append(
+            f"  recoil-jax {row['command']}: {row['first_s']:.2f} s, then "
+            f"{row['second_s']:.2f} s ({row['second_s'] / row['first_s']:.2f} of the first)"
+        )
     return "\n".join(lines)
 
 
@@ -197,6 +333,8 @@ def main_bench(args) -> int:
         batch_sizes=sizes,
         scipy_designs=5 if args.quick else 20,
         jacobian_batch=64 if args.quick else 4096,
+        gradient_sizes=(1, 4) if args.quick else (1, 4, 8, 16, 22),
+        cli_commands=CLI_COMMANDS[:1] if args.quick else CLI_COMMANDS,
     )
     print(json.dumps(result) if args.json else format_bench(result))
     return 0

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import matplotlib
@@ -12,6 +13,30 @@ import numpy as np
 
 import recoil_jax as rj
 
+#: One look for every figure the command line writes (reproduce, sweep, optimise,
+#: benchmarks): light grid, no top and right frame, legible sizes. Applied per figure
+#: (`_styled`), so a notebook that imports these keeps its own defaults.
+STYLE = {
+    "axes.grid": True,
+    "grid.alpha": 0.3,
+    "axes.spines.top": False,
+    "axes.spines.right": False,
+    "axes.titlesize": 11,
+    "axes.labelsize": 10,
+    "legend.fontsize": 9,
+    "legend.framealpha": 0.8,
+}
+
+
+def _styled(plot):
+    @functools.wraps(plot)
+    def styled(*args, **kwargs):
+        with plt.style.context(STYLE):
+            return plot(*args, **kwargs)
+
+    return styled
+
+
 __all__ = [
     "plot_convergence",
     "plot_heatmap",
@@ -21,6 +46,7 @@ __all__ = [
 ]
 
 
+@_styled
 def plot_history(history: rj.History, path, title: str = "") -> Path:
     """Time histories, stacked: the barrel's and absorber's displacements; the anchoring
     force with each element that carries it (recoil spring, damper, hydraulic buffer,
@@ -57,14 +83,13 @@ def plot_history(history: rj.History, path, title: str = "") -> Path:
     axes[2].set_ylabel("force (kN)")
     axes[2].legend(loc="upper right", fontsize=8)
     axes[2].set_xlabel("time (s)")
-    for ax in axes:
-        ax.grid(alpha=0.3)
     if title:
         fig.suptitle(title)
     fig.tight_layout()
     return _save(fig, path)
 
 
+@_styled
 def plot_series(
     series,
     path,
@@ -76,29 +101,40 @@ def plot_series(
     yscale: float = 1.0,
     mark=None,
     ylim=None,
+    markers: bool = False,
+    minima: str | None = None,
 ) -> Path:
     """Line plot of labelled `(x, y)` series; `mark` = `(x, y, text)` annotates a point;
-    `ylim` = `(low, high)` in the series' units."""
+    `ylim` = `(low, high)` in the series' units; `markers` draws each point (a front's
+    designs); `minima` (a unit, e.g. `"N"`) marks each series' lowest point and gives
+    it in the legend, in the series' units."""
     fig, ax = plt.subplots(figsize=(8, 4.5))
     if ylim is not None:
         ax.set_ylim(yscale * ylim[0], yscale * ylim[1])
     for label, (x, y) in series.items():
-        ax.plot(xscale * np.asarray(x), yscale * np.asarray(y), label=label)
+        x, y = xscale * np.asarray(x, float), yscale * np.asarray(y, float)
+        if minima is not None and np.any(np.isfinite(y)):
+            i = int(np.nanargmin(y))
+            value = y[i] / yscale
+            label = f"{label}: min {value:.4g} {minima} at {x[i]:.4g}"
+        (line,) = ax.plot(x, y, marker="o" if markers else None, ms=4, label=label)
+        if minima is not None and np.any(np.isfinite(y)):
+            ax.plot([x[i]], [y[i]], "v", color=line.get_color(), ms=8)  # pyright: ignore
     if mark is not None:
         x, y, text = mark
         ax.plot([xscale * x], [yscale * y], "ko")
         ax.annotate(text, (xscale * x, yscale * y), textcoords="offset points", xytext=(8, 6))
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
-    if len(series) > 1:
+    if len(series) > 1 or minima is not None:
         ax.legend()
-    ax.grid(alpha=0.3)
     if title:
         ax.set_title(title)
     fig.tight_layout()
     return _save(fig, path)
 
 
+@_styled
 def plot_search_convergence(result: rj.MinimiseResult, path, title: str = "") -> Path:
     """Convergence of `rj.search`: each evaluated design's objective (sampled designs and
     gradient solves, infeasible ones faint) and the best feasible objective so far,
@@ -124,18 +160,20 @@ def plot_search_convergence(result: rj.MinimiseResult, path, title: str = "") ->
     ax.set_xlabel("wall time (s), compilation included")
     ax.set_ylabel("objective")
     ax.legend(fontsize=8)
-    ax.grid(alpha=0.3)
     if title:
         ax.set_title(title)
     fig.tight_layout()
     return _save(fig, path)
 
 
+@_styled
 def plot_heatmap(
     x, y, values, path, *, xlabel: str, ylabel: str, label: str, diverging: bool = False
 ) -> Path:
-    """`values[i, j]` at `(x[j], y[i])` as a colour map (NaN: failed points, blank)."""
+    """`values[i, j]` at `(x[j], y[i])` as a colour map (NaN: failed points, blank); on
+    a map of a peak (not `diverging`) a star marks the lowest point."""
     fig, ax = plt.subplots(figsize=(7, 5))
+    ax.grid(False)
     values = np.asarray(values, dtype=float)
     kwargs = {}
     if diverging:
@@ -146,11 +184,20 @@ def plot_heatmap(
     fig.colorbar(mesh, ax=ax, label=label)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
-    ax.set_title(label)
+    title = label
+    if not diverging and np.any(np.isfinite(values)):
+        i, j = np.unravel_index(np.nanargmin(values), values.shape)
+        x_min, y_min = (
+            np.asarray(a)[(i, j) if np.ndim(a) == 2 else k] for a, k in ((x, j), (y, i))
+        )
+        ax.plot([x_min], [y_min], "*", color="w", mec="k", ms=14)
+        title += f"\n★ lowest: {values[i, j]:.4g} at {xlabel} = {x_min:.4g}, {ylabel} = {y_min:.4g}"
+    ax.set_title(title)
     fig.tight_layout()
     return _save(fig, path)
 
 
+@_styled
 def plot_convergence(result, path, title: str = "") -> Path:
     """Convergence of an `OptimiseResult`: per run, the best feasible objective so far
     and the worst normalised constraint violation, against the step."""

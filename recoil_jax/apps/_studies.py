@@ -650,6 +650,7 @@ def _plot_front(table: dict, out: Path) -> None:
         xlabel=_label(vary),
         ylabel=rj.METRICS["peak_anchoring_force"].label,
         title=f"Pareto front: peak anchoring force vs {vary}",
+        markers=True,
     )
     plot_series(
         {"best design": (displacement, force)},
@@ -658,6 +659,7 @@ def _plot_front(table: dict, out: Path) -> None:
         ylabel=rj.METRICS["peak_anchoring_force"].label,
         xscale=1e3,
         title="peak anchoring force vs peak displacement",
+        markers=True,
     )
     stroke_key = rj.METRICS["max_stroke"].key
     lines = [f"{vary},{force_key},{displacement_key},{stroke_key}," + ",".join(rows[0]["best"])]

@@ -133,7 +133,8 @@ def write_figures(result: rj.SweepResult, out: Path) -> list[Path]:
                     xlabel="gap (mm)",
                     ylabel=label,
                     xscale=1e3,
-                    title=label + " vs gap",
+                    title=label + " vs gap (▼ lowest of each line, gap in mm)",
+                    minima=rj.METRICS[name].unit,
                 )
             )
     if len(swept) >= 2:
