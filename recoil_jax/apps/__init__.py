@@ -13,6 +13,7 @@ if TYPE_CHECKING:  # what the lazy loader below provides, for type checkers
     from ._bench import run_bench as run_bench
     from ._bench_tuning import run_tuning_bench as run_tuning_bench
     from ._cli import main as main
+    from ._explore import explorer as explorer
     from ._figures import (
         plot_convergence as plot_convergence,
         plot_heatmap as plot_heatmap,
@@ -27,6 +28,7 @@ if TYPE_CHECKING:  # what the lazy loader below provides, for type checkers
     )
 
 __all__ = [
+    "explorer",
     "load_study",
     "main",
     "plot_convergence",
@@ -42,6 +44,7 @@ __all__ = [
 
 _HOMES = {
     "main": "._cli",
+    "explorer": "._explore",
     "load_study": "._studies",
     "resolve_study": "._studies",
     "run_study": "._studies",

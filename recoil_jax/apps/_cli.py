@@ -159,6 +159,12 @@ def _optimise(args) -> int:
     return 0
 
 
+def _explore(args) -> int:
+    from ._explore import main_explore
+
+    return main_explore(args, parse_assignments(args.assignments))
+
+
 def _bench_tuning(args) -> int:
     from ._bench_tuning import main_tuning_bench
 
@@ -184,7 +190,8 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="do not keep compiled programs on disk (default: kept in "
         "$RECOIL_JAX_CACHE or ~/.cache/recoil-jax/jax, so a repeated command does not "
-        "compile again; RECOIL_JAX_CACHE=off also turns it off)",
+        "compile again; RECOIL_JAX_CACHE=off also turns it off; the benchmarks never use "
+        "it)",
     )
     sub = parser.add_subparsers(dest="command", required=True)
     sim = sub.add_parser(
@@ -276,6 +283,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     tuning.add_argument("--out", help="folder for the convergence figures (default: none)")
     tuning.set_defaults(func=_bench_tuning)
+    explore = sub.add_parser(
+        "explore",
+        parents=[common],
+        help="a live design explorer in the browser",
+        description="Serve the design explorer: a number field for every parameter, "
+        "the displacements and forces against time, the peaks against their limits and "
+        "the gradient of the peak anchoring force, updated as you type. Optional "
+        "name=value items set the starting design.",
+    )
+    explore.add_argument("assignments", nargs="*", metavar="name=value")
+    explore.add_argument("--port", type=int, default=5006, help="port (default 5006)")
+    explore.add_argument("--address", default="localhost", help="address (default localhost)")
+    explore.add_argument("--no-browser", action="store_true", help="do not open a browser tab")
+    explore.set_defaults(func=_explore)
     rep = sub.add_parser(
         "reproduce",
         parents=[common],
@@ -295,10 +316,13 @@ def main(argv: list[str] | None = None) -> int:
     # name=value items may come after the flags (`simulate m=500 --hard t1=2`).
     args, extra = parser.parse_known_args(argv)
     if extra:
-        if args.command not in ("simulate", "sweep") or any(item.startswith("-") for item in extra):
+        if args.command not in ("simulate", "sweep", "explore") or any(
+            item.startswith("-") for item in extra
+        ):
             parser.error(f"unrecognized arguments: {' '.join(extra)}")
         args.assignments = list(args.assignments) + extra
-    if not args.no_cache:
+    # The benchmarks measure compilation among other things: they never load from disk.
+    if not args.no_cache and not args.command.startswith("bench"):
         rj.enable_compilation_cache()
     try:
         return args.func(args)

@@ -1,0 +1,300 @@
+"""`recoil-jax explore`: a live design explorer (Panel, Bokeh plots).
+
+A number field for every parameter, grouped by part (the barrel, the absorber and its
+contact, the breech load, the throttling orifice, the gas recuperator; a part is off at
+its "none" value: m = 0, piston_area = 0, recuperator_force = 0), limits on the travels,
+and four views that follow every change: the displacements x_M and x_m, the forces F_AN
+and F_ct against time, the peaks against their limits, and the gradient of the peak
+anchoring force as bars ("which knob matters here"). One compiled program per model
+structure (which parts are on) computes the history, the peaks and the gradient; after
+its first run an update takes milliseconds. It runs in a notebook (`explorer()`) and as
+a page (`recoil-jax explore`).
+"""
+
+from __future__ import annotations
+
+import html
+import time
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+import recoil_jax as rj
+
+__all__ = ["EXPLORER_KNOTS", "Explorer", "explorer", "main_explore"]
+
+#: Orifice knots the explorer offers (when `piston_area > 0`).
+EXPLORER_KNOTS = 4
+
+_GROUP_TITLES = {
+    "barrel": "Barrel and recoil system",
+    "absorber": "Absorber (m = 0: none)",
+    "contact": "Contact",
+    "load": "Breech load (pulse_time = 0: impulse)",
+    "buffer": "Throttling orifice (piston_area = 0: none)",
+    "recuperator": "Gas recuperator (recuperator_force = 0: none)",
+}
+
+# Drawn points per history: enough for the plots, few enough to send at once.
+_POINTS = 800
+
+
+@eqx.filter_jit
+def _compute(params, ts, wrt):
+    """The history at `ts`, the peaks and the peak anchoring force's gradient with
+    respect to `wrt`: one program per model structure."""
+    history = rj.simulate(params, ts=ts, throw=False)
+    # The peaks as `simulate` reports them (default solver options); the gradient from
+    # forward sensitivities at their own, tighter, tolerance.
+    peaks = rj.peak_metrics(params)
+    _, gradients = rj.peak_jacobian(params, wrt=wrt, throw=False)
+    return history, peaks, gradients.peak_anchoring_force
+
+
+def _tuned(values: dict[str, float]) -> tuple[str, ...]:
+    """The parameters whose gradient the bars show: every continuous parameter of the
+    parts that are on (`values` holds only those; counts such as `shots` are not
+    differentiable, and `m = 0` means no absorber)."""
+    return tuple(
+        name for name in values if name != "shots" and not (name == "m" and not values[name])
+    )
+
+
+class Explorer:
+    """The explorer's state and views. `panel()` is the layout; `set(name, value)` and
+    `update()` drive it from code (the tests do)."""
+
+    def __init__(self, values: dict[str, float] | None = None, duration: float = 2.0):
+        import panel as pn
+        from bokeh.models import ColumnDataSource, FactorRange
+        from bokeh.plotting import figure
+
+        self.pn = pn
+        start = rj.params_to_values(rj.params_from_values(values or {}))
+        defaults = {name: float(p.default) for name, p in rj.PARAMETERS.items()}
+        defaults |= {f"orifice_{i}": 4e-4 for i in range(EXPLORER_KNOTS)}
+        defaults |= {k: float(np.asarray(v)) for k, v in start.items()}
+        self.fields: dict[str, Any] = {}
+        for name, value in defaults.items():
+            parameter = rj.PARAMETERS[name]
+            unit = f" ({parameter.unit})" if parameter.unit else ""
+            low, high = parameter.documented or (None, None)
+            widget = (
+                pn.widgets.IntInput(label=name + unit, value=int(value), start=1)
+                if parameter.integer
+                else pn.widgets.FloatInput(label=name + unit, value=value, format="0.[000000]")
+            )
+            widget.description = f"{parameter.meaning}; documented {low:g} to {high:g}"
+            widget.css_classes = [f"field-{name}"]
+            widget.param.watch(lambda event: self.update(), "value")
+            self.fields[name] = widget
+        self.duration = pn.widgets.FloatInput(label="shown time (s)", value=duration, start=0.01)
+        self.duration.param.watch(lambda event: self.update(), "value")
+        self.limits = {
+            "peak_displacement": pn.widgets.FloatInput(label="barrel travel limit (m)", value=0.25),
+            "max_stroke": pn.widgets.FloatInput(label="absorber travel limit (m)", value=0.15),
+        }
+        for widget in self.limits.values():
+            widget.param.watch(lambda event: self.update(), "value")
+
+        self.motion = ColumnDataSource({"t": [], "x_M": [], "x_m": []})
+        self.force = ColumnDataSource({"t": [], "F_AN": [], "F_ct": []})
+        self.bars = ColumnDataSource({"name": [], "change": []})
+        plot: dict[str, Any] = dict(
+            height=260, sizing_mode="stretch_width", tools="pan,wheel_zoom,reset"
+        )
+        self.motion_plot = figure(
+            title="displacements", x_axis_label="time (s)", y_axis_label="displacement (mm)", **plot
+        )
+        self.motion_plot.line(
+            "t", "x_M", source=self.motion, legend_label="barrel x_M", line_width=2
+        )
+        self.motion_plot.line(
+            "t",
+            "x_m",
+            source=self.motion,
+            legend_label="absorber x_m",
+            color="darkorange",
+            line_width=2,
+        )
+        self.force_plot = figure(
+            title="forces",
+            x_axis_label="time (s)",
+            y_axis_label="force (kN)",
+            x_range=self.motion_plot.x_range,
+            **plot,
+        )
+        self.force_plot.line(
+            "t",
+            "F_AN",
+            source=self.force,
+            legend_label="anchoring F_AN",
+            color="black",
+            line_width=2,
+        )
+        self.force_plot.line(
+            "t", "F_ct", source=self.force, legend_label="contact F_ct", color="firebrick"
+        )
+        self.bar_range = FactorRange()
+        self.bar_plot = figure(
+            title="peak anchoring force: change for +1 % of each parameter",
+            y_range=self.bar_range,
+            x_axis_label="change (N)",
+            height=320,
+            sizing_mode="stretch_width",
+            tools="",
+        )
+        self.bar_plot.hbar(
+            y="name", right="change", height=0.7, source=self.bars, color="steelblue"
+        )
+        self.peaks_pane = pn.pane.HTML("", css_classes=["peaks"])
+        self.message = pn.pane.HTML("", css_classes=["message"])
+        self.timing = pn.pane.HTML("", css_classes=["timing"])
+        self.update_ms: float | None = None
+        self.update()
+
+    def values(self) -> dict[str, float]:
+        """The design the fields describe, by flat name, without the parts that are off
+        (so that it is the design `simulate` builds from the same items)."""
+        values = {name: widget.value for name, widget in self.fields.items()}
+        off = {
+            "absorber": not values.get("m"),
+            "contact": not values.get("m"),
+            "load": values.get("pulse_time") == 0 and values.get("shots") == 1,
+            "buffer": not values.get("piston_area"),
+            "recuperator": not values.get("recuperator_force"),
+        }
+        return {
+            name: value
+            for name, value in values.items()
+            if name == "m" or not off.get(rj.PARAMETERS[name].group, False)
+        }
+
+    def set(self, name: str, value: float) -> None:
+        """Set one field (and so update the views)."""
+        self.fields[name].value = value
+
+    def update(self) -> None:
+        start = time.perf_counter()
+        # One message to the page for all the views' changes.
+        with self.pn.io.hold():
+            self._update(start)
+
+    def _update(self, start: float) -> None:
+        try:
+            values = self.values()
+            if any(v is None for v in values.values()):
+                raise rj.ParameterError("every field needs a number")
+            params = rj.params_from_values(values)
+            duration = self.duration.value
+            if not duration or duration <= 0:
+                raise rj.ParameterError("shown time must be > 0 s")
+            wrt = _tuned(values)
+            ts = jnp.linspace(0.0, float(duration), _POINTS)
+            history, peaks, gradient = _compute(params, ts, wrt)
+        except rj.ParameterError as error:
+            self.message.object = (
+                f'<div class="error" style="color:#b00020">{html.escape(str(error))}</div>'
+            )
+            return
+        failed = not bool(np.all(peaks.status == rj.Status.ok))
+        note = rj.status_messages(peaks.status)[0] if failed else ""
+        self.message.object = (
+            f'<div class="error" style="color:#b00020">solver: {html.escape(note)}</div>'
+            if failed
+            else ""
+        )
+        t = np.asarray(history.ts)
+        self.motion.data = {
+            "t": t,
+            "x_M": 1e3 * np.asarray(history.x_M),
+            "x_m": 1e3 * np.asarray(history.x_m),
+        }
+        self.force.data = {
+            "t": t,
+            "F_AN": 1e-3 * np.asarray(history.anchoring_force),
+            "F_ct": 1e-3 * np.asarray(history.contact_force),
+        }
+        change = np.asarray(gradient) * np.asarray([values[name] for name in wrt]) * 0.01
+        order = np.argsort(np.abs(change))
+        names = [wrt[i] for i in order]
+        self.bar_range.factors = names
+        self.bars.data = {"name": names, "change": change[order]}
+        self.peaks_pane.object = self._peaks_html(peaks.to_dict())
+        self.update_ms = 1e3 * (time.perf_counter() - start)
+        self.timing.object = f'<span class="update-ms">updated in {self.update_ms:.1f} ms</span>'
+
+    def _peaks_html(self, peaks: dict) -> str:
+        rows = []
+        for name in (
+            "peak_displacement",
+            "peak_anchoring_force",
+            "peak_contact_force",
+            "max_stroke",
+        ):
+            metric = rj.METRICS[name]
+            value = peaks[metric.key]
+            limit = self.limits.get(name)
+            state = ""
+            if limit is not None and limit.value is not None:
+                ok = value <= limit.value
+                state = f" {'within' if ok else 'over'} the limit {limit.value:g} {metric.unit}"
+            rows.append(
+                f'<tr><td>{metric.meaning}</td><td id="{name}" style="text-align:right">'
+                f"{value:.6g}</td><td>{metric.unit}{state}</td></tr>"
+            )
+        return "<table>" + "".join(rows) + f"</table><small>status: {peaks['status']}</small>"
+
+    def panel(self):
+        """The layout: fields on the left (one card per part), views on the right."""
+        pn = self.pn
+        groups: dict[str, list] = {}
+        for name, widget in self.fields.items():
+            groups.setdefault(rj.PARAMETERS[name].group, []).append(widget)
+        cards = [
+            pn.Card(
+                *widgets,
+                title=_GROUP_TITLES.get(group, group),
+                collapsed=group not in ("barrel", "absorber"),
+            )
+            for group, widgets in groups.items()
+        ]
+        sidebar = pn.Column(self.duration, *self.limits.values(), *cards, width=320)
+        views = pn.Column(
+            self.message,
+            self.peaks_pane,
+            self.timing,
+            self.motion_plot,
+            self.force_plot,
+            self.bar_plot,
+            sizing_mode="stretch_width",
+        )
+        return pn.Row(sidebar, views, sizing_mode="stretch_width")
+
+
+def explorer(values: dict[str, float] | None = None, duration: float = 2.0):
+    """The design explorer as a Panel layout, for a notebook cell (after
+    `import panel as pn; pn.extension()`), starting from the design `values` (flat
+    names; default the paper's best absorber) and showing `duration` seconds."""
+    return Explorer(values, duration).panel()
+
+
+def main_explore(args, values: dict[str, float]) -> int:
+    """Serve the explorer (`recoil-jax explore`), one session per browser tab."""
+    import panel as pn
+
+    Explorer(values)  # bad input fails here, before the server starts; compiles once
+    pn.extension()
+    print(f"recoil-jax explore: http://localhost:{args.port}/", flush=True)
+    pn.serve(
+        lambda: Explorer(values).panel(),
+        port=args.port,
+        address=args.address,
+        show=not args.no_browser,
+        title="recoil-jax explorer",
+        websocket_origin=[f"localhost:{args.port}", f"127.0.0.1:{args.port}"],
+        verbose=False,
+    )
+    return 0

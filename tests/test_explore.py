@@ -1,0 +1,146 @@
+"""The design explorer: the numbers it shows are `simulate`'s, bad input shows the
+error message, an update after the first compilation is fast; and, in a real headless
+browser (Debian's chromium), the served page loads, typing a value updates the shown
+peak to the value `simulate` gives, and a bad value shows the message, no traceback."""
+
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+
+import numpy as np
+import pytest
+
+import recoil_jax as rj
+
+pytest.importorskip("panel")
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+def _peak(**values):
+    return rj.peaks(rj.params_from_values(values)).to_dict()
+
+
+@pytest.mark.slow  # compiles the explorer's program
+def test_explorer_shows_simulate_numbers_and_errors():
+    from recoil_jax.apps._explore import Explorer, _tuned
+
+    explorer = Explorer()
+    explorer.set("gap", 0.05)
+    expected = _peak(m=1500.0, gap=0.05)
+    shown = explorer.peaks_pane.object
+    assert (
+        'id="peak_anchoring_force" style="text-align:right">'
+        f"{expected['peak_anchoring_force_N']:.6g}" in shown
+    )
+    assert f"{expected['peak_displacement_m']:.6g}" in shown
+    assert explorer.message.object == ""
+    # The bars: the peak force's change for +1 % of each parameter, from peak_jacobian.
+    values = explorer.values()
+    wrt = _tuned(values)
+    _, gradients = rj.peak_jacobian(rj.params_from_values(values), wrt=wrt)
+    change = np.asarray(gradients.peak_anchoring_force) * np.array([values[n] for n in wrt]) * 0.01
+    bars = dict(zip(explorer.bars.data["name"], explorer.bars.data["change"], strict=True))
+    np.testing.assert_allclose([bars[n] for n in wrt], change, rtol=1e-9)
+    assert explorer.update_ms is not None and explorer.update_ms > 0
+    # A bad value: the message names the parameter and its range; the views keep the
+    # last good design.
+    explorer.set("gap", -1.0)
+    assert "Absorber.gap = -1 m is invalid" in explorer.message.object
+    assert "Traceback" not in explorer.message.object
+    assert f"{expected['peak_anchoring_force_N']:.6g}" in explorer.peaks_pane.object
+    explorer.set("gap", 0.062)
+    assert explorer.message.object == ""
+
+
+# Waits, in the page, until the element with this id (inside any shadow root) shows the
+# text; returns the page's clock then (ms since the epoch). Fails after 30 s.
+_WAIT_FOR_TEXT = """async ([id, text]) => {
+  const find = (root) => {
+    const found = root.querySelector('#' + id);
+    if (found) return found;
+    for (const e of root.querySelectorAll('*')) {
+      if (e.shadowRoot) { const inner = find(e.shadowRoot); if (inner) return inner; }
+    }
+    return null;
+  };
+  const start = Date.now();
+  while (Date.now() - start < 30000) {
+    const el = find(document);
+    if (el && el.textContent === text) return Date.now();
+    await new Promise(r => requestAnimationFrame(r));
+  }
+  throw new Error('timed out waiting for ' + text);
+}"""
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed")
+def test_explorer_page_in_headless_chromium():
+    playwright = pytest.importorskip("playwright.sync_api")
+    port = _free_port()
+    server = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "recoil_jax.apps._cli",
+            "explore",
+            "--port",
+            str(port),
+            "--no-browser",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        url = f"http://localhost:{port}/"
+        deadline = time.time() + 300
+        while True:
+            try:
+                urllib.request.urlopen(url, timeout=5)
+                break
+            except OSError:
+                assert server.poll() is None, server.stdout.read() if server.stdout else ""
+                assert time.time() < deadline, "the explorer did not start"
+                time.sleep(1)
+        with playwright.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, headless=True)
+            page = browser.new_page()
+            page.goto(url)
+            force = page.locator("#peak_anchoring_force")
+            force.wait_for(timeout=120_000)
+            paper = _peak(m=1500.0, gap=0.062)["peak_anchoring_force_N"]
+            assert force.inner_text() == f"{paper:.6g}"
+
+            field = page.locator(".field-gap input")
+            for gap in (0.05, 0.055, 0.06, 0.045):
+                expected = f"{_peak(m=1500.0, gap=gap)['peak_anchoring_force_N']:.6g}"
+                field.fill(str(gap))
+                pressed = 1e3 * time.time()  # the page's Date.now() reads the same clock
+                field.press("Enter")
+                shown = page.evaluate(_WAIT_FOR_TEXT, ["peak_anchoring_force", expected])
+                print(
+                    f"gap {gap}: the page showed the new peak {shown - pressed:.0f} ms after Enter"
+                )
+                assert page.locator("#peak_anchoring_force").inner_text() == expected
+
+            field.fill("-1")
+            field.press("Enter")
+            message = page.locator(".error")
+            message.wait_for(timeout=30_000)
+            assert "Absorber.gap = -1 m is invalid" in message.inner_text()
+            assert "Traceback" not in page.content()
+            browser.close()
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
