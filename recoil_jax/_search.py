@@ -42,6 +42,10 @@ __all__ = ["MinimiseResult", "log_coordinates", "minimise", "search"]
 #: Default continuation of the smooth-maximum temperatures: factors of the objective's.
 TEMPERATURE_SCHEDULE = (1.0, 1 / 3, 1 / 9, 1 / 30)
 
+#: SLSQP's tolerance at every continuation level but the last: a level's optimum only
+#: starts the next one, so polishing it further is wasted.
+LEVEL_FTOL = 1e-6
+
 #: Every other local run starts at least this far (max-norm, normalised coordinates)
 #: from the others: the best samples crowd into the widest basin (measured on
 #: `tuned_absorber` without a start, 8 starts all spaced so: 0.1 found the global
@@ -199,7 +203,8 @@ def minimise(
     - `starts`: local runs, from the best distinct points (feasible first, then the least
       violating); `initial` points (e.g. a given design) come first.
     - `schedule`: the continuation levels, run in turn from each start.
-    - `maxiter`, `ftol`: SLSQP's iteration limit per level and its tolerance.
+    - `maxiter`, `ftol`: SLSQP's iteration limit per level and its tolerance at the last
+      level (earlier levels stop at `max(ftol, LEVEL_FTOL)`).
     - `max_seconds`: a wall-time budget: once spent, no further gradient solve starts
       and the best point so far is returned.
     - `workers`: local runs at the same time, each from its own thread (the given
@@ -283,7 +288,10 @@ def minimise(
                             "jac": lambda x, lv=level: -evaluate(x, lv)[3],
                         }
                     ],
-                    options={"maxiter": maxiter, "ftol": ftol},
+                    options={
+                        "maxiter": maxiter,
+                        "ftol": ftol if level == schedule[-1] else max(ftol, LEVEL_FTOL),
+                    },
                 )
                 z, message = np.clip(result.x, 0.0, 1.0), str(result.message)
                 iterations += int(result.nit)
