@@ -37,9 +37,9 @@ FAST = os.environ.get("RECOIL_JAX_FAST") == "1"  # the test suite runs a small v
 # ## The problem
 # The simplified model (no absorber), the paper's barrel and impulse, a buffer with a
 # 0.01 m² piston in oil. The 16 knot areas span three decades (1e-5 to 1e-2 m²), so
-# the search moves them in log coordinates. The objective is the peak anchoring force,
-# through its smooth maximum over time (the peak jumps between knots as they move);
-# the limit is the stroke.
+# the search moves them in log coordinates. The objective is the peak anchoring force;
+# its temperature says that the peak jumps between local maxima (knots) as they move,
+# so `search` takes it as a minimax over time. The limit is the stroke.
 
 # %%
 KNOTS = [f"orifice_{i}" for i in range(16)]
@@ -64,7 +64,9 @@ print(f"constant-force limit E0/L = {ideal:.1f} N")
 # ## The search
 # A Sobol sample of the box runs through the batched sweep; SLSQP then polishes the best
 # samples with exact gradients (one sensitivity solve per iteration gives the gradient
-# of the objective and of the limit), lowering the smooth maximum's temperature in turn.
+# of the objective and of the limit): a few iterations on the smooth maximum find the
+# basin, then the minimax levels the force at a thousand times over the stroke at once
+# (each time a constraint `F(t_k) <= s`, `min s`).
 
 # %%
 result = rj.search(

@@ -23,6 +23,7 @@ from ._design import differentiable_peaks as differentiable_peaks
 from ._gradients import (
     DESIGN_PARAMETERS as DESIGN_PARAMETERS,
     GRADIENT_OPTIONS as GRADIENT_OPTIONS,
+    MetricSeries as MetricSeries,
     SmoothMax as SmoothMax,
     parameter_scale as parameter_scale,
     peak_gradients as peak_gradients,
@@ -96,6 +97,7 @@ from ._reference import reference_peaks as reference_peaks
 from ._search import (
     MinimiseResult as MinimiseResult,
     log_coordinates as log_coordinates,
+    minimax_metric as minimax_metric,
     minimise as minimise,
     search as search,
 )

@@ -15,7 +15,14 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._gradients import GRADIENT_OPTIONS, SmoothMax, check_wrt, sensitivity_solve, smooth_name
+from ._gradients import (
+    GRADIENT_OPTIONS,
+    SmoothMax,
+    check_wrt,
+    sensitivity_solve,
+    series_name,
+    smooth_name,
+)
 from ._metrics import METRICS
 from ._params import RecoilParams, Smoothing, SolverOptions, values_of, with_values
 from ._status import status_item
@@ -23,9 +30,9 @@ from ._status import status_item
 __all__ = ["design_metrics", "differentiable_peaks"]
 
 
-def _solve(theta, params, wrt, smoothing, options, smooth_max):
-    peaks, grads, smooth_values, smooth_grads = sensitivity_solve(
-        with_values(params, wrt, theta), smoothing, options, wrt, smooth_max
+def _solve(theta, params, wrt, smoothing, options, smooth_max, series):
+    peaks, grads, smooth_values, smooth_grads, on_series = sensitivity_solve(
+        with_values(params, wrt, theta), smoothing, options, wrt, smooth_max, series
     )
     values = {name: getattr(peaks, name) for name in METRICS}
     jacobian = {name: getattr(grads, name) for name in METRICS}
@@ -34,24 +41,32 @@ def _solve(theta, params, wrt, smoothing, options, smooth_max):
         for j, name in enumerate(smooth_max.metrics):
             values[smooth_name(name)] = smooth_values[j]
             jacobian[smooth_name(name)] = smooth_grads[j]
+    if series is not None:
+        assert on_series is not None
+        for j, name in enumerate(series.metrics):
+            values[series_name(name)] = on_series[0][j]
+            jacobian[series_name(name)] = on_series[1][j]
     (code,) = jax.tree.leaves(peaks.status)  # the integer code: custom JVPs take arrays
     return values, jacobian, code
 
 
 @eqx.filter_custom_jvp
-def design_metrics(theta, *, params, wrt, smoothing, options, smooth_max):
+def design_metrics(theta, *, params, wrt, smoothing, options, smooth_max, series=None):
     """`(metrics, code)` of `params` with the parameters `wrt` set to `theta`: the
-    metrics of `METRICS` by name (and `smooth_<metric>` for each of `smooth_max`) and the
+    metrics of `METRICS` by name (and `smooth_<metric>` for each of `smooth_max`,
+    `series_<metric>` of shape `(n,)` for each of a `MetricSeries`) and the
     integer `Status` code, with a custom JVP on the forward sensitivities. The keyword
     arguments are closed over (not differentiated); see `differentiable_peaks`."""
-    values, _, status = _solve(theta, params, wrt, smoothing, options, smooth_max)
+    values, _, status = _solve(theta, params, wrt, smoothing, options, smooth_max, series)
     return values, status
 
 
 @design_metrics.def_jvp
-def _design_metrics_jvp(primals, tangents, *, params, wrt, smoothing, options, smooth_max):
+def _design_metrics_jvp(
+    primals, tangents, *, params, wrt, smoothing, options, smooth_max, series=None
+):
     (theta,), (theta_dot,) = primals, tangents
-    values, jacobian, status = _solve(theta, params, wrt, smoothing, options, smooth_max)
+    values, jacobian, status = _solve(theta, params, wrt, smoothing, options, smooth_max, series)
     if theta_dot is None:
         return (values, status), (jax.tree.map(jnp.zeros_like, values), None)
     return (values, status), ({k: j @ theta_dot for k, j in jacobian.items()}, None)

@@ -57,6 +57,7 @@ from ._stepping import Events, PeakLoop, PeakRun, integrate_peaks
 __all__ = [
     "DESIGN_PARAMETERS",
     "GRADIENT_OPTIONS",
+    "MetricSeries",
     "SmoothMax",
     "check_wrt",
     "parameter_scale",
@@ -64,6 +65,7 @@ __all__ = [
     "peak_gradients_batch",
     "peak_jacobian",
     "sensitivity_solve",
+    "series_name",
     "smooth_name",
 ]
 
@@ -172,6 +174,29 @@ class SmoothMax(eqx.Module):
                 f"SmoothMax.temperatures = {self.temperatures} is invalid: valid > 0 "
                 "(in the metric's unit)"
             )
+
+
+def series_name(metric: str) -> str:
+    """The key of a metric's signal on the save times of a `MetricSeries`:
+    `series_<metric>`."""
+    return "series_" + metric
+
+
+class MetricSeries(eqx.Module):
+    """The signals whose maxima are metrics (`metrics`, static; those with a maximum over
+    time, as `SmoothMax`), at the save times `ts` (s, shape `(n,)`, sorted), with their
+    gradients: a minimax over time as many smooth constraints (`search`'s local phase).
+
+    Values are `sign · signal` (the quantity whose maximum is the metric). Save times
+    after the solve stopped (its peaks were certain) hold NaN."""
+
+    metrics: tuple[str, ...] = eqx.field(static=True)
+    ts: jax.Array = eqx.field(converter=lambda x: jnp.asarray(x, dtype=float))
+
+    def __check_init__(self):
+        SmoothMax(self.metrics, jnp.ones(len(self.metrics)))  # the same metrics qualify
+        if jnp.ndim(self.ts) != 1:
+            raise ParameterError("MetricSeries.ts must be one sorted vector of save times")
 
 
 def _smoothed(values: dict, smooth_max: SmoothMax):
@@ -335,10 +360,11 @@ def _sensitivity_setup(params, smoothing, wrt, smooth_max, t1):
     return z0, (params, smoothing, smooth_max, t1)
 
 
-def _sensitivity_post(args, run: PeakRun, wrt):
+def _sensitivity_post(args, run: PeakRun, wrt, series: MetricSeries | None = None):
     """Gradients at the located peaks by the envelope theorem: `∇_y g · S(t*) + ∂g/∂θ`.
-    Returns the peaks, their gradients, and (with a smooth max) the smooth maxima `(k,)`
-    and their gradients `(k, len(wrt))`."""
+    Returns the peaks, their gradients, (with a smooth max) the smooth maxima `(k,)`
+    and their gradients `(k, len(wrt))`, and (with `series`) the signals on its save
+    times `(k, n)` and their gradients `(k, n, len(wrt))` (NaN after the run's end)."""
     params, smoothing, smooth_max, t1 = args
     n = _state_size(smooth_max)
     theta = values_of(params, wrt)
@@ -374,21 +400,43 @@ def _sensitivity_post(args, run: PeakRun, wrt):
     grads = run.by_name(directional / scales)
     gradients = PeakGradients.of({name: m.sign * grads[name] for name, m in METRICS.items()}, wrt)
     peaks = peaks_of_run(run)
-    if smooth_max is None:
-        return peaks, gradients, None, None
-    best = run.by_name(run.best)
-    temperatures = smooth_max.temperatures
-    smooth_values = temperatures * jnp.stack([best[smooth_name(m)] for m in smooth_max.metrics])
-    smooth_grads = temperatures[:, None] * jnp.stack(
-        [grads[smooth_name(m)] for m in smooth_max.metrics]
-    )
-    return peaks, gradients, smooth_values, smooth_grads
+    smooth_values = smooth_grads = None
+    if smooth_max is not None:
+        best = run.by_name(run.best)
+        temperatures = smooth_max.temperatures
+        smooth_values = temperatures * jnp.stack([best[smooth_name(m)] for m in smooth_max.metrics])
+        smooth_grads = temperatures[:, None] * jnp.stack(
+            [grads[smooth_name(m)] for m in smooth_max.metrics]
+        )
+    if series is None:
+        return peaks, gradients, smooth_values, smooth_grads, None
+
+    def on_series(i):
+        # The same envelope formula at each save time (a fixed time: no rate term).
+        def value(state):
+            values = _augmented_metrics(state[:n], params, smoothing, smooth_max)
+            return jnp.stack([values[name] for name in run.names])[i]
+
+        states, times = run.saved, series.ts
+        values = jax.vmap(value)(states)
+        slopes = jax.vmap(lambda st, t: gradient_of_metric(i, st, t))(states, times) / scales
+        written = jnp.arange(times.shape[0]) < run.save_count
+        return (
+            jnp.where(written, values, jnp.nan),
+            jnp.where(written[:, None], slopes, jnp.nan),
+        )
+
+    rows = [on_series(run.names.index(name)) for name in series.metrics]
+    series_values = jnp.stack([r[0] for r in rows])
+    series_grads = jnp.stack([r[1] for r in rows])
+    return peaks, gradients, smooth_values, smooth_grads, (series_values, series_grads)
 
 
-def sensitivity_solve(params, smoothing, options, wrt, smooth_max=None):
-    """Peaks, their gradients with respect to `wrt`, and (with `smooth_max`) the smooth
-    maxima `(k,)` and their gradients `(k, len(wrt))`: one solve of the state with its
-    sensitivities. Unjitted; `wrt` and `smooth_max.metrics` are static."""
+def sensitivity_solve(params, smoothing, options, wrt, smooth_max=None, series=None):
+    """Peaks, their gradients with respect to `wrt`, (with `smooth_max`) the smooth
+    maxima `(k,)` and their gradients `(k, len(wrt))`, and (with a `MetricSeries`) the
+    signals at its save times and their gradients (else None): one solve of the state
+    with its sensitivities. Unjitted; `wrt` and the metric names are static."""
     t1 = end_time(params, options)
     options = with_default_tolerances(params, options)
     z0, args = _sensitivity_setup(params, smoothing, wrt, smooth_max, t1)
@@ -403,9 +451,10 @@ def sensitivity_solve(params, smoothing, options, wrt, smooth_max=None):
         bounds,
         _events(params, wrt),
         _ceilings,
+        save_ts=None if series is None else series.ts,
         **model_samples(params),
     )
-    return _sensitivity_post(args, run, wrt)
+    return _sensitivity_post(args, run, wrt, series)
 
 
 def _peak_gradients_batch(params, t1, smoothing, options, wrt, lanes):
@@ -439,7 +488,7 @@ peak_gradients_batch = eqx.filter_jit(_peak_gradients_batch)
 
 
 def _peaks_and_gradients(params, smoothing, options, wrt):
-    peaks, gradients, _, _ = sensitivity_solve(params, smoothing, options, wrt)
+    peaks, gradients, *_ = sensitivity_solve(params, smoothing, options, wrt)
     return peaks, gradients
 
 

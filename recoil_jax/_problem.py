@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._design import design_metrics
-from ._gradients import GRADIENT_OPTIONS, SmoothMax, check_wrt, smooth_name
+from ._gradients import GRADIENT_OPTIONS, MetricSeries, SmoothMax, check_wrt, smooth_name
 from ._metrics import METRICS, metric
 from ._params import (
     PARAMETERS,
@@ -197,7 +197,12 @@ class DesignProblem(eqx.Module):
 
 
 def evaluate_design(
-    problem: DesignProblem, theta, params=None, temperature_scale: Any = 1.0, limits=None
+    problem: DesignProblem,
+    theta,
+    params=None,
+    temperature_scale: Any = 1.0,
+    limits=None,
+    series: MetricSeries | None = None,
 ):
     """Evaluate the tuned values `theta` (shape `(len(problem.tune),)`) of `problem`.
 
@@ -208,6 +213,8 @@ def evaluate_design(
     - `params`: the base design (default `problem.params`).
     - `temperature_scale`: multiplies the objective's smooth-max temperatures.
     - `limits`: shape `(C,)`, replaces the limits of `problem.metric_constraints`.
+    - `series`: a `MetricSeries`: its signals join the metrics (`series_<metric>`), and
+      the objective is not smoothed (the smooth objective is the exact one).
 
     **Returns:** `(metrics, status, smooth_objective, objective, violations)`: the metrics
     by name (worst case over the objective's scatter), the solve's `Status`, the
@@ -218,7 +225,7 @@ def evaluate_design(
     if limits is None:
         limits = jnp.asarray([limit for _, _, limit in problem.metric_constraints])
     objective = problem.objective
-    smooth_max = objective.smooth_max(temperature_scale)
+    smooth_max = None if series is not None else objective.smooth_max(temperature_scale)
 
     def metrics_at(p):
         metrics, code = design_metrics(
@@ -228,9 +235,12 @@ def evaluate_design(
             smoothing=problem.smoothing,
             options=problem.options,
             smooth_max=smooth_max,
+            series=series,
         )
         return metrics, status_item(code)
 
+    if series is not None and objective.scatter is not None:
+        raise ParameterError("evaluate_design: a MetricSeries does not take a scatter objective")
     if objective.scatter is None:
         metrics, status = metrics_at(params)
     else:
@@ -256,7 +266,7 @@ def evaluate_design(
     return (
         metrics,
         status,
-        objective(metrics, smooth=True),
+        objective(metrics, smooth=smooth_max is not None),
         objective(metrics),
         _violations(problem, metrics, limits),
     )

@@ -6,9 +6,11 @@ from the best few of them.
   a batched evaluator (the global phase) and a value-and-Jacobian function (the local
   phase). Works in normalised coordinates `z ∈ [0, 1]^P`.
 - `search`: `minimise` on a `DesignProblem`. The global phase runs plain solves
-  through `sweep`; the local phase differentiates `evaluate_design` in reverse mode
-  through its custom JVP (one sensitivity solve per gradient, whatever the number of
-  outputs), with a continuation on the objective's smooth-maximum temperatures.
+  through `sweep`; the local phase differentiates `evaluate_design` through its custom
+  JVP (one sensitivity solve per gradient, whatever the number of outputs). A peak that
+  jumps between local maxima over time (the objective has a temperature) is minimised
+  as a minimax: after a short smoothed level, SLSQP on the epigraph with the signal at
+  a thousand times as constraints, so that competing maxima are levelled together.
   Parameters whose bounds are positive and span three decades or more are searched in
   log coordinates (orifice areas, stiffnesses, masses).
 
@@ -31,13 +33,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._params import ParameterError, RecoilParams, params_to_values, values_of, with_values
+from ._gradients import MetricSeries, series_name
+from ._metrics import METRICS
+from ._params import (
+    ParameterError,
+    RecoilParams,
+    end_time,
+    params_to_values,
+    values_of,
+    with_values,
+)
 from ._problem import DesignProblem, evaluate_design
 from ._progress import Progress
 from ._status import Status, status_codes
 from ._sweep import default_workers, sweep
 
-__all__ = ["MinimiseResult", "log_coordinates", "minimise", "search"]
+__all__ = ["MinimiseResult", "log_coordinates", "minimax_metric", "minimise", "search"]
 
 #: Default continuation of the smooth-maximum temperatures: factors of the objective's.
 TEMPERATURE_SCHEDULE = (1.0, 1 / 3, 1 / 9, 1 / 30)
@@ -45,6 +56,17 @@ TEMPERATURE_SCHEDULE = (1.0, 1 / 3, 1 / 9, 1 / 30)
 #: SLSQP's tolerance at every continuation level but the last: a level's optimum only
 #: starts the next one, so polishing it further is wasted.
 LEVEL_FTOL = 1e-6
+
+#: Before a minimax, a smoothed level finds the basin: SLSQP stops there after this many
+#: iterations or at this tolerance (on `throttling`, warm, to within 0.1 %: 2.6 s with 8,
+#: 4.0 s with 15, slower with 30; with none, the minimax stalled far off from the samples).
+BASIN_MAXITER = 8
+BASIN_FTOL = 1e-4
+
+#: A minimax run ends once its best feasible objective has not improved by this
+#: fraction in this many gradient solves.
+STALL_RTOL = 1e-6
+STALL_SOLVES = 20
 
 #: Every other local run starts at least this far (max-norm, normalised coordinates)
 #: from the others: the best samples crowd into the widest basin (measured on
@@ -169,6 +191,10 @@ class _OutOfTime(Exception):
     pass
 
 
+class _Stalled(Exception):
+    pass
+
+
 def minimise(
     evaluate_batch: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]],
     value_and_jacobian: Callable[[np.ndarray, float], tuple],
@@ -197,12 +223,16 @@ def minimise(
     - `value_and_jacobian(z, temperature)`: `z (P,)` → `(f, g, df (P,), dg (C, P),
       objective, ok)`: the smoothed objective the local phase minimises at continuation
       level `temperature` (a factor from `schedule`), its constraints, their Jacobians,
-      the exact objective at `z`, and whether the evaluation succeeded.
+      the exact objective at `z`, and whether the evaluation succeeded. At level 0 `f`
+      may instead be a vector `(K,)` with `df (K, P)`: the objective is then its
+      maximum, a minimax, which SLSQP takes as the epigraph `min s, f_k(z) <= s`.
     - `dimension`: `P`.
     - `samples`: Sobol points of the global phase (rounded up to a power of 2; 0: none).
     - `starts`: local runs, from the best distinct points (feasible first, then the least
       violating); `initial` points (e.g. a given design) come first.
-    - `schedule`: the continuation levels, run in turn from each start.
+    - `schedule`: the continuation levels (factors >= 0), run in turn from each start;
+      before a last level 0 (the minimax), the smoothed levels only find the basin
+      (`BASIN_MAXITER`).
     - `maxiter`, `ftol`: SLSQP's iteration limit per level and its tolerance at the last
       level (earlier levels stop at `max(ftol, LEVEL_FTOL)`).
     - `max_seconds`: a wall-time budget: once spent, no further gradient solve starts
@@ -223,8 +253,8 @@ def minimise(
             f"minimise: need dimension >= 1, starts >= 0, samples >= 0, maxiter >= 1 "
             f"(got {dimension}, {starts}, {samples}, {maxiter})"
         )
-    if not schedule or any(not s > 0 for s in schedule):
-        raise ParameterError(f"minimise: schedule must be positive factors, got {schedule}")
+    if not schedule or any(not s >= 0 for s in schedule):
+        raise ParameterError(f"minimise: schedule must be factors >= 0, got {schedule}")
     initial = [np.clip(np.asarray(z, dtype=float), 0.0, 1.0) for z in initial]
     n_samples = 0 if samples == 0 else int(2 ** np.ceil(np.log2(samples)))
     budget = n_samples + len(initial) + (starts + len(initial)) * len(schedule) * maxiter
@@ -246,6 +276,29 @@ def minimise(
         cache: dict[Any, tuple] = {}
         failures = 0
         fallback: tuple | None = None  # what a failed trial point reports
+        # The minimax's best feasible point of this run, and gradient solves since it.
+        progress: dict[str, Any] = {"best": np.inf, "z": None, "since": 0}
+
+        def watch(x, exact, g, ok, level):
+            """End a minimax that has stalled: SLSQP's own test on the change of `s`
+            rarely fires, since the signal's values carry the solver's tolerance."""
+            if level != 0:
+                return
+            feasible = bool(ok) and np.isfinite(exact) and _worst(g[None], 1)[0] <= -TOLERANCE
+            if feasible and exact < progress["best"] * (1.0 - STALL_RTOL):
+                progress.update(best=float(exact), z=np.array(x), since=0)
+            else:
+                progress["since"] += 1
+                if progress["since"] >= STALL_SOLVES and progress["z"] is not None:
+                    raise _Stalled
+
+        def limits(level):
+            """The metric limits as SLSQP's inequality (aimed `MARGIN` inside)."""
+            return {
+                "type": "ineq",
+                "fun": lambda x: -evaluate(x[:dimension], level)[1] - MARGIN,
+                "jac": lambda x: _padded(-evaluate(x[:dimension], level)[3], x.size),
+            }
 
         def evaluate(x, level):
             nonlocal failures
@@ -257,9 +310,10 @@ def minimise(
                 f, g, df, dg, exact, ok = value_and_jacobian(x, level)
                 f, g, df, dg = (np.asarray(a, dtype=float) for a in (f, g, df, dg))
                 record.add(x, exact, _worst(g[None], 1), ok, True, "local")
+                watch(x, exact, g, ok, level)
                 finite = all(np.all(np.isfinite(a)) for a in (f, g, df, dg))
                 if bool(ok) and finite:
-                    cache[key] = (float(f), g, df, dg)
+                    cache[key] = (f if f.ndim else float(f), g, df, dg)
                 else:
                     # A trial point whose solve failed looks much worse than the start
                     # of the level, so that the line search steps back from it.
@@ -273,33 +327,40 @@ def minimise(
             for level in schedule:
                 fallback = None
                 f0, g0, df0, dg0 = evaluate(z, level)
-                scale = abs(f0) if f0 != 0 else 1.0
+                scale = float(np.max(np.abs(f0))) or 1.0
                 fallback = (f0 + 10.0 * scale, np.abs(g0) + 1.0, df0, dg0)
-                result = scipy.optimize.minimize(
-                    lambda x, lv=level, s=scale: (evaluate(x, lv)[0] / s, evaluate(x, lv)[2] / s),
-                    z,
-                    jac=True,
-                    method="SLSQP",
-                    bounds=[(0.0, 1.0)] * dimension,
-                    constraints=[
-                        {
-                            "type": "ineq",
-                            "fun": lambda x, lv=level: -evaluate(x, lv)[1] - MARGIN,
-                            "jac": lambda x, lv=level: -evaluate(x, lv)[3],
-                        }
-                    ],
-                    options={
-                        "maxiter": maxiter,
-                        "ftol": ftol if level == schedule[-1] else max(ftol, LEVEL_FTOL),
-                    },
-                )
-                z, message = np.clip(result.x, 0.0, 1.0), str(result.message)
+                ftol_level = ftol if level == schedule[-1] else max(ftol, LEVEL_FTOL)
+                iters = maxiter
+                if level > 0 and schedule[-1] == 0:
+                    # Only the basin for the minimax that follows: a few iterations.
+                    iters, ftol_level = min(maxiter, BASIN_MAXITER), max(ftol, BASIN_FTOL)
+                if np.ndim(f0) == 0:
+                    result = scipy.optimize.minimize(
+                        lambda x, lv=level, s=scale: (
+                            evaluate(x, lv)[0] / s,
+                            evaluate(x, lv)[2] / s,
+                        ),
+                        z,
+                        jac=True,
+                        method="SLSQP",
+                        bounds=[(0.0, 1.0)] * dimension,
+                        constraints=[limits(level)],
+                        options={"maxiter": iters, "ftol": ftol_level},
+                    )
+                    z = np.clip(result.x, 0.0, 1.0)
+                else:
+                    result = _minimax(evaluate, limits, z, level, scale, maxiter, ftol_level)
+                    z = np.clip(result.x[:dimension], 0.0, 1.0)
+                message = str(result.message)
                 iterations += int(result.nit)
-                final = evaluate(z, level)[0]
+                final = float(np.max(evaluate(z, level)[0]))
         except _SolveFailed:
             message = f"solves failed ({failures}): this start ended there"
         except _OutOfTime:
             message = "the time budget ran out"
+        except _Stalled:
+            z, final = progress["z"], progress["best"]
+            message = f"stalled: no gain of {STALL_RTOL:g} in {STALL_SOLVES} gradient solves"
         return {"z0": z0, "z": z, "objective": final, "iterations": iterations, "message": message}
 
     # Given starts first (a design known to be good is polished at once), then the
@@ -345,6 +406,42 @@ def minimise(
         gradient_solves=record.gradient_solves,
         seconds=time.perf_counter() - record.start,
         compilations=0,
+    )
+
+
+def _padded(jacobian: np.ndarray, columns: int) -> np.ndarray:
+    """A Jacobian `(m, P)` with zero columns appended up to `columns` (the epigraph's
+    extra variable)."""
+    return np.pad(jacobian, ((0, 0), (0, columns - jacobian.shape[1])))
+
+
+def _minimax(evaluate, limits, z, level, scale, maxiter, ftol):
+    """SLSQP on the epigraph of a minimax: `min s` over `(z, s)` subject to every value
+    `f_k(z) <= s` (here the objective's signal at many times and its located peak) and
+    the limits. Each local maximum becomes its own smooth constraint, so SLSQP levels
+    competing peaks at once instead of chasing the one that is highest."""
+    import scipy.optimize
+
+    dimension = z.size
+    top = np.zeros(dimension + 1)
+    top[-1] = 1.0
+
+    def peaks_below(x):
+        return x[-1] - evaluate(x[:dimension], level)[0] / scale
+
+    def peaks_jacobian(x):
+        df = evaluate(x[:dimension], level)[2] / scale
+        return np.hstack([-df, np.ones((df.shape[0], 1))])
+
+    start = np.append(z, np.max(evaluate(z, level)[0]) / scale)
+    return scipy.optimize.minimize(
+        lambda x: (x[-1], top),
+        start,
+        jac=True,
+        method="SLSQP",
+        bounds=[(0.0, 1.0)] * dimension + [(None, None)],
+        constraints=[{"type": "ineq", "fun": peaks_below, "jac": peaks_jacobian}, limits(level)],
+        options={"maxiter": maxiter, "ftol": ftol},
     )
 
 
@@ -417,12 +514,33 @@ _TRACES = [0]  # how many times the gradient program was traced (compiled)
 
 
 @eqx.filter_jit
-def _gradient_program(problem: DesignProblem, box: _Box, z, temperature):
+def _gradient_program(problem: DesignProblem, box: _Box, z, temperature, series_ts=None):
     """The smooth objective, the violations, their Jacobians, the exact objective and
     the status code at `z`: one sensitivity solve, reverse mode through the custom JVP
     (the Jacobian of all outputs from the one solve). One compilation per problem
-    structure: re-running a study, or another seed, reuses it."""
+    structure: re-running a study, or another seed, reuses it.
+
+    With `series_ts` (`(n,)` save times), the objective comes as a minimax instead:
+    `(1 + n,)` values, its peak then the weighted signal at each save time (NaN after
+    the solve's end), with their Jacobian `(1 + n, P)` (forward mode: P columns)."""
     _TRACES[0] += 1
+    if series_ts is not None:
+        name = minimax_metric(problem)
+        assert name is not None
+        weight = problem.objective.weights[name]
+
+        def minimax_outputs(z):
+            metrics, status, _, exact, violations = evaluate_design(
+                problem, box.theta(z), series=MetricSeries((name,), series_ts)
+            )
+            (code,) = jax.tree.leaves(status)
+            peaks = weight * jnp.concatenate([metrics[name][None], metrics[series_name(name)]])
+            values = jnp.concatenate([peaks, violations])
+            return values, (values, exact, code)
+
+        jacobian, (values, exact, code) = jax.jacfwd(minimax_outputs, has_aux=True)(z)
+        n = series_ts.shape[0] + 1
+        return values[:n], values[n:], jacobian[:n], jacobian[n:], exact, code
 
     def outputs(z):
         _, status, smooth, exact, violations = evaluate_design(
@@ -436,6 +554,21 @@ def _gradient_program(problem: DesignProblem, box: _Box, z, temperature):
     return values[0], values[1:], jacobian[0], jacobian[1:], exact, code
 
 
+def minimax_metric(problem: DesignProblem) -> str | None:
+    """The metric when `problem`'s objective is a positive multiple of one maximum over
+    time (a metric with a `SmoothMax`), with no scatter: `search` then treats it as a
+    minimax over time. Else None."""
+    objective = problem.objective
+    if objective.scatter is not None or len(objective.weights) != 1:
+        return None
+    ((name, weight),) = objective.weights.items()
+    return name if weight > 0 and METRICS[name].smoothable else None
+
+
+#: Save times of the minimax's series: the signal's maximum is levelled on this grid.
+SERIES_POINTS = 1024
+
+
 def search(
     problem: DesignProblem,
     *,
@@ -443,6 +576,7 @@ def search(
     starts: int = 8,
     use_design: bool = True,
     schedule: Sequence[float] | None = None,
+    minimax: bool | None = None,
     maxiter: int = 100,
     ftol: float = 1e-10,
     seed: int = 0,
@@ -465,9 +599,17 @@ def search(
       on CPU, where one solve keeps about one core busy).
     - `use_design`: start one local run at the problem's base design (clipped to the
       bounds) besides the sampled ones.
-    - `schedule`: the factors of the objective's temperatures, one SLSQP run each in
-      turn (default `(1, 1/3, 1/9, 1/30)` when the objective has temperatures, else a
-      single run on the peaks).
+    - `minimax`: when the objective is one peak over time (`minimax_metric`, e.g. the
+      peak anchoring force), minimise it as a minimax (default: when that peak has a
+      temperature, the study's sign that it jumps between local maxima): the
+      local phase levels the signal at `SERIES_POINTS` times over the run (the run's
+      length found at the first gradient solve) and at its located peak, each a smooth
+      constraint of SLSQP on the epigraph `min s, F(t_k) <= s`, with their exact
+      gradients from the one sensitivity solve. With a temperature, a short smoothed
+      level (`BASIN_MAXITER`) first finds the basin; no further continuation.
+    - `schedule`: without the minimax, the factors of the objective's temperatures, one
+      SLSQP run each in turn (default `(1, 1/3, 1/9, 1/30)` when the objective has
+      temperatures, else a single run on the peaks).
 
     **Returns:** `MinimiseResult` with `best_theta` and the `OptimiseResult` methods that
     studies use (`best_design`, `best_params`). Its objectives are exact (true peaks).
@@ -478,7 +620,22 @@ def search(
         raise ParameterError(
             "search does not take a scatter objective yet; use optimise for robust designs"
         )
-    if schedule is None:
+    minimax_name = minimax_metric(problem)
+    if minimax and minimax_name is None:
+        raise ParameterError(
+            "search: minimax needs an objective that is one peak over time "
+            "(peak_anchoring_force or peak_displacement, positive weight, no scatter)"
+        )
+    if minimax is None:
+        # By default where the study says the peak jumps between local maxima: it gave
+        # the peak a temperature.
+        minimax = minimax_name in problem.objective.temperatures
+    minimax = bool(minimax)
+    if minimax:
+        # Smoothed first where the objective has a temperature: from a far start the
+        # smooth maximum finds the basin, where the minimax (level 0) then levels the peaks.
+        schedule = (1.0, 0.0) if problem.objective.temperatures else (0.0,)
+    elif schedule is None:
         schedule = TEMPERATURE_SCHEDULE if problem.objective.temperatures else (1.0,)
     lower, upper = problem.box()
     box = _Box(jnp.asarray(lower), jnp.asarray(upper), jnp.asarray(log_coordinates(lower, upper)))
@@ -508,11 +665,39 @@ def search(
 
     traces = _TRACES[0]
 
-    def value_and_jacobian(z, level):
+    window: list[np.ndarray] = []  # the minimax's save times, set at the first call
+    window_lock = threading.Lock()
+
+    def gradient_solve(z, level, series_ts=None):
         f, g, df, dg, exact, code = _gradient_program(
-            problem, box, jnp.asarray(z), jnp.asarray(level, dtype=float)
+            problem, box, jnp.asarray(z), jnp.asarray(level, dtype=float), series_ts
         )
         return f, g, df, dg, float(exact), int(code) == ok_code
+
+    def series_ts(z) -> np.ndarray:
+        """Save times over the first design's run (from 0 to where its peaks were
+        certain, plus a quarter): a later design's maximum outside them still counts,
+        through the located peak."""
+        with window_lock:
+            if not window:
+                t1 = float(np.max(np.asarray(end_time(problem.params, problem.options))))
+                whole = np.linspace(0.0, t1, SERIES_POINTS)
+                f = np.asarray(gradient_solve(z, 1.0, jnp.asarray(whole))[0])[1:]
+                written = np.nonzero(np.isfinite(f))[0]
+                end = whole[written[-1]] if written.size else t1
+                window.append(np.linspace(0.0, min(t1, 1.25 * end), SERIES_POINTS))
+            return window[0]
+
+    def value_and_jacobian(z, level):
+        if level > 0:
+            return gradient_solve(z, level)
+        f, g, df, dg, exact, ok = gradient_solve(z, level, jnp.asarray(series_ts(z)))
+        f, df = np.array(f), np.array(df)
+        # Save times after the solve's end (its peaks certain) are no constraint.
+        after = ~np.isfinite(f)
+        if np.any(np.isfinite(f)):
+            f[after], df[after] = np.nanmin(f), 0.0
+        return f, g, df, dg, exact, ok
 
     initial = []
     if use_design:
@@ -533,6 +718,7 @@ def search(
         progress=progress,
     )
     result.problem = problem
+    result.gradient_solves += len(window)  # the solve that set the series' window
     result.compilations = _TRACES[0] - traces
     if result.feasible:
         result.best_theta = np.asarray(box.theta(jnp.asarray(result.best_z)))

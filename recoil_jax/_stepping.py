@@ -92,6 +92,7 @@ class PeakRun(eqx.Module):
     status: Any
     names: tuple[str, ...] = eqx.field(static=True)
     saved: Any = None  # (n_ts, n_state), with `save_ts`
+    save_count: Any = None  # how many rows of `saved` were written (the run may stop early)
 
     def by_name(self, stacked) -> dict[str, Any]:
         """Rows of an array stacked in the order of `names`, keyed by name."""
@@ -378,6 +379,7 @@ class PeakLoop:
             status=status,
             names=final.names,
             saved=final.saved,
+            save_count=final.save_index,
         )
 
 

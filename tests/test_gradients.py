@@ -196,3 +196,43 @@ def test_smooth_maximum_stops_early_without_changing_value_or_gradient(monkeypat
     np.testing.assert_allclose(early[2], full[2], rtol=1e-12)
     np.testing.assert_allclose(early[3], full[3], rtol=1e-9)
     assert float(full[2][0]) < float(full[0].peak_anchoring_force)
+
+
+def test_metric_series_matches_the_history_and_finite_differences():
+    """The anchoring force on a `MetricSeries` equals `simulate`'s at the same times, its
+    gradients equal central differences of `simulate` (tight tolerance), and save times
+    after the run stopped (its peaks certain) are NaN."""
+    from recoil_jax import _gradients
+
+    knots = {f"orifice_{i}": 4e-4 * (1.0 - 0.1 * i) for i in range(4)}
+    values = dict(
+        m=0.0, piston_area=0.01, oil_density=870.0, discharge_coefficient=0.7,
+        orifice_length=0.15, **knots,
+    )  # fmt: skip
+    wrt = tuple(knots)
+    ts = np.concatenate([np.linspace(0.01, 0.3, 7), [9.9]])  # the last after the run
+    series = rj.MetricSeries(("peak_anchoring_force",), ts)
+    solve = eqx.filter_jit(
+        lambda p: _gradients.sensitivity_solve(
+            p, rj.Smoothing(), rj.GRADIENT_OPTIONS, wrt, None, series
+        )
+    )
+    peaks, _, _, _, (force, slopes) = solve(rj.params_from_values(values))
+    assert all_ok(peaks.status)
+    force, slopes = np.asarray(force[0]), np.asarray(slopes[0])
+    assert np.isnan(force[-1]) and np.all(np.isnan(slopes[-1]))
+    force, slopes, ts = force[:-1], slopes[:-1], ts[:-1]
+    tight = rj.SolverOptions(rtol=1e-11, atol=1e-14, max_steps=400_000)
+    history = jax.jit(lambda p: rj.simulate(p, rj.Smoothing(), tight, jnp.asarray(ts)))
+    np.testing.assert_allclose(
+        force, history(rj.params_from_values(values)).anchoring_force, rtol=1e-5
+    )
+    for j, name in enumerate(wrt):
+        h = 1e-4 * values[name]
+        up = history(rj.params_from_values({**values, name: values[name] + h}))
+        down = history(rj.params_from_values({**values, name: values[name] - h}))
+        fd = (np.asarray(up.anchoring_force) - np.asarray(down.anchoring_force)) / (2 * h)
+        # Relative to the force's change over the parameter's own size.
+        np.testing.assert_allclose(
+            slopes[:, j] * values[name], fd * values[name], atol=2e-3 * np.max(force)
+        )

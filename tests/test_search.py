@@ -103,12 +103,71 @@ def test_minimise_steps_back_from_failed_solves():
     assert result.best_objective == pytest.approx(0.25, abs=0.02)
 
 
+@pytest.mark.parametrize("limit, z_opt, f_opt", [(None, 0.525, 0.140625), (0.5, 0.5, 0.16)])
+def test_minimise_solves_a_minimax_with_an_active_constraint(limit, z_opt, f_opt):
+    # min_z max_k |z - c_k|^2 for the three corners of an acute triangle: the centre of
+    # its circumcircle (0.5, 0.525), R^2 = 0.140625, where all three are equal and the
+    # maximum has a corner. With z1 <= 0.5 the top corner alone is active: (0.5, 0.5),
+    # 0.16. At level 0 the local phase gets the vector of the three (the epigraph).
+    corners = np.asarray([[0.2, 0.3], [0.8, 0.3], [0.5, 0.9]])
+    constraints = [] if limit is None else [lambda z: z[1] - limit]
+
+    def values(z):
+        return np.sum((z[None] - corners) ** 2, axis=1)
+
+    def batch(z):
+        worst = np.asarray([values(x).max() for x in z])
+        violations = np.asarray([[c(x) for c in constraints] for x in z]).reshape(len(z), -1)
+        return worst, violations, np.ones(len(z), bool)
+
+    def value_and_jacobian(z, level):
+        assert level == 0.0
+        g = np.asarray([c(z) for c in constraints])
+        dg = np.asarray([[0.0, 1.0]] * len(g)).reshape(len(g), 2)
+        return values(z), g, 2 * (z[None] - corners), dg, values(z).max(), True
+
+    result = rj.minimise(
+        batch, value_and_jacobian, 2, samples=64, starts=2, schedule=(0.0,), progress=False
+    )
+    assert result.feasible
+    np.testing.assert_allclose(result.best_z, [0.5, z_opt], atol=1e-4)
+    assert result.best_objective == pytest.approx(f_opt, rel=1e-4)
+
+
+def test_minimise_ends_a_stalled_minimax():
+    # Values with noise of 1e-4 (as a solver's tolerance gives): SLSQP's own test on the
+    # change of `s` does not fire; the run ends after 20 gradient solves without a gain
+    # of 1e-6, at its best point, near the minimax optimum z = 0.5 of
+    # max((z - 0.2)^2, (z - 0.8)^2) = 0.09.
+    rng = np.random.default_rng(0)
+
+    def values(z):
+        return np.asarray([(z[0] - 0.2) ** 2, (z[0] - 0.8) ** 2]) + 1e-4 * rng.random(2)
+
+    def value_and_jacobian(z, level):
+        f = values(z)
+        df = np.asarray([[2 * (z[0] - 0.2)], [2 * (z[0] - 0.8)]])
+        return f, np.zeros(0), df, np.zeros((0, 1)), f.max(), True
+
+    def batch(z):
+        return np.asarray([values(x).max() for x in z]), np.zeros((len(z), 0)), np.ones(len(z))
+
+    result = rj.minimise(
+        batch, value_and_jacobian, 1, samples=8, starts=1, schedule=(0.0,), maxiter=500,
+        progress=False,
+    )  # fmt: skip
+    (run,) = result.starts
+    assert run["message"].startswith("stalled"), run["message"]
+    assert result.gradient_solves < 200
+    assert abs(run["z"][0] - 0.5) < 0.01 and run["objective"] < 0.0902
+
+
 @pytest.mark.parametrize(
     "kwargs, match",
     [
         (dict(samples=-1), "samples"),
         (dict(maxiter=0), "maxiter"),
-        (dict(schedule=(1.0, 0.0)), "schedule"),
+        (dict(schedule=(1.0, -1.0)), "schedule"),
     ],
 )
 def test_minimise_rejects_bad_arguments(kwargs, match):
@@ -145,6 +204,20 @@ def test_search_matches_a_dense_grid_with_one_compilation():
     # Another run of the same problem compiles nothing new.
     again = rj.search(problem, samples=32, starts=1, seed=1, progress=False)
     assert again.compilations == 0
+
+
+@pytest.mark.slow
+def test_search_as_a_minimax_matches_the_dense_grid():
+    # The same problem as a minimax with no smoothing (the signal at 1024 times and its
+    # peak as constraints): the same optimum as the grid, one program compiled.
+    problem = _gap_problem()
+    result = rj.search(problem, samples=32, starts=2, minimax=True, progress=False)
+    assert result.feasible and result.compilations == 1
+    gaps = np.linspace(0.0, 0.12, 601)
+    swept = rj.sweep({"gap": gaps, "m": np.full_like(gaps, 1500.0)}, options=problem.options)
+    feasible = swept.ok & (swept.peaks["max_stroke"] <= 0.15)
+    grid_best = float(np.min(swept.peaks["peak_anchoring_force"][feasible]))
+    assert grid_best * (1 - 2e-3) <= result.best_objective <= grid_best * (1 + 1e-5)
 
 
 def test_search_reports_an_unmeetable_limit_as_infeasible():
@@ -190,7 +263,8 @@ def test_throttling_comes_within_one_percent_of_the_physical_limit(tmp_path):
     assert stroke["ideal_force_N"] == pytest.approx(PAPER_LIMIT, rel=1e-4)
     assert stroke["linear_damper"]["peak_anchoring_force_N"] > 1.2 * force
     assert (tmp_path / "force_stroke.png").stat().st_size > 10_000
-    assert report["optimiser"]["compilations"] <= 1
+    # Two programs: the smoothed level that finds the basin, and the minimax.
+    assert report["optimiser"]["compilations"] <= 2
 
 
 def test_studies_choose_the_method_and_whether_the_design_is_a_start(tmp_path):
@@ -215,3 +289,31 @@ def test_studies_choose_the_method_and_whether_the_design_is_a_start(tmp_path):
     )
     with pytest.raises(rj.ParameterError, match=r'method = .newton.: valid "adam" or "search"'):
         load_study(study)
+    study.write_text(
+        "[tune]\ngap = [0.0, 0.1]\n[objective]\npeak_anchoring_force = 1.0\n"
+        '[optimiser]\nmethod = "search"\nminimax = "yes"\n'
+    )
+    with pytest.raises(rj.ParameterError, match=r"minimax = 'yes': valid true or false"):
+        load_study(study)
+    study.write_text(
+        "[tune]\ngap = [0.0, 0.1]\n[objective]\npeak_anchoring_force = 1.0\n"
+        '[optimiser]\nmethod = "search"\nminimax = false\n'
+    )
+    assert search_kwargs(load_study(study), progress=False)["minimax"] is False
+
+
+def test_search_takes_a_minimax_only_of_one_peak_over_time():
+    # Which objectives are a minimax over time; asking for one otherwise is an error,
+    # raised before anything is compiled.
+    problem = _gap_problem()
+    assert rj.minimax_metric(problem) == "peak_anchoring_force"
+    two = rj.Objective({"peak_anchoring_force": 1.0, "peak_displacement": 1e4})
+    stroke = rj.Objective({"min_stroke": -1.0})
+    for objective in (two, stroke):
+        other = rj.DesignProblem(
+            params=problem.params, objective=objective, tune=("gap",),
+            bounds={"gap": (0.0, 0.12)},
+        )  # fmt: skip
+        assert rj.minimax_metric(other) is None
+        with pytest.raises(rj.ParameterError, match="minimax needs an objective"):
+            rj.search(other, minimax=True, progress=False)

@@ -15,7 +15,7 @@ v0 = [-0.05, 0.0, 0.05]
 [constraints]                 # name = {max = .., min = ..}: metrics or parameters
 max_stroke = {max = 0.15}
 [optimiser]                   # method = "search" (global + SLSQP): samples, starts,
-starts = 8                    #   maxiter, seed, max_seconds; "adam" (default; fronts,
+starts = 8                    #   maxiter, seed, max_seconds, minimax; "adam" (default; fronts,
                               #   scatter): starts, steps, learning_rate, seed, anneal,
                               #   patience
 
@@ -85,6 +85,7 @@ _OPTIMISER_KEYS = {
     "samples",
     "maxiter",
     "max_seconds",
+    "minimax",
     "starts",
     "steps",
     "learning_rate",
@@ -94,7 +95,7 @@ _OPTIMISER_KEYS = {
     "update_every",
     "penalty",
 }
-_SEARCH_KEYS = {"method", "samples", "starts", "maxiter", "seed", "max_seconds"}
+_SEARCH_KEYS = {"method", "samples", "starts", "maxiter", "seed", "max_seconds", "minimax"}
 _CHECK_KEYS = {"grid", "local", "hard", "nominal"}
 
 #: Where the shipped studies live: `optimise/` beside the package, in a checkout or an
@@ -228,7 +229,7 @@ def load_study(path) -> Study:
     method = optimiser.setdefault("method", "adam")
     if method not in ("adam", "search"):
         raise _error(path, f'[optimiser] method = {method!r}: valid "adam" or "search"')
-    search_only = {"samples", "maxiter", "max_seconds"}
+    search_only = {"samples", "maxiter", "max_seconds", "minimax"}
     allowed = _SEARCH_KEYS if method == "search" else _OPTIMISER_KEYS - search_only
     if set(optimiser) - allowed:
         raise _error(
@@ -236,6 +237,8 @@ def load_study(path) -> Study:
             f"[optimiser] key(s) {', '.join(sorted(set(optimiser) - allowed))} do not apply "
             f"to method = {method!r}; it takes {', '.join(sorted(allowed))}",
         )
+    if not isinstance(optimiser.get("minimax", False), bool):
+        raise _error(path, f"[optimiser] minimax = {optimiser['minimax']!r}: valid true or false")
     fronts = config.get("front", [])
     fronts = [fronts] if isinstance(fronts, dict) else list(fronts)
     constrained = [name for name, _, _ in problem.metric_constraints]
@@ -270,6 +273,8 @@ def search_kwargs(study: Study, progress: bool | None) -> dict:
             kwargs[key] = int(o[key])
     if "max_seconds" in o:
         kwargs["max_seconds"] = float(o["max_seconds"])
+    if "minimax" in o:
+        kwargs["minimax"] = o["minimax"]
     return kwargs
 
 
