@@ -370,23 +370,23 @@ def _sensitivity_post(args, run: PeakRun, wrt, series: MetricSeries | None = Non
     theta = values_of(params, wrt)
     stops = None if params.load is None else load_stops(params)
 
+    def metric(i, y_, theta_):
+        """Tracked quantity `i` (in the order of `run.names`) of the state `y_`."""
+        values = _augmented_metrics(y_, with_values(params, wrt, theta_), smoothing, smooth_max)
+        return jnp.stack([values[name] for name in run.names])[i]
+
     def gradient_of_metric(i, state, time):
         y, sensitivities = state[:n], state[n:].reshape(-1, n)
-
-        def metric(y_, theta_):
-            values = _augmented_metrics(y_, with_values(params, wrt, theta_), smoothing, smooth_max)
-            return jnp.stack([values[name] for name in run.names])[i]
-
-        directional = jax.vmap(lambda s, d: jax.jvp(metric, (y, theta), (s, d))[1])(
-            sensitivities, _directions(wrt)
-        )
+        directional = jax.vmap(
+            lambda s, d: jax.jvp(lambda y_, th: metric(i, y_, th), (y, theta), (s, d))[1]
+        )(sensitivities, _directions(wrt))
         if stops is None:
             return directional
         # A peak right after a round's firing (a velocity jump) stays at that instant,
         # which moves with the parameters: add the metric's rate times the move.
         index = jnp.argmin(jnp.abs(stops - time))
         f = _augmented_vf(time, y, params, smoothing, smooth_max, t1)
-        rate = jax.jvp(lambda y_: metric(y_, theta), (y,), (f,))[1]
+        rate = jax.jvp(lambda y_: metric(i, y_, theta), (y,), (f,))[1]
         moved = jax.vmap(
             lambda d: jax.jvp(
                 lambda th: _stops(with_values(params, wrt, th))[index], (theta,), (d,)
@@ -413,12 +413,8 @@ def _sensitivity_post(args, run: PeakRun, wrt, series: MetricSeries | None = Non
 
     def on_series(i):
         # The same envelope formula at each save time (a fixed time: no rate term).
-        def value(state):
-            values = _augmented_metrics(state[:n], params, smoothing, smooth_max)
-            return jnp.stack([values[name] for name in run.names])[i]
-
         states, times = run.saved, series.ts
-        values = jax.vmap(value)(states)
+        values = jax.vmap(lambda state: metric(i, state[:n], theta))(states)
         slopes = jax.vmap(lambda st, t: gradient_of_metric(i, st, t))(states, times) / scales
         written = jnp.arange(times.shape[0]) < run.save_count
         return (

@@ -171,7 +171,7 @@ class _Recorder:
             np.atleast_2d(z), np.atleast_1d(objective), np.atleast_1d(violation),
             np.atleast_1d(ok), strict=True
         ):  # fmt: skip
-            feasible = bool(good) and bool(v <= -TOLERANCE) and bool(np.isfinite(f))
+            feasible = _feasible(good, v, f)
             for key, value in zip(
                 self.rows, (now, float(f), feasible, gradient, phase), strict=True
             ):
@@ -279,13 +279,13 @@ def minimise(
         # The minimax's best feasible point of this run, and gradient solves since it.
         progress: dict[str, Any] = {"best": np.inf, "z": None, "since": 0}
 
-        def watch(x, exact, g, ok, level):
+        def watch(x, exact, violation, ok, level):
             """End a minimax that has stalled: SLSQP's own test on the change of `s`
             rarely fires, since the signal's values carry the solver's tolerance."""
             if level != 0:
                 return
-            feasible = bool(ok) and np.isfinite(exact) and _worst(g[None], 1)[0] <= -TOLERANCE
-            if feasible and exact < progress["best"] * (1.0 - STALL_RTOL):
+            gain = exact < progress["best"] * (1.0 - STALL_RTOL)
+            if _feasible(ok, violation, exact) and gain:
                 progress.update(best=float(exact), z=np.array(x), since=0)
             else:
                 progress["since"] += 1
@@ -309,8 +309,9 @@ def minimise(
                 cache.clear()
                 f, g, df, dg, exact, ok = value_and_jacobian(x, level)
                 f, g, df, dg = (np.asarray(a, dtype=float) for a in (f, g, df, dg))
-                record.add(x, exact, _worst(g[None], 1), ok, True, "local")
-                watch(x, exact, g, ok, level)
+                violation = _worst(g[None], 1)
+                record.add(x, exact, violation, ok, True, "local")
+                watch(x, exact, violation[0], ok, level)
                 finite = all(np.all(np.isfinite(a)) for a in (f, g, df, dg))
                 if bool(ok) and finite:
                     cache[key] = (f if f.ndim else float(f), g, df, dg)
@@ -443,6 +444,12 @@ def _minimax(evaluate, limits, z, level, scale, maxiter, ftol):
         constraints=[{"type": "ineq", "fun": peaks_below, "jac": peaks_jacobian}, limits(level)],
         options={"maxiter": maxiter, "ftol": ftol},
     )
+
+
+def _feasible(ok, violation, objective) -> bool:
+    """Whether an evaluation counts as feasible: it succeeded, its objective is finite and
+    its largest normalised violation is at most `-TOLERANCE`."""
+    return bool(ok) and bool(violation <= -TOLERANCE) and bool(np.isfinite(objective))
 
 
 def _best_note(best: float) -> str:
