@@ -37,9 +37,9 @@ FAST = os.environ.get("RECOIL_JAX_FAST") == "1"  # the test suite runs a small v
 # ## The problem
 # The simplified model (no absorber), the paper's barrel and impulse, a buffer with a
 # 0.01 m² piston in oil. The 16 knot areas span three decades (1e-5 to 1e-2 m²), so
-# the search moves them in log coordinates. The objective is the peak anchoring force;
-# its temperature says that the peak jumps between local maxima (knots) as they move,
-# so `search` takes it as a minimax over time. The limit is the stroke.
+# the search moves them in log coordinates. The objective is the peak anchoring force,
+# which jumps between local maxima (knots) as they move, so `search` takes it as a
+# minimax over time (`minimax=True`). The limit is the stroke.
 
 # %%
 KNOTS = [f"orifice_{i}" for i in range(16)]
@@ -49,9 +49,7 @@ buffer = dict(
 params = rj.params_from_values(buffer | {name: 1e-3 for name in KNOTS})
 problem = rj.DesignProblem(
     params=params,
-    objective=rj.Objective(
-        {"peak_anchoring_force": 1.0}, temperatures={"peak_anchoring_force": 300.0}
-    ),
+    objective=rj.Objective({"peak_anchoring_force": 1.0}),
     tune=tuple(KNOTS),
     bounds={name: (1e-5, 1e-2) for name in KNOTS},
     constraints=(rj.Constraint("peak_displacement", upper=0.15),),
@@ -62,11 +60,11 @@ print(f"constant-force limit E0/L = {ideal:.1f} N")
 
 # %% [markdown]
 # ## The search
-# A Sobol sample of the box runs through the batched sweep; SLSQP then polishes the best
+# A Sobol sample of the box runs through the batched sweep; the local phase then polishes the best
 # samples with exact gradients (one sensitivity solve per iteration gives the gradient
-# of the objective and of the limit): a few iterations on the smooth maximum find the
-# basin, then the minimax levels the force at a thousand times over the stroke at once
-# (each time a constraint `F(t_k) <= s`, `min s`).
+# of the objective and of the limit): the minimax levels the force at a thousand times
+# over the stroke at once, each iteration a linear programme in a trust region
+# (`min max_k F(t_k) + ∇F(t_k)·d`, `|d| <= radius`).
 
 # %%
 result = rj.search(
@@ -75,6 +73,7 @@ result = rj.search(
     starts=1 if FAST else 2,
     maxiter=15 if FAST else 100,
     use_design=False,
+    minimax=True,
     max_seconds=60 if FAST else 300,
     progress=False,
 )

@@ -8,9 +8,10 @@ from the best few of them.
 - `search`: `minimise` on a `DesignProblem`. The global phase runs plain solves
   through `sweep`; the local phase differentiates `evaluate_design` through its custom
   JVP (one sensitivity solve per gradient, whatever the number of outputs). A peak that
-  jumps between local maxima over time (the objective has a temperature) is minimised
-  as a minimax: after a short smoothed level, SLSQP on the epigraph with the signal at
-  a thousand times as constraints, so that competing maxima are levelled together.
+  jumps between local maxima over time is minimised as a minimax of the signal at a
+  thousand times, so that competing maxima are levelled together: from the samples by
+  trust-region linear programming, or after a short smoothed level by SLSQP on the
+  epigraph.
   Parameters whose bounds are positive and span three decades or more are searched in
   log coordinates (orifice areas, stiffnesses, masses).
 
@@ -62,6 +63,15 @@ LEVEL_FTOL = 1e-6
 #: 4.0 s with 15, slower with 30; with none, the minimax stalled far off from the samples).
 BASIN_MAXITER = 8
 BASIN_FTOL = 1e-4
+
+#: The minimax from the samples (trust-region linear programming): the first trust
+#: radius (max-norm, normalised coordinates), the fraction of the predicted fall in the
+#: merit a step must achieve to be taken, the radius at which a run ends, and the
+#: penalty per unit of normalised limit violation in the merit.
+MINIMAX_RADIUS = 0.03
+ACCEPT = 0.01
+MIN_RADIUS = 1e-9
+LIMIT_PENALTY = 100.0
 
 #: A minimax run ends once its best feasible objective has not improved by this
 #: fraction in this many gradient solves.
@@ -225,7 +235,9 @@ def minimise(
       level `temperature` (a factor from `schedule`), its constraints, their Jacobians,
       the exact objective at `z`, and whether the evaluation succeeded. At level 0 `f`
       may instead be a vector `(K,)` with `df (K, P)`: the objective is then its
-      maximum, a minimax, which SLSQP takes as the epigraph `min s, f_k(z) <= s`.
+      maximum, a minimax: with `schedule=(0.0,)` solved by trust-region linear
+      programming (Madsen's method), after smoothed levels by SLSQP on the epigraph
+      `min s, f_k(z) <= s`.
     - `dimension`: `P`.
     - `samples`: Sobol points of the global phase (rounded up to a power of 2; 0: none).
     - `starts`: local runs, from the best distinct points (feasible first, then the least
@@ -233,8 +245,8 @@ def minimise(
     - `schedule`: the continuation levels (factors >= 0), run in turn from each start;
       before a last level 0 (the minimax), the smoothed levels only find the basin
       (`BASIN_MAXITER`).
-    - `maxiter`, `ftol`: SLSQP's iteration limit per level and its tolerance at the last
-      level (earlier levels stop at `max(ftol, LEVEL_FTOL)`).
+    - `maxiter`, `ftol`: the iteration limit per level (SLSQP's, or the LP's) and the
+      tolerance at the last level (earlier levels stop at `max(ftol, LEVEL_FTOL)`).
     - `max_seconds`: a wall-time budget: once spent, no further gradient solve starts
       and the best point so far is returned.
     - `workers`: local runs at the same time, each from its own thread (the given
@@ -272,7 +284,8 @@ def minimise(
     # Local phase: SLSQP from a point, through the continuation levels.
 
     def local_run(z0):
-        z, message, iterations, final = z0, "", 0, np.nan
+        z, message, final = z0, "", np.nan
+        state = {"iterations": 0}
         cache: dict[Any, tuple] = {}
         failures = 0
         fallback: tuple | None = None  # what a failed trial point reports
@@ -331,10 +344,6 @@ def minimise(
                 scale = float(np.max(np.abs(f0))) or 1.0
                 fallback = (f0 + 10.0 * scale, np.abs(g0) + 1.0, df0, dg0)
                 ftol_level = ftol if level == schedule[-1] else max(ftol, LEVEL_FTOL)
-                iters = maxiter
-                if level > 0 and schedule[-1] == 0:
-                    # Only the basin for the minimax that follows: a few iterations.
-                    iters, ftol_level = min(maxiter, BASIN_MAXITER), max(ftol, BASIN_FTOL)
                 if np.ndim(f0) == 0:
                     result = scipy.optimize.minimize(
                         lambda x, lv=level, s=scale: (
@@ -346,14 +355,18 @@ def minimise(
                         method="SLSQP",
                         bounds=[(0.0, 1.0)] * dimension,
                         constraints=[limits(level)],
-                        options={"maxiter": iters, "ftol": ftol_level},
+                        options={"maxiter": maxiter, "ftol": ftol_level},
                     )
-                    z = np.clip(result.x, 0.0, 1.0)
+                    z, message = np.clip(result.x, 0.0, 1.0), str(result.message)
+                    state["iterations"] += int(result.nit)
+                elif len(schedule) == 1:
+                    z, message = _trust_region_lp(
+                        evaluate, z, level, scale, maxiter, ftol_level, state
+                    )
                 else:
-                    result = _minimax(evaluate, limits, z, level, scale, maxiter, ftol_level)
-                    z = np.clip(result.x[:dimension], 0.0, 1.0)
-                message = str(result.message)
-                iterations += int(result.nit)
+                    z, message = _epigraph_slsqp(
+                        evaluate, limits, z, level, scale, maxiter, ftol_level, state
+                    )
                 final = float(np.max(evaluate(z, level)[0]))
         except _SolveFailed:
             message = f"solves failed ({failures}): this start ended there"
@@ -362,7 +375,13 @@ def minimise(
         except _Stalled:
             z, final = progress["z"], progress["best"]
             message = f"stalled: no gain of {STALL_RTOL:g} in {STALL_SOLVES} gradient solves"
-        return {"z0": z0, "z": z, "objective": final, "iterations": iterations, "message": message}
+        return {
+            "z0": z0,
+            "z": z,
+            "objective": final,
+            "iterations": state["iterations"],
+            "message": message,
+        }
 
     # Given starts first (a design known to be good is polished at once), then the
     # global phase: one batch through the batched solver, and the best distinct samples.
@@ -416,11 +435,13 @@ def _padded(jacobian: np.ndarray, columns: int) -> np.ndarray:
     return np.pad(jacobian, ((0, 0), (0, columns - jacobian.shape[1])))
 
 
-def _minimax(evaluate, limits, z, level, scale, maxiter, ftol):
+def _epigraph_slsqp(evaluate, limits, z, level, scale, maxiter, ftol, state):
     """SLSQP on the epigraph of a minimax: `min s` over `(z, s)` subject to every value
     `f_k(z) <= s` (here the objective's signal at many times and its located peak) and
     the limits. Each local maximum becomes its own smooth constraint, so SLSQP levels
-    competing peaks at once instead of chasing the one that is highest."""
+    competing peaks at once instead of chasing the one that is highest. After a
+    smoothed level: SLSQP's curvature model carries it over kinks of peaks narrower
+    than the grid, where `_trust_region_lp` stops (see `minimise`)."""
     import scipy.optimize
 
     dimension = z.size
@@ -435,7 +456,7 @@ def _minimax(evaluate, limits, z, level, scale, maxiter, ftol):
         return np.hstack([-df, np.ones((df.shape[0], 1))])
 
     start = np.append(z, np.max(evaluate(z, level)[0]) / scale)
-    return scipy.optimize.minimize(
+    result = scipy.optimize.minimize(
         lambda x: (x[-1], top),
         start,
         jac=True,
@@ -444,6 +465,73 @@ def _minimax(evaluate, limits, z, level, scale, maxiter, ftol):
         constraints=[{"type": "ineq", "fun": peaks_below, "jac": peaks_jacobian}, limits(level)],
         options={"maxiter": maxiter, "ftol": ftol},
     )
+    state["iterations"] += int(result.nit)
+    return np.clip(result.x[:dimension], 0.0, 1.0), str(result.message)
+
+
+def _trust_region_lp(evaluate, z, level, scale, maxiter, ftol, state):
+    """Trust-region linear programming on a minimax (Madsen's method): from `z`, each
+    iteration solves `min_d max_k f_k + ∇f_k·d` (here the objective's signal at many
+    times and its located peak), the limits linearised, `|d| <= radius` and the unit
+    box, as an LP (HiGHS), then accepts the step if the exact merit fell by at least
+    `ACCEPT` of the predicted fall, and grows or shrinks the radius by their ratio.
+    Every local maximum is its own linear piece, so competing peaks are levelled at
+    once; near a levelled optimum (more active peaks than parameters) it converges
+    quadratically. A limit enters the merit as an exact penalty (`LIMIT_PENALTY` per
+    unit of normalised violation), so a step may trade a little violation for a lower
+    peak only while it leads back inside.
+
+    `state["iterations"]` counts the iterations as they go (one gradient solve each).
+    **Returns:** `(z, message)`."""
+    import scipy.optimize
+
+    dimension = z.size
+
+    def merit(f, g):
+        return np.max(f) / scale + LIMIT_PENALTY * max(0.0, np.max(g + MARGIN, initial=-np.inf))
+
+    f, g, df, dg = evaluate(z, level)
+    value = merit(f, g)
+    radius = MINIMAX_RADIUS
+    # Variables `(d (P), peak, excess)`: minimise `peak + LIMIT_PENALTY * excess`.
+    cost = np.zeros(dimension + 2)
+    cost[dimension:] = 1.0, LIMIT_PENALTY
+    for _ in range(maxiter):
+        rows = np.vstack(
+            [
+                np.hstack([df / scale, -np.ones((f.size, 1)), np.zeros((f.size, 1))]),
+                np.hstack([dg, np.zeros((g.size, 1)), -np.ones((g.size, 1))]),
+            ]
+        )
+        step_bounds = [(max(-radius, -zi), min(radius, 1.0 - zi)) for zi in z]
+        lp = scipy.optimize.linprog(
+            cost,
+            A_ub=rows,
+            b_ub=np.concatenate([-f / scale, -(g + MARGIN)]),
+            bounds=[*step_bounds, (None, None), (0.0, None)],
+            method="highs",
+        )
+        if lp.status != 0:
+            return z, f"the linear program failed: {lp.message}"
+        step = lp.x[:dimension]
+        predicted = value - cost @ lp.x
+        if predicted <= ftol * max(1.0, abs(value)):
+            return z, "converged: the predicted decrease is below ftol"
+        trial = np.clip(z + step, 0.0, 1.0)
+        f_trial, g_trial, df_trial, dg_trial = evaluate(trial, level)
+        state["iterations"] += 1
+        trial_value = merit(f_trial, g_trial)
+        ratio = (value - trial_value) / predicted
+        if ratio > ACCEPT:
+            z, f, g, df, dg, value = trial, f_trial, g_trial, df_trial, dg_trial, trial_value
+        length = float(np.max(np.abs(step)))
+        if ratio > 0.75:
+            radius = min(1.0, max(radius, 2.5 * length))
+        elif ratio < 0.25:
+            radius = length / 2
+        if radius < MIN_RADIUS:
+            return z, f"converged: the trust radius is below {MIN_RADIUS:g}"
+    return z, "iteration limit reached"
 
 
 def _feasible(ok, violation, objective) -> bool:
@@ -611,9 +699,12 @@ def search(
       temperature, the study's sign that it jumps between local maxima): the
       local phase levels the signal at `SERIES_POINTS` times over the run (the run's
       length found at the first gradient solve) and at its located peak, each a smooth
-      constraint of SLSQP on the epigraph `min s, F(t_k) <= s`, with their exact
-      gradients from the one sensitivity solve. With a temperature, a short smoothed
-      level (`BASIN_MAXITER`) first finds the basin; no further continuation.
+      piece `F(t_k)` with its exact gradient from the one sensitivity solve. Without a
+      temperature, trust-region linear programming from the samples (fast where the
+      grid resolves every competing maximum); with one, a short smoothed level
+      (`BASIN_MAXITER`) first finds the basin, then SLSQP on the epigraph
+      `min s, F(t_k) <= s` (its curvature model passes over the kinks of peaks
+      narrower than the grid); no further continuation.
     - `schedule`: without the minimax, the factors of the objective's temperatures, one
       SLSQP run each in turn (default `(1, 1/3, 1/9, 1/30)` when the objective has
       temperatures, else a single run on the peaks).

@@ -103,12 +103,14 @@ def test_minimise_steps_back_from_failed_solves():
     assert result.best_objective == pytest.approx(0.25, abs=0.02)
 
 
+@pytest.mark.parametrize("schedule", [(0.0,), (1.0, 0.0)], ids=["lp", "smoothed-slsqp"])
 @pytest.mark.parametrize("limit, z_opt, f_opt", [(None, 0.525, 0.140625), (0.5, 0.5, 0.16)])
-def test_minimise_solves_a_minimax_with_an_active_constraint(limit, z_opt, f_opt):
+def test_minimise_solves_a_minimax_with_an_active_constraint(limit, z_opt, f_opt, schedule):
     # min_z max_k |z - c_k|^2 for the three corners of an acute triangle: the centre of
     # its circumcircle (0.5, 0.525), R^2 = 0.140625, where all three are equal and the
     # maximum has a corner. With z1 <= 0.5 the top corner alone is active: (0.5, 0.5),
-    # 0.16. At level 0 the local phase gets the vector of the three (the epigraph).
+    # 0.16. At level 0 the local phase gets the vector of the three: from the samples the
+    # trust-region LP, after a smoothed level (a log-sum-exp) SLSQP on the epigraph.
     corners = np.asarray([[0.2, 0.3], [0.8, 0.3], [0.5, 0.9]])
     constraints = [] if limit is None else [lambda z: z[1] - limit]
 
@@ -121,24 +123,31 @@ def test_minimise_solves_a_minimax_with_an_active_constraint(limit, z_opt, f_opt
         return worst, violations, np.ones(len(z), bool)
 
     def value_and_jacobian(z, level):
-        assert level == 0.0
         g = np.asarray([c(z) for c in constraints])
         dg = np.asarray([[0.0, 1.0]] * len(g)).reshape(len(g), 2)
-        return values(z), g, 2 * (z[None] - corners), dg, values(z).max(), True
+        f, df = values(z), 2 * (z[None] - corners)
+        if level > 0:  # the smooth maximum T log(sum exp(f / T)), T = 0.01 level
+            weights = np.exp((f - f.max()) / (0.01 * level))
+            f, df = f.max() + 0.01 * level * np.log(weights.sum()), weights @ df / weights.sum()
+        return f, g, df, dg, values(z).max(), True
 
     result = rj.minimise(
-        batch, value_and_jacobian, 2, samples=64, starts=2, schedule=(0.0,), progress=False
+        batch, value_and_jacobian, 2, samples=64, starts=2, schedule=schedule, progress=False
     )
     assert result.feasible
     np.testing.assert_allclose(result.best_z, [0.5, z_opt], atol=1e-4)
     assert result.best_objective == pytest.approx(f_opt, rel=1e-4)
 
 
-def test_minimise_ends_a_stalled_minimax():
-    # Values with noise of 1e-4 (as a solver's tolerance gives): SLSQP's own test on the
-    # change of `s` does not fire; the run ends after 20 gradient solves without a gain
-    # of 1e-6, at its best point, near the minimax optimum z = 0.5 of
-    # max((z - 0.2)^2, (z - 0.8)^2) = 0.09.
+@pytest.mark.parametrize(
+    "schedule, ending", [((0.0,), "converged"), ((1.0, 0.0), "stalled")], ids=["lp", "slsqp"]
+)
+def test_minimise_ends_a_noisy_minimax(schedule, ending):
+    # Values with noise of 1e-4 (as a solver's tolerance gives), near the minimax optimum
+    # z = 0.5 of max((z - 0.2)^2, (z - 0.8)^2) = 0.09. The trust-region LP shrinks its
+    # radius where the noise beats the predicted fall and ends; for SLSQP on the epigraph
+    # its own test on the change of `s` does not fire: the run ends after 20 gradient
+    # solves without a gain of 1e-6, at its best point.
     rng = np.random.default_rng(0)
 
     def values(z):
@@ -147,17 +156,19 @@ def test_minimise_ends_a_stalled_minimax():
     def value_and_jacobian(z, level):
         f = values(z)
         df = np.asarray([[2 * (z[0] - 0.2)], [2 * (z[0] - 0.8)]])
-        return f, np.zeros(0), df, np.zeros((0, 1)), f.max(), True
+        if level > 0:  # the smoothed level: the larger one (a kinked scalar)
+            f, df = f.max(), df[np.argmax(f)]
+        return f, np.zeros(0), df, np.zeros((0, 1)), np.max(f), True
 
     def batch(z):
         return np.asarray([values(x).max() for x in z]), np.zeros((len(z), 0)), np.ones(len(z))
 
     result = rj.minimise(
-        batch, value_and_jacobian, 1, samples=8, starts=1, schedule=(0.0,), maxiter=500,
+        batch, value_and_jacobian, 1, samples=8, starts=1, schedule=schedule, maxiter=500,
         progress=False,
     )  # fmt: skip
     (run,) = result.starts
-    assert run["message"].startswith("stalled"), run["message"]
+    assert run["message"].startswith(ending), run["message"]
     assert result.gradient_solves < 200
     assert abs(run["z"][0] - 0.5) < 0.01 and run["objective"] < 0.0902
 
@@ -245,6 +256,24 @@ def test_tuned_absorber_without_a_start_finds_the_optimum_for_every_seed():
 
 
 @pytest.mark.slow
+def test_throttling_reaches_the_levelled_optimum_for_every_seed():
+    # The trust-region LP from the samples, 8 seeds of the Sobol sample: each ends at the
+    # minimax optimum (8969.2 N, the best any method found in `bench-tuning`; E0/L is
+    # the bound below), where the smoothed SLSQP route ended at 9226-9787 N for 2 of 6.
+    from recoil_jax.apps._studies import load_study, search_kwargs
+
+    study = load_study("throttling")
+    best = []
+    for seed in range(8):
+        kwargs = search_kwargs(study, progress=False) | {"seed": seed}
+        result = rj.search(study.problem, **kwargs)
+        assert result.compilations <= int(seed == 0)
+        best.append(result.best_objective)
+    assert max(best) <= 8969.2 * 1.001, best
+    assert min(best) >= PAPER_LIMIT, best
+
+
+@pytest.mark.slow
 def test_throttling_comes_within_one_percent_of_the_physical_limit(tmp_path):
     from recoil_jax.apps import run_study
 
@@ -264,7 +293,7 @@ def test_throttling_comes_within_one_percent_of_the_physical_limit(tmp_path):
     assert stroke["linear_damper"]["peak_anchoring_force_N"] > 1.2 * force
     assert (tmp_path / "force_stroke.png").stat().st_size > 10_000
     # Two programs: the smoothed level that finds the basin, and the minimax.
-    assert report["optimiser"]["compilations"] <= 2
+    assert report["optimiser"]["compilations"] == 1  # the minimax program alone
 
 
 def test_studies_choose_the_method_and_whether_the_design_is_a_start(tmp_path):
