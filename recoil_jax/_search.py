@@ -344,6 +344,10 @@ def minimise(
                 scale = float(np.max(np.abs(f0))) or 1.0
                 fallback = (f0 + 10.0 * scale, np.abs(g0) + 1.0, df0, dg0)
                 ftol_level = ftol if level == schedule[-1] else max(ftol, LEVEL_FTOL)
+                iters = maxiter
+                if level > 0 and schedule[-1] == 0:
+                    # Only the basin for the minimax that follows: a few iterations.
+                    iters, ftol_level = min(maxiter, BASIN_MAXITER), max(ftol, BASIN_FTOL)
                 if np.ndim(f0) == 0:
                     result = scipy.optimize.minimize(
                         lambda x, lv=level, s=scale: (
@@ -355,7 +359,7 @@ def minimise(
                         method="SLSQP",
                         bounds=[(0.0, 1.0)] * dimension,
                         constraints=[limits(level)],
-                        options={"maxiter": maxiter, "ftol": ftol_level},
+                        options={"maxiter": iters, "ftol": ftol_level},
                     )
                     z, message = np.clip(result.x, 0.0, 1.0), str(result.message)
                     state["iterations"] += int(result.nit)
