@@ -361,6 +361,26 @@ starts = 1
     assert "differential_evolution" in format_report(report)
 
 
+def test_tuning_benchmark_speedup_is_a_ratio_or_a_lower_bound(capsys):
+    """Against the best other method that reached the target, a ratio; when none did
+    within the budget, the budget over our time, marked as a lower bound."""
+    from recoil_jax.apps import main
+    from recoil_jax.apps._bench_tuning import speedup
+
+    def problem(ours, *others):
+        methods = {"recoil-jax": {"to_target_s": ours}}
+        methods |= {f"other{i}": {"to_target_s": t} for i, t in enumerate(others)}
+        return {"budget_s": 90.0, "methods": methods}
+
+    assert speedup(problem(2.0, 30.0, None, 12.0)) == {"factor": 6.0, "at_least": False}
+    assert speedup(problem(4.5, None, None)) == {"factor": 20.0, "at_least": True}
+    assert speedup(problem(None, 3.0)) is None
+    assert speedup(problem(1.0)) is None
+    # An unknown method is refused before anything runs.
+    assert main(["bench-tuning", "throttling", "--methods", "simplex"]) == 2
+    assert "unknown method(s) ['simplex']" in capsys.readouterr().err
+
+
 @pytest.mark.slow
 def test_scenarios_and_epsilon_limits_run_in_one_vmap():
     """Fronts: one problem per absorber mass (batched params) and per limit (an

@@ -281,6 +281,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=1.0,
         help="multiply every problem's wall-time budget (default 1)",
     )
+    tuning.add_argument(
+        "--methods",
+        nargs="+",
+        metavar="METHOD",
+        help="the methods to run: recoil-jax, nelder_mead, differential_evolution, "
+        "cma_es (default: all four)",
+    )
     tuning.add_argument("--out", help="folder for the convergence figures (default: none)")
     tuning.set_defaults(func=_bench_tuning)
     explore = sub.add_parser(
