@@ -269,14 +269,14 @@ def run_tuning_bench(
             }
         if out is not None:
             _plot(study.name, runs, target, Path(out))
-        report["problems"][study.name] = {
+        entry = {
             "dimension": len(study.problem.tune),
             "best_known": best_known,
             "target": target,
             "budget_s": budget,
             "methods": {m: {k: v for k, v in r.items() if k != "trace"} for m, r in runs.items()},
         }
-        report["problems"][study.name]["speedup"] = speedup(report["problems"][study.name])
+        report["problems"][study.name] = entry | {"speedup": speedup(entry)}
     return report
 
 
