@@ -11,7 +11,7 @@ from the best few of them.
   jumps between local maxima over time is minimised as a minimax of the signal at a
   thousand times, so that competing maxima are levelled together: from the samples by
   trust-region linear programming, or after a short smoothed level by SLSQP on the
-  epigraph.
+  epigraph, with the signal also at its local maxima (narrow peaks).
   Parameters whose bounds are positive and span three decades or more are searched in
   log coordinates (orifice areas, stiffnesses, masses).
 
@@ -106,7 +106,8 @@ class MinimiseResult:
       `"start"` or `"local"`).
     - `samples`: the global phase: `z (N, P)`, `objective (N,)`, `violation (N,)` (the
       largest normalised violation), `ok (N,)`.
-    - `starts`: per local run: `z0`, `z`, `objective`, `iterations`, `message`.
+    - `starts`: per local run: `z0`, `z`, `objective`, `iterations`, `message`,
+      `seconds` (its start and end since the start of the search).
     - `solves`, `gradient_solves`: plain solves and sensitivity solves; `seconds`;
       `compilations` of the gradient program.
     """
@@ -221,6 +222,7 @@ def minimise(
     workers: int = 1,
     progress: bool | None = None,
     label: str = "search",
+    new_run: Callable[[], None] | None = None,
 ) -> MinimiseResult:
     """Minimise `f(z)` subject to `g(z) <= 0` over the unit box `z ∈ [0, 1]^P`: a scrambled
     Sobol sample of the box, then SLSQP from the best few distinct points.
@@ -253,6 +255,8 @@ def minimise(
       starts run while the global phase samples).
     - `progress`: a progress line with the best feasible objective (default: on a
       terminal).
+    - `new_run`: called at the start of each local run, from its thread (`search`
+      forgets there what it adapted to the previous run's points).
 
     **Returns:** `MinimiseResult`.
     """
@@ -284,6 +288,9 @@ def minimise(
     # Local phase: SLSQP from a point, through the continuation levels.
 
     def local_run(z0):
+        began = time.perf_counter() - record.start
+        if new_run is not None:
+            new_run()
         z, message, final = z0, "", np.nan
         state = {"iterations": 0}
         cache: dict[Any, tuple] = {}
@@ -385,6 +392,7 @@ def minimise(
             "objective": final,
             "iterations": state["iterations"],
             "message": message,
+            "seconds": (began, time.perf_counter() - record.start),
         }
 
     # Given starts first (a design known to be good is polished at once), then the
@@ -667,6 +675,41 @@ def minimax_metric(problem: DesignProblem) -> str | None:
 #: Save times of the minimax's series: the signal's maximum is levelled on this grid.
 SERIES_POINTS = 1024
 
+#: For SLSQP on the epigraph, the series is also saved at the times of the highest
+#: local maxima of the signal at the run's previous point, each refined to the vertex
+#: of the parabola through its samples. Near the optimum they sit on the peaks, so that
+#: each competing maximum is its own smooth piece (at a maximum, the value and gradient
+#: at a fixed time are the peak's own, by the envelope theorem), also for a peak
+#: narrower than the grid, which the grid would see only through the located peak.
+PEAK_TIMES = 64
+
+
+def _local_maxima(ts: np.ndarray, values: np.ndarray, count: int, fill: float) -> np.ndarray:
+    """The times `(count,)` of the `count` highest interior local maxima of a sampled
+    signal (`ts` in any order, NaN values ignored), each refined to the vertex of the
+    parabola through it and its neighbours; `fill` where there are fewer."""
+    keep = np.isfinite(values)
+    order = np.argsort(ts[keep], kind="stable")
+    t, v = ts[keep][order], values[keep][order]
+    t, unique = np.unique(t, return_index=True)
+    v = v[unique]
+    out = np.full(count, fill)
+    if t.size < 3:
+        return out
+    interior = np.nonzero((v[1:-1] >= v[:-2]) & (v[1:-1] > v[2:]))[0] + 1
+    # The highest `count`, in time order (a slot keeps its peak while they persist).
+    interior = np.sort(interior[np.argsort(-v[interior], kind="stable")][:count])
+    t0, t1, t2 = t[interior - 1], t[interior], t[interior + 1]
+    v0, v1, v2 = v[interior - 1], v[interior], v[interior + 1]
+    # Vertex of the parabola through three points (unequal spacing).
+    num = (t1 - t0) ** 2 * (v1 - v2) - (t1 - t2) ** 2 * (v1 - v0)
+    den = (t1 - t0) * (v1 - v2) - (t1 - t2) * (v1 - v0)
+    safe = np.abs(den) > 0
+    vertex = t1 - 0.5 * num / np.where(safe, den, 1.0)
+    vertex = np.where(safe & (vertex > t0) & (vertex < t2), vertex, t1)
+    out[: vertex.size] = vertex
+    return out
+
 
 def search(
     problem: DesignProblem,
@@ -708,7 +751,8 @@ def search(
       grid resolves every competing maximum); with one, a short smoothed level
       (`BASIN_MAXITER`) first finds the basin, then SLSQP on the epigraph
       `min s, F(t_k) <= s` (its curvature model passes over the kinks of peaks
-      narrower than the grid); no further continuation.
+      narrower than the grid), with `PEAK_TIMES` more pieces at the local maxima of
+      the signal at the run's previous point; no further continuation.
     - `schedule`: without the minimax, the factors of the objective's temperatures, one
       SLSQP run each in turn (default `(1, 1/3, 1/9, 1/30)` when the objective has
       temperatures, else a single run on the peaks).
@@ -784,17 +828,38 @@ def search(
             if not window:
                 t1 = float(np.max(np.asarray(end_time(problem.params, problem.options))))
                 whole = np.linspace(0.0, t1, SERIES_POINTS)
-                f = np.asarray(gradient_solve(z, 1.0, jnp.asarray(whole))[0])[1:]
+                padded = np.concatenate([whole, np.full(peak_times, t1)])
+                f = np.asarray(gradient_solve(z, 1.0, jnp.asarray(padded))[0])[1:]
+                f = f[:SERIES_POINTS]
                 written = np.nonzero(np.isfinite(f))[0]
                 end = whole[written[-1]] if written.size else t1
                 window.append(np.linspace(0.0, min(t1, 1.25 * end), SERIES_POINTS))
             return window[0]
 
+    # The peaks' own save times, for SLSQP on the epigraph (where the study says the
+    # peaks are narrow: it gave them a temperature); the trust-region LP keeps the grid.
+    peak_times = PEAK_TIMES if len(schedule) > 1 else 0
+    peaks_seen = threading.local()  # per local run (one per thread at a time)
+
+    def new_run():
+        peaks_seen.ts = None
+
     def value_and_jacobian(z, level):
         if level > 0:
             return gradient_solve(z, level)
-        f, g, df, dg, exact, ok = gradient_solve(z, level, jnp.asarray(series_ts(z)))
+        grid = series_ts(z)
+        extra = getattr(peaks_seen, "ts", None)
+        if extra is None:
+            extra = np.full(peak_times, grid[-1])
+        times = np.concatenate([grid, extra])
+        # Saved in time order; returned in this order, so that each value keeps its
+        # place (one constraint of SLSQP's each) from one point to the next.
+        order = np.argsort(times, kind="stable")
+        f, g, df, dg, exact, ok = gradient_solve(z, level, jnp.asarray(times[order]))
         f, df = np.array(f), np.array(df)
+        f[1 + order], df[1 + order] = f[1:].copy(), df[1:].copy()
+        if bool(ok):
+            peaks_seen.ts = _local_maxima(times, f[1:], peak_times, grid[-1])
         # Save times after the solve's end (its peaks certain) are no constraint.
         after = ~np.isfinite(f)
         if np.any(np.isfinite(f)):
@@ -818,6 +883,7 @@ def search(
         max_seconds=max_seconds,
         workers=default_workers(jax.local_devices()) if workers is None else workers,
         progress=progress,
+        new_run=new_run,
     )
     result.problem = problem
     result.gradient_solves += len(window)  # the solve that set the series' window

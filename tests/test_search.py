@@ -2,8 +2,11 @@
 analytic problems with bounds and constraints, one compilation per problem, infeasible
 problems reported as such, and the study problems' optima."""
 
+import dataclasses
+
 import numpy as np
 import pytest
+from scipy.optimize import brentq
 
 import recoil_jax as rj
 
@@ -229,6 +232,52 @@ def test_search_as_a_minimax_matches_the_dense_grid():
     feasible = swept.ok & (swept.peaks["max_stroke"] <= 0.15)
     grid_best = float(np.min(swept.peaks["peak_anchoring_force"][feasible]))
     assert grid_best * (1 - 2e-3) <= result.best_objective <= grid_best * (1 + 1e-5)
+
+
+@pytest.mark.slow
+def test_search_levels_narrow_peaks_on_the_epigraph():
+    # The other route: with a temperature on the peak, a smoothed basin, then SLSQP on
+    # the epigraph of the signal at 1024 times, its located peak and its local maxima at
+    # the previous point. The same optimum as the grid; two programs (the smoothed
+    # level's and the minimax's) and no more.
+    base = _gap_problem()
+    problem = dataclasses.replace(
+        base,
+        objective=rj.Objective(
+            {"peak_anchoring_force": 1.0}, temperatures={"peak_anchoring_force": 300.0}
+        ),
+    )
+    result = rj.search(problem, samples=32, starts=2, progress=False)
+    assert result.feasible and result.compilations == 2
+    gaps = np.linspace(0.0, 0.12, 601)
+    swept = rj.sweep({"gap": gaps, "m": np.full_like(gaps, 1500.0)}, options=problem.options)
+    feasible = swept.ok & (swept.peaks["max_stroke"] <= 0.15)
+    grid_best = float(np.min(swept.peaks["peak_anchoring_force"][feasible]))
+    assert grid_best * (1 - 2e-3) <= result.best_objective <= grid_best * (1 + 1e-5)
+
+
+def test_local_maxima_are_refined_onto_the_peaks():
+    # A sampled signal with maxima at known times (roots of its derivative, heights
+    # rising with t), the samples in no order and some NaN (after a solve's end): the
+    # three maxima, in time order, each refined to 1 % of the sample spacing; `fill` for
+    # slots beyond the maxima found.
+    from recoil_jax._search import _local_maxima
+
+    t = np.linspace(0.0, 1.0, 101)  # spacing 0.01
+    values = np.sin(20 * t) * (1 + t)
+    values[-3:] = np.nan
+    shuffle = np.random.default_rng(0).permutation(t.size)
+    found = _local_maxima(t[shuffle], values[shuffle], 5, -1.0)
+    # Near the maxima of sin(20 t) (pi/40 + k pi/10: three before the NaN at t > 0.97).
+    exact = [
+        brentq(lambda x: 20 * np.cos(20 * x) * (1 + x) + np.sin(20 * x), a - 0.05, a + 0.05)
+        for a in np.pi / 40 + np.arange(3) * np.pi / 10
+    ]
+    np.testing.assert_allclose(found[:3], exact, atol=1e-4)
+    np.testing.assert_array_equal(found[3:], -1.0)  # only three interior maxima
+    assert np.all(np.diff(found[:3]) > 0)
+    # Two slots: the two highest maxima, still in time order.
+    np.testing.assert_allclose(_local_maxima(t, values, 2, -1.0), exact[1:], atol=1e-4)
 
 
 def test_search_reports_an_unmeetable_limit_as_infeasible():
