@@ -689,10 +689,8 @@ def _local_maxima(ts: np.ndarray, values: np.ndarray, count: int, fill: float) -
     signal (`ts` in any order, NaN values ignored), each refined to the vertex of the
     parabola through it and its neighbours; `fill` where there are fewer."""
     keep = np.isfinite(values)
-    order = np.argsort(ts[keep], kind="stable")
-    t, v = ts[keep][order], values[keep][order]
-    t, unique = np.unique(t, return_index=True)
-    v = v[unique]
+    t, first = np.unique(ts[keep], return_index=True)  # sorted, each time once
+    v = values[keep][first]
     out = np.full(count, fill)
     if t.size < 3:
         return out
@@ -858,7 +856,7 @@ def search(
         f, g, df, dg, exact, ok = gradient_solve(z, level, jnp.asarray(times[order]))
         f, df = np.array(f), np.array(df)
         f[1 + order], df[1 + order] = f[1:].copy(), df[1:].copy()
-        if bool(ok):
+        if bool(ok) and peak_times:
             peaks_seen.ts = _local_maxima(times, f[1:], peak_times, grid[-1])
         # Save times after the solve's end (its peaks certain) are no constraint.
         after = ~np.isfinite(f)
