@@ -39,7 +39,7 @@ FAST = os.environ.get("RECOIL_JAX_FAST") == "1"  # the test suite runs a small v
 # 0.01 m² piston in oil. The 16 knot areas span three decades (1e-5 to 1e-2 m²), so
 # the search moves them in log coordinates. The objective is the peak anchoring force,
 # which jumps between local maxima (knots) as they move, so `search` takes it as a
-# minimax over time (`minimax=True`). The limit is the stroke.
+# minimax over time (`local=rj.TrustRegionLP()`). The limit is the stroke.
 
 # %%
 KNOTS = [f"orifice_{i}" for i in range(16)]
@@ -71,9 +71,8 @@ result = rj.search(
     problem,
     samples=64 if FAST else 512,
     starts=1 if FAST else 2,
-    maxiter=15 if FAST else 100,
+    local=rj.TrustRegionLP(maxiter=15 if FAST else 100),
     use_design=False,
-    minimax=True,
     max_seconds=60 if FAST else 300,
     progress=False,
 )

@@ -29,6 +29,14 @@ from ._gradients import (
     peak_gradients as peak_gradients,
     peak_jacobian as peak_jacobian,
 )
+from ._local import (
+    SLSQP as SLSQP,
+    EpigraphMinimax as EpigraphMinimax,
+    LocalEvaluation as LocalEvaluation,
+    LocalMethod as LocalMethod,
+    LocalRun as LocalRun,
+    TrustRegionLP as TrustRegionLP,
+)
 from ._metrics import (
     METRICS as METRICS,
     PEAK_FIELDS as PEAK_FIELDS,
@@ -87,16 +95,20 @@ from ._params import (
     with_values as with_values,
 )
 from ._problem import (
+    FEASIBILITY_TOLERANCE as FEASIBILITY_TOLERANCE,
     Constraint as Constraint,
     DesignProblem as DesignProblem,
     Objective as Objective,
+    closest_miss as closest_miss,
     constraint_report as constraint_report,
     evaluate_design as evaluate_design,
+    feasible as feasible,
+    metric_violations as metric_violations,
 )
 from ._reference import reference_peaks as reference_peaks
 from ._search import (
     MinimiseResult as MinimiseResult,
-    log_coordinates as log_coordinates,
+    default_local as default_local,
     minimax_metric as minimax_metric,
     minimise as minimise,
     search as search,
@@ -106,6 +118,10 @@ from ._solve import (
     peak_metrics as peak_metrics,
     peaks as peaks,
     simulate as simulate,
+)
+from ._space import (
+    SearchSpace as SearchSpace,
+    log_coordinates as log_coordinates,
 )
 from ._status import (
     SolveError as SolveError,

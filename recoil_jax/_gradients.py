@@ -453,7 +453,7 @@ def sensitivity_solve(params, smoothing, options, wrt, smooth_max=None, series=N
     return _sensitivity_post(args, run, wrt, series)
 
 
-def _peak_gradients_batch(params, t1, smoothing, options, wrt, lanes):
+def _peak_gradients_batch(params, t1, smoothing, options, wrt, lanes, count):
     loop = PeakLoop(
         _sensitivity_term(wrt),
         _sensitivity_metrics,
@@ -474,12 +474,14 @@ def _peak_gradients_batch(params, t1, smoothing, options, wrt, lanes):
         lambda design, args, run: _sensitivity_post(args, run, wrt)[:2],
         (params, t1),
         lanes,
+        count,
     )
 
 
 #: `jax.vmap(peak_gradients)` over a batch (a leading axis on every leaf of `params`, and
-#: per-design end times `t1`), run through `queued_map` with `lanes` designs in flight.
-#: Jitted; `wrt` and `lanes` are static.
+#: per-design end times `t1`), run through `queued_map` with `lanes` designs in flight;
+#: only the first `count` (an integer array) are solved. Jitted; `wrt` and `lanes` are
+#: static.
 peak_gradients_batch = eqx.filter_jit(_peak_gradients_batch)
 
 

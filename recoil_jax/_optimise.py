@@ -1,7 +1,8 @@
 """Gradient-based design tuning with optax: many starts at once, bounds by
 reparametrisation, metric limits by an augmented Lagrangian.
 
-- Bounds hold through a smooth reparametrisation, `θ = lo + (hi − lo) · sigmoid(u)`, so no
+- Bounds hold through a smooth reparametrisation, `θ = space.theta(sigmoid(u))` in the
+  problem's `SearchSpace` (linear, or log where the bounds span three decades), so no
   clipping ever zeroes a gradient.
 - Limits on metrics go through an augmented Lagrangian (PHR): the multipliers are updated
   every `update_every` steps, and the penalty grows while a limit is violated.
@@ -23,19 +24,21 @@ import numpy as np
 import optax
 
 from ._params import ParameterError, RecoilParams, params_to_values, values_of, with_values
-from ._problem import DesignProblem, evaluate_design
+from ._problem import DesignProblem, evaluate_design, feasible
 from ._progress import Progress
+from ._space import SearchSpace
 from ._status import Status, status_codes
 
 __all__ = ["OptimiseResult", "default_optimiser", "optimise"]
 
 
-def _to_theta(u, lower, upper):
-    return lower + (upper - lower) * jax.nn.sigmoid(u)
+def _to_theta(space: SearchSpace, u):
+    """The tuned values of unconstrained coordinates `u`: `space.theta(sigmoid(u))`."""
+    return space.theta(jax.nn.sigmoid(u))
 
 
-def _to_u(theta, lower, upper):
-    fraction = np.clip((np.asarray(theta) - lower) / (upper - lower), 1e-4, 1 - 1e-4)
+def _to_u(space: SearchSpace, theta) -> np.ndarray:
+    fraction = np.clip(space.z(theta), 1e-4, 1 - 1e-4)
     return np.log(fraction) - np.log1p(-fraction)
 
 
@@ -71,12 +74,12 @@ def _make_step(
 ):
     """The vmapped, jitted step of every run, and the function whose traces count the
     compilations (`eqx.debug.get_num_traces`)."""
-    lower, upper = (jnp.asarray(b) for b in problem.box())
+    space = SearchSpace.of(problem)
     steps = settings.steps
     ok = int(status_codes(Status.ok))
 
     def loss(u, state: _State, params, limits):
-        theta = _to_theta(u, lower, upper)
+        theta = _to_theta(space, u)
         # Anneal the smooth-max temperatures geometrically to `anneal` of their start.
         progress = state.step / max(steps - 1, 1)
         metrics, status, smooth, exact, violations = evaluate_design(
@@ -131,7 +134,10 @@ class OptimiseResult:
 
     - `best_theta`, `best_objective`, `best_run`, `best_step`: the best feasible point
       found over every evaluated point of every run (NaN objective if none was feasible),
-      per scenario (`(S, P)`, `(S,)`...).
+      per scenario (`(S, P)`, `(S,)`...); `feasible (S,)`: whether there is one.
+    - `closest_theta (S, P)`, `closest_violation (S,)`: per scenario, the evaluated point
+      whose largest normalised limit violation is least (of the successful solves), and
+      that violation: where nothing is feasible, which limit is missed and by how much.
     - `history`: per step, arrays of shape `(N, R, ...)`: `theta`, `objective` (exact,
       with peaks), `smooth_objective`, `violations`, `status` (integer `Status` codes),
       and each metric by name.
@@ -158,6 +164,13 @@ class OptimiseResult:
     compilations: int
     scenario_params: RecoilParams  # the base design of each scenario, leading axis S
     scenario_limits: np.ndarray  # (S, C) the metric limits of each scenario
+    closest_theta: np.ndarray
+    closest_violation: np.ndarray
+
+    @property
+    def feasible(self) -> np.ndarray:
+        """`(S,)`: whether each scenario has a feasible design."""
+        return np.isfinite(self.best_objective)
 
     @property
     def tune(self) -> tuple[str, ...]:
@@ -169,8 +182,15 @@ class OptimiseResult:
         return {k: float(np.asarray(v)) for k, v in params_to_values(params).items()}
 
     def best_params(self, scenario: int = 0) -> RecoilParams:
+        if not self.feasible[scenario]:
+            raise ParameterError("no feasible design was found: there is no best design")
         base = jax.tree.map(lambda x: x[scenario], self.scenario_params)
         return with_values(base, self.tune, self.best_theta[scenario])
+
+    def closest_params(self, scenario: int = 0) -> RecoilParams:
+        """The least violating design of `scenario` (`closest_theta`)."""
+        base = jax.tree.map(lambda x: x[scenario], self.scenario_params)
+        return with_values(base, self.tune, self.closest_theta[scenario])
 
     def clusters(self, scenario: int = 0, rtol: float = 1e-3) -> list[dict]:
         """Where the starts of `scenario` ended: groups of runs whose best objectives agree
@@ -311,18 +331,26 @@ def _scenarios(
 
 
 def _select_best(history: dict[str, np.ndarray], scenarios: int, starts: int):
-    """The best strictly feasible point of each run, and of each scenario."""
-    ok = int(status_codes(Status.ok))
+    """The best feasible point of each run, and of each scenario; and the least
+    violating point of each scenario."""
+    ok = history["status"] == int(status_codes(Status.ok))
     runs = scenarios * starts
-    feasible = np.all(history["violations"] <= 0, axis=-1) & (history["status"] == ok)
-    values = np.where(feasible, history["objective"], np.inf)  # (N, R)
+    held = feasible(ok, history["objective"], history["violations"])
+    values = np.where(held, history["objective"], np.inf)  # (N, R)
     run_best_step = np.argmin(values, axis=0)
     run_best_objective = values[run_best_step, np.arange(runs)]
     run_best_objective = np.where(np.isfinite(run_best_objective), run_best_objective, np.nan)
     run_best_theta = history["theta"][run_best_step, np.arange(runs)]
     best = {"theta": [], "objective": [], "run": [], "step": []}
+    # The largest violation of each point; inf where the solve failed.
+    worst = np.max(history["violations"], axis=-1, initial=-np.inf)
+    worst = np.where(ok & np.isfinite(history["objective"]), worst, np.inf)
+    best["closest_theta"], best["closest_violation"] = [], []
     for s in range(scenarios):
         rs = np.arange(s * starts, (s + 1) * starts)
+        step, run = np.unravel_index(np.argmin(worst[:, rs]), worst[:, rs].shape)
+        best["closest_theta"].append(history["theta"][step, rs[run]])
+        best["closest_violation"].append(worst[step, rs[run]])
         scores = np.where(np.isnan(run_best_objective[rs]), np.inf, run_best_objective[rs])
         r = int(rs[np.argmin(scores)])
         best["run"].append(r)
@@ -359,7 +387,8 @@ def optimise(
     **Arguments:**
 
     - `problem`: the `DesignProblem`.
-    - `optimiser`: any optax transformation, applied to the sigmoid coordinates; default
+    - `optimiser`: any optax transformation, applied to the unconstrained coordinates
+      `u` (`θ = SearchSpace.theta(sigmoid(u))`); default
       Adam with a step cosine-decayed from 0.1 to 0.001 (`default_optimiser`).
     - `starts`: starts per scenario: the base design, then a Latin hypercube (`seed`).
     - `steps`: the most steps taken.
@@ -391,8 +420,8 @@ def optimise(
     run_params = jax.tree.map(lambda x: jnp.repeat(jnp.asarray(x), starts, axis=0), params)
     run_limits = jnp.asarray(np.repeat(limits, starts, axis=0))
 
-    lower, upper = problem.box()
-    u0 = jnp.asarray(_to_u(_start_points(problem, params, n_scenarios, starts, seed), lower, upper))
+    space = SearchSpace.of(problem)
+    u0 = jnp.asarray(_to_u(space, _start_points(problem, params, n_scenarios, starts, seed)))
     state = _State(
         u=u0,
         opt_state=jax.vmap(optimiser.init)(u0),
@@ -424,11 +453,12 @@ def optimise(
         active &= ~stop
         if callback is not None:
             callback(k, {"objective": record.objective, "active": active.copy()})
-        feasible = np.all(record.violations <= 0, axis=-1) & ~failed
-        best_so_far = min(best_so_far, float(np.min(np.where(feasible, record.objective, np.inf))))
+        held = feasible(~failed, record.objective, record.violations)
+        best_so_far = min(best_so_far, float(np.min(np.where(held, record.objective, np.inf))))
+        best = f"{best_so_far:.6g}" if np.isfinite(best_so_far) else "none feasible yet"
         bar.update(
             k + 1,
-            f"{int(active.sum())}/{runs} runs active, best feasible objective {best_so_far:.6g}",
+            f"{int(active.sum())}/{runs} runs active, best feasible objective {best}",
             final=not active.any(),
         )
         if not active.any():
@@ -461,6 +491,8 @@ def optimise(
         compilations=eqx.debug.get_num_traces(traced),
         scenario_params=params,
         scenario_limits=limits,
+        closest_theta=best["closest_theta"],
+        closest_violation=best["closest_violation"],
     )
 
 

@@ -38,12 +38,23 @@ from ._params import (
 from ._status import status_item
 
 __all__ = [
+    "FEASIBILITY_TOLERANCE",
     "Constraint",
     "DesignProblem",
     "Objective",
+    "closest_miss",
     "constraint_report",
     "evaluate_design",
+    "feasible",
+    "metric_violations",
 ]
+
+#: The one feasibility rule of every optimiser, study and benchmark (`feasible`): a
+#: design counts as feasible when its solve succeeded, its objective is finite and every
+#: normalised limit violation is at most `-FEASIBILITY_TOLERANCE`. The margin keeps the
+#: limits held on any re-solve of the design: a plain solve and a sensitivity solve of
+#: one design differ by ~5e-7 (relative) in a stroke.
+FEASIBILITY_TOLERANCE = 1e-6
 
 
 class Objective(eqx.Module):
@@ -273,13 +284,67 @@ def evaluate_design(
 
 
 def _violations(problem: DesignProblem, metrics, limits) -> jax.Array:
+    return metric_violations(problem, metrics, limits, xp=jnp)
+
+
+def metric_violations(problem: DesignProblem, metrics: Mapping[str, Any], limits=None, xp=np):
+    """The normalised violations of `problem`'s metric limits, `(value − limit)/|limit|`
+    for a `max` and `(limit − value)/|limit|` for a `min` (`|limit|` → 1 for a zero limit):
+    `<= 0` where a limit holds.
+
+    **Arguments:** `metrics`: metric name → values of one shape `(...)`; `limits`: `(C,)`
+    in the order of `problem.metric_constraints` (default theirs); `xp`: `numpy` or
+    `jax.numpy`.
+
+    **Returns:** `(..., C)`.
+    """
+    constraints = problem.metric_constraints
+    if limits is None:
+        limits = [limit for _, _, limit in constraints]
     out = []
-    for j, (name, kind, _) in enumerate(problem.metric_constraints):
+    for j, (name, kind, _) in enumerate(constraints):
         limit = limits[j]
-        scale = jnp.where(limit != 0, jnp.abs(limit), 1.0)
-        value = metrics[name]
+        scale = xp.where(limit != 0, xp.abs(limit), 1.0)
+        value = xp.asarray(metrics[name])
         out.append((value - limit) / scale if kind == "max" else (limit - value) / scale)
-    return jnp.stack(out) if out else jnp.zeros((0,))
+    if out:
+        return xp.stack(out, axis=-1)
+    shape = xp.shape(metrics[next(iter(metrics))]) if metrics else ()
+    return xp.zeros((*shape, 0))
+
+
+def feasible(ok, objective, violations) -> np.ndarray:
+    """The one feasibility rule (`FEASIBILITY_TOLERANCE`): `ok (...)` whether each solve
+    succeeded, `objective (...)`, `violations (..., C)` from `metric_violations`.
+
+    **Returns:** `(...)` booleans (NumPy)."""
+    violations = np.asarray(violations, dtype=float)
+    held = np.all(violations <= -FEASIBILITY_TOLERANCE, axis=-1)
+    return np.asarray(ok, dtype=bool) & np.isfinite(np.asarray(objective, dtype=float)) & held
+
+
+def closest_miss(problem: DesignProblem, violations) -> dict[str, dict]:
+    """How the least violating design misses each metric limit it breaks.
+
+    **Arguments:** `violations (C,)`: its normalised violations (`metric_violations`).
+
+    **Returns:** `{"<metric> (max|min)": {"limit", "value", "missed_by", "missed_by_relative"}}`
+    for every limit it misses (value and miss in the metric's SI unit).
+    """
+    missed = {}
+    for (name, kind, limit), v in zip(
+        problem.metric_constraints, np.asarray(violations, dtype=float), strict=True
+    ):
+        if v > -FEASIBILITY_TOLERANCE:
+            scale = abs(limit) or 1.0
+            value = limit + v * scale if kind == "max" else limit - v * scale
+            missed[f"{name} ({kind})"] = {
+                "limit": float(limit),
+                "value": float(value),
+                "missed_by": float(v * scale),
+                "missed_by_relative": float(v),
+            }
+    return missed
 
 
 def constraint_report(

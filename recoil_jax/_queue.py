@@ -11,7 +11,7 @@ from ._stepping import PeakLoop
 __all__ = ["queued_map"]
 
 
-def queued_map(loop: PeakLoop, setup, post, designs, lanes: int):
+def queued_map(loop: PeakLoop, setup, post, designs, lanes: int, count=None):
     """`jax.vmap(lambda d: post(d, loop.finish(solve(*setup(d)))))(designs)`, but with
     `lanes` designs in flight at a time, each lane taking the next design as soon as its
     own has finished (refilled in groups of at least `lanes // 16`).
@@ -20,8 +20,11 @@ def queued_map(loop: PeakLoop, setup, post, designs, lanes: int):
     slowest one needs; over random designs that used under a third of the lanes' steps.
 
     `setup(design) -> (z0, args, t1)`; `post(design, args, run) -> result`. `designs`: a
-    pytree with a leading axis `N`. Not vmappable; jit it."""
+    pytree with a leading axis `N`. `count` (traced, default `N`): only the first `count`
+    designs are solved (the rest pad a batch to a shape already compiled; their results
+    are meaningless). Not vmappable; jit it."""
     n = jax.tree.leaves(designs)[0].shape[0]
+    solved = n if count is None else jnp.minimum(count, n)
     lanes = min(lanes, n)
     max_steps = loop.options.max_steps
 
@@ -45,12 +48,12 @@ def queued_map(loop: PeakLoop, setup, post, designs, lanes: int):
         return loop.running(c) & (c.num_attempts < max_steps)
 
     def cond(carry):
-        return carry[-1] < n
+        return carry[-1] < solved
 
     def refill(state, args, index, next_index):
         idle = index < 0
         new_index = next_index + jnp.cumsum(idle) - 1
-        fill = idle & (new_index < n)
+        fill = idle & (new_index < solved)
         count = jnp.sum(fill)
 
         def load(operands):

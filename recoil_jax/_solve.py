@@ -259,7 +259,7 @@ def simulate(
 
 
 def _peaks_batch(
-    params: RecoilParams, t1, smoothing: Smoothing, options: SolverOptions, lanes: int
+    params: RecoilParams, t1, smoothing: Smoothing, options: SolverOptions, lanes: int, count
 ) -> Peaks:
     loop = PeakLoop(
         RECOIL_TERM,
@@ -275,10 +275,13 @@ def _peaks_batch(
         p, end = design
         return initial_state(p), model_args(p, smoothing), end
 
-    return queued_map(loop, setup, lambda design, args, run: peaks_of_run(run), (params, t1), lanes)
+    return queued_map(
+        loop, setup, lambda design, args, run: peaks_of_run(run), (params, t1), lanes, count
+    )
 
 
 #: `jax.vmap(peak_metrics)` over a batch of designs (a leading axis on every leaf of
 #: `params`, and per-design end times `t1`, shape `(n,)`), run through `queued_map` with
-#: `lanes` designs in flight. Jitted; `lanes` is static.
+#: `lanes` designs in flight; only the first `count` (an integer array) are solved.
+#: Jitted; `lanes` is static.
 peaks_batch = eqx.filter_jit(_peaks_batch)

@@ -312,10 +312,18 @@ def _has(params: RecoilParams, name: str) -> bool:
     return module is not None and (p.index is None or p.index < module.knots)
 
 
-def _run_chunk(batch: RecoilParams, t1, smoothing, options, wrt, devices, lanes: int, workers: int):
+#: Sweeps of up to this many designs run in one chunk of this size (per structure, the
+#: same compiled program); only the real designs are solved.
+SHARED_CHUNK = 1024
+
+
+def _run_chunk(
+    batch: RecoilParams, t1, count: int, smoothing, options, wrt, devices, lanes: int, workers: int
+):
     """Run one chunk: split along the batch into `workers` equal, interleaved parts
     (each with the same mix of designs), each through the queued stepping loop (`lanes`
-    designs in flight) on device `i % len(devices)`, from its own thread."""
+    designs in flight) on device `i % len(devices)`, from its own thread. Only the first
+    `count` designs of the chunk are solved; the rest pad it to its compiled shape."""
     size = jax.tree.leaves(batch)[0].shape[0] // workers
     # At least 16 designs per lane: the slowest designs take ~7x the mean number of
     # steps, and with fewer per lane the batch idles while they finish (measured: 4096
@@ -326,10 +334,11 @@ def _run_chunk(batch: RecoilParams, t1, smoothing, options, wrt, devices, lanes:
         part, end = jax.device_put(
             jax.tree.map(lambda x: x[i::workers], (batch, t1)), devices[i % len(devices)]
         )
+        solved = np.asarray(len(range(i, count, workers)))  # this part's real designs
         if wrt:
-            out = peak_gradients_batch(part, end, smoothing, options, wrt, lanes)
+            out = peak_gradients_batch(part, end, smoothing, options, wrt, lanes, solved)
         else:
-            out = peaks_batch(part, end, smoothing, options, lanes)
+            out = peaks_batch(part, end, smoothing, options, lanes, solved)
         return jax.tree.map(np.asarray, out)
 
     with ThreadPoolExecutor(workers) as pool:
@@ -356,13 +365,20 @@ def _run_group(
     `order`, chunk by chunk; returns `(peaks, gradients)` in the group's input order."""
     n = len(order)
     chunk = max(workers, chunk_size - chunk_size % workers)
-    chunk = min(chunk, -(-n // workers) * workers)  # no bigger than needed
+    # No bigger than needed, rounded up to a power of two per part and to at least
+    # `SHARED_CHUNK`: the padding is never solved, and every sweep of up to that many
+    # designs (a study's samples and its checks) runs one program per structure.
+    per_part = -(-n // workers)
+    needed = max(workers * (1 << (per_part - 1).bit_length()), SHARED_CHUNK)
+    chunk = min(chunk, needed - needed % workers)
     outputs = []
     for begin in range(0, n, chunk):
         index = order[begin : begin + chunk]
         padded = np.concatenate([index, np.full(chunk - len(index), index[-1])])
         batch = jax.tree.map(lambda leaf, p=padded: np.asarray(leaf)[p], params)
-        result = _run_chunk(batch, t1[padded], smoothing, options, wrt, devices, lanes, workers)
+        result = _run_chunk(
+            batch, t1[padded], len(index), smoothing, options, wrt, devices, lanes, workers
+        )
         outputs.append(jax.tree.map(lambda x, k=len(index): x[:k], result))
         bar.update(done + min(begin + chunk, n))
     inverse = np.empty(n, dtype=int)
@@ -397,8 +413,10 @@ def sweep(
     - `options`: default `SolverOptions()`, or `GRADIENT_OPTIONS` with `wrt`; its `t1`
       applies where the designs do not give one.
     - `wrt`: parameters to differentiate with respect to (forward sensitivities).
-    - `chunk_size`: designs per compiled call (the last chunk is padded to the same shape,
-      so nothing recompiles).
+    - `chunk_size`: the most designs per compiled call. A sweep of fewer designs runs in
+      one chunk of the next power of two (per worker), at least `SHARED_CHUNK` (1024),
+      so that sweeps of different sizes reuse one program; the last chunk is padded to
+      the same shape, and padding is never solved.
     - `lanes`: designs in flight per part in the vmapped stepping loop (capped at 1/16 of
       the part, at least 32); a lane takes the next design as soon as its own has
       finished. A plain `vmap` would run every design for as many steps as the slowest.

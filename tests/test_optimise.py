@@ -343,7 +343,7 @@ samples = 32
 starts = 1
 """)
     budget = 5.0
-    report = run_tuning_bench({str(study): budget}, out=tmp_path, log=lambda _: None)
+    report = run_tuning_bench({str(study): budget}, seeds=(0, 1), out=tmp_path, log=lambda _: None)
     problem = report["problems"]["tiny"]  # keyed by the study's name
     assert problem["dimension"] == 2 and set(problem["methods"]) == set(METHODS)
     bests = []
@@ -357,15 +357,20 @@ starts = 1
     assert min(bests) == problem["best_known"]
     assert problem["target"] == pytest.approx(problem["best_known"] * 1.001)
     assert problem["methods"]["recoil-jax"]["to_target_s"] is not None
+    ours = problem["methods"]["recoil-jax"]["over_seeds"]
+    assert ours["seeds"] == 2 and ours["successes"] == 2  # a smooth 2-parameter problem
+    assert ours["median_to_target_s"] <= ours["worst_to_target_s"] <= budget
+    assert ours["best_min"] == pytest.approx(problem["best_known"], rel=1e-3)
     assert (tmp_path / "bench_tuning_tiny.png").stat().st_size > 10_000
-    assert "differential_evolution" in format_report(report)
+    text = format_report(report)
+    assert "differential_evolution" in text and "over 2 seeds: 2 reach the target" in text
 
 
 def test_tuning_benchmark_speedup_is_a_ratio_or_a_lower_bound(capsys):
     """Against the best other method that reached the target, a ratio; when none did
     within the budget, the budget over our time, marked as a lower bound."""
     from recoil_jax.apps import main
-    from recoil_jax.apps._bench_tuning import speedup
+    from recoil_jax.apps._bench_tuning import over_seeds, speedup
 
     def problem(ours, *others):
         methods = {"recoil-jax": {"to_target_s": ours}}
@@ -376,9 +381,22 @@ def test_tuning_benchmark_speedup_is_a_ratio_or_a_lower_bound(capsys):
     assert speedup(problem(4.5, None, None)) == {"factor": 20.0, "at_least": True}
     assert speedup(problem(None, 3.0)) is None
     assert speedup(problem(1.0)) is None
-    # An unknown method is refused before anything runs.
+    # Over seeds: the medians, where a run that never reached the target counts as never.
+    over = over_seeds([1.0, None, 3.0, 2.0], [5.0, 6.0, None, None], [10.0, 11.0, 10.0, 10.0])
+    assert over == {
+        "seeds": 4, "successes": 3, "median_to_target_s": 2.5, "worst_to_target_s": None,
+        "cold": {"successes": 2, "median_to_target_s": None, "worst_to_target_s": None},
+        "best_min": 10.0, "best_max": 11.0,
+    }  # fmt: skip
+    seeded = problem(0.0, 0.0)
+    seeded["methods"]["recoil-jax"]["over_seeds"] = over
+    seeded["methods"]["other0"]["over_seeds"] = over_seeds([20.0, 30.0, 40.0], [None] * 3, [1.0] * 3)
+    assert speedup(seeded) == {"factor": 12.0, "at_least": False}  # 30 s / 2.5 s
+    # An unknown method, or no seed, is refused before anything runs.
     assert main(["bench-tuning", "throttling", "--methods", "simplex"]) == 2
     assert "unknown method(s) ['simplex']" in capsys.readouterr().err
+    assert main(["bench-tuning", "throttling", "--seeds", "0"]) == 2
+    assert "--seeds 0: valid >= 1" in capsys.readouterr().err
 
 
 @pytest.mark.slow
@@ -502,3 +520,100 @@ def test_study_axis_labels_carry_units():
     assert _label("k_r") == "k_r (N/m)" and _label("m") == "m (kg)"
     assert _label("gap") == "gap (m)" and _label("c_r") == "c_r (N*s/m)"
     assert _label("peak_displacement") == "peak barrel displacement (m)"
+
+
+_IMPOSSIBLE = """
+description = "no absorber design keeps the barrel within 10 mm"
+[design]
+m = 1500.0
+gap = 0.05
+[tune]
+gap = [0.0, 0.12]
+[objective]
+peak_anchoring_force = 1.0
+[constraints]
+peak_displacement = {{ max = 0.01 }}
+[optimiser]
+method = "{method}"
+{settings}
+[check]
+hard = true
+"""
+
+
+@pytest.mark.parametrize(
+    "method, settings", [("adam", "starts = 2\nsteps = 10"), ("search", "samples = 16\nstarts = 1")]
+)
+def test_an_impossible_limit_is_reported_infeasible_by_every_method(
+    tmp_path, capsys, method, settings
+):
+    """No design meets the limit: exit status 3 with a one-line message (with and without
+    --json), `feasible: false`, `best: null`, and the closest design with the limit it
+    misses, by the amount a re-solve of that design gives; never a traceback."""
+    from recoil_jax.apps import main
+
+    study = tmp_path / f"{method}.toml"
+    study.write_text(_IMPOSSIBLE.format(method=method, settings=settings))
+    for json_flag in ([], ["--json"]):
+        out = tmp_path / f"out{len(json_flag)}"
+        code = main(["optimise", str(study), "--out", str(out), "--seed", "3", *json_flag])
+        captured = capsys.readouterr()
+        assert code == 3
+        assert "Traceback" not in captured.err
+        (line,) = [x for x in captured.err.splitlines() if x.startswith("recoil-jax:")]
+        assert line.startswith("recoil-jax: infeasible: no design met every limit")
+        assert "peak_displacement (max)" in line and "against the limit 0.01 m" in line
+        result = json.loads((out / "result.json").read_text())
+        if json_flag:
+            assert json.loads(captured.out) == result
+        else:
+            assert captured.out == ""
+        assert result["feasible"] is False
+        assert result["best"] is None and result["objective"] is None
+        assert result["optimiser"]["seed"] == 3
+        assert "hard_model" not in result  # no checks of a design that is not one
+        closest = result["closest"]
+        (miss,) = closest["missed"].values()
+        displacement = rj.peaks(
+            rj.params_from_values(closest["design"]), options=rj.GRADIENT_OPTIONS
+        ).peak_displacement
+        assert miss["value"] == pytest.approx(float(displacement), rel=1e-12)
+        assert miss["missed_by"] == pytest.approx(float(displacement) - 0.01, rel=1e-12)
+        assert miss["missed_by_relative"] == pytest.approx(miss["missed_by"] / 0.01)
+        assert (out / "convergence.png").stat().st_size > 10_000
+
+
+def test_one_feasibility_rule():
+    """`rj.feasible`: solved, finite objective, every normalised violation at most
+    -FEASIBILITY_TOLERANCE; `rj.metric_violations` normalises by |limit| (1 for 0)."""
+    problem = rj.DesignProblem(
+        params=PAPER_BEST,
+        objective=rj.Objective({"peak_anchoring_force": 1.0}),
+        tune=("gap",),
+        constraints=(
+            rj.Constraint("peak_displacement", upper=0.2),
+            rj.Constraint("min_stroke", lower=0.0),
+        ),
+    )
+    metrics = {
+        "peak_displacement": np.asarray([0.1, 0.2, 0.3, 0.1, 0.1]),
+        "min_stroke": np.asarray([0.01, 0.01, 0.01, -0.5, 0.01]),
+    }
+    violations = rj.metric_violations(problem, metrics)
+    np.testing.assert_allclose(
+        violations, [[-0.5, -0.01], [0.0, -0.01], [0.5, -0.01], [-0.5, 0.5], [-0.5, -0.01]]
+    )
+    ok = np.asarray([True, True, True, True, False])
+    objective = np.asarray([1.0, 1.0, 1.0, 1.0, 1.0])
+    np.testing.assert_array_equal(
+        rj.feasible(ok, objective, violations), [True, False, False, False, False]
+    )
+    assert not rj.feasible(True, np.nan, [-1.0])
+    assert rj.feasible(True, 1.0, [-rj.FEASIBILITY_TOLERANCE])
+    assert not rj.feasible(True, 1.0, [-0.5 * rj.FEASIBILITY_TOLERANCE])
+    missed = rj.closest_miss(problem, violations[3])
+    assert missed == {
+        "min_stroke (min)": {
+            "limit": 0.0, "value": -0.5, "missed_by": 0.5, "missed_by_relative": 0.5,
+        }
+    }  # fmt: skip

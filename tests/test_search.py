@@ -106,9 +106,11 @@ def test_minimise_steps_back_from_failed_solves():
     assert result.best_objective == pytest.approx(0.25, abs=0.02)
 
 
-@pytest.mark.parametrize("schedule", [(0.0,), (1.0, 0.0)], ids=["lp", "smoothed-slsqp"])
+@pytest.mark.parametrize(
+    "method", [rj.TrustRegionLP(), rj.EpigraphMinimax()], ids=["lp", "smoothed-slsqp"]
+)
 @pytest.mark.parametrize("limit, z_opt, f_opt", [(None, 0.525, 0.140625), (0.5, 0.5, 0.16)])
-def test_minimise_solves_a_minimax_with_an_active_constraint(limit, z_opt, f_opt, schedule):
+def test_minimise_solves_a_minimax_with_an_active_constraint(limit, z_opt, f_opt, method):
     # min_z max_k |z - c_k|^2 for the three corners of an acute triangle: the centre of
     # its circumcircle (0.5, 0.525), R^2 = 0.140625, where all three are equal and the
     # maximum has a corner. With z1 <= 0.5 the top corner alone is active: (0.5, 0.5),
@@ -135,7 +137,7 @@ def test_minimise_solves_a_minimax_with_an_active_constraint(limit, z_opt, f_opt
         return f, g, df, dg, values(z).max(), True
 
     result = rj.minimise(
-        batch, value_and_jacobian, 2, samples=64, starts=2, schedule=schedule, progress=False
+        batch, value_and_jacobian, 2, samples=64, starts=2, local=method, progress=False
     )
     assert result.feasible
     np.testing.assert_allclose(result.best_z, [0.5, z_opt], atol=1e-4)
@@ -143,9 +145,11 @@ def test_minimise_solves_a_minimax_with_an_active_constraint(limit, z_opt, f_opt
 
 
 @pytest.mark.parametrize(
-    "schedule, ending", [((0.0,), "converged"), ((1.0, 0.0), "stalled")], ids=["lp", "slsqp"]
+    "method, ending",
+    [(rj.TrustRegionLP(maxiter=500), "converged"), (rj.EpigraphMinimax(maxiter=500), "stalled")],
+    ids=["lp", "slsqp"],
 )
-def test_minimise_ends_a_noisy_minimax(schedule, ending):
+def test_minimise_ends_a_noisy_minimax(method, ending):
     # Values with noise of 1e-4 (as a solver's tolerance gives), near the minimax optimum
     # z = 0.5 of max((z - 0.2)^2, (z - 0.8)^2) = 0.09. The trust-region LP shrinks its
     # radius where the noise beats the predicted fall and ends; for SLSQP on the epigraph
@@ -167,9 +171,8 @@ def test_minimise_ends_a_noisy_minimax(schedule, ending):
         return np.asarray([values(x).max() for x in z]), np.zeros((len(z), 0)), np.ones(len(z))
 
     result = rj.minimise(
-        batch, value_and_jacobian, 1, samples=8, starts=1, schedule=schedule, maxiter=500,
-        progress=False,
-    )  # fmt: skip
+        batch, value_and_jacobian, 1, samples=8, starts=1, local=method, progress=False
+    )
     (run,) = result.starts
     assert run["message"].startswith(ending), run["message"]
     assert result.gradient_solves < 200
@@ -180,14 +183,49 @@ def test_minimise_ends_a_noisy_minimax(schedule, ending):
     "kwargs, match",
     [
         (dict(samples=-1), "samples"),
-        (dict(maxiter=0), "maxiter"),
-        (dict(schedule=(1.0, -1.0)), "schedule"),
+        (dict(local=lambda: rj.SLSQP(maxiter=0)), "maxiter = 0: valid >= 1"),
+        (dict(local=lambda: rj.SLSQP(schedule=(1.0, -1.0))), "levels must be factors >= 0"),
+        (dict(local=lambda: rj.SLSQP(schedule=(1.0, 0.0))), "0 is the minimax"),
+        (dict(local="slsqp"), "local must be a LocalMethod"),
     ],
 )
 def test_minimise_rejects_bad_arguments(kwargs, match):
     batch, local = _analytic(lambda z: 0.0, lambda z: np.zeros(1))
     with pytest.raises(rj.ParameterError, match=match):
+        if callable(kwargs.get("local")):
+            kwargs = {"local": kwargs["local"]()}  # the method's own check raises
         rj.minimise(batch, local, 1, **kwargs)
+
+
+class _ProjectedGradient(rj.LocalMethod):
+    """A local method written outside the library: projected gradient descent with a
+    fixed step, on the objective at level 1 (no limits)."""
+
+    step: float = 0.2
+
+    def run(self, local, z0):
+        z = z0
+        for _ in range(self.maxiter):
+            _, _, df, _ = local.evaluate(z, 1.0)
+            z = np.clip(z - self.step * df, 0.0, 1.0)
+            local.iterations += 1
+        return z, "iteration limit reached"
+
+
+def test_a_new_local_method_plugs_in_without_touching_the_library():
+    # min (z0 - 0.3)^2 + (z1 - 1.5)^2 on [0, 1]^2: (0.3, 1) with the bound active.
+    batch, local = _analytic(
+        lambda z: (z[0] - 0.3) ** 2 + (z[1] - 1.5) ** 2,
+        lambda z: np.asarray([2 * (z[0] - 0.3), 2 * (z[1] - 1.5)]),
+    )
+    method = _ProjectedGradient(maxiter=60)
+    result = rj.minimise(batch, local, 2, samples=16, starts=2, local=method, progress=False)
+    assert result.feasible
+    np.testing.assert_allclose(result.best_z, [0.3, 1.0], atol=1e-6)
+    assert [run["iterations"] for run in result.starts] == [60, 60]
+    # Each iteration and the end point, and the warm-up at the centre of the box.
+    assert result.gradient_solves == 2 * 61 + 1
+    assert result.trace["phase"].tolist().count("local") == 2 * 61 + 1
 
 
 def _gap_problem(limit=0.15):
@@ -376,7 +414,26 @@ def test_studies_choose_the_method_and_whether_the_design_is_a_start(tmp_path):
         "[tune]\ngap = [0.0, 0.1]\n[objective]\npeak_anchoring_force = 1.0\n"
         '[optimiser]\nmethod = "search"\nminimax = false\n'
     )
-    assert search_kwargs(load_study(study), progress=False)["minimax"] is False
+    assert isinstance(search_kwargs(load_study(study), progress=False)["local"], rj.SLSQP)
+    # A study names its local method, with its settings; a minimax needs one peak.
+    study.write_text(
+        "[tune]\ngap = [0.0, 0.1]\n[objective]\npeak_anchoring_force = 1.0\n"
+        '[optimiser]\nmethod = "search"\nlocal = "trust_region_lp"\nmaxiter = 7\n'
+    )
+    assert search_kwargs(load_study(study), progress=False)["local"] == rj.TrustRegionLP(maxiter=7)
+    study.write_text(
+        "[tune]\ngap = [0.0, 0.1]\n[objective]\npeak_anchoring_force = 1.0\n"
+        '[optimiser]\nmethod = "search"\nlocal = "newton"\n'
+    )
+    with pytest.raises(rj.ParameterError, match=r'local = .newton.: valid "slsqp", "epigraph'):
+        load_study(study)
+    assert isinstance(
+        search_kwargs(load_study("burst_recuperator"), progress=False)["local"],
+        rj.EpigraphMinimax,
+    )
+    assert isinstance(
+        search_kwargs(load_study("throttling"), progress=False)["local"], rj.TrustRegionLP
+    )
 
 
 def test_search_takes_a_minimax_only_of_one_peak_over_time():

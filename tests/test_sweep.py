@@ -170,3 +170,48 @@ def test_sharded_over_four_host_devices_equals_single_device():
     # time of a flat maximum amplifies roundoff, measured 1e-10).
     assert out["ok"] and out["same_steps"] and out["same_status"], out
     assert out["max_rel"]["value"] <= 1e-12 and out["max_rel"]["time"] <= 1e-8, out
+
+
+def test_padding_is_never_solved_and_small_sweeps_share_one_program():
+    """A chunk's padding is never solved (its designs take no step), and sweeps of 5, 300
+    and 1024 designs of one structure run one compiled program (`SHARED_CHUNK`), with
+    the same peaks as single solves."""
+    import jax
+    import jax.monitoring
+
+    from recoil_jax._solve import peaks_batch
+
+    designs = [{"m": 1000.0, "gap": g, "c_r": 500.0} for g in np.linspace(0.01, 0.1, 8)]
+    params, _ = rj.batch_params(designs)
+    t1 = np.asarray(rj.end_time(params, rj.SolverOptions()))
+    out = peaks_batch(params, t1, rj.Smoothing(), rj.SolverOptions(), 4, np.asarray(3))
+    steps = np.asarray(out.num_steps)
+    assert np.all(steps[:3] > 0) and np.all(steps[3:] == 0)
+    for i in range(3):
+        single = rj.peaks(rj.params_from_values(designs[i]))
+        assert float(out.peak_anchoring_force[i]) == pytest.approx(
+            float(single.peak_anchoring_force), rel=1e-5
+        )
+
+    compiled = []
+
+    def listen(event, duration, **kwargs):
+        if event.endswith("backend_compile_duration") and "_peaks_batch" in str(
+            kwargs.get("fun_name")
+        ):
+            compiled.append(kwargs["fun_name"])
+
+    jax.clear_caches()  # whatever an earlier test compiled
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        for n in (5, 300, 1024):
+            gaps = np.linspace(0.0, 0.12, n)
+            result = rj.sweep({"gap": gaps, "m": np.full(n, 700.0), "k_r": np.full(n, 3.3e4)})
+            assert np.all(result.ok) and len(result) == n
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert len(compiled) == 1
+    single = rj.peaks(rj.params_from_values(gap=0.12, m=700.0, k_r=3.3e4))
+    assert result.peaks["peak_anchoring_force"][-1] == pytest.approx(
+        float(single.peak_anchoring_force), rel=1e-5
+    )

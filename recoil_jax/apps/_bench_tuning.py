@@ -23,7 +23,7 @@ from __future__ import annotations
 import json
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import jax
@@ -39,6 +39,7 @@ __all__ = [
     "DEFAULT_PROBLEMS",
     "format_report",
     "main_tuning_bench",
+    "over_seeds",
     "run_tuning_bench",
     "speedup",
 ]
@@ -68,9 +69,7 @@ class _Evaluator:
 
     def __init__(self, problem: rj.DesignProblem, budget: float):
         self.problem, self.budget = problem, budget
-        lower, upper = problem.box()
-        self.lower, self.upper = lower, upper
-        self.log = rj.log_coordinates(lower, upper)
+        self.space = rj.SearchSpace.of(problem)  # the coordinates `rj.search` moves in
         self.base = rj.params_to_values(problem.params)
         self.start = time.perf_counter()
         self.times: list[float] = []
@@ -78,26 +77,18 @@ class _Evaluator:
         self.feasible: list[bool] = []
 
     def theta(self, z: np.ndarray) -> np.ndarray:
-        z = np.clip(np.asarray(z, float), 0.0, 1.0)
-        lo = np.where(self.log, np.log(np.where(self.log, self.lower, 1.0)), self.lower)
-        hi = np.where(self.log, np.log(np.where(self.log, self.upper, 1.0)), self.upper)
-        x = lo + (hi - lo) * z
-        return np.where(self.log, np.exp(np.where(self.log, x, 0.0)), x)
+        return np.asarray(self.space.theta(np.clip(np.asarray(z, float), 0.0, 1.0)))
 
     def _score(self, metrics: dict, ok: np.ndarray) -> np.ndarray:
         problem = self.problem
         objective = np.asarray(problem.objective(metrics), dtype=float)
-        excess = np.zeros_like(objective)
-        for name, kind, limit in problem.metric_constraints:
-            value = np.asarray(metrics[name], dtype=float)
-            over = value - limit if kind == "max" else limit - value
-            excess += np.maximum(over / (abs(limit) or 1.0), 0.0)
+        violations = rj.metric_violations(problem, metrics)
+        excess = np.sum(np.maximum(violations, 0.0), axis=-1)
         ok = ok & np.isfinite(objective)
         now = time.perf_counter() - self.start
-        for f, e, good in zip(objective, excess, ok, strict=True):
-            self.times.append(now)
-            self.values.append(float(f))
-            self.feasible.append(bool(good and e == 0.0))
+        self.times += [now] * len(objective)
+        self.values += [float(f) for f in objective]
+        self.feasible += list(rj.feasible(ok, objective, violations))
         if now > self.budget:
             raise _Budget
         return np.where(ok, objective * (1.0 + PENALTY * excess), 1e12)
@@ -222,62 +213,108 @@ def _run_derivative_free(method: str, study, budget: float, seed: int) -> dict:
 def run_tuning_bench(
     problems: dict[str, float] | None = None,
     *,
-    seed: int = 0,
+    seeds: Sequence[int] = (0,),
     budget_scale: float = 1.0,
     methods: tuple[str, ...] = METHODS,
     out: str | Path | None = None,
     log=None,
 ) -> dict:
     """Run every method on every problem (study name → budget in s, times
-    `budget_scale`). Returns `{"problems": {name: {"dimension", "best_known", "target",
-    "budget_s", "speedup", "methods": {method: {"best", "wall_s", "solves",
-    "gradient_solves", "to_target_s"}}}}}` (`speedup`: see `speedup`); with `out`, a
-    convergence figure per problem there."""
+    `budget_scale`) from every seed of `seeds`, cold then warm. Returns `{"problems":
+    {name: {"dimension", "best_known", "target", "budget_s", "speedup", "methods":
+    {method: {"best", "wall_s", "solves", "gradient_solves", "to_target_s", "cold",
+    "over_seeds"}}}}}`: the run of the first seed, and `over_seeds` (`over_seeds`) of all
+    of them (`speedup`: see `speedup`, of the medians over the seeds); with `out`, a
+    convergence figure per problem there (the first seed's runs)."""
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
     problems = dict(DEFAULT_PROBLEMS if problems is None else problems)
     unknown = set(methods) - set(METHODS)
     if unknown:
         raise rj.ParameterError(f"unknown method(s) {sorted(unknown)}; known: {list(METHODS)}")
-    report: dict = {"problems": {}}
+    seeds = [int(s) for s in seeds]
+    if not seeds or any(s < 0 for s in seeds):
+        raise rj.ParameterError(f"seeds = {seeds}: valid one or more integers >= 0")
+    report: dict = {"problems": {}, "seeds": seeds}
     for name, budget in problems.items():
         study = load_study(name)
         budget = float(budget) * budget_scale
-        runs, cold = {}, {}
-        for method in methods:
-            # Twice: cold (JAX's compiled code dropped first, so each method pays for its
-            # own compilation), then warm (the same run again, its programs compiled: a
-            # design session's second study, another seed, a re-run notebook cell).
-            for label, into in (("cold", cold), ("warm", runs)):
-                log(f"{name}: {method} ({label}), budget {budget:g} s ...")
-                if label == "cold":
-                    jax.clear_caches()
-                if method == "recoil-jax":
-                    into[method] = _run_ours(study, budget, seed)
-                else:
-                    into[method] = _run_derivative_free(method, study, budget, seed)
-                log(f"  best {into[method]['best']}, {into[method]['wall_s']} s")
-        bests = [r["best"] for r in [*runs.values(), *cold.values()] if r["best"] is not None]
+        # runs[method][i]: the warm run from seeds[i]; cold[method][i] its cold one.
+        runs: dict[str, list] = {m: [] for m in methods}
+        cold: dict[str, list] = {m: [] for m in methods}
+        for seed in seeds:
+            for method in methods:
+                # Twice: cold (JAX's compiled code dropped first, so each method pays for
+                # its own compilation), then warm (the same run again, its programs
+                # compiled: a design session's second study, a re-run notebook cell).
+                for label, into in (("cold", cold), ("warm", runs)):
+                    log(f"{name}: {method} ({label}, seed {seed}), budget {budget:g} s ...")
+                    if label == "cold":
+                        jax.clear_caches()
+                    if method == "recoil-jax":
+                        run = _run_ours(study, budget, seed)
+                    else:
+                        run = _run_derivative_free(method, study, budget, seed)
+                    into[method].append(run)
+                    log(f"  best {run['best']}, {run['wall_s']} s")
+        every = [r["best"] for m in methods for r in [*runs[m], *cold[m]]]
+        bests = [b for b in every if b is not None]
         best_known = min(bests) if bests else None
         target = None if best_known is None else best_known * (1.0 + TOLERANCE)
-        for method, run in runs.items():
-            run["to_target_s"] = _seconds_to(run["trace"], target)
-            run["cold"] = {
-                "best": cold[method]["best"],
-                "to_target_s": _seconds_to(cold[method]["trace"], target),
-                "solves": cold[method]["solves"],
-                "gradient_solves": cold[method]["gradient_solves"],
+        methods_report = {}
+        for method in methods:
+            first, first_cold = runs[method][0], cold[method][0]
+            methods_report[method] = {k: v for k, v in first.items() if k != "trace"} | {
+                "to_target_s": _seconds_to(first["trace"], target),
+                "cold": {
+                    "best": first_cold["best"],
+                    "to_target_s": _seconds_to(first_cold["trace"], target),
+                    "solves": first_cold["solves"],
+                    "gradient_solves": first_cold["gradient_solves"],
+                },
+                "over_seeds": over_seeds(
+                    [_seconds_to(r["trace"], target) for r in runs[method]],
+                    [_seconds_to(r["trace"], target) for r in cold[method]],
+                    [r["best"] for r in runs[method]],
+                ),
             }
         if out is not None:
-            _plot(study.name, runs, target, Path(out))
+            _plot(study.name, {m: r[0] for m, r in runs.items()}, target, Path(out))
         entry = {
             "dimension": len(study.problem.tune),
             "best_known": best_known,
             "target": target,
             "budget_s": budget,
-            "methods": {m: {k: v for k, v in r.items() if k != "trace"} for m, r in runs.items()},
+            "methods": methods_report,
         }
         report["problems"][study.name] = entry | {"speedup": speedup(entry)}
     return report
+
+
+def over_seeds(warm: list, cold: list, bests: list) -> dict:
+    """Per method, over its seeds: `seeds`, `successes` (warm runs within 0.1 % of the
+    best known), the median and worst seconds to target, warm and cold (None where it
+    is never: a median whose half of the runs never reached it, a worst where one run
+    never did), and the spread of the best objectives (`best_min`, `best_max`)."""
+
+    def stats(times: list) -> dict:
+        values = np.asarray([np.inf if t is None else t for t in times] or [np.inf])
+        median, worst = float(np.median(values)), float(np.max(values))
+        return {
+            "successes": int(np.isfinite(values).sum()),
+            "median_to_target_s": round(median, 2) if np.isfinite(median) else None,
+            "worst_to_target_s": round(worst, 2) if np.isfinite(worst) else None,
+        }
+
+    found = [b for b in bests if b is not None]
+    return (
+        {"seeds": len(warm)}
+        | stats(warm)
+        | {"cold": stats(cold)}
+        | {
+            "best_min": min(found) if found else None,
+            "best_max": max(found) if len(found) == len(bests) and found else None,
+        }
+    )
 
 
 def _seconds_to(trace: dict, target) -> float | None:
@@ -312,13 +349,19 @@ def _plot(name: str, runs: dict, target, out: Path) -> None:
         )
 
 
+def _median_to_target(run: dict):
+    over = run.get("over_seeds")
+    return run["to_target_s"] if over is None else over["median_to_target_s"]
+
+
 def speedup(problem: dict) -> dict | None:
-    """How many times sooner recoil-jax reached the target than the best other method:
-    `{"factor": F, "at_least": bool}`. When no other method reached it within the budget,
-    `F = budget / ours` is a lower bound (`at_least`); None when ours did not reach it or
-    no other method ran."""
-    ours = problem["methods"].get("recoil-jax", {}).get("to_target_s")
-    others = [r["to_target_s"] for m, r in problem["methods"].items() if m != "recoil-jax"]
+    """How many times sooner recoil-jax reached the target than the best other method,
+    by the median over the seeds (with one seed: its time): `{"factor": F, "at_least":
+    bool}`. When no other method's median reached it within the budget, `F = budget /
+    ours` is a lower bound (`at_least`); None when ours did not reach it or no other
+    method ran."""
+    ours = _median_to_target(problem["methods"].get("recoil-jax", {"to_target_s": None}))
+    others = [_median_to_target(r) for m, r in problem["methods"].items() if m != "recoil-jax"]
     if ours is None or not others:
         return None
     reached = [t for t in others if t is not None]
@@ -328,7 +371,7 @@ def speedup(problem: dict) -> dict | None:
 
 def _speedups(problem: dict) -> str:
     ratio = problem["speedup"]
-    if problem["methods"].get("recoil-jax", {}).get("to_target_s") is None:
+    if _median_to_target(problem["methods"].get("recoil-jax", {"to_target_s": None})) is None:
         return "recoil-jax did not reach the target"
     if ratio is None:
         return "no other method ran"
@@ -361,6 +404,16 @@ def format_report(report: dict) -> str:
                 f"(cold {seconds(r['cold']['to_target_s'])}); {r['solves']} solves + "
                 f"{r['gradient_solves']} gradient solves in {r['wall_s']} s"
             )
+            over = r["over_seeds"]
+            if over["seeds"] > 1:
+                lines.append(
+                    f"  {'':<24} over {over['seeds']} seeds: {over['successes']} reach the "
+                    f"target, median {seconds(over['median_to_target_s'])}, worst "
+                    f"{seconds(over['worst_to_target_s'])} (cold: {over['cold']['successes']}, "
+                    f"median {seconds(over['cold']['median_to_target_s'])}, worst "
+                    f"{seconds(over['cold']['worst_to_target_s'])}); best "
+                    f"{over['best_min']} to {over['best_max']}"
+                )
     return "\n".join(lines)
 
 
@@ -368,9 +421,11 @@ def main_tuning_bench(args) -> int:
     problems = None
     if args.problems:
         problems = {p: DEFAULT_PROBLEMS.get(p, 60.0) for p in args.problems}
+    if args.seeds is not None and args.seeds < 1:
+        raise rj.ParameterError(f"--seeds {args.seeds}: valid >= 1")
     report = run_tuning_bench(
         problems,
-        seed=args.seed,
+        seeds=[args.seed] if args.seeds is None else range(args.seeds),
         budget_scale=args.budget_scale,
         methods=tuple(args.methods or METHODS),
         out=args.out,

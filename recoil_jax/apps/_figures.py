@@ -157,6 +157,8 @@ def plot_search_convergence(result: rj.MinimiseResult, path, title: str = "") ->
     if finite.size:
         low, high = float(np.min(finite)), float(np.max(finite))
         ax.set_ylim(low - 0.02 * (high - low + abs(low) * 1e-3), high + 0.3 * (high - low))
+    else:
+        _no_feasible_note(ax)
     ax.set_xlabel("wall time (s), compilation included")
     ax.set_ylabel("objective")
     ax.legend(fontsize=8)
@@ -202,7 +204,9 @@ def plot_convergence(result, path, title: str = "") -> Path:
     """Convergence of an `OptimiseResult`: per run, the best feasible objective so far
     and the worst normalised constraint violation, against the step."""
     history = result.history
-    objective = np.where(np.all(history["violations"] <= 0, axis=-1), history["objective"], np.inf)
+    ok = history["status"] == int(rj.status_codes(rj.Status.ok))
+    held = rj.feasible(ok, history["objective"], history["violations"])
+    objective = np.where(held, history["objective"], np.inf)
     best_so_far = np.minimum.accumulate(objective, axis=0)
     steps = np.arange(1, objective.shape[0] + 1)
     has_limits = history["violations"].shape[-1] > 0
@@ -226,6 +230,8 @@ def plot_convergence(result, path, title: str = "") -> Path:
         low = float(np.min(finite))
         high = float(np.percentile(finite, 90))
         ax.set_ylim(low - 0.02 * (high - low + abs(low) * 1e-3), high)
+    else:
+        _no_feasible_note(ax)
     ax.set_ylabel("best feasible objective")
     ax.legend()
     ax.grid(alpha=0.3)
@@ -242,6 +248,14 @@ def plot_convergence(result, path, title: str = "") -> Path:
         fig.suptitle(title)
     fig.tight_layout()
     return _save(fig, path)
+
+
+def _no_feasible_note(ax) -> None:
+    """Says on a convergence plot that no evaluated design met every limit."""
+    ax.text(
+        0.5, 0.5, "no design met every limit\n(result.json: the closest, and what it misses)",
+        transform=ax.transAxes, ha="center", va="center", color="C3", fontsize=11,
+    )  # fmt: skip
 
 
 def _save(fig, path) -> Path:

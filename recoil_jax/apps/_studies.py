@@ -14,8 +14,10 @@ peak_anchoring_force = 20.0
 v0 = [-0.05, 0.0, 0.05]
 [constraints]                 # name = {max = .., min = ..}: metrics or parameters
 max_stroke = {max = 0.15}
-[optimiser]                   # method = "search" (global + SLSQP): samples, starts,
-starts = 8                    #   maxiter, seed, max_seconds, minimax; "adam" (default; fronts,
+[optimiser]                   # method = "search" (global + a local method): samples, starts,
+starts = 8                    #   maxiter, seed, max_seconds, and local = "slsqp",
+                              #   "epigraph_minimax" or "trust_region_lp" (or minimax = true
+                              #   / false to choose the default); "adam" (default; fronts,
                               #   scatter): starts, steps, learning_rate, seed, anneal,
                               #   patience
 
@@ -42,6 +44,7 @@ options.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import sys
@@ -56,9 +59,11 @@ import numpy as np
 import recoil_jax as rj
 
 __all__ = [
+    "LOCAL_METHODS",
     "SHIPPED",
     "Study",
     "load_study",
+    "local_method",
     "optimise_kwargs",
     "resolve_study",
     "run_study",
@@ -82,6 +87,7 @@ _SECTIONS = {
 }
 _OPTIMISER_KEYS = {
     "method",
+    "local",
     "samples",
     "maxiter",
     "max_seconds",
@@ -95,7 +101,14 @@ _OPTIMISER_KEYS = {
     "update_every",
     "penalty",
 }
-_SEARCH_KEYS = {"method", "samples", "starts", "maxiter", "seed", "max_seconds", "minimax"}
+_SEARCH_KEYS = {"method", "local", "samples", "starts", "maxiter", "seed", "max_seconds", "minimax"}
+
+#: The local methods of `method = "search"`, by the name a study gives in `local`.
+LOCAL_METHODS = {
+    "slsqp": rj.SLSQP,
+    "epigraph_minimax": rj.EpigraphMinimax,
+    "trust_region_lp": rj.TrustRegionLP,
+}
 _CHECK_KEYS = {"grid", "local", "hard", "nominal"}
 
 #: Where the shipped studies live: `optimise/` beside the package, in a checkout or an
@@ -229,7 +242,7 @@ def load_study(path) -> Study:
     method = optimiser.setdefault("method", "adam")
     if method not in ("adam", "search"):
         raise _error(path, f'[optimiser] method = {method!r}: valid "adam" or "search"')
-    search_only = {"samples", "maxiter", "max_seconds", "minimax"}
+    search_only = {"local", "samples", "maxiter", "max_seconds", "minimax"}
     allowed = _SEARCH_KEYS if method == "search" else _OPTIMISER_KEYS - search_only
     if set(optimiser) - allowed:
         raise _error(
@@ -239,6 +252,15 @@ def load_study(path) -> Study:
         )
     if not isinstance(optimiser.get("minimax", False), bool):
         raise _error(path, f"[optimiser] minimax = {optimiser['minimax']!r}: valid true or false")
+    if "local" in optimiser:
+        if optimiser["local"] not in LOCAL_METHODS:
+            raise _error(
+                path,
+                f"[optimiser] local = {optimiser['local']!r}: valid "
+                + ", ".join(f'"{name}"' for name in LOCAL_METHODS),
+            )
+        if "minimax" in optimiser:
+            raise _error(path, "[optimiser] give local or minimax, not both")
     fronts = config.get("front", [])
     fronts = [fronts] if isinstance(fronts, dict) else list(fronts)
     constrained = [name for name, _, _ in problem.metric_constraints]
@@ -264,17 +286,30 @@ def load_study(path) -> Study:
     )
 
 
+def local_method(study: Study) -> rj.LocalMethod:
+    """The local method of a `search` study: `local` by name (`LOCAL_METHODS`), else
+    `rj.default_local` (which `minimax` chooses), with the study's `maxiter`."""
+    o = study.optimiser
+    if "local" in o:
+        method = LOCAL_METHODS[o["local"]]()
+    else:
+        method = rj.default_local(study.problem, o.get("minimax"))
+    if "maxiter" in o:
+        method = dataclasses.replace(method, maxiter=int(o["maxiter"]))
+    return method
+
+
 def search_kwargs(study: Study, progress: bool | None) -> dict:
     """The keyword arguments of `rj.search` that the study's `[optimiser]` sets."""
     o = study.optimiser
-    kwargs: dict[str, Any] = dict(use_design=study.has_start, progress=progress)
-    for key in ("samples", "starts", "maxiter", "seed"):
+    kwargs: dict[str, Any] = dict(
+        use_design=study.has_start, progress=progress, local=local_method(study)
+    )
+    for key in ("samples", "starts", "seed"):
         if key in o:
             kwargs[key] = int(o[key])
     if "max_seconds" in o:
         kwargs["max_seconds"] = float(o["max_seconds"])
-    if "minimax" in o:
-        kwargs["minimax"] = o["minimax"]
     return kwargs
 
 
@@ -298,12 +333,13 @@ def optimise_kwargs(study: Study, progress: bool | None) -> dict:
     return kwargs
 
 
-def _search_summary(result: rj.MinimiseResult) -> dict:
+def _search_summary(result: rj.MinimiseResult, local: rj.LocalMethod) -> dict:
     """What `result.json` says of a `search` run."""
     samples = result.samples
-    feasible = samples["ok"].astype(bool) & (samples["violation"] <= 0)
+    feasible = rj.feasible(samples["ok"], samples["objective"], samples["violation"][:, None])
     return {
         "method": "search",
+        "local": type(local).__name__,
         "samples": len(samples["z"]),
         "feasible_samples": int(feasible.sum()),
         "local_runs": [
@@ -370,23 +406,27 @@ def _best_summary(
 
 
 def _feasible_objective(problem, sweep_result) -> tuple[np.ndarray, np.ndarray]:
-    """The objective (with peaks) of each swept design, inf where a solve failed or a
-    metric limit is broken; and the feasibility mask."""
-    feasible = sweep_result.ok.copy()
-    for name, kind, limit in problem.metric_constraints:
-        values = sweep_result.peaks[name]
-        feasible &= values <= limit if kind == "max" else values >= limit
-    objective = problem.objective(sweep_result.peaks)
+    """The objective (with peaks) of each swept design, inf where it is not feasible
+    (`rj.feasible`); and the feasibility mask."""
+    objective = np.asarray(problem.objective(sweep_result.peaks), dtype=float)
+    violations = rj.metric_violations(problem, sweep_result.peaks)
+    feasible = rj.feasible(sweep_result.ok, objective, violations)
     return np.where(feasible, objective, np.inf), feasible
 
 
-def _sweep(problem, designs, **kwargs):
+def _sweep(problem, designs, progress: bool | None = False):
+    # Chunks of 1024, the size `rj.sweep` gives up to 1024 designs (the search's samples):
+    # every check runs the program the search compiled.
     return rj.sweep(
-        designs, smoothing=problem.smoothing, options=problem.options, progress=False, **kwargs
+        designs,
+        smoothing=problem.smoothing,
+        options=problem.options,
+        progress=progress,
+        chunk_size=1024,
     )
 
 
-def _grid_check(study: Study, result, axes: dict) -> tuple[dict, int]:
+def _grid_check(study: Study, result, axes: dict, progress: bool) -> tuple[dict, int]:
     """The best feasible point of a cartesian grid around the best design (others fixed
     at it), for the objective with peaks."""
     problem = study.problem
@@ -397,7 +437,7 @@ def _grid_check(study: Study, result, axes: dict) -> tuple[dict, int]:
         grid_axes[name] = np.linspace(float(lo), float(hi), int(count))
     fixed = {k: v for k, v in design.items() if k not in grid_axes}
     columns, _ = rj.grid(grid_axes, fixed)
-    sweep_result = _sweep(problem, columns)
+    sweep_result = _sweep(problem, columns, progress)
     objective, feasible = _feasible_objective(problem, sweep_result)
     i = int(np.argmin(objective))
     spacing = {n: float(a[1] - a[0]) if len(a) > 1 else 0.0 for n, a in grid_axes.items()}
@@ -411,7 +451,7 @@ def _grid_check(study: Study, result, axes: dict) -> tuple[dict, int]:
     }, int(objective.size)
 
 
-def _local_check(study: Study, result, fraction: float) -> tuple[dict, int]:
+def _local_check(study: Study, result, fraction: float, progress: bool) -> tuple[dict, int]:
     """1-D scans of ± `fraction` of each bound's width through the best design."""
     problem = study.problem
     design = result.best_design(0)
@@ -423,7 +463,7 @@ def _local_check(study: Study, result, fraction: float) -> tuple[dict, int]:
             value = float(np.clip(design[name] + x, lower[j], upper[j]))
             points.append({**design, name: value})
             labels.append(name)
-    sweep_result = _sweep(problem, points)
+    sweep_result = _sweep(problem, points, progress)
     objective, _ = _feasible_objective(problem, sweep_result)
     return {
         "fraction_of_bounds": fraction,
@@ -435,50 +475,85 @@ def _local_check(study: Study, result, fraction: float) -> tuple[dict, int]:
     }, len(points)
 
 
-def run_study(path, out: str | Path | None = None, progress: bool | None = None) -> dict:
+class _Phases:
+    """Says on stderr what a study is doing, phase by phase, and times each phase (for
+    `result.json`'s `seconds_by_part`): a first run's seconds are mostly compilation."""
+
+    def __init__(self, name: str, enabled: bool | None):
+        self.name, self.enabled = name, enabled is not False
+        self.seconds: dict[str, float] = {}
+
+    @contextlib.contextmanager
+    def __call__(self, part: str, what: str):
+        if self.enabled:
+            print(f"study {self.name}: {what} ...", file=sys.stderr, flush=True)
+        began = time.perf_counter()
+        yield
+        self.seconds[part] = round(self.seconds.get(part, 0.0) + time.perf_counter() - began, 2)
+        if self.enabled:
+            print(
+                f"study {self.name}: {what}: done in {self.seconds[part]:.1f} s",
+                file=sys.stderr,
+                flush=True,
+            )
+
+
+def run_study(
+    path, out: str | Path | None = None, progress: bool | None = None, seed: int | None = None
+) -> dict:
     """Run a study: optimise, check, write `result.json` and figures.
 
     **Arguments:**
 
     - `path`: a study file, or the name of a shipped study (`resolve_study`).
     - `out`: the output folder (default `results/<study name>`).
-    - `progress`: progress lines on stderr (default: on a terminal).
+    - `progress`: progress lines on stderr, for every phase (default: on a terminal).
+    - `seed`: replaces the study's `[optimiser] seed`.
 
-    **Returns:** the dict written to `result.json`.
+    **Returns:** the dict written to `result.json`. Its `feasible` says whether a design
+    met every limit. When none did, `best` and `objective` are None and `closest` gives
+    the least violating design found, with each limit it misses and by how much
+    (`message` says it in one line); the checks are skipped.
     """
-    from ._figures import plot_convergence, plot_history, plot_search_convergence
+    from ._figures import plot_convergence, plot_search_convergence
 
     study = load_study(path)
+    if seed is not None:
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+            raise rj.ParameterError(f"seed = {seed!r} is invalid: valid an integer >= 0")
+        study.optimiser["seed"] = seed
     out = Path(out) if out is not None else Path("results") / study.name
     out.mkdir(parents=True, exist_ok=True)
     problem = study.problem
     kwargs = optimise_kwargs(study, progress)
     started = time.perf_counter()
+    phase = _Phases(study.name, progress)
     if progress is not False:
         print(f"study {study.name}: {study.description}", file=sys.stderr)
 
     report: dict[str, Any] = {"study": study.name, "description": study.description}
     result: rj.OptimiseResult | rj.MinimiseResult
     if study.optimiser["method"] == "search":
-        result = rj.search(problem, **search_kwargs(study, progress))
+        search = search_kwargs(study, progress)
+        with phase("optimiser", f"global search, then {type(search['local']).__name__}"):
+            result = rj.search(problem, **search)
         simulations = {"optimiser": result.solves, "optimiser_gradients": result.gradient_solves}
-        report["optimiser"] = _search_summary(result)
+        seed_used = int(study.optimiser.get("seed", 0))
+        report["optimiser"] = _search_summary(result, search["local"]) | {"seed": seed_used}
         plot_search_convergence(result, out / "convergence.png", title=study.name)
-        if not result.feasible:
-            # Nothing held every limit: say so; there is no best design to report.
-            report |= {"feasible": False, "best": None, "tuned": list(problem.tune)}
-            report["simulations"] = int(sum(simulations.values()))
-            report["simulations_by_part"] = simulations
-            report["seconds"] = round(time.perf_counter() - started, 2)
-            (out / "result.json").write_text(json.dumps(report, indent=2) + "\n")
-            return report
-        report |= {"feasible": True} | _best_summary(study, result, 0)
+        feasible = result.feasible
+        closest = (
+            None
+            if result.closest_theta is None
+            else rj.with_values(problem.params, problem.tune, result.closest_theta)
+        )
     else:
-        result = rj.optimise(problem, **kwargs)
-        report |= _best_summary(study, result, 0)
+        with phase("optimiser", f"optax from {kwargs['starts']} starts"):
+            result = rj.optimise(problem, **kwargs)
         simulations = {"optimiser": int(result.simulations)}
         report["optimiser"] = {
             "method": "adam",
+            "seed": kwargs["seed"],
             "starts": result.starts,
             "steps": result.steps,
             "compilations": result.compilations,
@@ -487,16 +562,91 @@ def run_study(path, out: str | Path | None = None, progress: bool | None = None)
             "where_starts_ended": result.clusters(0),
         }
         plot_convergence(result, out / "convergence.png", title=study.name)
+        feasible = bool(result.feasible[0])
+        closest = result.closest_params(0) if np.isfinite(result.closest_violation[0]) else None
+    report["feasible"] = feasible
+    if feasible:
+        report |= _best_summary(study, result, 0)
+    else:
+        with phase("closest", "no design met every limit: the closest design's peaks"):
+            report |= _infeasible_summary(study, closest)
     report["tuned"] = list(problem.tune)
-    history = rj.simulate(result.best_params(0), problem.smoothing, ts=np.linspace(0.0, 3.0, 3001))
-    plot_history(history, out / "best_history.png", title=f"{study.name}: best design")
+    if feasible:
+        _checks(study, result, report, simulations, kwargs, out, phase)
+    fronts = []
+    for front in study.fronts:
+        with phase(f"front_{front['vary']}", f"front over {front['vary']}"):
+            table, n = _run_front(study, front, kwargs)
+        fronts.append(table)
+        simulations[f"front_{front['vary']}"] = n
+        _plot_front(table, out)
+    if fronts:
+        report["fronts"] = fronts
+    report["simulations"] = int(sum(simulations.values()))
+    report["simulations_by_part"] = simulations
+    report["seconds"] = round(time.perf_counter() - started, 2)
+    report["seconds_by_part"] = phase.seconds
+    (out / "result.json").write_text(json.dumps(report, indent=2) + "\n")
+    return report
+
+
+def _infeasible_summary(study: Study, closest) -> dict:
+    """What `result.json` says when no design met every limit: `best` and `objective`
+    None, the least violating design (`closest`, re-solved) with each limit it misses,
+    and a one-line `message`."""
+    problem = study.problem
+    summary: dict[str, Any] = {"best": None, "objective": None}
+    if closest is None:
+        summary["closest"] = None
+        summary["message"] = "no design met every limit, and no solve succeeded"
+        return summary
+    peaks = _peaks(problem, closest)
+    metrics = peaks.metrics()
+    missed = rj.closest_miss(problem, rj.metric_violations(problem, metrics))
+    design = {k: float(np.asarray(v)) for k, v in rj.params_to_values(closest).items()}
+    summary["closest"] = {
+        "design": design,
+        "metrics": peaks.to_dict(),
+        "objective": float(problem.objective(metrics)),
+        "missed": missed,
+    }
+    units = {
+        f"{name} ({kind})": rj.METRICS[name].unit for name, kind, _ in problem.metric_constraints
+    }
+    misses = "; ".join(
+        f"{name} {m['value']:.6g} {units[name]} against the limit {m['limit']:.6g} "
+        f"{units[name]} (misses by {m['missed_by']:.3g} {units[name]}, "
+        f"{_percent(m['missed_by_relative'])})"
+        for name, m in missed.items()
+    )
+    summary["message"] = f"no design met every limit; the closest: {misses}"
+    return summary
+
+
+def _percent(fraction: float) -> str:
+    percent = 100 * fraction
+    return f"{percent:,.0f} %" if abs(percent) >= 100 else f"{percent:.3g} %"
+
+
+def _checks(study: Study, result, report: dict, simulations: dict, kwargs, out: Path, phase):
+    """The best design's history figure and the study's `[check]`s, into `report`."""
+    from ._figures import plot_history
+
+    problem = study.problem
+    with phase("history", "the best design's history"):
+        history = rj.simulate(
+            result.best_params(0), problem.smoothing, ts=np.linspace(0.0, 3.0, 3001)
+        )
+        plot_history(history, out / "best_history.png", title=f"{study.name}: best design")
 
     if _is_throttling(report["best"]):
-        report["force_stroke"] = _force_stroke(problem, result.best_params(0), out)
+        with phase("force_stroke", "force over the stroke, beside a tuned linear damper"):
+            report["force_stroke"] = _force_stroke(problem, result.best_params(0), out)
     check = study.check
     if check.get("hard"):
-        hard = _peaks(problem, result.best_params(0), rj.Smoothing.exact())
-        smooth = _peaks(problem, result.best_params(0))
+        with phase("hard_check", "check: the hard-switch model"):
+            hard = _peaks(problem, result.best_params(0), rj.Smoothing.exact())
+            smooth = _peaks(problem, result.best_params(0))
         # At the nominal parameters (for a scatter study too): a check of the model.
         report["hard_model"] = {
             "metrics": hard.to_dict(),
@@ -509,33 +659,25 @@ def run_study(path, out: str | Path | None = None, progress: bool | None = None)
         }
         simulations["hard_check"] = 1
     if "grid" in check:
-        report["grid_check"], n = _grid_check(study, result, check["grid"])
+        with phase("grid_check", "check: a grid around the best design"):
+            report["grid_check"], n = _grid_check(study, result, check["grid"], phase.enabled)
         report["grid_check"]["optimiser_minus_grid"] = (
             report["objective"] - report["grid_check"]["grid_best_objective"]
         )
         simulations["grid_check"] = n
     if "local" in check:
-        report["local_check"], n = _local_check(study, result, float(check["local"]))
+        with phase("local_check", "check: 1-D scans through the best design"):
+            report["local_check"], n = _local_check(
+                study, result, float(check["local"]), phase.enabled
+            )
         report["local_check"]["optimiser_minus_best_scan"] = (
             report["objective"] - report["local_check"]["best_scan_objective"]
         )
         simulations["local_check"] = n
     if check.get("nominal") and problem.objective.scatter is not None:
-        report["nominal_comparison"], n = _nominal_comparison(study, result, kwargs, out)
+        with phase("nominal", "check: the nominal optimum under the same scatter"):
+            report["nominal_comparison"], n = _nominal_comparison(study, result, kwargs, out)
         simulations["nominal"] = n
-    fronts = []
-    for front in study.fronts:
-        table, n = _run_front(study, front, kwargs)
-        fronts.append(table)
-        simulations[f"front_{front['vary']}"] = n
-        _plot_front(table, out)
-    if fronts:
-        report["fronts"] = fronts
-    report["simulations"] = int(sum(simulations.values()))
-    report["simulations_by_part"] = simulations
-    report["seconds"] = round(time.perf_counter() - started, 2)
-    (out / "result.json").write_text(json.dumps(report, indent=2) + "\n")
-    return report
 
 
 def _run_front(study: Study, front: dict, kwargs: dict) -> tuple[dict, int]:
