@@ -107,6 +107,7 @@ from ._problem import (
 )
 from ._reference import reference_peaks as reference_peaks
 from ._search import (
+    BasinHopping as BasinHopping,
     MinimiseResult as MinimiseResult,
     default_local as default_local,
     minimax_metric as minimax_metric,

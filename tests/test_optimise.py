@@ -354,7 +354,9 @@ starts = 1
         if run["best"] is not None:
             bests.append(run["best"])
             assert run["best"] >= problem["best_known"]
-    assert min(bests) == problem["best_known"]
+    # The best known is the best of every run, every seed, cold and warm.
+    warm_best = min(run["over_seeds"]["best_min"] for run in problem["methods"].values())
+    assert problem["best_known"] <= warm_best <= problem["best_known"] * (1 + 1e-4)
     assert problem["target"] == pytest.approx(problem["best_known"] * 1.001)
     assert problem["methods"]["recoil-jax"]["to_target_s"] is not None
     ours = problem["methods"]["recoil-jax"]["over_seeds"]
@@ -390,7 +392,9 @@ def test_tuning_benchmark_speedup_is_a_ratio_or_a_lower_bound(capsys):
     }  # fmt: skip
     seeded = problem(0.0, 0.0)
     seeded["methods"]["recoil-jax"]["over_seeds"] = over
-    seeded["methods"]["other0"]["over_seeds"] = over_seeds([20.0, 30.0, 40.0], [None] * 3, [1.0] * 3)
+    seeded["methods"]["other0"]["over_seeds"] = over_seeds(
+        [20.0, 30.0, 40.0], [None] * 3, [1.0] * 3
+    )
     assert speedup(seeded) == {"factor": 12.0, "at_least": False}  # 30 s / 2.5 s
     # An unknown method, or no seed, is refused before anything runs.
     assert main(["bench-tuning", "throttling", "--methods", "simplex"]) == 2

@@ -427,6 +427,12 @@ def test_studies_choose_the_method_and_whether_the_design_is_a_start(tmp_path):
     )
     with pytest.raises(rj.ParameterError, match=r'local = .newton.: valid "slsqp", "epigraph'):
         load_study(study)
+    study.write_text(
+        "[tune]\ngap = [0.0, 0.1]\n[objective]\npeak_anchoring_force = 1.0\n"
+        '[optimiser]\nmethod = "search"\nhops = 12\nhop_step = 0.1\n'
+    )
+    hopping = search_kwargs(load_study(study), progress=False)["hopping"]
+    assert hopping == rj.BasinHopping(hops=12, step=0.1)
     assert isinstance(
         search_kwargs(load_study("burst_recuperator"), progress=False)["local"],
         rj.EpigraphMinimax,
@@ -451,3 +457,30 @@ def test_search_takes_a_minimax_only_of_one_peak_over_time():
         assert rj.minimax_metric(other) is None
         with pytest.raises(rj.ParameterError, match="minimax needs an objective"):
             rj.search(other, minimax=True, progress=False)
+
+
+def test_basin_hopping_finds_a_narrow_basin_beside_the_best_one_found():
+    # A wide minimum at z = 0.3 (f = 1) and a narrow, deeper one at z = 0.36 (f ~ -0.5,
+    # 0.01 wide) that a local run from the wide basin never reaches; hops of at most 0.1
+    # from the best point so far land in it. Rounds of two hops at once (threads) hop
+    # the same way on every run with the same seed.
+    def f(z):
+        return float((z[0] - 0.3) ** 2 + 1.0 - 1.5 * np.exp(-(((z[0] - 0.36) / 0.01) ** 2)))
+
+    def grad(z):
+        bump = 1.5 * np.exp(-(((z[0] - 0.36) / 0.01) ** 2)) * 2 * (z[0] - 0.36) / 0.01**2
+        return np.asarray([2 * (z[0] - 0.3) + bump])
+
+    batch, local = _analytic(f, grad)
+    common = dict(samples=0, starts=0, initial=[np.asarray([0.3])], progress=False, workers=2)
+    alone = rj.minimise(batch, local, 1, **common)
+    assert alone.best_z[0] == pytest.approx(0.3, abs=1e-4)  # the wide basin only
+    hopping = rj.BasinHopping(hops=16, step=0.1)
+    runs = [rj.minimise(batch, local, 1, hopping=hopping, seed=4, **common) for _ in range(2)]
+    for result in runs:
+        assert result.best_objective < -0.4
+        assert abs(result.best_z[0] - 0.36) < 0.002
+        assert sum(run.get("phase") == "hop" for run in result.starts) == 16
+    np.testing.assert_array_equal(runs[0].best_z, runs[1].best_z)
+    with pytest.raises(rj.ParameterError, match="0 < step <= 1"):
+        rj.BasinHopping(step=0.0)

@@ -17,7 +17,8 @@ max_stroke = {max = 0.15}
 [optimiser]                   # method = "search" (global + a local method): samples, starts,
 starts = 8                    #   maxiter, seed, max_seconds, and local = "slsqp",
                               #   "epigraph_minimax" or "trust_region_lp" (or minimax = true
-                              #   / false to choose the default); "adam" (default; fronts,
+                              #   / false to choose the default), hops and hop_step (basin
+                              #   hopping after the starts); "adam" (default; fronts,
                               #   scatter): starts, steps, learning_rate, seed, anneal,
                               #   patience
 
@@ -88,6 +89,8 @@ _SECTIONS = {
 _OPTIMISER_KEYS = {
     "method",
     "local",
+    "hops",
+    "hop_step",
     "samples",
     "maxiter",
     "max_seconds",
@@ -101,7 +104,18 @@ _OPTIMISER_KEYS = {
     "update_every",
     "penalty",
 }
-_SEARCH_KEYS = {"method", "local", "samples", "starts", "maxiter", "seed", "max_seconds", "minimax"}
+_SEARCH_KEYS = {
+    "method",
+    "local",
+    "samples",
+    "starts",
+    "maxiter",
+    "seed",
+    "max_seconds",
+    "minimax",
+    "hops",
+    "hop_step",
+}
 
 #: The local methods of `method = "search"`, by the name a study gives in `local`.
 LOCAL_METHODS = {
@@ -242,7 +256,7 @@ def load_study(path) -> Study:
     method = optimiser.setdefault("method", "adam")
     if method not in ("adam", "search"):
         raise _error(path, f'[optimiser] method = {method!r}: valid "adam" or "search"')
-    search_only = {"local", "samples", "maxiter", "max_seconds", "minimax"}
+    search_only = {"local", "samples", "maxiter", "max_seconds", "minimax", "hops", "hop_step"}
     allowed = _SEARCH_KEYS if method == "search" else _OPTIMISER_KEYS - search_only
     if set(optimiser) - allowed:
         raise _error(
@@ -310,6 +324,11 @@ def search_kwargs(study: Study, progress: bool | None) -> dict:
             kwargs[key] = int(o[key])
     if "max_seconds" in o:
         kwargs["max_seconds"] = float(o["max_seconds"])
+    if "hops" in o or "hop_step" in o:
+        defaults = rj.BasinHopping()
+        kwargs["hopping"] = rj.BasinHopping(
+            hops=int(o.get("hops", defaults.hops)), step=float(o.get("hop_step", defaults.step))
+        )
     return kwargs
 
 
@@ -344,6 +363,7 @@ def _search_summary(result: rj.MinimiseResult, local: rj.LocalMethod) -> dict:
         "feasible_samples": int(feasible.sum()),
         "local_runs": [
             {
+                "phase": run["phase"],
                 "objective_at_end": float(run["objective"]),
                 "iterations": run["iterations"],
                 "message": run["message"],
