@@ -364,7 +364,10 @@ def _search_summary(result: rj.MinimiseResult, local: rj.LocalMethod) -> dict:
         "local_runs": [
             {
                 "phase": run["phase"],
-                "objective_at_end": float(run["objective"]),
+                # None: a run the time budget stopped before its first evaluation.
+                "objective_at_end": (
+                    float(run["objective"]) if np.isfinite(run["objective"]) else None
+                ),
                 "iterations": run["iterations"],
                 "message": run["message"],
             }
