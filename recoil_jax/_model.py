@@ -383,10 +383,13 @@ def knot_crossing(t0, dt, evaluate, y0, y1, params: RecoilParams):
 
 def metric_ceilings(params: RecoilParams) -> dict[str, jnp.ndarray] | None:
     """Values a tracked metric must stay below, by name, or None: the barrel must not
-    bottom the recuperator's gas column (`x_M < 0.95 L_r`)."""
+    bottom the recuperator's gas column (`x_M < 0.95 L_r`). A zero `recuperator_force`
+    is no recuperator: there is no gas column to bottom."""
     if params.recuperator is None:
         return None
-    return {"peak_displacement": BOTTOM * params.recuperator.recuperator_length}
+    recuperator = params.recuperator
+    bottom = BOTTOM * recuperator.recuperator_length
+    return {"peak_displacement": jnp.where(recuperator.recuperator_force > 0, bottom, jnp.inf)}
 
 
 def vector_field(t, y, args):

@@ -49,6 +49,7 @@ __all__ = [
     "Recuperator",
     "Smoothing",
     "SolverOptions",
+    "check_load_fits",
     "check_value",
     "default_end_time",
     "end_time",
@@ -383,6 +384,19 @@ class ParameterRegistry(Mapping[str, Parameter]):
         """Every name, for messages: the scalars, then the knot family."""
         return ", ".join([*self._scalars, "orifice_<i>"])
 
+    def unknown(self, name: str, also: Sequence[str] = ()) -> ParameterError:
+        """The error for a `name` that is not a parameter (`also`: other names the caller
+        takes, listed with the parameters); a knot past the last says how many there
+        may be."""
+        if isinstance(name, str) and re.fullmatch(r"orifice_[0-9]+", name):
+            return ParameterError(
+                f"unknown parameter {name!r}: the orifice has at most {MAX_KNOTS} knots "
+                f"(orifice_0 ... orifice_{MAX_KNOTS - 1})"
+            )
+        return ParameterError(
+            f"unknown parameter {name!r}; known: {', '.join([self.names(), *also])}"
+        )
+
 
 #: The design parameters by flat name (see `ParameterRegistry`).
 PARAMETERS = ParameterRegistry(_SCALARS)
@@ -394,7 +408,7 @@ def parameter(name: str) -> Parameter:
     try:
         return PARAMETERS[name]
     except KeyError:
-        raise ParameterError(f"unknown parameter {name!r}; known: {PARAMETERS.names()}") from None
+        raise PARAMETERS.unknown(name) from None
 
 
 def is_concrete(value: Any) -> bool:
@@ -598,10 +612,12 @@ class ForceTable(eqx.Module):
     def from_csv(cls, path) -> ForceTable:
         """Read a table from a CSV file whose header is `t_s,F_N` (seconds, newtons)."""
         path = Path(path)
-        try:
-            rows = list(csv.DictReader(path.read_text().splitlines()))
+        try:  # utf-8-sig: drops the byte-order mark that spreadsheets write
+            rows = list(csv.DictReader(path.read_text(encoding="utf-8-sig").splitlines()))
         except FileNotFoundError:
             raise ParameterError(f"force table {path} not found") from None
+        except (OSError, UnicodeDecodeError):  # a folder, a binary file
+            raise ParameterError(f"force table {path} is not a readable text file") from None
         if not rows or set(rows[0]) != {"t_s", "F_N"}:
             raise ParameterError(f"{path}: expected a CSV with the header t_s,F_N")
         try:
@@ -868,9 +884,65 @@ def with_default_tolerances(params: RecoilParams, options: SolverOptions) -> Sol
 
 
 def end_time(params: RecoilParams, options: SolverOptions) -> Any:
-    """The end time of a solve (s): `options.t1`, or the model's default."""
+    """The end time of a solve (s): `options.t1`, or the model's default.
+
+    **Raises:** `ParameterError`, for concrete inputs, when the load does not fit
+    (`check_load_fits`): the solve would be cut short or could not finish."""
     t1 = default_end_time(params) if options.t1 is None else options.t1
-    return jnp.asarray(t1, dtype=float)
+    t1 = jnp.asarray(t1, dtype=float)
+    if is_concrete((params, t1)):
+        check_load_fits(params, t1, options.max_steps)
+    return t1
+
+
+#: A gamma pulse has delivered all but 11 e^-10 (0.05 %) of its momentum after this many
+#: `pulse_time`s: the pulse's length, for `check_load_fits`.
+PULSE_LENGTHS = 10.0
+
+
+def check_load_fits(
+    params: RecoilParams, t1: Any, max_steps: int, labels: Any = None
+) -> None:
+    """Refuse, before anything is compiled, a load that a solve to `t1` (s, scalar or per
+    design) could not deliver or finish: a round fired after `t1`, a pulse (its
+    `PULSE_LENGTHS` pulse times) or a force table that `t1` cuts short, or more load
+    breakpoints (the later rounds' firings and every table point of every round, each
+    of which ends a solver step) than `max_steps` steps. `labels`: each design's index
+    for messages (default: its place in the batch)."""
+    load = params.load
+    if load is None:
+        return
+    t1 = np.asarray(t1, dtype=float)
+    last = (load.shots - 1) * np.asarray(load.fire_interval, dtype=float)
+    if load.table is not None:
+        length, what = float(np.asarray(load.table.t).reshape(-1)[-1]), "the force table"
+    else:
+        length, what = PULSE_LENGTHS * np.asarray(load.pulse_time, dtype=float), "the pulse"
+    last, length, t1 = np.broadcast_arrays(last, length, t1)
+    ends = (last + length).reshape(-1)
+    last, t1 = last.reshape(-1), t1.reshape(-1)
+    short = ends > t1
+    if np.any(short):
+        i = int(np.argmax(short))
+        label = i if labels is None else int(labels[i])
+        if last[i] >= t1[i]:
+            cause = f"the last of {load.shots} rounds fires at {last[i]:g} s"
+        else:
+            cause = f"{what} of the last round lasts until {ends[i]:g} s"
+        raise ParameterError(
+            f"the load does not fit in the solve{f' (design {label})' if ends.size > 1 else ''}: "
+            f"{cause}, after t1 = {t1[i]:g} s, so the recoil would be cut short; give "
+            f"t1 >= {ends[i]:g} s (or a shorter load)"
+        )
+    rows = 0 if load.table is None else int(np.shape(load.table.t)[-1])
+    breakpoints = (load.shots - 1) + load.shots * rows
+    if breakpoints >= max_steps:
+        raise ParameterError(
+            f"the load has {breakpoints:,} breakpoints ({load.shots} round{'s' * (load.shots > 1)}"
+            + (f" x {rows:,} force-table points" if rows else "")
+            + f"), each of which ends a solver step, but max_steps is {max_steps:,}: give "
+            f"max_steps > {breakpoints:,} (command line: --max-steps), or fewer points"
+        )
 
 
 def _knots(names: dict[str, Any]) -> Any:

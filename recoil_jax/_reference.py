@@ -85,7 +85,8 @@ class _HardModel:
             cd = p["discharge_coefficient"]
             self.coefficient = p["oil_density"] * area**3 / (2.0 * cd**2)
         # Gas recuperator.
-        self.recuperator = "recuperator_force" in p
+        # A zero force is no recuperator (no gas column to bottom).
+        self.recuperator = p.get("recuperator_force", 0.0) > 0
         if self.recuperator:
             self.F_r = p["recuperator_force"]
             self.L_r = p["recuperator_length"]

@@ -163,7 +163,10 @@ def peaks(
     **Raises:** `SolveError` (with `throw=True`) if the step limit is reached, the state
     becomes non-finite or the step size underflows. The check runs inside the compiled
     program (`equinox.error_if`), so it also works inside a user's `jit`.
+    `ParameterError` for a load that does not fit in the solve (`end_time`), before
+    compiling.
     """
+    end_time(params, options)  # checks concrete inputs, before compiling
     return _peaks_jit(params, smoothing, options, throw)
 
 

@@ -30,7 +30,8 @@ class Status(eqx.Enumeration):
 
     ok = "ok"
     max_steps = (
-        "max_steps reached before t1: increase SolverOptions.max_steps or loosen the tolerances"
+        "max_steps reached before t1: increase max_steps (SolverOptions.max_steps; on the "
+        "command line --max-steps) or loosen the tolerances"
     )
     nonfinite = "the state became NaN or inf"
     step_underflow = "the step size underflowed (t + dt == t) before t1"

@@ -27,6 +27,7 @@ from ._params import (
     RecoilParams,
     Smoothing,
     SolverOptions,
+    check_load_fits,
     check_value,
     default_end_time,
     params_from_values,
@@ -420,7 +421,8 @@ def sweep(
     - `lanes`: designs in flight per part in the vmapped stepping loop (capped at 1/16 of
       the part, at least 32); a lane takes the next design as soon as its own has
       finished. A plain `vmap` would run every design for as many steps as the slowest.
-    - `progress`: a progress line on stderr (default: when there is more than one chunk).
+    - `progress`: a progress line on stderr (default: when there is more than one chunk),
+      and a line saying how many designs failed; `False`: nothing is printed.
     - `sort_by_gap`: run designs in order of `gap`, so that the impact-heavy ones start
       early; results come back in input order regardless.
     - `force_table`: a `ForceTable` of one round, the breech force of every design
@@ -450,6 +452,7 @@ def sweep(
             t1 = np.full(len(indices), float(options.t1))
         else:
             t1 = np.asarray(default_end_time(params))
+        check_load_fits(params, t1, options.max_steps, labels=indices)
         group_wrt = None
         if wrt:
             # Parameters this group does not have (an absorber's for m = 0, knots beyond
@@ -522,11 +525,11 @@ def sweep(
             for name, by in gradients.items()
         }
     status = status_item(codes)
-    if failed.any():
+    if failed.any() and progress is not False:  # progress=False: the caller reports
         reasons = sorted(set(status_messages(status_item(codes[failed]))))
         print(
-            f"sweep: {int(failed.sum())} of {n} designs failed ({'; '.join(reasons)}); "
-            "see SweepResult.failures()",
+            f"sweep: {int(failed.sum())} of {n} designs failed ({'; '.join(reasons)}): "
+            "their peaks are NaN and their status says why",
             file=sys.stderr,
         )
     return SweepResult(

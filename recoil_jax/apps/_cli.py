@@ -9,59 +9,27 @@ import sys
 
 import recoil_jax as rj
 
-__all__ = [
-    "INFEASIBLE",
-    "SETTINGS",
-    "build_parser",
-    "describe",
-    "known",
-    "main",
-    "names",
-    "parse_assignments",
-]
+from ._inputs import check_figure_path, design_warnings, names, parse_assignments, warn
 
-#: Names `name=value` items may use besides the parameters (`rj.PARAMETERS`).
-SETTINGS = ("t1",)
+__all__ = ["INFEASIBLE", "build_parser", "describe", "main"]
 
 #: The exit status of `optimise` when no design met every limit (0 done, 1 a solve
 #: failed, 2 bad input).
 INFEASIBLE = 3
 
 
-def known(name: str) -> bool:
-    """Whether `name=value` may use `name`: a parameter (orifice knots included) or `t1`."""
-    return name in rj.PARAMETERS or name in SETTINGS
-
-
-def names() -> str:
-    """Every name, for messages."""
-    return f"{rj.PARAMETERS.names()}, {', '.join(SETTINGS)}"
-
-
-def parse_assignments(items: list[str]) -> dict[str, float]:
-    """`name=value` items as a dict of numbers; names must be `known`."""
-    values: dict[str, float] = {}
-    for item in items:
-        name, sep, text = item.partition("=")
-        if not sep:
-            raise rj.ParameterError(f"expected name=value, got {item!r}; names: {names()}")
-        if not known(name):
-            raise rj.ParameterError(f"unknown parameter {name!r}; names: {names()}")
-        try:
-            values[name] = float(text)
-        except ValueError:
-            raise rj.ParameterError(f"{name} = {text!r} is not a number") from None
-    return values
-
-
 def _simulate(args) -> int:
     import numpy as np
 
     values = parse_assignments(args.assignments)
-    options = rj.SolverOptions(t1=values.pop("t1", None))
+    plot = check_figure_path(args.plot) if args.plot else None  # before the solve
+    options = rj.SolverOptions(t1=values.pop("t1", None), max_steps=args.max_steps)
     params = rj.params_from_values(values)
-    if args.force_table:
-        params = rj.with_table(params, rj.ForceTable.from_csv(args.force_table))
+    table = rj.ForceTable.from_csv(args.force_table) if args.force_table else None
+    if table is not None:
+        params = rj.with_table(params, table)
+    t1 = float(rj.end_time(params, options))  # refuses a load that does not fit
+    warn(design_warnings(values, table))
     smoothing = rj.Smoothing.exact() if args.hard else rj.Smoothing()
     # Checked here, not inside the program: a program that can raise holds a host
     # callback, and JAX does not keep those in the compilation cache.
@@ -72,8 +40,7 @@ def _simulate(args) -> int:
         print(f"recoil-jax: solver failed: {rj.status_messages(peaks.status)[0]}", file=sys.stderr)
         return 1
     result = peaks.to_dict()
-    t1 = float(rj.end_time(params, options))
-    used = {k: float(np.asarray(v)) for k, v in rj.params_to_values(params).items()}
+    used = used_parameters(params, table, args.force_table)
     used["t1"] = t1
     if args.json:
         print(
@@ -82,7 +49,14 @@ def _simulate(args) -> int:
     else:
         model = "simplified (no absorber)" if params.absorber is None else "with absorber"
         print(f"recoil-jax: {model}, {'hard' if args.hard else 'smoothed'} switches")
-        print("  parameters: " + ", ".join(f"{k}={v:g}" for k, v in used.items()))
+        numbers = {k: v for k, v in used.items() if k != "force_table"}
+        print("  parameters: " + ", ".join(f"{k}={v:g}" for k, v in numbers.items()))
+        if table is not None:
+            t = used["force_table"]
+            print(
+                f"  force table: {t['file']}, {t['points']} points over {t['duration_s']:g} s, "
+                f"impulse {t['impulse_N_s']:g} N s per round"
+            )
         metrics = rj.METRICS
         rows = []
         for name in ("peak_displacement", "peak_anchoring_force", "peak_contact_force"):
@@ -106,16 +80,40 @@ def _simulate(args) -> int:
         ]
         for name, value, when in rows:
             print(f"  {name:28s} {value:>22s}  {when}")
-    if args.plot:
+    if plot is not None:
         from ._figures import plot_history
 
         history = rj.simulate(params, smoothing, options, ts=np.linspace(0.0, t1, 20001))
-        path = plot_history(history, args.plot, title=describe(used))
+        path = plot_history(history, plot, title=describe(used))
         print(f"wrote {path}", file=sys.stderr)
     return 0
 
 
-def describe(values: dict[str, float]) -> str:
+def used_parameters(params: rj.RecoilParams, table=None, source=None) -> dict:
+    """The parameters a solve of `params` uses, by flat name (integers as integers); with a
+    force `table` (read from `source`) the table's summary replaces `v0` and
+    `pulse_time`, which it makes unused."""
+    import numpy as np
+
+    used: dict = {}
+    for name, value in rj.params_to_values(params).items():
+        if table is not None and name in ("v0", "pulse_time"):
+            continue
+        number = float(np.asarray(value))
+        integer = name in rj.PARAMETERS and rj.PARAMETERS[name].integer
+        used[name] = int(number) if integer else number
+    if table is not None:
+        t, F = np.asarray(table.t, dtype=float), np.asarray(table.F, dtype=float)
+        used["force_table"] = {
+            "file": str(source),
+            "points": int(t.size),
+            "duration_s": float(t[-1]),
+            "impulse_N_s": float(np.sum(0.5 * (F[1:] + F[:-1]) * np.diff(t))),
+        }
+    return used
+
+
+def describe(values: dict) -> str:
     """A one-line description of a design, for figure titles."""
     parts = []
     if values.get("m", 0.0) > 0:
@@ -123,8 +121,16 @@ def describe(values: dict[str, float]) -> str:
     else:
         parts.append("no absorber")
     if "shots" in values:
-        load = f"{values['pulse_time'] * 1e3:g} ms pulses" if values["pulse_time"] else "impulses"
-        parts.append(f"{values['shots']:g} rounds of {load} every {values['fire_interval']:g} s")
+        shots = int(values["shots"])
+        if "force_table" in values:
+            load = "the force table"
+        elif values.get("pulse_time"):
+            load = f"a {values['pulse_time'] * 1e3:g} ms pulse"
+        else:
+            load = "an impulse"
+        rounds = f"1 round of {load}" if shots == 1 else f"{shots} rounds of {load}"
+        every = f" every {values['fire_interval']:g} s" if shots > 1 else ""
+        parts.append(rounds + every)
     knots = sum(1 for name in values if name.startswith("orifice_") and name[8:].isdigit())
     if knots and values.get("piston_area", 0.0) > 0:
         parts.append(f"{knots}-knot orifice")
@@ -185,6 +191,17 @@ def _bench(args) -> int:
     return main_bench(args)
 
 
+def _add_max_steps(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--max-steps",
+        type=int,
+        default=rj.SolverOptions().max_steps,
+        metavar="N",
+        help="most solver steps per design (default %(default)s); a solve that needs more "
+        "fails with status max_steps",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="recoil-jax",
@@ -219,6 +236,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument(
         "--force-table", metavar="FILE.csv", help="breech force of one round (header t_s,F_N)"
     )
+    _add_max_steps(sim)
     sim.set_defaults(func=_simulate)
     swp = sub.add_parser(
         "sweep",
@@ -241,6 +259,7 @@ def build_parser() -> argparse.ArgumentParser:
     swp.add_argument(
         "--force-table", metavar="FILE.csv", help="breech force of one round (header t_s,F_N)"
     )
+    _add_max_steps(swp)
     swp.set_defaults(func=_sweep)
     bench = sub.add_parser(
         "bench",

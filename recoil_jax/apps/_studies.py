@@ -59,6 +59,8 @@ import numpy as np
 
 import recoil_jax as rj
 
+from ._inputs import read_text
+
 __all__ = [
     "LOCAL_METHODS",
     "SHIPPED",
@@ -191,7 +193,7 @@ def load_study(path) -> Study:
     the key)."""
     path = resolve_study(path)
     try:
-        config = tomllib.loads(path.read_text())
+        config = tomllib.loads(read_text(path, "study file"))
     except tomllib.TOMLDecodeError as error:
         raise _error(path, f"not valid TOML: {error}") from None
     unknown = set(config) - _SECTIONS

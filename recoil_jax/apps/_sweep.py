@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -12,7 +13,7 @@ import numpy as np
 
 import recoil_jax as rj
 
-from ._cli import known, names
+from ._inputs import design_warnings, known, read_text, split_assignment, unknown_name, warn
 
 __all__ = ["parse_axis", "read_points", "run_sweep", "write_figures", "write_results"]
 
@@ -36,21 +37,39 @@ def read_points(path) -> list[dict]:
     """Designs from a CSV file (header = names) or a JSON list of objects; the names are
     those of `name=value` items (parameters and `t1`)."""
     path = Path(path)
-    text = path.read_text()
+    text = read_text(path, "points file")
     if path.suffix.lower() == ".json" or text.lstrip().startswith("["):
-        points = json.loads(text)
+        try:
+            points = json.loads(text, object_pairs_hook=_once_each)
+        except json.JSONDecodeError as error:
+            raise rj.ParameterError(f"{path}: not valid JSON: {error}") from None
         if not isinstance(points, list) or not all(isinstance(p, dict) for p in points):
             raise rj.ParameterError(f"{path}: expected a JSON list of {{name: value}} objects")
     else:
-        points = list(csv.DictReader(text.splitlines()))
+        reader = csv.reader(text.splitlines())
+        header = next(reader, [])
+        for name in header:
+            if header.count(name) > 1:
+                raise rj.ParameterError(f"{path}: the column {name!r} is given twice")
+        points = []
+        for row in reader:
+            if not row:  # a blank line
+                continue
+            if len(row) != len(header):
+                raise rj.ParameterError(
+                    f"{path}, point {len(points)}: {len(row)} values for the "
+                    f"{len(header)} columns {','.join(header)}"
+                )
+            points.append(dict(zip(header, row, strict=True)))
+    if not points:
+        raise rj.ParameterError(f"{path}: no designs in the file")
     designs = []
     for row, point in enumerate(points):
         design = {}
         for name, value in point.items():
             if not known(name):
-                raise rj.ParameterError(
-                    f"{path}, point {row}: unknown parameter {name!r}; known: {names()}"
-                )
+                error = unknown_name(name)
+                raise rj.ParameterError(f"{path}, point {row}: {error}") from None
             try:
                 design[name] = float(value)
             except (TypeError, ValueError):
@@ -59,6 +78,22 @@ def read_points(path) -> list[dict]:
                 ) from None
         designs.append(design)
     return designs
+
+
+def _given(column) -> np.ndarray:
+    """A column's values where they were given (NaN: a point that does not set it)."""
+    column = np.asarray(column, dtype=float)
+    return column[~np.isnan(column)]
+
+
+def _once_each(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """A JSON object whose keys are each given once."""
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise rj.ParameterError(f"{key} is given twice in one design")
+        out[key] = value
+    return out
 
 
 def write_results(result: rj.SweepResult, out: Path, meta: dict) -> list[Path]:
@@ -184,25 +219,25 @@ def _label(name: str) -> str:
 
 def run_sweep(args) -> int:
     axes, fixed = {}, {}
+    given: dict[str, str] = {}
     for item in args.assignments:
-        name, sep, text = item.partition("=")
-        if not sep:
-            raise rj.ParameterError(f"expected name=value, got {item!r}")
-        if not known(name):
-            raise rj.ParameterError(f"unknown parameter {name!r}; names: {names()}")
+        name, text = split_assignment(item, given)
+        given[name] = text
         values = parse_axis(name, text)
         if len(values) == 1:
             fixed[name] = float(values[0])
         else:
             axes[name] = values
     table = rj.ForceTable.from_csv(args.force_table) if args.force_table else None
+    designs: list[dict] = []  # from --points
     if args.points:
         if axes:
             raise rj.ParameterError(
                 "with --points, other parameters can only be fixed (name=value), not swept"
             )
         designs = [fixed | design for design in read_points(args.points)]
-        result = rj.sweep(designs, progress=not args.json, force_table=table)
+        wrt = None
+        columns = {n: [d.get(n, np.nan) for d in designs] for n in set().union(*designs)}
     else:
         if not axes:
             raise rj.ParameterError(
@@ -210,7 +245,18 @@ def run_sweep(args) -> int:
                 "range start:stop:count, or --points FILE"
             )
         wrt = ("gap",) if "gap" in axes else None
-        result = rj.sweep_grid(axes, fixed, wrt=wrt, progress=not args.json, force_table=table)
+        columns, _ = rj.grid(axes, fixed)
+    warn(design_warnings({n: _given(c) for n, c in columns.items()}, table))
+    # The sweep's own options (tighter with gradients), with the step limit asked for.
+    options = rj.GRADIENT_OPTIONS if wrt else rj.SolverOptions()
+    options = dataclasses.replace(options, max_steps=args.max_steps)
+    progress = not args.json
+    if args.points:
+        result = rj.sweep(designs, options=options, progress=progress, force_table=table)
+    else:
+        result = rj.sweep_grid(
+            axes, fixed, wrt=wrt, options=options, progress=progress, force_table=table
+        )
     if args.json:
         print(json.dumps(result.records()))
     else:

@@ -1,0 +1,168 @@
+"""What a user types or loads: `name=value` items, the files the commands read, and the
+warnings about values the model accepts but were probably not meant.
+
+Every command reads its input here, so that each bad input gets the same one-line
+`ParameterError` (exit status 2) naming the parameter or the file, before anything is
+solved or compiled.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+import recoil_jax as rj
+
+__all__ = [
+    "SETTINGS",
+    "check_figure_path",
+    "design_warnings",
+    "known",
+    "names",
+    "parse_assignments",
+    "read_text",
+    "split_assignment",
+    "unknown_name",
+    "warn",
+]
+
+#: Names `name=value` items may use besides the parameters (`rj.PARAMETERS`).
+SETTINGS = ("t1",)
+
+
+def known(name: str) -> bool:
+    """Whether `name=value` may use `name`: a parameter (orifice knots included) or `t1`."""
+    return name in rj.PARAMETERS or name in SETTINGS
+
+
+def names() -> str:
+    """Every name, for messages."""
+    return f"{rj.PARAMETERS.names()}, {', '.join(SETTINGS)}"
+
+
+def unknown_name(name: str) -> rj.ParameterError:
+    """The error for a name that is not `known`."""
+    return rj.PARAMETERS.unknown(name, also=SETTINGS)
+
+
+def split_assignment(item: str, given: Mapping[str, object]) -> tuple[str, str]:
+    """`name=text` → `(name, text)`; the name must be `known` and not already `given`."""
+    name, sep, text = item.partition("=")
+    if not sep:
+        raise rj.ParameterError(f"expected name=value, got {item!r}; names: {names()}")
+    if not known(name):
+        raise unknown_name(name)
+    if name in given:
+        raise rj.ParameterError(f"{name} is given twice ({name}={given[name]} and {item})")
+    return name, text
+
+
+def parse_assignments(items: list[str]) -> dict[str, float]:
+    """`name=value` items as a dict of numbers; names must be `known`, each given once."""
+    values: dict[str, float] = {}
+    texts: dict[str, str] = {}
+    for item in items:
+        name, text = split_assignment(item, texts)
+        texts[name] = text
+        try:
+            values[name] = float(text)
+        except ValueError:
+            raise rj.ParameterError(f"{name} = {text!r} is not a number") from None
+    return values
+
+
+def read_text(path, what: str) -> str:
+    """The text of the file `path` (`what` it should be, for messages): a missing file, a
+    folder or a file that is not text is a `ParameterError`; a byte-order mark (as
+    spreadsheets write) is dropped."""
+    path = Path(path)
+    try:
+        return path.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise rj.ParameterError(f"{what} {path} not found") from None
+    except IsADirectoryError:
+        raise rj.ParameterError(f"{what} {path} is a folder, not a file") from None
+    except UnicodeDecodeError:
+        raise rj.ParameterError(f"{what} {path} is not a text file (UTF-8)") from None
+    except OSError as error:
+        raise rj.ParameterError(f"{what} {path} cannot be read: {error.strerror}") from None
+
+
+def check_figure_path(path) -> Path:
+    """`path` if matplotlib can write a figure of its suffix (checked before any solve)."""
+    from matplotlib.figure import Figure
+
+    path = Path(path)
+    formats = Figure().canvas.get_supported_filetypes()
+    if path.suffix.lstrip(".").lower() not in formats:
+        raise rj.ParameterError(
+            f"cannot write a figure to {path}: give a file ending in one of "
+            + ", ".join(f".{f}" for f in sorted(formats))
+        )
+    return path
+
+
+def design_warnings(values: Mapping[str, object], table: rj.ForceTable | None = None) -> list[str]:
+    """One line per value the model accepts but a user probably did not mean: outside its
+    documented range (where accuracy is tested), or set where it has no effect. `values`:
+    flat name → number or array (a sweep's columns)."""
+    lines = []
+    knots = sorted(n for n in values if n.startswith("orifice_"))
+    no_buffer = bool(knots) and _all_zero(values.get("piston_area"))
+    recuperator = {"recuperator_length", "polytropic_index"} & set(values)
+    no_recuperator = bool(recuperator) and _all_zero(values.get("recuperator_force", 0.0))
+    unused = (set(knots) if no_buffer else set()) | (recuperator if no_recuperator else set())
+    for name, value in values.items():
+        if name not in rj.PARAMETERS or name in unused:
+            continue
+        p = rj.PARAMETERS[name]
+        array = np.asarray(value, dtype=float).reshape(-1)
+        if name == "m":  # m = 0 is the simplified model, not a mass
+            array = array[array != 0]
+        if p.documented is None or not array.size:
+            continue
+        lo, hi = p.documented
+        outside = (array < lo) | (array > hi)
+        if outside.any():
+            which = f"{name}={array[outside][0]:g} is"
+            if array.size > 1:
+                which = (
+                    f"{name}: {int(outside.sum())} of {array.size} values (e.g. {which[:-3]}) are"
+                )
+            unit = f" {p.unit}" if p.unit else ""
+            lines.append(
+                f"{which} outside the documented range {lo:g} to {hi:g}{unit}, where the "
+                "model's accuracy is tested"
+            )
+    if no_buffer:
+        lines.append(
+            f"piston_area = 0 is no hydraulic buffer: the orifice ({', '.join(knots)}) "
+            "has no effect"
+        )
+    if no_recuperator:
+        lines.append(
+            "recuperator_force = 0 is no gas recuperator: "
+            f"{', '.join(sorted(recuperator))} has no effect"
+        )
+    if table is not None:
+        F = np.asarray(table.F)
+        if np.any(F < 0):
+            i = int(np.argmin(F))
+            lines.append(
+                f"the force table pulls the barrel forward: F = {F[i]:g} N < 0 at "
+                f"t = {float(np.asarray(table.t)[i]):g} s"
+            )
+    return lines
+
+
+def warn(lines: list[str]) -> None:
+    """Print `design_warnings` on stderr, one line each."""
+    for line in lines:
+        print(f"recoil-jax: warning: {line}", file=sys.stderr)
+
+
+def _all_zero(value) -> bool:
+    return value is not None and bool(np.all(np.asarray(value, dtype=float) == 0.0))

@@ -1,0 +1,176 @@
+"""Every input a user can type or load gets a one-line message and an exit status, never a
+traceback, before anything is solved or compiled; values the model accepts but a user
+probably did not mean get a warning that names the documented range."""
+
+import json
+
+import numpy as np
+import pytest
+
+import recoil_jax as rj
+from recoil_jax.apps import main
+from recoil_jax.apps._cli import describe
+from recoil_jax.apps._inputs import design_warnings
+
+
+@pytest.fixture
+def files(tmp_path):
+    """Files a user might give by mistake, and a table saved by a spreadsheet."""
+    (tmp_path / "binary.csv").write_bytes(bytes(range(256)) * 8)
+    (tmp_path / "folder").mkdir()
+    (tmp_path / "bom.csv").write_bytes(b"\xef\xbb\xbft_s,F_N\r\n0,0\r\n0.002,1.5e6\r\n0.004,0\r\n")
+    (tmp_path / "twice.csv").write_text("m,gap,m\n100,0.01,200\n")
+    (tmp_path / "ragged.csv").write_text("m,gap\n100,0.01\n200\n")
+    (tmp_path / "twice.json").write_text('[{"m": 100, "m": 200}]')
+    (tmp_path / "broken.json").write_text('[{"m": 100,')
+    (tmp_path / "empty.csv").write_text("m,gap\n")
+    t = np.linspace(0.0, 0.01, 70_000)
+    rows = "\n".join(f"{a:.9g},{1e5 * np.sin(np.pi * a / 0.01):.6g}" for a in t)
+    (tmp_path / "long.csv").write_text("t_s,F_N\n" + rows + "\n")
+    return tmp_path
+
+
+@pytest.fixture
+def no_solve(monkeypatch):
+    """Fail a test that would solve (or compile) anything."""
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a bad input reached the solver")
+
+    monkeypatch.setattr("recoil_jax.apps._exported.exported_peaks", refuse)
+    monkeypatch.setattr(rj, "sweep", refuse)
+    monkeypatch.setattr(rj, "sweep_grid", refuse)
+
+
+def _refused(capsys, argv, fragment, status=2):
+    assert main(argv) == status
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1, captured.err  # one line, no traceback
+    assert lines[0].startswith("recoil-jax: error:") and fragment in lines[0], lines[0]
+    assert captured.out == ""
+
+
+@pytest.mark.parametrize(
+    "argv, fragment",
+    [
+        (["simulate", "--force-table", "binary.csv"], "is not a readable text file"),
+        (["simulate", "--force-table", "folder"], "is not a readable text file"),
+        (["simulate", "--force-table", "missing.csv"], "force table"),
+        (["sweep", "m=0,100", "--force-table", "binary.csv"], "is not a readable text file"),
+        (["sweep", "--points", "missing.csv"], "points file"),
+        (["sweep", "--points", "binary.csv"], "is not a text file"),
+        (["sweep", "--points", "folder"], "is a folder"),
+        (["sweep", "--points", "twice.csv", "--out", "out"], "the column 'm' is given twice"),
+        (["sweep", "--points", "ragged.csv"], "point 1: 1 values for the 2 columns"),
+        (["sweep", "--points", "twice.json"], "m is given twice"),
+        (["sweep", "--points", "broken.json"], "not valid JSON"),
+        (["sweep", "--points", "empty.csv"], "no designs"),
+        (["optimise", "binary.csv"], "is not a text file"),
+        (["simulate", "--plot", "history.txt"], "cannot write a figure to history.txt"),
+        (["simulate", "orifice_0=1e-3", "orifice_0=2e-3"], "orifice_0 is given twice"),
+        (["sweep", "m=100,200", "m=300,400"], "m is given twice"),
+        (["simulate", "orifice_32=1e-3"], "the orifice has at most 32 knots"),
+        (["sweep", "orifice_40=1e-3,2e-3"], "the orifice has at most 32 knots"),
+        (["simulate", "--max-steps", "0"], "valid max_steps is an integer >= 1"),
+        # Loads that cannot fit: refused before compiling, not after minutes.
+        (["simulate", "--force-table", "long.csv"], "70,000 breakpoints"),
+        (["simulate", "pulse_time=5"], "the pulse of the last round lasts until 50 s"),
+        (["simulate", "--force-table", "bom.csv", "t1=0.003"], "lasts until 0.004 s"),
+        (["simulate", "shots=3", "t1=0.9"], "the last of 3 rounds fires at 1 s"),
+    ],
+)
+def test_a_bad_input_is_one_line_and_exit_status_2(
+    capsys, files, no_solve, monkeypatch, argv, fragment
+):
+    monkeypatch.chdir(files)
+    _refused(capsys, argv, fragment)
+    assert not (files / "history.txt").exists() and not (files / "out").exists()
+
+
+def test_a_load_that_does_not_fit_is_refused_by_the_library_too():
+    with pytest.raises(rj.ParameterError, match="70,000 breakpoints"):
+        table = rj.ForceTable(t=np.linspace(0, 0.01, 70_000), F=np.ones(70_000))
+        rj.peaks(rj.with_table(rj.params_from_values(shots=1), table))
+    with pytest.raises(rj.ParameterError, match=r"t1 >= 0.2 s"):
+        rj.peaks(rj.params_from_values(pulse_time=0.02), options=rj.SolverOptions(t1=0.1))
+    with pytest.raises(rj.ParameterError, match=r"\(design 2\).*lasts until 50 s"):
+        rj.sweep({"m": [100.0, 200.0, 300.0], "pulse_time": [0.0, 0.001, 5.0]})
+    # A generous step limit admits the table (checked, not solved, here).
+    table = rj.ForceTable(t=np.linspace(0, 0.01, 70_000), F=np.ones(70_000))
+    params = rj.with_table(rj.params_from_values(shots=1), table)
+    rj.end_time(params, rj.SolverOptions(max_steps=200_000))
+
+
+def test_a_table_saved_by_a_spreadsheet_is_read_and_described(capsys, files, monkeypatch):
+    """A byte-order mark and CRLF lines are read; `--json` lists the table (its points,
+    length and impulse: the trapezoid of the file) instead of the `v0` and `pulse_time`
+    it replaces, and writes the number of rounds as an integer."""
+    monkeypatch.chdir(files)
+    assert main(["simulate", "m=0", "--force-table", "bom.csv", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    used = out["parameters"]
+    assert "v0" not in used and "pulse_time" not in used
+    assert used["force_table"] == {
+        "file": "bom.csv",
+        "points": 3,
+        "duration_s": 0.004,
+        "impulse_N_s": pytest.approx(0.5 * 0.004 * 1.5e6),
+    }
+    assert used["shots"] == 1 and isinstance(used["shots"], int)
+    # The momentum the table delivers moves the barrel: the peak displacement of the
+    # plain barrel scales with the impulse against the paper's M v0.
+    assert out["status"] == "ok" and out["peak_displacement_m"] > 0
+
+
+def test_figure_titles_say_what_the_load_is():
+    one = {"m": 0.0, "shots": 1, "fire_interval": 0.5, "force_table": {}}
+    assert describe(one) == "no absorber, 1 round of the force table"
+    burst = {"m": 1500.0, "gap": 0.05, "shots": 3, "fire_interval": 0.2, "pulse_time": 0.005}
+    assert describe(burst) == "absorber m=1500 kg, gap=50 mm, 3 rounds of a 5 ms pulse every 0.2 s"
+    impulse = {"m": 0.0, "shots": 2, "fire_interval": 0.5, "pulse_time": 0.0}
+    assert describe(impulse) == "no absorber, 2 rounds of an impulse every 0.5 s"
+
+
+def test_values_outside_the_documented_range_are_warned_about():
+    table = rj.ForceTable(t=[0.0, 0.001, 0.002], F=[0.0, -5.0, 1e6])
+    lines = design_warnings(
+        {"m": 1e30, "piston_area": 100.0, "oil_density": 1e9, "orifice_0": 1e6, "gap": 0.05},
+        table,
+    )
+    text = "\n".join(lines)
+    assert "m=1e+30 is outside the documented range 10 to 5000 kg" in text
+    assert "piston_area=100 is outside the documented range 0 to 0.02 m^2" in text
+    assert "oil_density=1e+09" in text and "orifice_0=1e+06" in text
+    assert "F = -5 N < 0 at t = 0.001 s" in text
+    assert "gap" not in text
+    # m = 0 is the simplified model, not a mass; unused values are said to be unused.
+    assert design_warnings({"m": 0.0}) == []
+    (buffer,) = design_warnings({"piston_area": 0.0, "orifice_0": 1e-4, "orifice_1": 1e-4})
+    assert "no hydraulic buffer" in buffer and "orifice_0, orifice_1" in buffer
+    (gas,) = design_warnings({"recuperator_force": 0.0, "recuperator_length": 0.05})
+    assert "no gas recuperator: recuperator_length has no effect" in gas
+    # A sweep: how many of its values lie outside.
+    (sweep,) = design_warnings({"m": np.array([0.0, 100.0, 6000.0, 7000.0])})
+    assert sweep.startswith("m: 2 of 3 values (e.g. m=6000) are outside the documented")
+
+
+def test_a_zero_recuperator_force_is_no_recuperator(capsys):
+    """`recuperator_force = 0` is documented as no recuperator: a short gas column then
+    bottoms nothing, and the peaks are those of the design without one."""
+    plain = rj.peaks(rj.params_from_values(m=0.0))
+    params = rj.params_from_values(m=0.0, recuperator_force=0.0, recuperator_length=0.05)
+    zero = rj.peaks(params)
+    for field in ("peak_displacement", "peak_anchoring_force"):
+        assert float(getattr(zero, field)) == pytest.approx(float(getattr(plain, field)), rel=1e-6)
+    reference = rj.reference_peaks({"m": 0.0, "recuperator_force": 0.0, "recuperator_length": 0.05})
+    assert reference["status"] == "ok"
+    assert main(["simulate", "m=0", "recuperator_force=0", "recuperator_length=0.05"]) == 0
+    err = capsys.readouterr().err
+    assert "no gas recuperator" in err and "documented range" not in err
+
+
+def test_the_step_limit_can_be_raised_from_the_command_line(capsys):
+    assert main(["simulate", "m=0", "--max-steps", "5"]) == 1
+    err = capsys.readouterr().err
+    assert "max_steps reached" in err and "--max-steps" in err
