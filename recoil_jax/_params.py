@@ -900,9 +900,7 @@ def end_time(params: RecoilParams, options: SolverOptions) -> Any:
 PULSE_LENGTHS = 10.0
 
 
-def check_load_fits(
-    params: RecoilParams, t1: Any, max_steps: int, labels: Any = None
-) -> None:
+def check_load_fits(params: RecoilParams, t1: Any, max_steps: int, labels: Any = None) -> None:
     """Refuse, before anything is compiled, a load that a solve to `t1` (s, scalar or per
     design) could not deliver or finish: a round fired after `t1`, a pulse (its
     `PULSE_LENGTHS` pulse times) or a force table that `t1` cuts short, or more load

@@ -198,7 +198,9 @@ class DesignProblem(eqx.Module):
 
     @property
     def metric_constraints(self) -> list[tuple[str, str, float]]:
-        """`[(metric, kind, limit)]` handled by the augmented Lagrangian."""
+        """`[(metric, kind, limit)]`: the limits on metrics (`kind` "max" or "min"), which
+        the optimisers hold through the solve (`metric_violations`); parameter bounds are
+        the search space's."""
         return [
             (c.name, kind, limit)
             for c in self.constraints

@@ -3,6 +3,7 @@ traceback, before anything is solved or compiled; values the model accepts but a
 probably did not mean get a warning that names the documented range."""
 
 import json
+import sys
 
 import numpy as np
 import pytest
@@ -174,3 +175,28 @@ def test_the_step_limit_can_be_raised_from_the_command_line(capsys):
     assert main(["simulate", "m=0", "--max-steps", "5"]) == 1
     err = capsys.readouterr().err
     assert "max_steps reached" in err and "--max-steps" in err
+
+
+def test_a_missing_optional_dependency_is_named_with_its_extra(capsys, monkeypatch):
+    """The core install leaves out the `apps` extra (panel, cmaes, flatbuffers): a
+    command that needs one says which and how to install it."""
+    monkeypatch.setitem(sys.modules, "panel", None)  # as if not installed
+    assert main(["explore", "--no-browser"]) == 2
+    err = capsys.readouterr().err
+    assert "explore needs panel (the design explorer)" in err and "recoil-jax[apps]" in err
+    monkeypatch.setitem(sys.modules, "cmaes", None)
+    assert main(["bench-tuning", "tuned_absorber", "--methods", "cma_es"]) == 2
+    assert "bench-tuning needs cmaes" in capsys.readouterr().err
+
+
+def test_simulate_solves_in_process_without_flatbuffers(monkeypatch, tmp_path):
+    """Without flatbuffers `simulate` cannot keep its exported program on disk: it solves
+    in process (the same peaks) and writes no exported file."""
+    from recoil_jax.apps._exported import exported_peaks
+
+    monkeypatch.setitem(sys.modules, "flatbuffers", None)
+    monkeypatch.setattr("recoil_jax.apps._exported._folder", lambda: str(tmp_path))
+    params = rj.params_from_values(m=0.0)
+    peaks = exported_peaks(params, rj.Smoothing(), rj.SolverOptions())
+    assert peaks.to_dict() == rj.peaks(params).to_dict()
+    assert not (tmp_path / "exported").exists()

@@ -234,6 +234,8 @@ def run_tuning_bench(
     seeds = [int(s) for s in seeds]
     if not seeds or any(s < 0 for s in seeds):
         raise rj.ParameterError(f"seeds = {seeds}: valid one or more integers >= 0")
+    if "cma_es" in methods:
+        import cmaes  # noqa: F401 (the `apps` extra: missing, say so before anything runs)
     report: dict = {"problems": {}, "seeds": seeds}
     for name, budget in problems.items():
         study = load_study(name)

@@ -13,6 +13,13 @@ from ._inputs import check_figure_path, design_warnings, names, parse_assignment
 
 __all__ = ["INFEASIBLE", "build_parser", "describe", "main"]
 
+#: The modules of the `apps` extra (pyproject.toml), and what needs them.
+OPTIONAL = {
+    "panel": "the design explorer",
+    "bokeh": "the design explorer",
+    "cmaes": "CMA-ES, for bench-tuning",
+}
+
 #: The exit status of `optimise` when no design met every limit (0 done, 1 a solve
 #: failed, 2 bad input).
 INFEASIBLE = 3
@@ -384,6 +391,15 @@ def main(argv: list[str] | None = None) -> int:
     except rj.SolveError as error:
         print(f"recoil-jax: solver failed: {rj.failure_message(error)}", file=sys.stderr)
         return 1
+    except ModuleNotFoundError as error:
+        if error.name not in OPTIONAL:
+            raise
+        print(
+            f"recoil-jax: error: {args.command} needs {error.name} ({OPTIONAL[error.name]}), "
+            "which the core install leaves out: pip install 'recoil-jax[apps]'",
+            file=sys.stderr,
+        )
+        return 2
 
 
 if __name__ == "__main__":

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import importlib.util
 from pathlib import Path
 
 import jax
@@ -52,14 +53,20 @@ def _peaks_structure():
     return jax.tree.structure(rj.Peaks(**fields, status=rj.Status.ok))
 
 
+def _folder() -> str | None:
+    """The compilation cache's folder, where exported programs are kept (None: off)."""
+    return getattr(jax.config, "jax_compilation_cache_dir")  # noqa: B009 (untyped flag)
+
+
 def exported_peaks(
     params: rj.RecoilParams, smoothing: rj.Smoothing, options: rj.SolverOptions
 ) -> rj.Peaks:
     """`rj.peaks(params, smoothing, options, throw=False)` through a program exported to
     the compilation cache's folder (exported on first use). Without a cache folder
-    (the cache not enabled in this process), a plain `rj.peaks`."""
-    folder = getattr(jax.config, "jax_compilation_cache_dir")  # noqa: B009 (untyped flag)
-    if not folder:
+    (the cache not enabled in this process) or without flatbuffers, a plain `rj.peaks`."""
+    folder = _folder()
+    if not folder or importlib.util.find_spec("flatbuffers") is None:
+        # No cache, or no flatbuffers (the `apps` extra) to write jax.export's files.
         return rj.peaks(params, smoothing, options, throw=False)
     leaves, treedef = jax.tree.flatten((params, smoothing, options))
     leaves = [np.asarray(x) for x in leaves]
