@@ -14,11 +14,7 @@ import jax as _jax
 # (Set before the submodules import, hence E402 below.)
 _jax.config.update("jax_enable_x64", True)
 
-from ._cache import (
-    compilation_cache_dir as compilation_cache_dir,
-    enable_compilation_cache as enable_compilation_cache,
-)
-from ._dense import hermite_max as hermite_max
+from ._cache import enable_compilation_cache as enable_compilation_cache
 from ._design import differentiable_peaks as differentiable_peaks
 from ._gradients import (
     DESIGN_PARAMETERS as DESIGN_PARAMETERS,
@@ -44,27 +40,7 @@ from ._metrics import (
     PeakGradients as PeakGradients,
     Peaks as Peaks,
 )
-from ._model import (
-    RECOIL_TERM as RECOIL_TERM,
-    Forces as Forces,
-    breech_force as breech_force,
-    buffer_force as buffer_force,
-    characteristic_penetration as characteristic_penetration,
-    contact_width as contact_width,
-    forces as forces,
-    future_metric_bounds as future_metric_bounds,
-    initial_state as initial_state,
-    model_args as model_args,
-    orifice_area as orifice_area,
-    positive_power as positive_power,
-    recuperator_energy as recuperator_energy,
-    recuperator_force as recuperator_force,
-    remaining_impulse as remaining_impulse,
-    signals as signals,
-    smooth_relu as smooth_relu,
-    tracked_metrics as tracked_metrics,
-    vector_field as vector_field,
-)
+from ._model import Forces as Forces
 from ._optimise import (
     OptimiseResult as OptimiseResult,
     default_optimiser as default_optimiser,
@@ -110,7 +86,6 @@ from ._search import (
     BasinHopping as BasinHopping,
     MinimiseResult as MinimiseResult,
     default_local as default_local,
-    minimax_metric as minimax_metric,
     minimise as minimise,
     search as search,
 )

@@ -10,7 +10,16 @@ import numpy as np
 import pytest
 
 import recoil_jax as rj
-from recoil_jax._model import load_jump, load_stops, restart_step
+from recoil_jax._model import (
+    forces,
+    initial_state,
+    load_jump,
+    load_stops,
+    model_args,
+    recuperator_energy,
+    restart_step,
+    vector_field,
+)
 from recoil_jax._stepping import Events, integrate_peaks
 
 # Structure classes (one compilation each): with and without an absorber, 1 to 5
@@ -251,18 +260,18 @@ def _energy_run(params, smoothing, t1):
     """The model integrated with the dissipated energy D and the breech's work W as two
     more states: D' = the dampers', buffer's and contact's losses, W' = F_b v_M; an
     impulse round adds its kinetic energy ½M((v+v0)² − v²) to W."""
-    args = rj.model_args(params, smoothing)
+    args = model_args(params, smoothing)
 
     def augmented(t, z, args):
         y = z[:4]
-        f = rj.forces(y, params, smoothing, args[2], t=t)
+        f = forces(y, params, smoothing, args[2], t=t)
         rate = y[1] - y[3]
         loss = f.recoil_damper * y[1] + f.coupling_damper * rate
         loss = loss + (f.contact - f.contact_elastic) * rate
         if f.buffer is not None:
             loss = loss + f.buffer * y[1]
         work = 0.0 if f.breech is None else f.breech * y[1]
-        return jnp.concatenate([rj.vector_field(t, y, args), jnp.stack([loss, work])])
+        return jnp.concatenate([vector_field(t, y, args), jnp.stack([loss, work])])
 
     def jump(before, t, z, args):
         y = load_jump(t, z[:4], params)
@@ -272,7 +281,7 @@ def _energy_run(params, smoothing, t1):
     events = Events(
         stops=lambda a: load_stops(params), jump=jump, restart=lambda a: restart_step(params)
     )
-    z0 = jnp.concatenate([rj.initial_state(params), jnp.zeros(2)])
+    z0 = jnp.concatenate([initial_state(params), jnp.zeros(2)])
     ts = jnp.linspace(0.0, t1, 2001)
     run = eqx.filter_jit(
         lambda: integrate_peaks(
@@ -333,7 +342,7 @@ def test_energy_balance_with_the_hardware(design, smoothing):
     M, k = float(params.barrel.M), float(params.barrel.k)
     stored = 0.5 * M * v_M**2 + 0.5 * k * x_M**2
     stored = stored + np.asarray(
-        jax.vmap(lambda x: rj.recuperator_energy(x, params.recuperator))(jnp.asarray(x_M))
+        jax.vmap(lambda x: recuperator_energy(x, params.recuperator))(jnp.asarray(x_M))
     )
     if params.absorber is not None:
         m, k_r, gap = (

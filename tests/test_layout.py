@@ -11,6 +11,13 @@ from pathlib import Path
 import pytest
 
 import recoil_jax as rj
+from recoil_jax._model import (
+    future_metric_bounds,
+    initial_state,
+    model_args,
+    signals,
+    tracked_metrics,
+)
 
 PACKAGE = Path(rj.__file__).parent
 ENGINE = sorted(p for p in PACKAGE.glob("_*.py") if p.name != "__init__.py")
@@ -88,11 +95,11 @@ def test_metric_names_derive_from_the_registry():
     assert [f.name for f in dataclasses.fields(rj.PeakGradients)] == [*rj.METRICS, "wrt"]
     # The model tracks, and bounds, exactly the registered metrics.
     params, smoothing = rj.RecoilParams(), rj.Smoothing()
-    args = rj.model_args(params, smoothing)
-    y = rj.initial_state(params)
-    assert list(rj.tracked_metrics(y, args)) == list(rj.METRICS)
-    assert set(rj.future_metric_bounds(y, args, 0.0, 1.0)) == set(rj.METRICS)
-    assert {m.signal for m in rj.METRICS.values()} <= set(rj.signals(y, args))
+    args = model_args(params, smoothing)
+    y = initial_state(params)
+    assert list(tracked_metrics(y, args)) == list(rj.METRICS)
+    assert set(future_metric_bounds(y, args, 0.0, 1.0)) == set(rj.METRICS)
+    assert {m.signal for m in rj.METRICS.values()} <= set(signals(y, args))
 
 
 def test_parameter_names_derive_from_the_registry():

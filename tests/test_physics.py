@@ -10,25 +10,33 @@ from scipy.integrate import quad
 from scipy.optimize import brentq
 
 import recoil_jax as rj
+from recoil_jax._model import (
+    contact_width,
+    forces,
+    future_metric_bounds,
+    initial_state,
+    model_args,
+    vector_field,
+)
 
 
 def _energy_history(params, smoothing, t1=3.0, n=3001):
     """Solve the model augmented with the dissipated energy D(t) = ∫ power dt, where the
     power is that of the dampers and of the contact's non-elastic part (F_ct − k_c δ₊^n)."""
-    args = rj.model_args(params, smoothing)
+    args = model_args(params, smoothing)
 
     def augmented(t, z, args):
         y = z[:4]
-        f = rj.forces(y, params, smoothing, args[2])
+        f = forces(y, params, smoothing, args[2])
         rate = y[1] - y[3]
         power = (
             f.recoil_damper * y[1]
             + f.coupling_damper * rate
             + (f.contact - f.contact_elastic) * rate
         )
-        return jnp.concatenate([rj.vector_field(t, y, args), power[None]])
+        return jnp.concatenate([vector_field(t, y, args), power[None]])
 
-    z0 = jnp.concatenate([rj.initial_state(params), jnp.zeros(1)])
+    z0 = jnp.concatenate([initial_state(params), jnp.zeros(1)])
     ts = jnp.linspace(0.0, t1, n)
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(augmented),
@@ -57,10 +65,10 @@ def _contact_potential(deltas, params, smoothing):
 
     if smoothing.hard:
         return exact(deltas)
-    width = float(rj.contact_width(params, smoothing))
+    width = float(contact_width(params, smoothing))
     gap = float(params.absorber.gap)
     elastic_jit = jax.jit(
-        lambda s: rj.forces(jnp.stack([s + gap, 0.0, 0.0, 0.0]), params, smoothing).contact_elastic
+        lambda s: forces(jnp.stack([s + gap, 0.0, 0.0, 0.0]), params, smoothing).contact_elastic
     )
 
     def in_band(d):
@@ -166,7 +174,7 @@ def test_contact_never_pulls():
         )
     )
     for smoothing in (rj.Smoothing(), rj.Smoothing.exact()):
-        f = jax.vmap(rj.forces, in_axes=(0, None, None))(ys, params, smoothing)
+        f = jax.vmap(forces, in_axes=(0, None, None))(ys, params, smoothing)
         assert float(jnp.min(f.contact)) >= 0.0
         assert float(jnp.min(f.contact_elastic)) >= 0.0
 
@@ -214,7 +222,7 @@ def test_energy_bounds_hold_for_the_rest_of_the_run(design, smoothing):
     series = np.stack([h.x_M, h.anchoring_force, h.contact_force, stroke, -stroke], axis=1)
     future_max = np.maximum.accumulate(series[::-1], axis=0)[::-1]
     ys = jnp.stack([h.x_M, h.v_M, h.x_m, h.v_m], axis=1)
-    args = rj.model_args(params, smoothing)
+    args = model_args(params, smoothing)
     # In the order of `series`: x_M, F_AN, F_ct, stroke and its negative.
     order = (
         "peak_displacement",
@@ -223,7 +231,7 @@ def test_energy_bounds_hold_for_the_rest_of_the_run(design, smoothing):
         "max_stroke",
         "min_stroke",
     )
-    by_name = jax.vmap(lambda y, t: rj.future_metric_bounds(y, args, t, t1))(ys, ts)
+    by_name = jax.vmap(lambda y, t: future_metric_bounds(y, args, t, t1))(ys, ts)
     bounds = np.stack([np.asarray(by_name[name]) for name in order], axis=1)
     scale = np.max(np.abs(series), axis=0) + 1e-12
     slack = (bounds - future_max) / scale

@@ -10,12 +10,21 @@ import pytest
 from conftest import all_ok, batch_params, batch_peaks
 
 import recoil_jax as rj
+from recoil_jax._dense import hermite_max
+from recoil_jax._model import (
+    RECOIL_TERM,
+    future_metric_bounds,
+    initial_state,
+    model_args,
+    tracked_metrics,
+    vector_field,
+)
 
 
 def test_hermite_max_matches_brute_force():
     rng = np.random.default_rng(0)
     p0, d0, p1, d1 = (jnp.asarray(rng.normal(size=500)) for _ in range(4))
-    value, s = rj.hermite_max(p0, d0, p1, d1)
+    value, s = hermite_max(p0, d0, p1, d1)
     grid = np.linspace(0.0, 1.0, 20001)[:, None]
     h00, h10 = 2 * grid**3 - 3 * grid**2 + 1, grid**3 - 2 * grid**2 + grid
     h01, h11 = -2 * grid**3 + 3 * grid**2, grid**3 - grid**2
@@ -31,21 +40,21 @@ def test_hermite_max_matches_brute_force():
         jnp.array([1.0, 0.0, 0.0]),
         jnp.array([1.0, 0.0, 1.0]),
     ]
-    assert np.isfinite(rj.hermite_max(*degenerate)[0]).all()
-    grads = jax.grad(lambda a: rj.hermite_max(a, a, a, a)[0].sum())(jnp.zeros(3))
+    assert np.isfinite(hermite_max(*degenerate)[0]).all()
+    grads = jax.grad(lambda a: hermite_max(a, a, a, a)[0].sum())(jnp.zeros(3))
     assert np.isfinite(grads).all()
 
 
 def test_tsit5_last_stage_is_the_end_derivative():
     """The peak loop takes f(y1) from Tsit5's FSAL stage: guard that assumption."""
     params, smoothing = rj.params_from_values(m=500.0, gap=0.0), rj.Smoothing()
-    args = rj.model_args(params, smoothing)
+    args = model_args(params, smoothing)
     solver = diffrax.Tsit5(scan_kind="lax")  # as the peak loop builds it
-    y0 = rj.initial_state(params)
+    y0 = initial_state(params)
     dt = 1e-3
-    state = solver.init(rj.RECOIL_TERM, 0.0, dt, y0, args)
-    y1, _, dense, _, _ = solver.step(rj.RECOIL_TERM, 0.0, dt, y0, args, state, False)
-    np.testing.assert_allclose(dense["k"][-1] / dt, rj.vector_field(dt, y1, args), rtol=1e-12)
+    state = solver.init(RECOIL_TERM, 0.0, dt, y0, args)
+    y1, _, dense, _, _ = solver.step(RECOIL_TERM, 0.0, dt, y0, args, state, False)
+    np.testing.assert_allclose(dense["k"][-1] / dt, vector_field(dt, y1, args), rtol=1e-12)
 
 
 @pytest.mark.parametrize("design", [dict(m=0.0), dict(m=500.0, gap=0.0), dict(m=1500.0, gap=0.062)])
@@ -238,11 +247,11 @@ def test_stopping_when_the_peaks_are_certain_changes_no_peak():
     def solve(bounds_fn):
         def one(params):
             run = integrate_peaks(
-                rj.RECOIL_TERM,
-                rj.initial_state(params),
-                rj.model_args(params, smoothing),
+                RECOIL_TERM,
+                initial_state(params),
+                model_args(params, smoothing),
                 10.0,
-                rj.tracked_metrics,
+                tracked_metrics,
                 options,
                 bounds_fn,
             )
@@ -250,7 +259,7 @@ def test_stopping_when_the_peaks_are_certain_changes_no_peak():
 
         return eqx.filter_jit(jax.vmap(one))(batch_params(designs))
 
-    early, full = solve(rj.future_metric_bounds), solve(None)
+    early, full = solve(future_metric_bounds), solve(None)
     assert all_ok(early.status) and all_ok(full.status)
     for field in (
         "peak_displacement",

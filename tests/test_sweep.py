@@ -67,6 +67,10 @@ def test_failed_points_are_flagged_not_silent(capsys):
     assert records[1]["status"] == "ok"
     err = capsys.readouterr().err
     assert "2 of 3 designs failed" in err and "sweep [" in err
+    # progress=False (as the optimiser calls it): the status says it, nothing is printed.
+    quiet = rj.sweep(designs, options=rj.SolverOptions(max_steps=100), progress=False)
+    assert quiet.failures() == result.failures()
+    assert capsys.readouterr().err == ""
 
 
 def test_bad_points_raise_before_compiling():
