@@ -94,3 +94,16 @@ def test_points_file_errors(tmp_path, capsys):
     path.write_text("m,mass\n100,1\n")
     assert main(["sweep", "--points", str(path)]) == 2
     assert "unknown parameter 'mass'" in capsys.readouterr().err
+
+
+def test_one_swept_parameter_draws_both_peaks_and_points_say_why_not(tmp_path, capsys):
+    out = tmp_path / "one"
+    assert main(["sweep", "k_r=1e4:3e4:3", "--out", str(out)]) == 0
+    capsys.readouterr()
+    for name in ("peak_displacement_m_vs_k_r", "peak_anchoring_force_N_vs_k_r"):
+        assert (out / f"{name}.png").read_bytes()[:4] == b"\x89PNG"
+    points = tmp_path / "points.csv"
+    points.write_text("m,gap\n500,0.01\n1500,0.06\n")
+    assert main(["sweep", "--points", str(points), "--out", str(tmp_path / "p")]) == 0
+    assert "no figures for a list of points" in capsys.readouterr().err
+    assert not list((tmp_path / "p").glob("*.png"))

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from pathlib import Path
 
 import matplotlib
 
 matplotlib.use("Agg")
+import matplotlib.cm
+import matplotlib.colors
 import matplotlib.pyplot as plt
 import numpy as np
 
@@ -37,7 +40,12 @@ def _styled(plot):
     return styled
 
 
+#: From this many lines on, a sweep's lines are told apart by a colour scale, not a legend.
+LEGEND_LINES = 7
+
 __all__ = [
+    "LEGEND_LINES",
+    "objective_label",
     "plot_convergence",
     "plot_heatmap",
     "plot_history",
@@ -54,9 +62,14 @@ def plot_history(history: rj.History, path, title: str = "") -> Path:
     design does not have are left out. Saved as PNG at `path`."""
     ts = np.asarray(history.ts)
     f = history.forces
-    fig, axes = plt.subplots(3, 1, figsize=(9, 9), sharex=True)
+    # Without an absorber (m = 0) its displacement and the contact force stay 0: not
+    # drawn, and without a breech force either there is no third panel.
+    absorber = bool(np.any(np.asarray(history.x_m) != 0))
+    panels = 3 if absorber or f.breech is not None else 2
+    fig, axes = plt.subplots(panels, 1, figsize=(9, 3 * panels), sharex=True)
     axes[0].plot(ts, 1e3 * np.asarray(history.x_M), label="barrel $x_M$")
-    axes[0].plot(ts, 1e3 * np.asarray(history.x_m), label="absorber $x_m$")
+    if absorber:
+        axes[0].plot(ts, 1e3 * np.asarray(history.x_m), label="absorber $x_m$")
     axes[0].set_ylabel("displacement (mm)")
     axes[0].legend(loc="upper right")
     parts = {
@@ -77,16 +90,85 @@ def plot_history(history: rj.History, path, title: str = "") -> Path:
             )
     axes[1].set_ylabel("force into the mounting (kN)")
     axes[1].legend(loc="upper right", fontsize=8)
-    if f.breech is not None:
-        axes[2].plot(ts, 1e-3 * np.asarray(f.breech), label="breech $F_b$", color="C4")
-    axes[2].plot(ts, 1e-3 * np.asarray(history.contact_force), label="contact $F_{ct}$", color="C3")
-    axes[2].set_ylabel("force (kN)")
-    axes[2].legend(loc="upper right", fontsize=8)
-    axes[2].set_xlabel("time (s)")
+    if panels == 3:
+        if f.breech is not None:
+            axes[2].plot(ts, 1e-3 * np.asarray(f.breech), label="breech $F_b$", color="C4")
+        if absorber:
+            contact = 1e-3 * np.asarray(history.contact_force)
+            axes[2].plot(ts, contact, label="contact $F_{ct}$", color="C3")
+        axes[2].set_ylabel("force (kN)")
+        axes[2].legend(loc="upper right", fontsize=8)
+    _mark_peaks(axes, history)
+    shown = _active_until(history)
+    xlabel = "time (s)"
+    if shown < ts[-1]:
+        axes[-1].set_xlim(0.0, shown)
+        xlabel += f": the first {shown:.2g} of {ts[-1]:g} s (later, each signal < 5 % of its peak)"
+    axes[-1].set_xlabel(xlabel)
     if title:
         fig.suptitle(title)
     fig.tight_layout()
     return _save(fig, path)
+
+
+def _active_until(history: rj.History) -> float:
+    """Where a history's time axis may end: a fifth past the last time any drawn signal
+    (displacements, anchoring and contact force) is 5 % of its peak or more."""
+    ts = np.asarray(history.ts)
+    last = 0.0
+    for signal in (history.x_M, history.x_m, history.anchoring_force, history.contact_force):
+        size = np.abs(np.asarray(signal, dtype=float))
+        peak = np.nanmax(size) if size.size else 0.0
+        if peak > 0:
+            last = max(last, float(ts[np.nonzero(size >= 0.05 * peak)[0][-1]]))
+    return float(min(ts[-1], 1.2 * last)) if last > 0 else float(ts[-1])
+
+
+def _mark_peaks(axes, history: rj.History) -> None:
+    """The solve's peaks (located between steps, not on the save grid) on the history:
+    barrel displacement, anchoring force and, with an impact, the contact force, the
+    last also in an inset around it (a few milliseconds)."""
+    p = history.peaks
+    marks = [
+        (axes[0], "peak_displacement", 1e3, "mm", "peak $x_M$"),
+        (axes[1], "peak_anchoring_force", 1e-3, "kN", "peak $F_{AN}$"),
+        (axes[-1], "peak_contact_force", 1e-3, "kN", "peak $F_{ct}$"),
+    ]
+    for ax, name, scale, unit, text in marks:
+        value = float(np.asarray(getattr(p, name)))
+        when = float(np.asarray(getattr(p, name + "_time")))
+        if value <= 0 or not np.isfinite(value):
+            continue
+        ax.plot([when], [scale * value], "o", color="k", ms=5, zorder=5)
+        ax.annotate(
+            f"{text} {scale * value:.4g} {unit} at {when:.3f} s",
+            (when, scale * value),
+            textcoords="offset points",
+            xytext=(8, -4),
+            fontsize=8,
+        )
+    contact, when = (
+        float(np.asarray(p.peak_contact_force)),
+        float(np.asarray(p.peak_contact_force_time)),
+    )
+    if contact > 0:
+        # The impact that holds the peak: where its force is above 1 % of the peak.
+        ts, force = np.asarray(history.ts), 1e-3 * np.asarray(history.contact_force)
+        above = force >= 1e-5 * contact
+        k = int(np.argmin(np.abs(ts - when)))
+        start, end = k, k
+        while start > 0 and above[start - 1]:
+            start -= 1
+        while end < ts.size - 1 and above[end + 1]:
+            end += 1
+        width = ts[end] - ts[start]
+        near = (ts >= ts[start] - 0.3 * width) & (ts <= ts[end] + 0.3 * width)
+        if np.count_nonzero(near) >= 5:
+            inset = axes[2].inset_axes((0.5, 0.35, 0.28, 0.55))
+            inset.plot(1e3 * ts[near], force[near], color="C3")
+            inset.plot([1e3 * when], [1e-3 * contact], "o", color="k", ms=4)
+            inset.set_title(f"the impact: {1e3 * width:.3g} ms (time in ms)", fontsize=8)
+            inset.tick_params(labelsize=7)
 
 
 @_styled
@@ -103,21 +185,30 @@ def plot_series(
     ylim=None,
     markers: bool = False,
     minima: str | None = None,
+    colour_by: tuple[str, Sequence[float]] | None = None,
 ) -> Path:
     """Line plot of labelled `(x, y)` series; `mark` = `(x, y, text)` annotates a point;
     `ylim` = `(low, high)` in the series' units; `markers` draws each point (a front's
     designs); `minima` (a unit, e.g. `"N"`) marks each series' lowest point and gives
-    it in the legend, in the series' units."""
+    it in the legend, in the series' units. `colour_by = (label, values)`, one value per
+    series: lines coloured on a scale with a colour bar instead of a legend (used from
+    `LEGEND_LINES` lines on, which a legend cannot tell apart)."""
     fig, ax = plt.subplots(figsize=(8, 4.5))
     if ylim is not None:
         ax.set_ylim(yscale * ylim[0], yscale * ylim[1])
-    for label, (x, y) in series.items():
+    colours, mapper = None, None
+    if colour_by is not None:
+        norm = matplotlib.colors.Normalize(min(colour_by[1]), max(colour_by[1]))
+        mapper = matplotlib.cm.ScalarMappable(norm=norm, cmap="viridis")
+        colours = list(mapper.to_rgba(np.asarray(colour_by[1], dtype=float)))
+    for k, (label, (x, y)) in enumerate(series.items()):
         x, y = xscale * np.asarray(x, float), yscale * np.asarray(y, float)
         if minima is not None and np.any(np.isfinite(y)):
             i = int(np.nanargmin(y))
             value = y[i] / yscale
             label = f"{label}: min {value:.4g} {minima} at {x[i]:.4g}"
-        (line,) = ax.plot(x, y, marker="o" if markers else None, ms=4, label=label)
+        colour = None if colours is None else colours[k]
+        (line,) = ax.plot(x, y, marker="o" if markers else None, ms=4, label=label, color=colour)
         if minima is not None and np.any(np.isfinite(y)):
             ax.plot([x[i]], [y[i]], "v", color=line.get_color(), ms=8)  # pyright: ignore
     if mark is not None:
@@ -126,7 +217,9 @@ def plot_series(
         ax.annotate(text, (xscale * x, yscale * y), textcoords="offset points", xytext=(8, 6))
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
-    if len(series) > 1 or minima is not None:
+    if colour_by is not None and mapper is not None:
+        fig.colorbar(mapper, ax=ax, label=colour_by[0])
+    elif len(series) > 1 or minima is not None:
         ax.legend()
     if title:
         ax.set_title(title)
@@ -160,7 +253,7 @@ def plot_search_convergence(result: rj.MinimiseResult, path, title: str = "") ->
     else:
         _no_feasible_note(ax)
     ax.set_xlabel("wall time (s), compilation included")
-    ax.set_ylabel("objective")
+    ax.set_ylabel(objective_label(result.problem))
     ax.legend(fontsize=8)
     if title:
         ax.set_title(title)
@@ -172,8 +265,12 @@ def plot_search_convergence(result: rj.MinimiseResult, path, title: str = "") ->
 def plot_heatmap(
     x, y, values, path, *, xlabel: str, ylabel: str, label: str, diverging: bool = False
 ) -> Path:
-    """`values[i, j]` at `(x[j], y[i])` as a colour map (NaN: failed points, blank); on
-    a map of a peak (not `diverging`) a star marks the lowest point."""
+    """`values[i, j]` at `(x[j], y[i])` (1-D swept values) as a colour map (NaN: failed
+    points, blank); on a map of a peak (not `diverging`) a star marks the lowest point.
+
+    Each cell is one swept design: on an evenly spaced axis centred on its value (the
+    axis ends at the first and last value swept); on an unevenly spaced one (m = 100,
+    500, 1000, 1500) the cells are equal and the ticks are the values swept."""
     fig, ax = plt.subplots(figsize=(7, 5))
     ax.grid(False)
     values = np.asarray(values, dtype=float)
@@ -182,21 +279,47 @@ def plot_heatmap(
         # Clip at the 98th percentile: grazing impacts at the plateau's edge are steep.
         limit = float(np.nanpercentile(np.abs(values), 98)) or 1.0
         kwargs = {"cmap": "RdBu_r", "vmin": -limit, "vmax": limit}
-    mesh = ax.pcolormesh(np.asarray(x), np.asarray(y), values, shading="nearest", **kwargs)
+    x_cells, y_cells = _Cells(x), _Cells(y)
+    mesh = ax.pcolormesh(x_cells.edges, y_cells.edges, values, shading="flat", **kwargs)
+    x_cells.draw(ax.xaxis, ax.set_xlim)
+    y_cells.draw(ax.yaxis, ax.set_ylim)
     fig.colorbar(mesh, ax=ax, label=label)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     title = label
     if not diverging and np.any(np.isfinite(values)):
         i, j = np.unravel_index(np.nanargmin(values), values.shape)
-        x_min, y_min = (
-            np.asarray(a)[(i, j) if np.ndim(a) == 2 else k] for a, k in ((x, j), (y, i))
-        )
-        ax.plot([x_min], [y_min], "*", color="w", mec="k", ms=14)
+        x_min, y_min = x_cells.values[j], y_cells.values[i]
+        ax.plot([x_cells.at[j]], [y_cells.at[i]], "*", color="w", mec="k", ms=14, clip_on=False)
         title += f"\n★ lowest: {values[i, j]:.4g} at {xlabel} = {x_min:.4g}, {ylabel} = {y_min:.4g}"
     ax.set_title(title)
     fig.tight_layout()
     return _save(fig, path)
+
+
+class _Cells:
+    """The cells of one heatmap axis over swept `values` `(n,)`: `at` (where each is
+    drawn), `edges` `(n + 1,)`, and how the axis is labelled (`draw`)."""
+
+    def __init__(self, values):
+        self.values = np.asarray(values, dtype=float).reshape(-1)
+        steps = np.diff(self.values)
+        n = self.values.size
+        self.even = n > 1 and bool(np.allclose(steps, steps[0], rtol=1e-6, atol=0.0))
+        if self.even or n == 1:
+            half = 0.5 * (steps[0] if n > 1 else 1.0)
+            self.at = self.values
+            self.edges = np.concatenate([self.values - half, self.values[-1:] + half])
+        else:
+            self.at = np.arange(n, dtype=float)
+            self.edges = np.arange(n + 1, dtype=float) - 0.5
+
+    def draw(self, axis, set_limits) -> None:
+        if self.even:
+            set_limits(self.values[0], self.values[-1])
+            return
+        every = max(1, int(np.ceil(self.values.size / 12)))
+        axis.set_ticks(self.at[::every], [f"{v:g}" for v in self.values[::every]])
 
 
 @_styled
@@ -227,12 +350,16 @@ def plot_convergence(result, path, title: str = "") -> Path:
     )
     finite = best_so_far[np.isfinite(best_so_far)]
     if finite.size:
+        # Zoomed on the end (the first steps are far above), but every run's final
+        # value inside: a run stuck on a plateau shows where it stayed.
+        ends = best_so_far[-1][np.isfinite(best_so_far[-1])]
         low = float(np.min(finite))
-        high = float(np.percentile(finite, 90))
-        ax.set_ylim(low - 0.02 * (high - low + abs(low) * 1e-3), high)
+        high = max(float(np.percentile(finite, 90)), float(np.max(ends, initial=low)))
+        span = high - low + abs(low) * 1e-3
+        ax.set_ylim(low - 0.02 * span, high + 0.05 * span)
     else:
         _no_feasible_note(ax)
-    ax.set_ylabel("best feasible objective")
+    ax.set_ylabel("best feasible: " + objective_label(result.problem))
     ax.legend()
     ax.grid(alpha=0.3)
     if has_limits:
@@ -248,6 +375,21 @@ def plot_convergence(result, path, title: str = "") -> Path:
         fig.suptitle(title)
     fig.tight_layout()
     return _save(fig, path)
+
+
+def objective_label(problem: rj.DesignProblem | None) -> str:
+    """An axis label for a problem's objective, with its unit: the metric's label for
+    one metric of weight 1 (`peak anchoring force (N)`), else the weighted sum."""
+    if problem is None:
+        return "objective"
+    weights = problem.objective.weights
+    worst = " (worst case of the scatter)" if problem.objective.scatter is not None else ""
+    if len(weights) == 1:
+        ((name, weight),) = weights.items()
+        label = rj.METRICS[name].label
+        return (label if weight == 1 else f"{weight:g} × {label}") + worst
+    terms = " + ".join(f"{w:g} × {rj.METRICS[n].label}" for n, w in weights.items())
+    return f"objective = {terms}{worst}"
 
 
 def _no_feasible_note(ax) -> None:

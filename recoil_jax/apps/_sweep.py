@@ -131,10 +131,17 @@ def write_results(result: rj.SweepResult, out: Path, meta: dict) -> list[Path]:
 
 
 def write_figures(result: rj.SweepResult, out: Path) -> list[Path]:
-    """Fig. 6 / Fig. 10 style line plots (peak vs gap, one line per value of the other
-    swept parameter), heatmaps over the first two swept parameters, and the map of
-    ∂(peak anchoring force)/∂gap."""
-    from ._figures import plot_heatmap, plot_series
+    """The figures of a grid sweep (none for a list of points):
+
+    - gap swept (with at most one other parameter): Fig. 6 / Fig. 10 style lines of each
+      peak against the gap, one per value of the other parameter (a colour scale from
+      `LEGEND_LINES` values on), the lowest point of each marked;
+    - one parameter swept, not the gap: both peaks against it;
+    - two or more swept: heatmaps of both peaks over the first two (the others at their
+      first value), and the map of ∂(peak anchoring force)/∂gap when the gap is swept.
+
+    The gap is drawn in mm in every figure."""
+    from ._figures import LEGEND_LINES, plot_heatmap, plot_series
 
     figures = []
     if not result.grid_shape or not result.swept:
@@ -150,7 +157,7 @@ def write_figures(result: rj.SweepResult, out: Path) -> list[Path]:
         for name, filename in plotted.items():
             label = rj.METRICS[name].label
             data = result.peaks[name].reshape(shape)
-            series = {}
+            series, values = {}, []
             if other:
                 o_axis = swept.index(other[0])
                 for k in range(shape[o_axis]):
@@ -159,8 +166,10 @@ def write_figures(result: rj.SweepResult, out: Path) -> list[Path]:
                     value = np.take(grid_values[other[0]], k, axis=o_axis).flat[0]
                     unit = _unit(other[0])
                     series[f"{other[0]} = {value:g}{unit and ' ' + unit}"] = (gaps, row)
+                    values.append(float(value))
             else:
                 series["design"] = (grid_values["gap"], data)
+            many = len(series) >= LEGEND_LINES
             figures.append(
                 plot_series(
                     series,
@@ -169,41 +178,51 @@ def write_figures(result: rj.SweepResult, out: Path) -> list[Path]:
                     ylabel=label,
                     xscale=1e3,
                     title=label + " vs gap (▼ lowest of each line, gap in mm)",
-                    minima=rj.METRICS[name].unit,
+                    minima=None if many else rj.METRICS[name].unit,
+                    colour_by=(_axis(other[0])[0], values) if many else None,
+                )
+            )
+    elif len(swept) == 1:
+        (name,) = swept
+        label, scale = _axis(name)
+        for metric in plotted:
+            figures.append(
+                plot_series(
+                    {f"{name} swept": (result.values[name], result.peaks[metric])},
+                    out / f"{rj.METRICS[metric].key}_vs_{name}.png",
+                    xlabel=label,
+                    ylabel=rj.METRICS[metric].label,
+                    xscale=scale,
+                    title=f"{rj.METRICS[metric].label} vs {name} (▼ lowest)",
+                    minima=rj.METRICS[metric].unit,
                 )
             )
     if len(swept) >= 2:
         x_name, y_name = swept[1], swept[0]
+        (xlabel, xscale), (ylabel, yscale) = _axis(x_name), _axis(y_name)
         # Heatmaps over the first two swept parameters (others at their first value).
         index = tuple(slice(None) if i < 2 else 0 for i in range(len(shape)))
-        x = grid_values[x_name][index][0]
-        y = grid_values[y_name][index][:, 0]
-        for name in plotted:
-            data = result.peaks[name].reshape(shape)[index]
-            figures.append(
-                plot_heatmap(
-                    x,
-                    y,
-                    data,
-                    out / f"heatmap_{rj.METRICS[name].key}.png",
-                    xlabel=_label(x_name),
-                    ylabel=_label(y_name),
-                    label=rj.METRICS[name].label,
-                )
-            )
+        x = xscale * grid_values[x_name][index][0]
+        y = yscale * grid_values[y_name][index][:, 0]
+        maps: dict[str, tuple[str, str | None, bool]] = {
+            f"heatmap_{rj.METRICS[name].key}": (rj.METRICS[name].label, name, False)
+            for name in plotted
+        }
         gradients = (result.gradients or {}).get("peak_anchoring_force", {})
         if "gap" in gradients:
-            data = gradients["gap"].reshape(shape)[index]
+            maps["map_dF_AN_dgap"] = ("∂(peak anchoring force)/∂gap (N/m)", None, True)
+        for filename, (label, name, diverging) in maps.items():
+            data = result.peaks[name] if name else gradients["gap"]
             figures.append(
                 plot_heatmap(
                     x,
                     y,
-                    data,
-                    out / "map_dF_AN_dgap.png",
-                    xlabel=_label(x_name),
-                    ylabel=_label(y_name),
-                    label="∂(peak anchoring force)/∂gap (N/m)",
-                    diverging=True,
+                    data.reshape(shape)[index],
+                    out / f"{filename}.png",
+                    xlabel=xlabel,
+                    ylabel=ylabel,
+                    label=label,
+                    diverging=diverging,
                 )
             )
     return figures
@@ -213,8 +232,11 @@ def _unit(name: str) -> str:
     return rj.PARAMETERS[name].unit if name in rj.PARAMETERS else "s"
 
 
-def _label(name: str) -> str:
-    return rj.PARAMETERS[name].label if name in rj.PARAMETERS else f"{name} (s)"
+def _axis(name: str) -> tuple[str, float]:
+    """A swept name's axis label and the factor from SI units to it (the gap in mm)."""
+    if name == "gap":
+        return "gap (mm)", 1e3
+    return (rj.PARAMETERS[name].label if name in rj.PARAMETERS else f"{name} (s)"), 1.0
 
 
 def run_sweep(args) -> int:
@@ -278,7 +300,13 @@ def run_sweep(args) -> int:
     if args.out:
         out = Path(args.out)
         paths = write_results(result, out, {"command": " ".join(sys.argv)})
-        paths += write_figures(result, out)
-        for path in paths:
+        figures = write_figures(result, out)
+        for path in paths + figures:
             print(f"wrote {path}", file=sys.stderr)
+        if not figures:
+            print(
+                "sweep: no figures for a list of points (--points); a grid "
+                "(name=a,b,c or start:stop:count) draws them",
+                file=sys.stderr,
+            )
     return 0  # failed points are reported per point (status), not as a failed command
