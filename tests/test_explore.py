@@ -46,14 +46,34 @@ def test_explorer_shows_simulate_numbers_and_errors():
     bars = dict(zip(explorer.bars.data["name"], explorer.bars.data["change"], strict=True))
     np.testing.assert_allclose([bars[n] for n in wrt], change, rtol=1e-9)
     assert explorer.update_ms is not None and explorer.update_ms > 0
-    # A bad value: the message names the parameter and its range; the views keep the
-    # last good design.
-    explorer.set("gap", -1.0)
-    assert "Absorber.gap = -1 m is invalid" in explorer.message.object
-    assert "Traceback" not in explorer.message.object
-    assert f"{expected['peak_anchoring_force_N']:.6g}" in explorer.peaks_pane.object
+    # A bad value: the message, under its field, names the parameter and its range;
+    # the views are cleared (they would show a design the fields no longer describe).
+    for typed, message in (
+        ("-1", "Absorber.gap = -1 m is invalid"),
+        ("abc", "gap = &#x27;abc&#x27; is not a number"),
+        ("nan", "must be finite"),
+    ):
+        explorer.set("gap", typed)
+        assert message in explorer.field_errors["gap"].object
+        assert (
+            explorer.message.object == "" and "Traceback" not in explorer.field_errors["gap"].object
+        )
+        assert "no results" in explorer.peaks_pane.object and not explorer.bars.data["name"]
+        assert not len(explorer.force.data["t"])
     explorer.set("gap", 0.062)
-    assert explorer.message.object == ""
+    assert explorer.field_errors["gap"].object == "" and explorer.message.object == ""
+    assert "peak_anchoring_force" in explorer.peaks_pane.object
+    # Each card says whether its part is on.
+    assert explorer.cards["recuperator"].title == "Gas recuperator (off: recuperator_force = 0)"
+    # A failed solve (the barrel bottoms out the recuperator): why, and no peaks, limits
+    # or gradient bars.
+    explorer.set("m", 0.0)
+    explorer.set("recuperator_length", 0.2)
+    explorer.set("recuperator_force", 100.0)
+    assert explorer.cards["recuperator"].title == "Gas recuperator (on)"
+    assert "bottomed out" in explorer.message.object
+    assert "no peaks: the solve failed" in explorer.peaks_pane.object
+    assert "within the limit" not in explorer.peaks_pane.object and not explorer.bars.data["name"]
 
 
 # Waits, in the page, until the element with this id (inside any shadow root) shows the
@@ -97,6 +117,7 @@ def test_explorer_page_in_headless_chromium():
             "--port",
             str(port),
             "--no-browser",
+            "--no-cache",  # a new structure compiles for seconds: the spinner shows
         ],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
@@ -134,12 +155,30 @@ def test_explorer_page_in_headless_chromium():
                 )
                 assert page.locator("#peak_anchoring_force").inner_text() == expected
 
-            field.fill("-1")
-            field.press("Enter")
-            message = page.locator(".error")
-            message.wait_for(timeout=30_000)
-            assert "Absorber.gap = -1 m is invalid" in message.inner_text()
+            # A bad value: its message right under the field, the peaks gone.
+            for typed, message in (("-1", "Absorber.gap = -1 m is invalid"),
+                                   ("abc", "gap = 'abc' is not a number")):  # fmt: skip
+                field.fill(typed)
+                field.press("Enter")
+                page.locator(".error-gap .error", has_text=message).wait_for(timeout=30_000)
+                assert page.locator("#peak_anchoring_force").count() == 0
             assert "Traceback" not in page.content()
+            field.fill("0.062")
+            field.press("Enter")
+            force.wait_for(timeout=30_000)
+            # A new structure (the recuperator on) compiles for seconds: a spinner shows
+            # at once; then a failed solve says why, with no peaks.
+            page.get_by_text("Gas recuperator (off: recuperator_force = 0)").click()
+            page.locator(".field-recuperator_length input").fill("0.15")  # 0.95 L_r < 0.175 m
+            page.locator(".field-recuperator_length input").press("Enter")
+            force.wait_for(timeout=60_000)
+            recuperator = page.locator(".field-recuperator_force input")
+            recuperator.fill("100")
+            recuperator.press("Enter")
+            page.locator(".pn-loading").first.wait_for(timeout=5_000)
+            page.get_by_text("compiling the program of this structure").wait_for(timeout=5_000)
+            page.get_by_text("no peaks: the solve failed").wait_for(timeout=120_000)
+            page.locator(".message .error", has_text="bottomed out").wait_for(timeout=5_000)
             browser.close()
     finally:
         server.terminate()

@@ -1,11 +1,11 @@
 """`recoil-jax explore`: a live design explorer (Panel, Bokeh plots).
 
-A number field for every parameter, grouped by part (the barrel, the absorber and its
-contact, the breech load, the throttling orifice, the gas recuperator; a part is off at
-its "none" value: m = 0, piston_area = 0, recuperator_force = 0), limits on the travels,
-and four views that follow every change: the displacements x_M and x_m, the forces F_AN
-and F_ct against time, the peaks against their limits, and the gradient of the peak
-anchoring force as bars ("which knob matters here"). One compiled program per model
+A field for every parameter, grouped by part (the barrel, the absorber and its contact,
+the breech load, the throttling orifice, the gas recuperator; a part is off at its "none"
+value: m = 0, piston_area = 0, recuperator_force = 0), limits on the travels, and views
+that follow every change: the displacements x_M and x_m, the anchoring and the contact
+force against time (each on its axis), the peaks against their limits, and the gradient
+of the peak anchoring force as bars ("which knob matters here"). One compiled program per model
 structure (which parts are on) computes the history, the peaks and the gradient; after
 its first run an update takes milliseconds. It runs in a notebook (`explorer()`) and as
 a page (`recoil-jax explore`).
@@ -14,6 +14,7 @@ a page (`recoil-jax explore`).
 from __future__ import annotations
 
 import html
+import re
 import time
 from typing import Any
 
@@ -23,19 +24,25 @@ import numpy as np
 
 import recoil_jax as rj
 
+from ._inputs import parse_assignments
+
 __all__ = ["EXPLORER_KNOTS", "Explorer", "explorer", "main_explore"]
 
 #: Orifice knots the explorer offers (when `piston_area > 0`).
 EXPLORER_KNOTS = 4
 
-_GROUP_TITLES = {
-    "barrel": "Barrel and recoil system",
-    "absorber": "Absorber (m = 0: none)",
-    "contact": "Contact",
-    "load": "Breech load (pulse_time = 0: impulse)",
-    "buffer": "Throttling orifice (piston_area = 0: none)",
-    "recuperator": "Gas recuperator (recuperator_force = 0: none)",
+#: Each part's card: its title, and what turns it off (None: always on).
+_GROUPS = {
+    "barrel": ("Barrel and recoil system", None),
+    "absorber": ("Absorber", "m = 0"),
+    "contact": ("Contact", "m = 0"),
+    "load": ("Breech load", None),
+    "buffer": ("Throttling orifice", "piston_area = 0"),
+    "recuperator": ("Gas recuperator", "recuperator_force = 0"),
 }
+
+#: The sidebar's width (px): every card takes all of it.
+_SIDEBAR = 330
 
 # Drawn points per history: enough for the plots, few enough to send at once.
 _POINTS = 800
@@ -64,7 +71,13 @@ def _tuned(values: dict[str, float]) -> tuple[str, ...]:
 
 class Explorer:
     """The explorer's state and views. `panel()` is the layout; `set(name, value)` and
-    `update()` drive it from code (the tests do)."""
+    `update()` drive it from code (the tests do).
+
+    Each field is text, read as the command line reads `name=value` (so `abc` and `nan`
+    are refused with the command line's message); an invalid field shows its message
+    right under it, in its card, and the views are cleared until it is fixed. A failed
+    solve (a bottomed-out recuperator) shows why instead of peaks and gradient bars. While
+    a new structure compiles (about 20 s the first time), the views show a spinner."""
 
     def __init__(self, values: dict[str, float] | None = None, duration: float = 2.0):
         import panel as pn
@@ -77,24 +90,33 @@ class Explorer:
         defaults |= {f"orifice_{i}": 4e-4 for i in range(EXPLORER_KNOTS)}
         defaults |= {k: float(np.asarray(v)) for k, v in start.items()}
         self.fields: dict[str, Any] = {}
+        self.field_errors: dict[str, Any] = {}
         for name, value in defaults.items():
             parameter = rj.PARAMETERS[name]
             unit = f" ({parameter.unit})" if parameter.unit else ""
             low, high = parameter.documented or (None, None)
-            widget = (
-                pn.widgets.IntInput(label=name + unit, value=int(value), start=1)
-                if parameter.integer
-                else pn.widgets.FloatInput(label=name + unit, value=value, format="0.[000000]")
+            text = f"{int(value)}" if parameter.integer else f"{value:.8g}"
+            widget = pn.widgets.TextInput(
+                label=name + unit, value=text, sizing_mode="stretch_width"
             )
             widget.description = f"{parameter.meaning}; documented {low:g} to {high:g}"
             widget.css_classes = [f"field-{name}"]
             widget.param.watch(lambda event: self.update(), "value")
             self.fields[name] = widget
-        self.duration = pn.widgets.FloatInput(label="shown time (s)", value=duration, start=0.01)
+            self.field_errors[name] = pn.pane.HTML(
+                "", css_classes=[f"error-{name}"], sizing_mode="stretch_width", margin=(0, 10)
+            )
+        self.duration = pn.widgets.FloatInput(
+            label="shown time (s)", value=duration, start=0.01, sizing_mode="stretch_width"
+        )
         self.duration.param.watch(lambda event: self.update(), "value")
         self.limits = {
-            "peak_displacement": pn.widgets.FloatInput(label="barrel travel limit (m)", value=0.25),
-            "max_stroke": pn.widgets.FloatInput(label="absorber travel limit (m)", value=0.15),
+            "peak_displacement": pn.widgets.FloatInput(
+                label="barrel travel limit (m)", value=0.25, sizing_mode="stretch_width"
+            ),
+            "max_stroke": pn.widgets.FloatInput(
+                label="absorber travel limit (m)", value=0.15, sizing_mode="stretch_width"
+            ),
         }
         for widget in self.limits.values():
             widget.param.watch(lambda event: self.update(), "value")
@@ -103,7 +125,7 @@ class Explorer:
         self.force = ColumnDataSource({"t": [], "F_AN": [], "F_ct": []})
         self.bars = ColumnDataSource({"name": [], "change": []})
         plot: dict[str, Any] = dict(
-            height=260, sizing_mode="stretch_width", tools="pan,wheel_zoom,reset"
+            height=230, sizing_mode="stretch_width", tools="pan,wheel_zoom,reset"
         )
         self.motion_plot = figure(
             title="displacements", x_axis_label="time (s)", y_axis_label="displacement (mm)", **plot
@@ -119,24 +141,23 @@ class Explorer:
             color="darkorange",
             line_width=2,
         )
+        # The anchoring force (kN) and the contact force (tens of kN) each on its axis.
         self.force_plot = figure(
-            title="forces",
+            title="anchoring force into the mounting",
             x_axis_label="time (s)",
-            y_axis_label="force (kN)",
+            y_axis_label="F_AN (kN)",
             x_range=self.motion_plot.x_range,
             **plot,
         )
-        self.force_plot.line(
-            "t",
-            "F_AN",
-            source=self.force,
-            legend_label="anchoring F_AN",
-            color="black",
-            line_width=2,
+        self.force_plot.line("t", "F_AN", source=self.force, color="black", line_width=2)
+        self.contact_plot = figure(
+            title="contact force between barrel and absorber",
+            x_axis_label="time (s)",
+            y_axis_label="F_ct (kN)",
+            x_range=self.motion_plot.x_range,
+            **plot,
         )
-        self.force_plot.line(
-            "t", "F_ct", source=self.force, legend_label="contact F_ct", color="firebrick"
-        )
+        self.contact_plot.line("t", "F_ct", source=self.force, color="firebrick", line_width=2)
         self.bar_range = FactorRange()
         self.bar_plot = figure(
             title="peak anchoring force: change for +1 % of each parameter",
@@ -153,40 +174,87 @@ class Explorer:
         self.message = pn.pane.HTML("", css_classes=["message"])
         self.timing = pn.pane.HTML("", css_classes=["timing"])
         self.update_ms: float | None = None
-        self.update()
+        groups: dict[str, list] = {}
+        for name, widget in self.fields.items():
+            groups.setdefault(rj.PARAMETERS[name].group, []).extend(
+                [widget, self.field_errors[name]]
+            )
+        self.cards = {
+            group: pn.Card(
+                *widgets,
+                title=_GROUPS[group][0],
+                collapsed=group not in ("barrel", "absorber"),
+                sizing_mode="stretch_width",
+            )
+            for group, widgets in groups.items()
+        }
+        self.views = pn.Column(
+            self.message,
+            self.peaks_pane,
+            self.timing,
+            self.motion_plot,
+            self.force_plot,
+            self.contact_plot,
+            self.bar_plot,
+            sizing_mode="stretch_width",
+        )
+        self._structure: tuple | None = None
+        self._update(time.perf_counter())
 
     def values(self) -> dict[str, float]:
         """The design the fields describe, by flat name, without the parts that are off
-        (so that it is the design `simulate` builds from the same items)."""
-        values = {name: widget.value for name, widget in self.fields.items()}
-        off = {
-            "absorber": not values.get("m"),
-            "contact": not values.get("m"),
-            "load": values.get("pulse_time") == 0 and values.get("shots") == 1,
-            "buffer": not values.get("piston_area"),
-            "recuperator": not values.get("recuperator_force"),
-        }
+        (so that it is the design `simulate` builds from the same items). Raises
+        `ParameterError` (naming the field) for a field that is not a number."""
+        values = parse_assignments([f"{name}={w.value}" for name, w in self.fields.items()])
         return {
             name: value
             for name, value in values.items()
-            if name == "m" or not off.get(rj.PARAMETERS[name].group, False)
+            if name == "m" or not _off(values).get(rj.PARAMETERS[name].group, False)
         }
 
-    def set(self, name: str, value: float) -> None:
+    def set(self, name: str, value: float | str) -> None:
         """Set one field (and so update the views)."""
-        self.fields[name].value = value
+        self.fields[name].value = str(value)
 
     def update(self) -> None:
+        """Recompute and redraw. On a page, a design of a new structure first shows a
+        spinner (sent at once), then compiles."""
         start = time.perf_counter()
-        # One message to the page for all the views' changes.
-        with self.pn.io.hold():
+        document = self.pn.state.curdoc
+        served = document is not None and document.session_context is not None
+        if served and document is not None and self._new_structure():
+            # After a pause, so that the page has the spinner before the compilation
+            # holds the server's event loop (a next-tick callback runs before the send).
+            self.views.loading = True
+            self.message.object = (
+                '<div class="busy">compiling the program of this structure (once per '
+                "structure, seconds)...</div>"
+            )
+            document.add_timeout_callback(lambda: self._update(start), 100)
+        else:
             self._update(start)
 
+    def _new_structure(self) -> bool:
+        try:
+            return _structure(self.values()) != self._structure
+        except rj.ParameterError:
+            return False
+
     def _update(self, start: float) -> None:
+        # One message to the page for all the views' changes.
+        with self.pn.io.hold():
+            try:
+                self._compute_and_show(start)
+            finally:
+                self.views.loading = False
+
+    def _compute_and_show(self, start: float) -> None:
+        for pane in self.field_errors.values():
+            pane.object = ""
+        self.message.object = ""
         try:
             values = self.values()
-            if any(v is None for v in values.values()):
-                raise rj.ParameterError("every field needs a number")
+            self._titles(values)
             params = rj.params_from_values(values)
             duration = self.duration.value
             if not duration or duration <= 0:
@@ -194,18 +262,10 @@ class Explorer:
             wrt = _tuned(values)
             ts = jnp.linspace(0.0, float(duration), _POINTS)
             history, peaks, gradient = _compute(params, ts, wrt)
+            self._structure = _structure(values)
         except rj.ParameterError as error:
-            self.message.object = (
-                f'<div class="error" style="color:#b00020">{html.escape(str(error))}</div>'
-            )
+            self._show_error(str(error))
             return
-        failed = not bool(np.all(peaks.status == rj.Status.ok))
-        note = rj.status_messages(peaks.status)[0] if failed else ""
-        self.message.object = (
-            f'<div class="error" style="color:#b00020">solver: {html.escape(note)}</div>'
-            if failed
-            else ""
-        )
         t = np.asarray(history.ts)
         self.motion.data = {
             "t": t,
@@ -217,14 +277,55 @@ class Explorer:
             "F_AN": 1e-3 * np.asarray(history.anchoring_force),
             "F_ct": 1e-3 * np.asarray(history.contact_force),
         }
-        change = np.asarray(gradient) * np.asarray([values[name] for name in wrt]) * 0.01
-        order = np.argsort(np.abs(change))
-        names = [wrt[i] for i in order]
-        self.bar_range.factors = names
-        self.bars.data = {"name": names, "change": change[order]}
-        self.peaks_pane.object = self._peaks_html(peaks.to_dict())
+        if not bool(np.all(peaks.status == rj.Status.ok)):
+            # No peaks, limits or gradient of a solve that did not finish.
+            note = html.escape(rj.status_messages(peaks.status)[0])
+            self.message.object = f'<div class="error" style="color:#b00020">solver: {note}</div>'
+            self.peaks_pane.object = (
+                f'<div class="failed">no peaks: the solve failed ({note})</div>'
+            )
+            self.bar_range.factors = []
+            self.bars.data = {"name": [], "change": []}
+        else:
+            change = np.asarray(gradient) * np.asarray([values[name] for name in wrt]) * 0.01
+            order = np.argsort(np.abs(change))
+            names = [wrt[i] for i in order]
+            self.bar_range.factors = names
+            self.bars.data = {"name": names, "change": change[order]}
+            self.peaks_pane.object = self._peaks_html(peaks.to_dict())
         self.update_ms = 1e3 * (time.perf_counter() - start)
         self.timing.object = f'<span class="update-ms">updated in {self.update_ms:.1f} ms</span>'
+
+    def _show_error(self, message: str) -> None:
+        """The message under the field it names (its card opened), else above the views;
+        the views are cleared: they would show a design the fields no longer describe."""
+        text = f'<div class="error" style="color:#b00020">{html.escape(message)}</div>'
+        named = [
+            (found.start(), name)
+            for name in self.fields
+            if (found := re.search(rf"(?<![\w<])({re.escape(name)})(?![\w>])", message))
+        ]
+        if named:
+            name = min(named)[1]
+            self.field_errors[name].object = text
+            self.cards[rj.PARAMETERS[name].group].collapsed = False
+        else:
+            self.message.object = text
+        self.motion.data = {"t": [], "x_M": [], "x_m": []}
+        self.force.data = {"t": [], "F_AN": [], "F_ct": []}
+        self.bar_range.factors = []
+        self.bars.data = {"name": [], "change": []}
+        self.peaks_pane.object = '<div class="failed">no results until the design is valid</div>'
+        self.timing.object = ""
+
+    def _titles(self, values: dict[str, float]) -> None:
+        """Each card says whether its part is on, and what turns it off."""
+        off = _off(values)
+        for group, card in self.cards.items():
+            title, switch = _GROUPS[group]
+            if switch is not None:
+                title += f" (off: {switch})" if off[group] else " (on)"
+            card.title = title
 
     def _peaks_html(self, peaks: dict) -> str:
         rows = []
@@ -248,30 +349,38 @@ class Explorer:
         return "<table>" + "".join(rows) + f"</table><small>status: {peaks['status']}</small>"
 
     def panel(self):
-        """The layout: fields on the left (one card per part), views on the right."""
+        """The layout: a heading; fields on the left (one card per part, each as wide as
+        the sidebar), views on the right."""
         pn = self.pn
-        groups: dict[str, list] = {}
-        for name, widget in self.fields.items():
-            groups.setdefault(rj.PARAMETERS[name].group, []).append(widget)
-        cards = [
-            pn.Card(
-                *widgets,
-                title=_GROUP_TITLES.get(group, group),
-                collapsed=group not in ("barrel", "absorber"),
-            )
-            for group, widgets in groups.items()
-        ]
-        sidebar = pn.Column(self.duration, *self.limits.values(), *cards, width=320)
-        views = pn.Column(
-            self.message,
-            self.peaks_pane,
-            self.timing,
-            self.motion_plot,
-            self.force_plot,
-            self.bar_plot,
+        sidebar = pn.Column(
+            self.duration, *self.limits.values(), *self.cards.values(), width=_SIDEBAR
+        )
+        heading = pn.pane.Markdown(
+            "## recoil-jax design explorer\n"
+            "Type a value and press Enter: the histories, the peaks and the gradient follow.",
             sizing_mode="stretch_width",
         )
-        return pn.Row(sidebar, views, sizing_mode="stretch_width")
+        return pn.Column(
+            heading, pn.Row(sidebar, self.views, sizing_mode="stretch_width"),
+            sizing_mode="stretch_width",
+        )  # fmt: skip
+
+
+def _off(values: dict[str, float]) -> dict[str, bool]:
+    """Which parts the values turn off."""
+    return {
+        "absorber": not values.get("m"),
+        "contact": not values.get("m"),
+        "load": values.get("pulse_time") == 0 and values.get("shots") == 1,
+        "buffer": not values.get("piston_area"),
+        "recuperator": not values.get("recuperator_force"),
+    }
+
+
+def _structure(values: dict[str, float]) -> tuple:
+    """What decides the compiled program: which parts are on, and the counts."""
+    off = _off(values)
+    return (*sorted(k for k, v in off.items() if not v), values.get("shots"))
 
 
 def explorer(values: dict[str, float] | None = None, duration: float = 2.0):
