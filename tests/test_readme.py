@@ -1,20 +1,25 @@
-"""The README's Python example runs and prints what it says."""
+"""The README's Python example runs and prints what it says, and so do the guide's pages
+that continue it (their blocks run in order, in one namespace)."""
 
 import re
 from pathlib import Path
 
 import pytest
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+#: The pages whose Python blocks continue the README's example, in order.
+PAGES = [README, ROOT / "docs" / "python.md", ROOT / "docs" / "tuning.md"]
 
 
 @pytest.mark.slow
 def test_readme_python_example_runs(capsys):
-    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
-    assert blocks
     namespace = {}
-    for block in blocks:
-        exec(compile(block, str(README), "exec"), namespace)
+    for page in PAGES:
+        blocks = re.findall(r"```python\n(.*?)```", page.read_text(), flags=re.S)
+        assert blocks, page
+        for block in blocks:
+            exec(compile(block, str(page), "exec"), namespace)
     printed = capsys.readouterr().out.split()
     assert float(printed[0]) == pytest.approx(5514.05, abs=0.01)
     assert float(printed[1]) == pytest.approx(0.183827, abs=1e-6)
