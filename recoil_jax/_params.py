@@ -73,7 +73,7 @@ class Limits:
     """Unit, valid range and documented range of one scalar.
 
     `lower`/`upper` bound the *valid* domain (values outside raise `ParameterError`);
-    `documented` is the range over which accuracy is tested (see the README).
+    `documented` is the range over which accuracy is tested (`docs/numerics.md`).
     """
 
     unit: str

@@ -427,7 +427,7 @@ def test_gradients_of_the_new_parameters_match_finite_differences():
     """|g − g_FD| · (documented range) / |peak| <= 1e-4 for every new parameter, over
     20 designs (with and without an absorber, 1-3 rounds of pulses, 3 knots, a
     recuperator), against central differences at rtol 1e-12, with the gradients at rtol
-    1e-9 (at `GRADIENT_OPTIONS`, rtol 1e-7, the worst is larger: README). The orifice's
+    1e-9 (at `GRADIENT_OPTIONS`, rtol 1e-7, the worst is larger: docs/accuracy.md). The orifice's
     knots are smoothed over 5 % of their spacing here: with the default 0.01 %, a peak
     that sits on a knot's corner curves too sharply for central differences to follow
     (the sensitivities themselves are exact for either)."""
@@ -508,7 +508,7 @@ def test_every_new_parameter_is_differentiable_everywhere_it_is_used():
     wrt = ("fire_interval", "pulse_time", "orifice_1")
     intervals = [0.5, 0.8]
     # At rtol 1e-9: the sensitivity to a pulse's firing time swings far above what it
-    # settles to during the pulse, and at GRADIENT_OPTIONS keeps ~1e-3 of it (README).
+    # settles to during the pulse, and at GRADIENT_OPTIONS keeps ~1e-3 of it (docs/accuracy.md).
     options = rj.SolverOptions(rtol=1e-9, atol=1e-12)
     swept = rj.sweep(
         [base | {"fire_interval": f} for f in intervals], wrt=wrt, options=options, progress=False
