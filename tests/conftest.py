@@ -6,12 +6,25 @@ import pytest
 
 import recoil_jax  # enables float64 before any test builds arrays
 
-# The command line keeps compiled programs on disk; in-process CLI tests must not turn
-# that on for the whole test session (or write to the user's cache). Tests of the cache
-# set it per subprocess.
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared"
+
+# The command line keeps compiled programs on disk; in-process CLI tests must not write
+# to the user's cache. Tests of the cache set it per subprocess.
 os.environ["RECOIL_JAX_CACHE"] = "off"
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+# One persistent compilation cache for the test session and every process it starts
+# (notebook kernels, commands, the explorer, xdist's workers): the modules and processes
+# solve the same structures, and a program compiled once is loaded after that. A fresh
+# clone (CI) starts it empty; `RECOIL_JAX_TEST_CACHE` names another folder, `off` none.
+_TEST_CACHE = os.environ.setdefault(
+    "RECOIL_JAX_TEST_CACHE", str(ROOT / ".pytest_cache" / "jax-compilation")
+)
+if _TEST_CACHE.lower() != "off":
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = _TEST_CACHE
+    os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+    os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
+    recoil_jax.enable_compilation_cache(_TEST_CACHE)
 
 
 @pytest.fixture(scope="session")

@@ -111,6 +111,7 @@ def _cache_entries(folder: Path) -> set[str]:
     return {p.name for p in folder.rglob("*") if p.is_file()}
 
 
+@pytest.mark.slow  # five processes, each starting JAX and compiling or loading its solve
 @pytest.mark.skipif(_console_script() is None, reason="console script not installed")
 def test_compilation_cache_makes_a_repeated_command_compile_nothing(tmp_path):
     """The first `simulate` writes its compiled (and exported) programs to the cache
