@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import all_ok, batch_params, batch_peaks
+from conftest import all_ok, batch_params
 
 import recoil_jax as rj
 
@@ -40,10 +40,6 @@ GRADIENT_DESIGNS = (
 NO_IMPACT = slice(18, 24)
 
 
-def _metric_array(peaks):
-    return np.stack([np.asarray(getattr(peaks, m)) for m in METRICS], axis=-1)
-
-
 @pytest.fixture(scope="module")
 def jacobians():
     run = eqx.filter_jit(jax.vmap(rj.peak_gradients, in_axes=(0, None, None, None)))
@@ -58,20 +54,26 @@ def test_gradients_match_finite_differences(jacobians):
     m, k_r, c_r; central differences (second-order one-sided at gap = 0) at rtol 1e-12."""
     _, grads = jacobians  # grads: (design, metric, parameter)
     tight = rj.SolverOptions(rtol=1e-12, atol=1e-15, max_steps=200_000)
-    base = _metric_array(batch_peaks(GRADIENT_DESIGNS, options=tight))
+    # The designs, then per parameter the designs moved by +h, -h (0 where that would
+    # leave the range) and +2h, all in one sweep.
+    offsets = (1.0, -1.0, 2.0)
+    designs = list(GRADIENT_DESIGNS)
+    for name in DESIGN:
+        h = 1e-6 * rj.parameter_scale(name)
+        for offset in offsets:
+            for d in GRADIENT_DESIGNS:
+                value = d.get(name, DEFAULTS[name])
+                step = 0.0 if (value - h < 0 and offset == -1.0) else offset
+                designs.append({**d, name: value + step * h})
+    solved = rj.sweep(designs, options=tight, progress=False)
+    assert np.all(solved.ok)
+    n = len(GRADIENT_DESIGNS)
+    blocks = np.stack([solved.peaks[m] for m in METRICS], axis=-1).reshape(-1, n, len(METRICS))
+    base = blocks[0]
     for j, name in enumerate(DESIGN):
         scale = rj.parameter_scale(name)
         h = 1e-6 * scale
-        shifted = []
-        for offset in (1.0, -1.0, 2.0):
-            designs = []
-            for d in GRADIENT_DESIGNS:
-                value = d.get(name, DEFAULTS[name])
-                one_sided = value - h < 0
-                step = offset if not (one_sided and offset == -1.0) else 0.0
-                designs.append({**d, name: value + step * h})
-            shifted.append(_metric_array(batch_peaks(designs, options=tight)))
-        up, down, up2 = shifted
+        up, down, up2 = blocks[1 + len(offsets) * j : 1 + len(offsets) * (j + 1)]
         one_sided = np.array([d.get(name, DEFAULTS[name]) - h < 0 for d in GRADIENT_DESIGNS])
         central = (up - down) / (2 * h)
         forward = (-3 * base + 4 * up - up2) / (2 * h)
@@ -157,13 +159,15 @@ def _random_designs(count, seed):
 @pytest.mark.slow
 def test_values_and_gradients_finite_over_1000_random_designs():
     designs = _random_designs(1000, seed=3)
-    run = eqx.filter_jit(jax.vmap(rj.peak_gradients, in_axes=(0, None, None, None)))
     # every parameter of the paper's model (the hardware groups have their own tests)
     wrt = tuple(n for n, p in rj.PARAMETERS.items() if p.group in ("barrel", "absorber", "contact"))
-    peaks, grads = run(batch_params(designs), rj.Smoothing(), rj.SolverOptions(), wrt)
-    assert all_ok(peaks.status)
-    for leaf in jax.tree.leaves((peaks, grads)):
-        assert np.all(np.isfinite(np.asarray(leaf)))
+    # Through the sweep's queued lanes: each design takes its own steps (a plain vmap
+    # steps every lane until the slowest design ends).
+    result = rj.sweep(designs, wrt=wrt, options=rj.SolverOptions(), progress=False)
+    assert np.all(result.ok), result.failures()[:5]
+    for values in (result.peaks, *result.gradients.values()):
+        for name, value in values.items():
+            assert np.all(np.isfinite(value)), name
 
 
 def test_smooth_maximum_stops_early_without_changing_value_or_gradient(monkeypatch):
