@@ -71,7 +71,8 @@ def all_ok(status) -> bool:
 # solver program, measured), and Linux allows a process 65,530 of them
 # (`vm.max_map_count`): past that, LLVM cannot place new code and the process aborts or
 # segfaults. One process compiles hundreds of programs in the full suite, so compiled code
-# is dropped after each module, and after any test that leaves the count high.
+# is dropped after any test that leaves the count high (not after each module: a later
+# module traces again what an earlier one had, measured slower).
 _MAX_MAPPINGS = 30_000
 
 
@@ -81,14 +82,6 @@ def _mappings() -> int:
             return sum(1 for _ in maps)
     except OSError:  # not Linux
         return 0
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _release_compiled_code_per_module():
-    yield
-    import jax
-
-    jax.clear_caches()
 
 
 @pytest.fixture(autouse=True)
