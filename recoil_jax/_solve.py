@@ -178,7 +178,8 @@ class History(eqx.Module):
     - `forces`: every force of the design (`Forces`: spring, damper, buffer, recuperator,
       breech, coupling, contact; `None` for elements it does not have), shape `(n,)` each.
     - `peaks`: the `Peaks` of the same solve, over all of `[0, t1]`.
-    - `status` (a `Status`) says whether the solve reached `t1`.
+    - `status` (a `Status`) says whether the solve reached `t1`; if it stopped early
+      (`simulate(..., throw=False)`), the times after it stopped are NaN.
     """
 
     ts: jax.Array

@@ -204,7 +204,9 @@ class PeakLoop:
         metric0, rate0 = self._metric_and_rate(names, z0, f0, args)
         saved = save_index = None
         if save_ts is not None:
-            saved = jnp.zeros((save_ts.shape[0], *z0.shape), z0.dtype)
+            # NaN until written: a solve that stops early leaves the later times NaN,
+            # not zeros that read as a state.
+            saved = jnp.full((save_ts.shape[0], *z0.shape), jnp.nan, z0.dtype)
             saved, save_index = _write_saves(save_ts, saved, jnp.array(0), t0, lambda t: z0)
         return _Carry(
             t=t0,

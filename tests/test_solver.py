@@ -91,6 +91,14 @@ def test_failed_solve_is_reported_not_truncated():
         rj.peaks(params, options=options)
     with pytest.raises(rj.SolveError, match="max_steps"):
         rj.simulate(params, options=options)
+    # Without raising, a history says where it stopped: NaN after, never zeros.
+    history = rj.simulate(params, options=options, ts=jnp.linspace(0.0, 2.0, 201), throw=False)
+    assert bool(history.status == rj.Status.max_steps)
+    x = np.asarray(history.x_M)
+    reached = np.isfinite(x)
+    assert reached[0] and not reached[-1] and 0.0 in x[reached]
+    assert np.all(np.diff(reached.astype(int)) <= 0)  # finite, then NaN to the end
+    assert np.all(np.isnan(np.asarray(history.anchoring_force)[~reached]))
     with pytest.raises(rj.SolveError, match="max_steps"):
         rj.peak_jacobian(params, options=options)
     # In a batch, each point carries its own status.

@@ -192,7 +192,8 @@ def plot_series(
     designs); `minima` (a unit, e.g. `"N"`) marks each series' lowest point and gives
     it in the legend, in the series' units. `colour_by = (label, values)`, one value per
     series: lines coloured on a scale with a colour bar instead of a legend (used from
-    `LEGEND_LINES` lines on, which a legend cannot tell apart)."""
+    `LEGEND_LINES` lines on, which a legend cannot tell apart; the minima are then
+    marked only)."""
     fig, ax = plt.subplots(figsize=(8, 4.5))
     if ylim is not None:
         ax.set_ylim(yscale * ylim[0], yscale * ylim[1])
@@ -210,7 +211,8 @@ def plot_series(
         colour = None if colours is None else colours[k]
         (line,) = ax.plot(x, y, marker="o" if markers else None, ms=4, label=label, color=colour)
         if minima is not None and np.any(np.isfinite(y)):
-            ax.plot([x[i]], [y[i]], "v", color=line.get_color(), ms=8)  # pyright: ignore
+            # Edged in black: in the line's own colour it vanishes into the line.
+            ax.plot([x[i]], [y[i]], "v", color=line.get_color(), mec="k", mew=0.8, ms=7)  # pyright: ignore
     if mark is not None:
         x, y, text = mark
         ax.plot([xscale * x], [yscale * y], "ko")
@@ -368,7 +370,7 @@ def plot_convergence(result, path, title: str = "") -> Path:
         for r in range(worst.shape[1]):
             ax.plot(steps, np.maximum(worst[:, r], 1e-7), lw=0.8, alpha=0.6)
         ax.set_yscale("log")
-        ax.set_ylabel("worst limit violation (relative)")
+        ax.set_ylabel("worst limit violation (relative;\nheld: drawn at 1e-7)")
         ax.grid(alpha=0.3)
     axes[-1, 0].set_xlabel("step")
     if title:

@@ -178,7 +178,7 @@ def write_figures(result: rj.SweepResult, out: Path) -> list[Path]:
                     ylabel=label,
                     xscale=1e3,
                     title=label + " vs gap (▼ lowest of each line, gap in mm)",
-                    minima=None if many else rj.METRICS[name].unit,
+                    minima=rj.METRICS[name].unit,  # in the legend, or just marked
                     colour_by=(_axis(other[0])[0], values) if many else None,
                 )
             )
