@@ -41,6 +41,14 @@ def test_simulate_simplified_and_hard(capsys):
     out = _run_json(capsys, "m=0")
     assert out["peak_displacement_m"] == pytest.approx(0.221477, rel=1e-5)
     assert out["peak_contact_force_N"] == 0.0
+    # The text lists what the design has: no contact or stroke rows without an absorber.
+    assert main(["simulate", "m=0"]) == 0
+    text = capsys.readouterr().out
+    assert "peak anchoring force" in text and "0.221477 m" in text
+    assert "contact" not in text and "stroke" not in text
+    assert main(["simulate", "m=1000", "gap=0.059"]) == 0
+    text = capsys.readouterr().out
+    assert "peak contact force" in text and "absorber stroke" in text
     hard = _run_json(capsys, "m=500", "gap=0", "--hard", "t1=2")
     assert hard["model"] == "hard" and hard["parameters"]["t1"] == 2.0
     assert hard["peak_anchoring_force_N"] == pytest.approx(6661.40, rel=1e-5)

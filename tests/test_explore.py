@@ -73,7 +73,11 @@ def test_explorer_shows_simulate_numbers_and_errors():
     assert explorer.cards["recuperator"].title == "Gas recuperator (on)"
     assert "bottomed out" in explorer.message.object
     assert "no peaks: the solve failed" in explorer.peaks_pane.object
+    assert "bottomed out" not in explorer.peaks_pane.object  # the reason said once
     assert "within the limit" not in explorer.peaks_pane.object and not explorer.bars.data["name"]
+    # The histories end where the solve stopped (NaN after it, drawn as nothing).
+    x = np.asarray(explorer.motion.data["x_M"])
+    assert np.isfinite(x[0]) and np.isnan(x[-1])
 
 
 # Waits, in the page, until the element with this id (inside any shadow root) shows the

@@ -66,7 +66,10 @@ def _simulate(args) -> int:
             )
         metrics = rj.METRICS
         rows = []
-        for name in ("peak_displacement", "peak_anchoring_force", "peak_contact_force"):
+        # Without an absorber there is no contact and no stroke to print (zeros).
+        absorber = params.absorber is not None
+        shown = ("peak_displacement", "peak_anchoring_force")
+        for name in shown + (("peak_contact_force",) if absorber else ()):
             m = metrics[name]
             digits = 6 if m.unit == "m" else 2
             rows.append(
@@ -77,14 +80,10 @@ def _simulate(args) -> int:
                 )
             )
         low, high = metrics["min_stroke"], metrics["max_stroke"]
-        rows += [
-            (
-                "absorber stroke x_m - x_M",
-                f"{result[low.key]:+.4f} .. {result[high.key]:+.4f} m",
-                "",
-            ),
-            ("solver steps", f"{result['num_steps']}", ""),
-        ]
+        if absorber:
+            stroke = f"{result[low.key]:+.4f} .. {result[high.key]:+.4f} m"
+            rows.append(("absorber stroke x_m - x_M", stroke, ""))
+        rows.append(("solver steps", f"{result['num_steps']}", ""))
         for name, value, when in rows:
             print(f"  {name:28s} {value:>22s}  {when}")
     if plot is not None:

@@ -281,9 +281,8 @@ class Explorer:
             # No peaks, limits or gradient of a solve that did not finish.
             note = html.escape(rj.status_messages(peaks.status)[0])
             self.message.object = f'<div class="error" style="color:#b00020">solver: {note}</div>'
-            self.peaks_pane.object = (
-                f'<div class="failed">no peaks: the solve failed ({note})</div>'
-            )
+            # The reason is in the message above: said once.
+            self.peaks_pane.object = '<div class="failed">no peaks: the solve failed</div>'
             self.bar_range.factors = []
             self.bars.data = {"name": [], "change": []}
         else:
