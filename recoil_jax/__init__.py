@@ -14,7 +14,12 @@ import jax as _jax
 # (Set before the submodules import, hence E402 below.)
 _jax.config.update("jax_enable_x64", True)
 
-from ._cache import enable_compilation_cache as enable_compilation_cache
+from ._cache import (
+    enable_compilation_cache as enable_compilation_cache,
+    live_programs as live_programs,
+    set_max_programs as set_max_programs,
+    structure_jit as structure_jit,
+)
 from ._design import differentiable_peaks as differentiable_peaks
 from ._gradients import (
     DESIGN_PARAMETERS as DESIGN_PARAMETERS,
@@ -39,6 +44,7 @@ from ._metrics import (
     Metric as Metric,
     PeakGradients as PeakGradients,
     Peaks as Peaks,
+    gradient_key as gradient_key,
 )
 from ._model import Forces as Forces
 from ._optimise import (
@@ -106,6 +112,10 @@ from ._status import (
     status_codes as status_codes,
     status_messages as status_messages,
     status_table as status_table,
+)
+from ._store import (
+    CampaignProgress as CampaignProgress,
+    campaign_progress as campaign_progress,
 )
 from ._sweep import (
     SweepResult as SweepResult,

@@ -1,4 +1,5 @@
-"""JAX's persistent compilation cache, in the user's cache directory.
+"""Compiled programs: JAX's persistent compilation cache, in the user's cache directory,
+and the bounded set of programs a process keeps in memory.
 
 A compiled solve takes seconds to build and milliseconds to run; with the cache on, a
 second process that runs the same program (the same `recoil-jax simulate`, `sweep` or
@@ -7,13 +8,27 @@ second process that runs the same program (the same `recoil-jax simulate`, `swee
 
 from __future__ import annotations
 
+import collections
+import functools
 import os
+import threading
 from pathlib import Path
+from typing import Any
 
+import equinox as eqx
 import jax
 from jax.experimental.compilation_cache import compilation_cache
 
-__all__ = ["CACHE_ENVIRONMENT", "compilation_cache_dir", "enable_compilation_cache"]
+from ._params import ParameterError, is_concrete
+
+__all__ = [
+    "CACHE_ENVIRONMENT",
+    "compilation_cache_dir",
+    "enable_compilation_cache",
+    "live_programs",
+    "set_max_programs",
+    "structure_jit",
+]
 
 #: Environment variable: a folder for the cache, or `off` (also `0`, `false`, `no`) to
 #: keep it off.
@@ -62,3 +77,97 @@ def enable_compilation_cache(directory: str | os.PathLike | None = None) -> Path
     # compiled a few constants): start it afresh so that it reads the folder set here.
     compilation_cache.reset_cache()
     return path
+
+
+#: Compiled programs a process keeps, over every `structure_jit` function together.
+_DEFAULT_MAX_PROGRAMS = 32
+_programs: collections.OrderedDict = collections.OrderedDict()  # key -> jitted, LRU last
+_limit = [_DEFAULT_MAX_PROGRAMS]
+_lock = threading.Lock()
+
+
+def set_max_programs(count: int) -> int:
+    """Keep at most `count` compiled programs in this process (default 32), over every
+    entry point of recoil-jax together (`peaks`, `simulate`, sweeps, gradients, the
+    explorer, the optimiser); past it, the least recently used is dropped and its memory
+    freed (it is compiled again, or loaded from the persistent cache, if used again).
+    Returns the previous limit.
+
+    Each program maps several hundred memory regions, and Linux allows a process about
+    65,000: without a bound, a notebook or the explorer that visits a few hundred model
+    structures would fail to compile the next one."""
+    if not isinstance(count, int) or count < 1:
+        raise ParameterError(f"max programs = {count!r} is invalid: valid is an integer >= 1")
+    with _lock:
+        previous, _limit[0] = _limit[0], count
+        while len(_programs) > count:
+            _programs.popitem(last=False)
+    return previous
+
+
+def live_programs() -> int:
+    """How many compiled programs (`structure_jit` entries) this process holds now."""
+    return len(_programs)
+
+
+def _structure_key(dynamic, static) -> tuple:
+    """What selects a program: the static part (structure and values, as
+    `eqx.filter_jit` treats them) and every array's shape and dtype."""
+    leaves, treedef = jax.tree.flatten(static)
+    arrays, array_def = jax.tree.flatten(dynamic)
+    shapes = tuple((tuple(a.shape), str(a.dtype), getattr(a, "weak_type", False)) for a in arrays)
+    return treedef, tuple(leaves), array_def, shapes
+
+
+def structure_jit(fn):
+    """`eqx.filter_jit(fn)`, with its compiled programs in this process's bounded cache
+    (`set_max_programs`): one program per structure of the arguments (the arrays' shapes
+    and dtypes, and every non-array argument by value), the least recently used dropped
+    past the limit. Called while tracing another program, `fn` is traced inline."""
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        dynamic, static = eqx.partition((args, kwargs), eqx.is_array)
+        if not is_concrete(dynamic):
+            return fn(*args, **kwargs)
+        key = (fn, _structure_key(dynamic, static))
+        with _lock:
+            program = _programs.pop(key, None) or _compile(fn, static)
+            _programs[key] = program  # the most recently used last
+            while len(_programs) > _limit[0]:
+                _programs.popitem(last=False)
+        return program(dynamic)
+
+    return call
+
+
+def _compile(fn, static):
+    """A fresh `jax.jit` closure over the static arguments: when the cache drops it,
+    nothing else refers to it and JAX frees its executable (with `eqx.filter_jit` the
+    function would be a static argument of one long-lived jitted function, and its
+    programs would never be freed)."""
+    outputs: dict[str, Any] = {}
+
+    def program(dynamic):
+        args, kwargs = eqx.combine(dynamic, static)
+        out_dynamic, outputs["static"] = eqx.partition(fn(*args, **kwargs), eqx.is_array)
+        return out_dynamic
+
+    program.__name__, program.__qualname__ = fn.__name__, fn.__qualname__  # in JAX's logs
+    jitted = jax.jit(program)
+
+    def run(dynamic):
+        try:
+            # Waited for here, so that a runtime error (`eqx.error_if`, a failed solve
+            # with `throw=True`) is raised by this call, as `eqx.filter_jit` does.
+            out_dynamic = jax.block_until_ready(jitted(dynamic))
+        except jax.errors.JaxRuntimeError as error:
+            marker = "_EquinoxRuntimeError: "
+            text = str(error)
+            if marker not in text:
+                raise
+            message = text.split(marker, 1)[1].split("\n", 1)[0]
+            raise eqx.EquinoxRuntimeError(message) from None
+        return eqx.combine(out_dynamic, outputs["static"])
+
+    return run

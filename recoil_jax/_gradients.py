@@ -25,6 +25,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ._cache import structure_jit
 from ._metrics import METRICS, PeakGradients, Peaks
 from ._model import (
     contact_width,
@@ -482,7 +483,7 @@ def _peak_gradients_batch(params, t1, smoothing, options, wrt, lanes, count):
 #: per-design end times `t1`), run through `queued_map` with `lanes` designs in flight;
 #: only the first `count` (an integer array) are solved. Jitted; `wrt` and `lanes` are
 #: static.
-peak_gradients_batch = eqx.filter_jit(_peak_gradients_batch)
+peak_gradients_batch = structure_jit(_peak_gradients_batch)
 
 
 def _peaks_and_gradients(params, smoothing, options, wrt):
@@ -519,7 +520,7 @@ def peak_gradients(
     return _peaks_and_gradients(params, smoothing, options, wrt)
 
 
-@eqx.filter_jit
+@structure_jit
 def _peak_jacobian_jit(params, smoothing, options, wrt, throw: bool):
     peaks, gradients = _peaks_and_gradients(params, smoothing, options, wrt)
     if throw:

@@ -24,6 +24,7 @@ __all__ = [
     "Metric",
     "PeakGradients",
     "Peaks",
+    "gradient_key",
     "metric",
 ]
 
@@ -139,6 +140,12 @@ def _reported_fields() -> dict[str, str]:
 
 #: `Peaks` field → JSON / CSV key, for every reported field, in output order.
 PEAK_FIELDS: dict[str, str] = _reported_fields()
+
+
+def gradient_key(metric_name: str, parameter: str) -> str:
+    """The CSV (and store) column of the derivative of metric `metric_name` with respect
+    to the flat parameter `parameter`: `d(peak_anchoring_force_N)/d(gap)`."""
+    return f"d({METRICS[metric_name].key})/d({parameter})"
 
 
 class Peaks(eqx.Module):

@@ -11,21 +11,32 @@ __all__ = ["Progress"]
 class Progress:
     """`label [#####.....] done/total unit, elapsed, rate, time left, note`: redrawn in
     place on a terminal, else printed at most every tenth of the way and at the end.
-    `enabled=None`: only on a terminal."""
+    `enabled=None`: only on a terminal. `already`: work done before this run (a resumed
+    campaign), counted as done but not in the rate."""
 
-    def __init__(self, label: str, total: int, unit: str, enabled: bool | None, stream=None):
+    def __init__(
+        self,
+        label: str,
+        total: int,
+        unit: str,
+        enabled: bool | None,
+        stream=None,
+        already: int = 0,
+    ):
         self.label, self.total, self.unit = label, total, unit
+        self.already = self.done = already
         self.stream = stream or sys.stderr
         self.start = time.perf_counter()
         self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
         self.enabled = self.tty if enabled is None else enabled
-        self._printed = 0
+        self._printed = already
 
     @property
     def elapsed(self) -> float:
         return time.perf_counter() - self.start
 
     def update(self, done: int, note: str = "", final: bool = False) -> None:
+        self.done = done
         if not self.enabled:
             return
         final = final or done >= self.total
@@ -34,7 +45,7 @@ class Progress:
             return
         self._printed = done
         elapsed = self.elapsed
-        rate = done / elapsed if elapsed > 0 else 0.0
+        rate = (done - self.already) / elapsed if elapsed > 0 else 0.0
         left = (self.total - done) / rate if rate > 0 and not final else 0.0
         width = 30
         filled = int(width * min(done, self.total) / self.total)

@@ -33,6 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._cache import structure_jit
 from ._gradients import MetricSeries, series_name
 from ._local import (
     SLSQP,
@@ -397,7 +398,7 @@ def _distinct_best(sampled: dict, count: int) -> list[np.ndarray]:
 _TRACES = [0]  # how many times the gradient program was traced (compiled)
 
 
-@eqx.filter_jit
+@structure_jit
 def _gradient_program(problem: DesignProblem, box: SearchSpace, z, temperature, series_ts=None):
     """The smooth objective, the violations, their Jacobians, the exact objective and
     the status code at `z`: one sensitivity solve, reverse mode through the custom JVP

@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._cache import structure_jit
 from ._metrics import METRICS, Peaks
 from ._model import (
     RECOIL_TERM,
@@ -136,7 +137,7 @@ def peak_metrics(
     return peaks_of_run(run)
 
 
-@eqx.filter_jit
+@structure_jit
 def _peaks_jit(params, smoothing, options, throw: bool) -> Peaks:
     result = peak_metrics(params, smoothing, options)
     return raise_on_failure(result, result.status) if throw else result
@@ -194,7 +195,7 @@ class History(eqx.Module):
     status: Any
 
 
-@eqx.filter_jit
+@structure_jit
 def _simulate_jit(params, smoothing, options, ts, throw: bool) -> History:
     args = model_args(params, smoothing)
     run = integrate_peaks(
@@ -288,4 +289,4 @@ def _peaks_batch(
 #: `params`, and per-design end times `t1`, shape `(n,)`), run through `queued_map` with
 #: `lanes` designs in flight; only the first `count` (an integer array) are solved.
 #: Jitted; `lanes` is static.
-peaks_batch = eqx.filter_jit(_peaks_batch)
+peaks_batch = structure_jit(_peaks_batch)

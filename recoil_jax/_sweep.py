@@ -7,9 +7,10 @@ import dataclasses
 import itertools
 import os
 import sys
+import time
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -17,7 +18,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._gradients import GRADIENT_OPTIONS, check_wrt, peak_gradients_batch
-from ._metrics import METRICS, PEAK_FIELDS
+from ._metrics import METRICS, PEAK_FIELDS, gradient_key
 from ._params import (
     PARAMETERS,
     T1_LIMITS,
@@ -36,6 +37,7 @@ from ._params import (
 from ._progress import Progress
 from ._solve import peaks_batch
 from ._status import Status, status_codes, status_item, status_messages
+from ._store import SweepStore, fingerprint
 
 __all__ = [
     "SweepResult",
@@ -69,6 +71,8 @@ class SweepResult:
       simplified model (`m = 0`) the derivatives with respect to absorber parameters are 0.
     - `swept`, `grid_shape`: for a cartesian grid, the swept names and the grid's shape
       (`reshape` the arrays to it, C order over `swept`).
+    - `seconds`: the wall time of this run; `stored`: how many of the designs were read
+      from the store (a resumed sweep) rather than solved in it.
     """
 
     values: dict[str, np.ndarray]
@@ -78,6 +82,7 @@ class SweepResult:
     swept: tuple[str, ...] = ()
     grid_shape: tuple[int, ...] | None = None
     seconds: float = 0.0
+    stored: int = 0
 
     def __len__(self) -> int:
         return int(status_codes(self.status).shape[0])
@@ -348,44 +353,190 @@ def _run_chunk(
     return jax.tree.map(lambda *xs: np.stack(xs, axis=1).reshape(-1, *xs[0].shape[1:]), *outputs)
 
 
-def _run_group(
-    params: RecoilParams,
-    t1: np.ndarray,
-    order: np.ndarray,
-    smoothing,
-    options,
-    wrt,
-    devices,
-    lanes,
-    workers,
-    chunk_size,
-    bar: Progress,
-    done: int,
-):
-    """Solve one group of designs (all with, or all without, an absorber) in the order
-    `order`, chunk by chunk; returns `(peaks, gradients)` in the group's input order."""
-    n = len(order)
-    chunk = max(workers, chunk_size - chunk_size % workers)
-    # No bigger than needed, rounded up to a power of two per part and to at least
-    # `SHARED_CHUNK`: the padding is never solved, and every sweep of up to that many
-    # designs (a study's samples and its checks) runs one program per structure.
-    per_part = -(-n // workers)
-    needed = max(workers * (1 << (per_part - 1).bit_length()), SHARED_CHUNK)
-    chunk = min(chunk, needed - needed % workers)
-    outputs = []
-    for begin in range(0, n, chunk):
-        index = order[begin : begin + chunk]
-        padded = np.concatenate([index, np.full(chunk - len(index), index[-1])])
-        batch = jax.tree.map(lambda leaf, p=padded: np.asarray(leaf)[p], params)
-        result = _run_chunk(
-            batch, t1[padded], len(index), smoothing, options, wrt, devices, lanes, workers
+def _chunk_columns(result, wrt, all_wrt) -> dict[str, np.ndarray]:
+    """One chunk's results by column (`sweep.csv`'s and the store's names): the reported
+    peaks (NaN where the solve failed), `status_code`, and the derivative of every metric
+    with respect to each of `all_wrt` (0 for a parameter this group does not have)."""
+    peaks, grads = result if wrt else (result, None)
+    codes = status_codes(peaks.status)
+    failed = codes != status_codes(Status.ok)
+    out = {}
+    for field, key in PEAK_FIELDS.items():
+        value = np.asarray(getattr(peaks, field), dtype=float)
+        out[key] = value if field == "num_steps" else np.where(failed, np.nan, value)
+    for name in METRICS if all_wrt else ():
+        matrix = getattr(grads, name) if grads is not None else None
+        for w in all_wrt:
+            column = np.zeros(len(codes))
+            if grads is not None and w in grads.wrt:
+                column = np.where(failed, np.nan, np.asarray(matrix)[:, grads.wrt.index(w)])
+            out[gradient_key(name, w)] = column
+    out["status_code"] = codes
+    return out
+
+
+class _Chunk(NamedTuple):
+    """One compiled call's worth of a group's designs: `key` (in the store), the group,
+    `points` (indices into the sweep's input, in solving order) and `size` (the padded
+    batch the program is compiled for)."""
+
+    key: str
+    group: int
+    points: np.ndarray
+    size: int
+
+
+def _chunks(groups, plan: dict) -> list[_Chunk]:
+    """The sweep cut into chunks, group by group, in solving order (the gap ascending,
+    with `sort_by_gap`, so that the impact-heavy designs start early)."""
+    workers = plan["workers"]
+    out = []
+    for number, (indices, params, values, _, _) in enumerate(groups):
+        n = len(indices)
+        sort = plan["sort_by_gap"] and params.absorber is not None
+        order = np.argsort(values["gap"], kind="stable") if sort else np.arange(n)
+        chunk = max(workers, plan["chunk_size"] - plan["chunk_size"] % workers)
+        # No bigger than needed, rounded up to a power of two per part and to at least
+        # `SHARED_CHUNK`: the padding is never solved, and every sweep of up to that many
+        # designs (a study's samples and its checks) runs one program per structure.
+        per_part = -(-n // workers)
+        needed = max(workers * (1 << (per_part - 1).bit_length()), SHARED_CHUNK)
+        chunk = min(chunk, needed - needed % workers)
+        for begin in range(0, n, chunk):
+            out.append(
+                _Chunk(f"{number}:{begin}", number, indices[order[begin : begin + chunk]], chunk)
+            )
+    return out
+
+
+def _chunk_batch(chunk: _Chunk, groups, position: np.ndarray):
+    """The chunk's designs and end times, padded to its compiled size with its last."""
+    _, params, _, t1, _ = groups[chunk.group]
+    local = position[chunk.points]  # positions within the group
+    padded = np.concatenate([local, np.full(chunk.size - len(local), local[-1])])
+    return jax.tree.map(lambda leaf: np.asarray(leaf)[padded], params), t1[padded]
+
+
+def _solve_chunk(batch, t1, count, smoothing, options, wrt, all_wrt, devices, plan):
+    """Solve the first `count` designs of a padded batch: `(columns, seconds)`, their
+    columns (`_chunk_columns`) and the wall time it took."""
+    start = time.perf_counter()
+    result = _run_chunk(
+        batch, t1, count, smoothing, options, wrt, devices, plan["lanes"], plan["workers"]
+    )
+    result = jax.tree.map(lambda x: x[:count], result)
+    return _chunk_columns(result, wrt, all_wrt), time.perf_counter() - start
+
+
+def _cache_dir() -> str | None:
+    """The folder of this process's persistent compilation cache (None: off)."""
+    return jax.config.values.get("jax_compilation_cache_dir")
+
+
+def _solve_chunk_on_worker(batch, t1, count, smoothing, options, wrt, all_wrt, plan, cache):
+    """`_solve_chunk` as a Dask task, on the worker's own devices, with the persistent
+    compilation cache of the process that made the sweep (so each structure compiles
+    once for all workers)."""
+    if cache and _cache_dir() != cache:
+        from ._cache import enable_compilation_cache
+
+        enable_compilation_cache(cache)
+    return _solve_chunk(
+        batch, t1, count, smoothing, options, wrt, all_wrt, jax.local_devices(), plan
+    )
+
+
+def _solved_chunks(todo, groups, smoothing, options, all_wrt, devices, plan, client):
+    """`(chunk, columns, seconds)` for each chunk of `todo` as it finishes: one after
+    the other here, or as Dask tasks on `client`'s workers (a chunk whose worker dies is
+    run again elsewhere by Dask)."""
+    positions = {}
+    for number, (indices, *_) in enumerate(groups):
+        position = np.zeros(max(indices) + 1 if len(indices) else 0, dtype=int)
+        position[indices] = np.arange(len(indices))
+        positions[number] = position
+    if client is None:
+        for chunk in todo:
+            batch, t1 = _chunk_batch(chunk, groups, positions[chunk.group])
+            wrt = groups[chunk.group][4]
+            yield (
+                chunk,
+                *_solve_chunk(
+                    batch, t1, len(chunk.points), smoothing, options, wrt, all_wrt, devices, plan
+                ),
+            )
+        return
+    from distributed import as_completed
+
+    cache = _cache_dir()
+    futures = {}
+    for chunk in todo:
+        batch, t1 = _chunk_batch(chunk, groups, positions[chunk.group])
+        future = client.submit(
+            _solve_chunk_on_worker,
+            batch,
+            t1,
+            len(chunk.points),
+            smoothing,
+            options,
+            groups[chunk.group][4],
+            all_wrt,
+            plan,
+            cache,
+            pure=False,
+            retries=2,
         )
-        outputs.append(jax.tree.map(lambda x, k=len(index): x[:k], result))
-        bar.update(done + min(begin + chunk, n))
-    inverse = np.empty(n, dtype=int)
-    inverse[order] = np.arange(n)
-    gathered = jax.tree.map(lambda *xs: np.concatenate(xs)[inverse], *outputs)
-    return gathered if wrt else (gathered, None)
+        futures[future] = chunk
+    try:
+        for future in as_completed(futures):
+            yield futures[future], *future.result()
+    finally:
+        for future in futures:
+            future.cancel()
+
+
+def _plan(workers, lanes, chunk_size, sort_by_gap) -> dict:
+    if workers < 1:
+        raise ParameterError(f"workers = {workers} is invalid: valid >= 1")
+    return {
+        "workers": int(workers),
+        "lanes": int(lanes),
+        "chunk_size": int(chunk_size),
+        "sort_by_gap": bool(sort_by_gap),
+    }
+
+
+def _open_store(path, columns, smoothing, options, wrt, force_table, plan, bar_enabled):
+    """The store at `path` for this sweep (created, or checked to be this sweep's); its
+    plan replaces `plan`, so that the chunks are those of the run that made it."""
+    from . import __version__
+
+    identity = fingerprint(
+        "sweep", __version__, columns, smoothing, options, wrt or (), force_table
+    )
+    names = [name for name in columns] + list(PEAK_FIELDS.values())
+    names += [gradient_key(m, w) for m in METRICS for w in wrt or ()]
+    n = len(next(iter(columns.values())))
+    store = SweepStore(
+        path,
+        identity=identity,
+        total=n,
+        plan=plan,
+        columns=names,
+        description={
+            "designs": n,
+            "names": sorted(columns),
+            "wrt": list(wrt or ()),
+            "created": time.strftime("%Y-%m-%d %H:%M:%S"),
+        },
+    )
+    if store.plan != plan and bar_enabled is not False:
+        print(
+            f"sweep: resuming with the plan of the run that made {path} ({store.plan}), "
+            f"not {plan}: the same chunks give the same results",
+            file=sys.stderr,
+        )
+    return store
 
 
 def sweep(
@@ -401,6 +552,8 @@ def sweep(
     devices: Sequence[Any] | None = None,
     workers: int | None = None,
     force_table: ForceTable | None = None,
+    store: str | os.PathLike | None = None,
+    client: Any = None,
 ) -> SweepResult:
     """Peaks (and, with `wrt`, their gradients) of many designs.
 
@@ -430,6 +583,15 @@ def sweep(
     - `devices`, `workers`: each chunk is split into `workers` interleaved parts (default
       `default_workers`: one per device, and on CPU one per core), each run from its own
       thread on one of `devices` (default: all local devices).
+    - `store`: the path of an SQLite file that keeps the results (`docs/campaigns.md`).
+      Each chunk is committed as it finishes; running the same sweep with the same store
+      again resumes it (finished chunks are read, not solved again; the results equal
+      an uninterrupted run's, bit for bit, since the chunks are cut as when the store was
+      made). A store made by another sweep or a study is refused with `ParameterError`.
+    - `client`: a `dask.distributed.Client`: each chunk is a task on its cluster's
+      workers (each solving it on its own devices, in `workers` parts), and the results
+      come back here (and into the store) as each finishes. A chunk whose worker dies is
+      run again on another; the results equal those of a run in this process.
 
     **Returns:** `SweepResult`. A failed solve never aborts the sweep: its peaks are NaN
     and `status` says why (`SweepResult.failures()`).
@@ -467,47 +629,50 @@ def sweep(
             check_wrt(g[1], g[4])
 
     devices = list(devices) if devices is not None else jax.local_devices()
-    workers = workers or default_workers(devices)
-    if workers < 1:
-        raise ParameterError(f"workers = {workers} is invalid: valid >= 1")
-    bar = Progress(
-        "sweep",
-        n,
-        "designs",
-        progress if progress is not None else n > max(workers, chunk_size - chunk_size % workers),
-    )
+    plan = _plan(workers or default_workers(devices), lanes, chunk_size, sort_by_gap)
+    per_chunk = max(plan["workers"], plan["chunk_size"] - plan["chunk_size"] % plan["workers"])
+    # By default a progress line for more than one chunk, and for every campaign (store).
+    shown = progress if progress is not None else (n > per_chunk or store is not None)
+    store_ = None
+    if store is not None:
+        store_ = _open_store(store, columns, smoothing, options, wrt, force_table, plan, progress)
+        plan = store_.plan
 
-    codes = np.zeros(n, dtype=np.int32)
-    peaks = {field: np.zeros(n) for field in PEAK_FIELDS}
-    gradients = {name: {w: np.zeros(n) for w in wrt} for name in METRICS} if wrt else None
+    names = list(PEAK_FIELDS.values()) + [gradient_key(m, w) for m in METRICS for w in wrt or ()]
+    out: dict[str, np.ndarray] = {name: np.zeros(n) for name in names}
+    out["status_code"] = np.zeros(n, dtype=np.int32)
+    already = 0
+    stored = store_.done() if store_ is not None else {}
+    if store_ is not None:
+        points, data = store_.read(stored)
+        for name in out:
+            out[name][points] = data[name]
+        already = len(points)
+        if already and progress is not False:
+            print(
+                f"sweep: resuming from {store}: {already} of {n} designs "
+                f"({len(stored)} chunk{'s' * (len(stored) != 1)}) already done",
+                file=sys.stderr,
+            )
+    bar = Progress("sweep", n, "designs", shown, already=already)
+    todo = [chunk for chunk in _chunks(groups, plan) if chunk.key not in stored]
+    try:
+        solved = _solved_chunks(todo, groups, smoothing, options, wrt, devices, plan, client)
+        for chunk, chunk_columns, chunk_seconds in solved:
+            for name, column in chunk_columns.items():
+                out[name][chunk.points] = column
+            if store_ is not None:
+                given = {name: values[chunk.points] for name, values in columns.items()}
+                messages = status_messages(status_item(chunk_columns["status_code"]))
+                store_.commit(
+                    chunk.key, chunk.points, chunk_columns | given, messages, chunk_seconds
+                )
+            bar.update(bar.done + len(chunk.points))
+    finally:
+        if store_ is not None:
+            store_.close()
     values: dict[str, np.ndarray] = {}
-    done = 0
-    for indices, params, group_values, t1, group_wrt in groups:
-        sort = sort_by_gap and params.absorber is not None
-        order = np.argsort(group_values["gap"], kind="stable") if sort else np.arange(len(indices))
-        result, grads = _run_group(
-            params,
-            t1,
-            order,
-            smoothing,
-            options,
-            group_wrt,
-            devices,
-            lanes,
-            workers,
-            chunk_size,
-            bar,
-            done,
-        )
-        done += len(indices)
-        codes[indices] = status_codes(result.status)
-        for field in PEAK_FIELDS:
-            peaks[field][indices] = getattr(result, field)
-        if gradients is not None and grads is not None:
-            for name in METRICS:
-                matrix = getattr(grads, name)
-                for j, w in enumerate(grads.wrt):
-                    gradients[name][w][indices] = matrix[:, j]
+    for indices, _, group_values, _, _ in groups:
         for name, column in group_values.items():
             values.setdefault(name, np.full(n, np.nan))[indices] = column
     seconds = bar.elapsed
@@ -515,16 +680,13 @@ def sweep(
     values = {name: v for name, v in values.items() if not np.all(np.isnan(v))}
     values |= {name: columns[name] for name in columns}
 
-    failed = codes != status_codes(Status.ok)
-    for field in PEAK_FIELDS:
-        if field != "num_steps":
-            peaks[field] = np.where(failed, np.nan, peaks[field])
-    if gradients is not None:
-        gradients = {
-            name: {w: np.where(failed, np.nan, v) for w, v in by.items()}
-            for name, by in gradients.items()
-        }
+    codes = out["status_code"]
+    peaks = {field: out[key] for field, key in PEAK_FIELDS.items()}
+    gradients = None
+    if wrt:
+        gradients = {name: {w: out[gradient_key(name, w)] for w in wrt} for name in METRICS}
     status = status_item(codes)
+    failed = codes != status_codes(Status.ok)
     if failed.any() and progress is not False:  # progress=False: the caller reports
         reasons = sorted(set(status_messages(status_item(codes[failed]))))
         print(
@@ -533,7 +695,12 @@ def sweep(
             file=sys.stderr,
         )
     return SweepResult(
-        values=values, peaks=peaks, status=status, gradients=gradients, seconds=seconds
+        values=values,
+        peaks=peaks,
+        status=status,
+        gradients=gradients,
+        seconds=seconds,
+        stored=already,
     )
 
 

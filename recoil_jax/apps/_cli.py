@@ -18,6 +18,7 @@ OPTIONAL = {
     "panel": "the design explorer",
     "bokeh": "the design explorer",
     "cmaes": "CMA-ES, for bench-tuning",
+    "distributed": "Dask, for --workers and --scheduler",
 }
 
 #: The exit status of `optimise` when no design met every limit (0 done, 1 a solve
@@ -152,6 +153,16 @@ def _reproduce(args) -> int:
     return 0
 
 
+def _progress(args) -> int:
+    progress = rj.campaign_progress(args.store)
+    if args.json:  # unknown figures (NaN) as null
+        known = {k: None if v != v else v for k, v in progress._asdict().items()}
+        print(json.dumps(known))
+    else:
+        print(f"{args.store}: {progress.line()}")
+    return 0
+
+
 def _sweep(args) -> int:
     from ._sweep import run_sweep
 
@@ -189,6 +200,12 @@ def _bench_tuning(args) -> int:
     from ._bench_tuning import main_tuning_bench
 
     return main_tuning_bench(args)
+
+
+def _bench_store(args) -> int:
+    from ._bench_store import main_store_bench
+
+    return main_store_bench(args)
 
 
 def _bench(args) -> int:
@@ -265,8 +282,36 @@ def build_parser() -> argparse.ArgumentParser:
     swp.add_argument(
         "--force-table", metavar="FILE.csv", help="breech force of one round (header t_s,F_N)"
     )
+    swp.add_argument(
+        "--store",
+        metavar="FILE.sqlite",
+        help="commit each finished chunk to this SQLite file; the same command with the "
+        "same store resumes a stopped sweep (docs/campaigns.md)",
+    )
+    swp.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="run the chunks on a local Dask cluster of N worker processes",
+    )
+    swp.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="run the chunks on the running Dask cluster at ADDRESS (tcp://host:8786)",
+    )
     _add_max_steps(swp)
     swp.set_defaults(func=_sweep)
+    prog = sub.add_parser(
+        "progress",
+        parents=[common],
+        help="where a campaign stands, from its store",
+        description="Read a store (sweep --store) while its campaign runs or after it "
+        "stopped: designs done of the total, runs, the rate of the latest run and the time "
+        "left.",
+    )
+    prog.add_argument("store", metavar="FILE.sqlite", help="the store")
+    prog.add_argument("--json", action="store_true", help="print one JSON object")
+    prog.set_defaults(func=_progress)
     bench = sub.add_parser(
         "bench",
         parents=[common],
@@ -280,6 +325,21 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--json", action="store_true", help="print one JSON object")
     bench.add_argument("--quick", action="store_true", help="small batches (a smoke run)")
     bench.set_defaults(func=_bench)
+    store_bench = sub.add_parser(
+        "bench-store",
+        parents=[common],
+        help="what a store and a Dask cluster cost a sweep: time, memory, disk",
+        description="Sweep random absorber designs three ways, each in a fresh process "
+        "(compiled on one chunk first, not timed): without a store, with --store, and with "
+        "--store on a local Dask cluster of 2 workers. Prints seconds, designs/s, the peak "
+        "memory of the process that sweeps, the overheads against the first way and the "
+        "store's size on disk.",
+    )
+    store_bench.add_argument(
+        "--designs", type=int, default=1_000_000, metavar="N", help="designs (default 1000000)"
+    )
+    store_bench.add_argument("--json", action="store_true", help="print one JSON object")
+    store_bench.set_defaults(func=_bench_store)
     opt = sub.add_parser(
         "optimise",
         parents=[common],

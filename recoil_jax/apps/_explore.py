@@ -18,7 +18,6 @@ import re
 import time
 from typing import Any
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
@@ -48,7 +47,7 @@ _SIDEBAR = 330
 _POINTS = 800
 
 
-@eqx.filter_jit
+@rj.structure_jit
 def _compute(params, ts, wrt):
     """The history at `ts`, the peaks and the peak anchoring force's gradient with
     respect to `wrt`: one program per model structure."""

@@ -13,6 +13,7 @@ import numpy as np
 
 import recoil_jax as rj
 
+from ._cluster import dask_client
 from ._inputs import design_warnings, known, read_text, split_assignment, unknown_name, warn
 
 __all__ = ["parse_axis", "read_points", "run_sweep", "write_figures", "write_results"]
@@ -102,11 +103,15 @@ def write_results(result: rj.SweepResult, out: Path, meta: dict) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     names = list(result.values)
-    for record in result.records():
-        row = {name: record["parameters"].get(name, "") for name in names}
-        record.pop("parameters")
-        for key, by_param in record.pop("gradients", {}).items():
-            row |= {f"d({key})/d({name})": v for name, v in by_param.items()}
+    for i, record in enumerate(result.records()):
+        parameters = record.pop("parameters")
+        row = {name: parameters.get(name, "") for name in names}
+        record.pop("gradients", None)
+        for metric, by_param in (result.gradients or {}).items():
+            row |= {
+                rj.gradient_key(metric, name): float(v[i]) if result.ok[i] else None
+                for name, v in by_param.items()
+            }
         rows.append(row | record)
     with open(out / "sweep.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
@@ -273,20 +278,35 @@ def run_sweep(args) -> int:
     options = rj.GRADIENT_OPTIONS if wrt else rj.SolverOptions()
     options = dataclasses.replace(options, max_steps=args.max_steps)
     progress = not args.json
-    if args.points:
-        result = rj.sweep(designs, options=options, progress=progress, force_table=table)
-    else:
-        result = rj.sweep_grid(
-            axes, fixed, wrt=wrt, options=options, progress=progress, force_table=table
-        )
+    with dask_client(args.workers, args.scheduler) as client:
+        if args.points:
+            result = rj.sweep(
+                designs,
+                options=options,
+                progress=progress,
+                force_table=table,
+                store=args.store,
+                client=client,
+            )
+        else:
+            result = rj.sweep_grid(
+                axes,
+                fixed,
+                wrt=wrt,
+                options=options,
+                progress=progress,
+                force_table=table,
+                store=args.store,
+                client=client,
+            )
     if args.json:
         print(json.dumps(result.records()))
     else:
-        ok = int(result.ok.sum())
+        ok, solved = int(result.ok.sum()), len(result) - result.stored
+        read = f" ({result.stored} read from the store)" if result.stored else ""
         print(
-            f"swept {len(result)} designs in {result.seconds:.1f} s "
-            f"({len(result) / max(result.seconds, 1e-9):.0f}/s): {ok} ok, "
-            f"{len(result) - ok} failed"
+            f"swept {len(result)} designs{read}: {solved} solved in {result.seconds:.1f} s "
+            f"({solved / max(result.seconds, 1e-9):.0f}/s); {ok} ok, {len(result) - ok} failed"
         )
         force = result.peaks["peak_anchoring_force"]
         best = int(np.nanargmin(np.where(result.ok, force, np.nan))) if ok else None

@@ -1,0 +1,277 @@
+"""Campaign stores: a sweep committed chunk by chunk to SQLite resumes after an
+interruption (an exception here, a `kill -9` of a real process in the slow tier) with
+the bits of an uninterrupted run, each chunk stored once; foreign files are refused."""
+
+import json
+import os
+import random
+import re
+import signal
+import sqlite3
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import recoil_jax as rj
+import recoil_jax._sweep as sweep_module
+from recoil_jax.apps import main
+
+
+def _designs(count: int, seed: int) -> dict[str, np.ndarray]:
+    """Absorber designs across the paper's ranges (impacts and none)."""
+    rng = np.random.default_rng(seed)
+    return {
+        "m": rng.uniform(100.0, 3000.0, count),
+        "gap": rng.uniform(0.0, 0.15, count),
+        "k_r": rng.uniform(5e3, 5e4, count),
+        "c_r": rng.uniform(0.0, 1e4, count),
+    }
+
+
+#: 1500 designs in chunks of 512 (3 chunks), two parts per chunk.
+PLAN = dict(chunk_size=512, workers=2)
+
+
+def _assert_same(a: rj.SweepResult, b: rj.SweepResult):
+    assert len(a) == len(b)
+    for field in rj.PEAK_FIELDS:
+        assert np.array_equal(a.peaks[field], b.peaks[field], equal_nan=True), field
+    assert np.array_equal(rj.status_codes(a.status), rj.status_codes(b.status))
+
+
+def _rows(path) -> dict:
+    with sqlite3.connect(path) as db:
+        return {
+            "points": db.execute("SELECT COUNT(*), COUNT(DISTINCT point) FROM points").fetchone(),
+            "chunks": db.execute("SELECT COUNT(*) FROM chunks").fetchone()[0],
+            "integrity": db.execute("PRAGMA integrity_check").fetchone()[0],
+        }
+
+
+@pytest.fixture(scope="module")
+def uninterrupted():
+    designs = _designs(1500, 0)
+    return designs, rj.sweep(designs, progress=False, **PLAN)
+
+
+def test_interrupted_sweep_resumes_to_the_same_bits(uninterrupted, tmp_path, monkeypatch, capsys):
+    designs, plain = uninterrupted
+    store = tmp_path / "campaign.sqlite"
+    real = sweep_module._run_chunk
+    solved = []
+
+    def stop_after_two(*args, **kwargs):
+        if len(solved) == 2:
+            raise KeyboardInterrupt  # as a user's Ctrl-C, or a crash, between chunks
+        solved.append(args[2])  # the chunk's real designs
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(sweep_module, "_run_chunk", stop_after_two)
+    with pytest.raises(KeyboardInterrupt):
+        rj.sweep(designs, store=store, **PLAN)
+    assert _rows(store) == {"points": (1024, 1024), "chunks": 2, "integrity": "ok"}
+    progress = rj.campaign_progress(store)
+    assert (progress.kind, progress.total, progress.done, progress.runs) == ("sweep", 1500, 1024, 1)
+    assert progress.rate > 0 and progress.seconds_left > 0
+    assert "1024/1500 designs" in progress.line()
+
+    monkeypatch.setattr(sweep_module, "_run_chunk", real)
+    resumed = rj.sweep(designs, store=store, **PLAN)
+    assert "resuming from" in capsys.readouterr().err
+    _assert_same(resumed, plain)
+    assert resumed.stored == 1024
+    assert _rows(store) == {"points": (1500, 1500), "chunks": 3, "integrity": "ok"}
+    finished = rj.campaign_progress(store)
+    assert (finished.done, finished.runs, finished.seconds_left) == (1500, 2, 0.0)
+    assert finished.line().endswith("finished")
+
+    # The rows hold what the result holds, by the CSV's names, read without this project.
+    with sqlite3.connect(store) as db:
+        db.row_factory = sqlite3.Row
+        rows = db.execute("SELECT * FROM points ORDER BY point").fetchall()
+    force = np.array([r["peak_anchoring_force_N"] for r in rows], dtype=float)
+    assert np.array_equal(force, plain.peaks["peak_anchoring_force"], equal_nan=True)
+    assert np.array_equal([r["gap"] for r in rows], designs["gap"])
+    assert {r["status"] for r in rows} <= {"ok", *rj.status_table().values()}
+
+    # Done: a third run solves nothing and gives the same results.
+    monkeypatch.setattr(sweep_module, "_run_chunk", stop_after_two)  # would raise if called
+    again = rj.sweep(designs, store=store, progress=False, **PLAN)
+    _assert_same(again, plain)
+    assert again.stored == 1500
+
+
+def test_a_store_resumes_with_its_own_chunks(uninterrupted, tmp_path):
+    """Resumed with other settings, the chunks are still those of the run that made the
+    store (the results do not depend on how the resumed run would cut them)."""
+    designs, plain = uninterrupted
+    store = tmp_path / "plan.sqlite"
+    first = rj.sweep(designs, store=store, progress=False, **PLAN)
+    _assert_same(first, plain)
+    other = rj.sweep(designs, store=store, progress=False, chunk_size=256, workers=1)
+    _assert_same(other, plain)
+    assert other.stored == 1500
+
+
+def test_foreign_and_broken_stores_are_refused(uninterrupted, tmp_path):
+    designs, _ = uninterrupted
+    store = tmp_path / "made.sqlite"
+    # A store is identified before anything is compiled or solved: a store made by
+    # these designs ...
+    rj.sweep({k: v[:5] for k, v in designs.items()}, store=store, progress=False)
+    # ... refuses other designs, other smoothing, other gradients ...
+    others = [
+        dict(designs={k: v[:6] for k, v in designs.items()}),
+        dict(designs={k: v[:5] for k, v in designs.items()}, smoothing=rj.Smoothing(5e-4)),
+        dict(designs={k: v[:5] for k, v in designs.items()}, wrt=("gap",)),
+    ]
+    for other in others:
+        with pytest.raises(rj.ParameterError, match="holds the results of a different sweep"):
+            rj.sweep(other.pop("designs"), store=store, progress=False, **other)
+    # ... and files that are not stores are refused, not overwritten.
+    text = tmp_path / "notes.sqlite"
+    text.write_text("not a database " * 100)
+    with pytest.raises(rj.ParameterError, match="not a recoil-jax store"):
+        rj.sweep(designs, store=text)
+    assert text.read_text().startswith("not a database")
+    other_db = tmp_path / "other.sqlite"
+    with sqlite3.connect(other_db) as db:
+        db.execute("CREATE TABLE results (x REAL)")
+    with pytest.raises(rj.ParameterError, match="SQLite file, but not a recoil-jax store"):
+        rj.sweep(designs, store=other_db)
+    with pytest.raises(rj.ParameterError, match="is a folder"):
+        rj.sweep(designs, store=tmp_path)
+    with pytest.raises(rj.ParameterError, match="no such file"):
+        rj.campaign_progress(tmp_path / "missing.sqlite")
+
+
+def test_sweep_command_resumes_from_its_store(tmp_path, capsys):
+    store = tmp_path / "grid.sqlite"
+    argv = ["sweep", "m=500,1500", "gap=0:0.09:10", "k_r=13000", "--store", str(store)]
+    assert main([*argv, "--out", str(tmp_path / "a")]) == 0
+    assert "swept 20 designs: 20 solved" in capsys.readouterr().out
+    assert main([*argv, "--out", str(tmp_path / "b")]) == 0
+    captured = capsys.readouterr()
+    assert "swept 20 designs (20 read from the store): 0 solved" in captured.out
+    assert "resuming from" in captured.err
+    # The files of the resumed run (gradients included) are those of the first.
+    assert (tmp_path / "a" / "sweep.csv").read_bytes() == (
+        tmp_path / "b" / "sweep.csv"
+    ).read_bytes()
+    with sqlite3.connect(store) as db:
+        names = [row[1] for row in db.execute("PRAGMA table_info(points)")]
+    assert "d(peak_anchoring_force_N)/d(gap)" in names and "peak_displacement_m" in names
+    assert main(["progress", str(store)]) == 0
+    assert "20/20 designs (100.0 %), 2 runs, finished" in capsys.readouterr().out
+    assert main(["progress", str(store), "--json"]) == 0
+    progress = json.loads(capsys.readouterr().out)
+    assert progress["done"] == progress["total"] == 20
+    # Another grid with the same store: refused with a message, exit status 2.
+    assert main(["sweep", "m=500,1500", "gap=0:0.09:11", "--store", str(store)]) == 2
+    assert "holds the results of a different sweep" in capsys.readouterr().err
+
+
+def test_dask_is_imported_only_when_a_cluster_is_asked_for():
+    code = textwrap.dedent(
+        """
+        import sys
+        import recoil_jax, recoil_jax.apps._cli, recoil_jax.apps._sweep
+        from recoil_jax.apps._cluster import dask_client
+        with dask_client(None, None) as client:
+            assert client is None
+        print(sorted(m for m in sys.modules if m.split(".")[0] in ("dask", "distributed")))
+        """
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
+
+
+_KILLED_SWEEP = textwrap.dedent(
+    """
+    import sys
+    import numpy as np
+    import recoil_jax as rj
+    rng = np.random.default_rng(1)
+    n = 8192
+    designs = {
+        "m": rng.uniform(100.0, 3000.0, n),
+        "gap": rng.uniform(0.0, 0.15, n),
+        "k_r": rng.uniform(5e3, 5e4, n),
+        "c_r": rng.uniform(0.0, 1e4, n),
+    }
+    rj.sweep(designs, store=sys.argv[1], chunk_size=256, workers=2, progress=False)
+    """
+)
+
+
+@pytest.mark.slow
+def test_kill_9_at_random_moments_loses_only_the_chunk_in_flight(tmp_path):
+    """A real process killed with SIGKILL at random moments, three times, then resumed
+    to the end: the store is always readable, each chunk is in it once, and the results
+    are an uninterrupted run's, bit for bit."""
+    script = tmp_path / "campaign.py"
+    script.write_text(_KILLED_SWEEP)
+    store = tmp_path / "killed.sqlite"
+    seed = random.randrange(1 << 30)
+    moments = random.Random(seed)
+    done_before = 0
+    for kill in range(3):
+        process = subprocess.Popen([sys.executable, str(script), str(store)])
+        # Wait for this run's first commit (so that each kill lands mid-campaign), then
+        # kill at a random moment within about two chunks.
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline and process.poll() is None:
+            try:
+                if rj.campaign_progress(store).done > done_before:
+                    break
+            except rj.ParameterError:  # not made yet
+                pass
+            time.sleep(0.05)
+        time.sleep(moments.uniform(0.0, 0.3))
+        os.kill(process.pid, signal.SIGKILL)
+        process.wait()
+        rows = _rows(store)
+        assert rows["integrity"] == "ok", (seed, kill)
+        assert rows["points"][0] == rows["points"][1] == rj.campaign_progress(store).done
+        done_before = rows["points"][0]
+        assert 0 < done_before < 8192, (seed, kill, done_before)
+    namespace: dict = {}
+    exec(_KILLED_SWEEP.split("rj.sweep(")[0], namespace)
+    designs = namespace["designs"]
+    resumed = rj.sweep(designs, store=store, progress=False, chunk_size=256, workers=2)
+    plain = rj.sweep(designs, progress=False, chunk_size=256, workers=2)
+    _assert_same(resumed, plain)
+    assert _rows(store) == {"points": (8192, 8192), "chunks": 32, "integrity": "ok"}
+    assert rj.campaign_progress(store).runs == 4
+
+
+def test_the_guide_reads_a_store_with_pandas(uninterrupted, tmp_path):
+    """The snippet of docs/campaigns.md that reads a store with pandas runs on a store."""
+    pytest.importorskip("pandas")
+    designs, plain = uninterrupted
+    store = tmp_path / "map.sqlite"
+    rj.sweep(designs, store=store, progress=False, **PLAN)
+    guide = (Path(__file__).resolve().parents[1] / "docs" / "campaigns.md").read_text()
+    (snippet,) = [b for b in re.findall(r"```python\n(.*?)```", guide, re.S) if "read_sql" in b]
+    namespace: dict = {}
+    exec(snippet.replace("results/map.sqlite", str(store)), namespace)
+    force = plain.peaks["peak_anchoring_force"]
+    assert namespace["best"]["peak_anchoring_force_N"] == np.nanmin(force)
+    assert len(namespace["points"]) == len(force)
+
+
+@pytest.mark.slow
+def test_bench_store_measures_each_way():
+    from recoil_jax.apps._bench_store import format_store_bench, run_store_bench
+
+    result = run_store_bench(2048)
+    for way in ("plain", "store", "cluster"):
+        assert result[f"{way}_seconds"] > 0 and result[f"{way}_peak_rss_mb"] > 100
+    assert result["store_mb"] > 0
+    assert "2 Dask workers" in format_store_bench(result)
