@@ -13,6 +13,7 @@ import pytest
 
 import recoil_jax as rj
 from recoil_jax.apps import main
+from recoil_jax.apps._bench import bench_designs
 
 distributed = pytest.importorskip("distributed")
 
@@ -22,19 +23,9 @@ pytestmark = pytest.mark.slow  # each test starts a cluster of worker processes
 PLAN = dict(chunk_size=256, workers=2)
 
 
-def _designs(count: int = 4096, seed: int = 3) -> dict[str, np.ndarray]:
-    rng = np.random.default_rng(seed)
-    return {
-        "m": rng.uniform(100.0, 3000.0, count),
-        "gap": rng.uniform(0.0, 0.15, count),
-        "k_r": rng.uniform(5e3, 5e4, count),
-        "c_r": rng.uniform(0.0, 1e4, count),
-    }
-
-
 @pytest.fixture(scope="module")
 def plain():
-    designs = _designs()
+    designs = bench_designs(4096, seed=3)
     return designs, rj.sweep(designs, progress=False, **PLAN)
 
 

@@ -20,18 +20,7 @@ import pytest
 import recoil_jax as rj
 import recoil_jax._sweep as sweep_module
 from recoil_jax.apps import main
-
-
-def _designs(count: int, seed: int) -> dict[str, np.ndarray]:
-    """Absorber designs across the paper's ranges (impacts and none)."""
-    rng = np.random.default_rng(seed)
-    return {
-        "m": rng.uniform(100.0, 3000.0, count),
-        "gap": rng.uniform(0.0, 0.15, count),
-        "k_r": rng.uniform(5e3, 5e4, count),
-        "c_r": rng.uniform(0.0, 1e4, count),
-    }
-
+from recoil_jax.apps._bench import bench_designs
 
 #: 1500 designs in chunks of 512 (3 chunks), two parts per chunk.
 PLAN = dict(chunk_size=512, workers=2)
@@ -55,7 +44,7 @@ def _rows(path) -> dict:
 
 @pytest.fixture(scope="module")
 def uninterrupted():
-    designs = _designs(1500, 0)
+    designs = bench_designs(1500, seed=0)
     return designs, rj.sweep(designs, progress=False, **PLAN)
 
 
@@ -195,16 +184,9 @@ def test_dask_is_imported_only_when_a_cluster_is_asked_for():
 _KILLED_SWEEP = textwrap.dedent(
     """
     import sys
-    import numpy as np
     import recoil_jax as rj
-    rng = np.random.default_rng(1)
-    n = 8192
-    designs = {
-        "m": rng.uniform(100.0, 3000.0, n),
-        "gap": rng.uniform(0.0, 0.15, n),
-        "k_r": rng.uniform(5e3, 5e4, n),
-        "c_r": rng.uniform(0.0, 1e4, n),
-    }
+    from recoil_jax.apps._bench import bench_designs
+    designs = bench_designs(8192, seed=1)
     rj.sweep(designs, store=sys.argv[1], chunk_size=256, workers=2, progress=False)
     """
 )
