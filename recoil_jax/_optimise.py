@@ -14,6 +14,9 @@ reparametrisation, metric limits by an augmented Lagrangian.
 from __future__ import annotations
 
 import dataclasses
+import os
+import sys
+import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -27,7 +30,8 @@ from ._params import ParameterError, RecoilParams, params_to_values, values_of, 
 from ._problem import DesignProblem, evaluate_design, feasible
 from ._progress import Progress
 from ._space import SearchSpace
-from ._status import Status, status_codes
+from ._status import Status, status_codes, status_messages
+from ._store import StudyStore, fingerprint
 
 __all__ = ["OptimiseResult", "default_optimiser", "optimise"]
 
@@ -380,6 +384,7 @@ def optimise(
     min_steps: int = 40,
     progress: bool | None = None,
     callback: Callable[[int, dict], None] | None = None,
+    store: str | os.PathLike | None = None,
 ) -> OptimiseResult:
     """Minimise `problem.objective` subject to `problem.constraints` from many starts at
     once (vmapped), with an optax optimiser, in one compiled step.
@@ -404,6 +409,13 @@ def optimise(
       its limits have held within `vtol` (relative); a run whose solve fails stops too.
     - `progress`: a progress line on stderr (default: when stderr is a terminal).
     - `callback(step, record)`: called after each step with the host-side record.
+    - `store`: the path of an SQLite file that keeps every step as it is taken: each
+      run's evaluation (design, objective, limits, status) and the state to go on from
+      (`docs/campaigns.md`). Running the same optimisation with the same store resumes
+      a stopped one from its last step, with the bits of an uninterrupted run; steps
+      read back are not passed to `callback`. A store made by another optimisation is
+      refused with `ParameterError`. (The optax transformation is told apart by its
+      updates on a fixed probe of gradients.)
 
     **Returns:** `OptimiseResult`: the best *feasible* point (every limit strictly held)
     over all steps of all runs, per scenario, with the whole history.
@@ -435,34 +447,57 @@ def optimise(
     )
     samples = 1 if problem.objective.scatter is None else len(problem.objective.scatter[1])
 
-    bar = Progress("optimise", steps, "steps", progress)
     active = np.ones(runs, dtype=bool)
     converged_step = np.full(runs, -1)
     records: list[_StepRecord] = []
     best_so_far = np.inf
     ok = int(status_codes(Status.ok))
-    for k in range(steps):
-        state, record = step_fn(state, run_params, run_limits, jnp.asarray(active))
-        record = jax.tree.map(np.asarray, record)
-        records.append(record)
-        failed = record.status != ok
-        stop = active & (
-            failed | ((k + 1 >= min_steps) & _stationary(records, patience, ftol, vtol))
-        )
-        converged_step = np.where(stop & ~failed, k, converged_step)
-        active &= ~stop
-        if callback is not None:
-            callback(k, {"objective": record.objective, "active": active.copy()})
-        held = feasible(~failed, record.objective, record.violations)
-        best_so_far = min(best_so_far, float(np.min(np.where(held, record.objective, np.inf))))
-        best = f"{best_so_far:.6g}" if np.isfinite(best_so_far) else "none feasible yet"
-        bar.update(
-            k + 1,
-            f"{int(active.sum())}/{runs} runs active, best feasible objective {best}",
-            final=not active.any(),
-        )
-        if not active.any():
-            break
+    study = None
+    if store is not None:
+        identity = _identity(
+            problem, optimiser, u0, starts, steps, params, limits, seed, anneal, update_every,
+            penalty, penalty_growth, max_penalty, patience, ftol, vtol, min_steps,
+        )  # fmt: skip
+        study = _open_store(store, problem, identity, runs, steps, progress)
+        for saved in study.checkpoints():
+            state, record, active, converged_step, best_so_far = _restore(state, saved)
+            records.append(record)
+    bar = Progress("optimise", steps, "steps", progress, already=len(records))
+    began = time.perf_counter()
+    try:
+        for k in range(len(records), steps if active.any() else 0):
+            state, record = step_fn(state, run_params, run_limits, jnp.asarray(active))
+            record = jax.tree.map(np.asarray, record)
+            records.append(record)
+            failed = record.status != ok
+            stop = active & (
+                failed | ((k + 1 >= min_steps) & _stationary(records, patience, ftol, vtol))
+            )
+            converged_step = np.where(stop & ~failed, k, converged_step)
+            stepped = active.copy()
+            active &= ~stop
+            if callback is not None:
+                callback(k, {"objective": record.objective, "active": active.copy()})
+            held = feasible(~failed, record.objective, record.violations)
+            best_so_far = min(best_so_far, float(np.min(np.where(held, record.objective, np.inf))))
+            if study is not None:
+                seconds = study.prior_seconds + time.perf_counter() - began
+                study.checkpoint(
+                    k,
+                    _saved(state, record, active, converged_step, best_so_far),
+                    _step_rows(record, held, stepped, seconds),
+                )
+            best = f"{best_so_far:.6g}" if np.isfinite(best_so_far) else "none feasible yet"
+            bar.update(
+                k + 1,
+                f"{int(active.sum())}/{runs} runs active, best feasible objective {best}",
+                final=not active.any(),
+            )
+            if not active.any():
+                break
+    finally:
+        if study is not None:
+            study.close()
 
     history = {
         "theta": np.stack([r.theta for r in records]),
@@ -494,6 +529,101 @@ def optimise(
         closest_theta=best["closest_theta"],
         closest_violation=best["closest_violation"],
     )
+
+
+def _identity(problem, optimiser: optax.GradientTransformation, u0, *settings) -> str:
+    """A `fingerprint` of everything an optimisation's steps depend on. The optax
+    transformation (functions, not data) is told apart by its updates over a fixed
+    probe: eight steps from `u0` with gradients of fixed, varied signs and sizes."""
+    from . import __version__
+
+    u: Any = jnp.asarray(u0)
+    opt_state = jax.vmap(optimiser.init)(u)
+    probe = []
+    for k in range(8):
+        grad = jnp.cos(jnp.arange(u.size, dtype=u.dtype).reshape(u.shape) * (k + 1.7)) * 10.0**-k
+        updates, opt_state = jax.vmap(optimiser.update)(grad, opt_state, u)
+        u = optax.apply_updates(u, updates)
+        probe.append(np.asarray(updates))
+    return fingerprint("optimise", __version__, problem, np.asarray(u0), probe, settings)
+
+
+def _open_store(path, problem: DesignProblem, identity: str, runs: int, steps: int, progress):
+    study = StudyStore(
+        path,
+        identity=identity,
+        total=runs * steps,
+        plan={},
+        tune=problem.tune,
+        limits=[(name, kind) for name, kind, _ in problem.metric_constraints],
+        description={
+            "study": "optimise",
+            "tune": list(problem.tune),
+            "runs": runs,
+            "created": time.strftime("%Y-%m-%d %H:%M:%S"),
+        },
+    )
+    done = study.db.execute("SELECT COUNT(*) FROM checkpoints").fetchone()[0]
+    if done and progress is not False:
+        print(
+            f"optimise: resuming from {path}: {done} of at most {steps} steps stored",
+            file=sys.stderr,
+        )
+    return study
+
+
+def _saved(state: _State, record: _StepRecord, active, converged_step, best) -> dict:
+    """What a step's checkpoint holds, by name (`_restore` reads it back)."""
+    saved = {f"state:{i}": leaf for i, leaf in enumerate(jax.tree.leaves(state))}
+    saved |= {
+        "theta": record.theta,
+        "status": record.status,
+        "smooth_objective": record.smooth_objective,
+        "objective": record.objective,
+        "violations": record.violations,
+        "active": active,
+        "converged_step": converged_step,
+        "best_so_far": best,
+    }
+    return saved | {f"metric:{name}": value for name, value in record.metrics.items()}
+
+
+def _restore(state: _State, saved: dict[str, np.ndarray]):
+    """The state after a stored step (`state` gives the structure), its record, which
+    runs were active, their converged steps and the best feasible objective so far."""
+    treedef = jax.tree.structure(state)
+    leaves = [jnp.asarray(saved[f"state:{i}"]) for i in range(treedef.num_leaves)]
+    metrics = {k.split(":", 1)[1]: v for k, v in saved.items() if k.startswith("metric:")}
+    arrays: Any = saved  # host arrays in the record's fields, as after a step
+    record = _StepRecord(
+        arrays["theta"],
+        metrics,
+        arrays["status"],
+        arrays["smooth_objective"],
+        arrays["objective"],
+        arrays["violations"],
+    )
+    return (
+        jax.tree.unflatten(treedef, leaves),
+        record,
+        saved["active"].copy(),
+        saved["converged_step"].copy(),
+        float(saved["best_so_far"]),
+    )
+
+
+def _step_rows(record: _StepRecord, held, stepped, seconds: float) -> list[dict]:
+    """A step's evaluations as store rows, one per run that took the step."""
+    runs = np.nonzero(stepped)[0]
+    messages = status_messages(record.status[runs])
+    return [
+        {
+            "seconds": seconds, "phase": "step", "start": int(r), "theta": record.theta[r],
+            "objective": record.objective[r], "violations": record.violations[r],
+            "feasible": held[r], "status": message, "status_code": record.status[r],
+        }
+        for r, message in zip(runs.tolist(), messages, strict=True)
+    ]  # fmt: skip
 
 
 def default_optimiser(learning_rate: float, steps: int) -> optax.GradientTransformation:

@@ -22,6 +22,8 @@ solve. Measured against the optax Adam loop of `optimise` in `optimise/README.md
 from __future__ import annotations
 
 import dataclasses
+import os
+import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -55,7 +57,8 @@ from ._params import (
 from ._problem import DesignProblem, evaluate_design, feasible, metric_violations
 from ._progress import Progress
 from ._space import SearchSpace
-from ._status import Status, status_codes
+from ._status import Status, status_codes, status_messages
+from ._store import StudyStore, fingerprint
 from ._sweep import default_workers, sweep
 
 __all__ = [
@@ -135,6 +138,8 @@ class MinimiseResult:
       or `"hop"` for basin hopping).
     - `solves`, `gradient_solves`: plain solves and sensitivity solves; `seconds`;
       `compilations` of the gradient program.
+    - `replayed`: of those, the evaluations read from the study's store (a resumed
+      study) instead of solved.
     """
 
     best_z: np.ndarray
@@ -152,6 +157,7 @@ class MinimiseResult:
     problem: DesignProblem | None = None
     best_theta: np.ndarray | None = None
     closest_theta: np.ndarray | None = None
+    replayed: int = 0
 
     def best_so_far(self) -> np.ndarray:
         """The best feasible objective after each evaluation of `trace` (inf before)."""
@@ -239,6 +245,7 @@ def minimise(
     progress: bool | None = None,
     label: str = "search",
     new_run: Callable[[], None] | None = None,
+    spent: Callable[[], float] | None = None,
 ) -> MinimiseResult:
     """Minimise `f(z)` subject to `g(z) <= 0` over the unit box `z ∈ [0, 1]^P`: a scrambled
     Sobol sample of the box, then a local method from the best few distinct points.
@@ -269,6 +276,8 @@ def minimise(
       terminal).
     - `new_run`: called at the start of each local run, from its thread (`search`
       forgets there what it adapted to the previous run's points).
+    - `spent()`: the seconds of the `max_seconds` budget spent so far (default: since
+      this call; a resumed study adds the earlier runs').
 
     **Returns:** `MinimiseResult`.
     """
@@ -292,7 +301,8 @@ def minimise(
     record = _Recorder(bar)
 
     def out_of_time() -> bool:
-        return max_seconds is not None and time.perf_counter() - record.start > max_seconds
+        used = spent() if spent is not None else time.perf_counter() - record.start
+        return max_seconds is not None and used > max_seconds
 
     def clock() -> float:
         return time.perf_counter() - record.start
@@ -511,6 +521,8 @@ def search(
     max_seconds: float | None = None,
     workers: int | None = None,
     progress: bool | None = None,
+    store: str | os.PathLike | None = None,
+    client: Any = None,
 ) -> MinimiseResult:
     """Minimise `problem.objective` subject to `problem.constraints` by global search
     plus gradient polish (`minimise`): `samples` Sobol designs over the bounds through
@@ -531,6 +543,14 @@ def search(
       on CPU, where one solve keeps about one core busy).
     - `use_design`: start one local run at the problem's base design (clipped to the
       bounds) besides the sampled ones.
+    - `store`: the path of an SQLite file that keeps every evaluation as it is made
+      (`docs/campaigns.md`). Running the same search with the same store resumes a
+      stopped one: stored evaluations are read back bit for bit, not solved, so a
+      seeded search retraces its path and ends at the same best design. A store made by
+      another search is refused with `ParameterError`. `max_seconds` counts the time of
+      the earlier runs; `workers` is the store's (it sets how basin hopping proceeds).
+    - `client`: a `dask.distributed.Client`: the global phase's sweep runs its chunks
+      on the cluster (`sweep`'s `client`).
 
     A minimax (level 0 of `EpigraphMinimax` and `TrustRegionLP`) needs an objective that
     is one peak over time (`minimax_metric`, e.g. the peak anchoring force): the local
@@ -567,17 +587,72 @@ def search(
     box = SearchSpace.of(problem)
     base = params_to_values(problem.params)
     ok_code = int(status_codes(Status.ok))
+    workers = default_workers(jax.local_devices()) if workers is None else workers
+    study = None
+    if store is not None:
+        study = _open_study_store(
+            store, problem, local, hopping, samples, starts, use_design, seed, workers, progress
+        )
+        workers = int(study.plan["workers"])
+    began = time.perf_counter()
 
-    def evaluate_batch(z):
+    def spent() -> float:
+        """Seconds of the time budget spent, the earlier runs' included."""
+        return (study.prior_seconds if study else 0.0) + time.perf_counter() - began
+
+    def solve_batch(z):
         theta = np.asarray(jax.vmap(box.theta)(jnp.asarray(z)))
         designs = {k: np.full(len(z), float(v)) for k, v in base.items()}
         designs |= {name: theta[:, j] for j, name in enumerate(problem.tune)}
         result = sweep(
-            designs, smoothing=problem.smoothing, options=problem.options, progress=False
+            designs,
+            smoothing=problem.smoothing,
+            options=problem.options,
+            progress=False,
+            client=client,
         )
         metrics = result.peaks
         objective = np.asarray(problem.objective(metrics), dtype=float)
-        return objective, metric_violations(problem, metrics), result.ok
+        violations = np.asarray(metric_violations(problem, metrics), dtype=float)
+        return theta, objective, violations.reshape(len(z), -1), status_codes(result.status)
+
+    def evaluate_batch(z):
+        if study is None:
+            _, objective, violations, codes = solve_batch(z)
+            return objective, violations, codes == ok_code
+        keys = [fingerprint("sample", row) for row in z]
+        stored = [study.stored(key) for key in keys]
+        todo = np.asarray([i for i, out in enumerate(stored) if out is None], dtype=int)
+        objective = np.zeros(len(z))
+        violations = np.zeros((len(z), len(problem.metric_constraints)))
+        codes = np.zeros(len(z), dtype=np.int32)
+        for i, out in enumerate(stored):
+            if out is not None:
+                objective[i], violations[i], codes[i] = (
+                    out["objective"],
+                    out["violations"],
+                    out["code"],
+                )
+        if todo.size:
+            theta, objective[todo], violations[todo], codes[todo] = solve_batch(z[todo])
+            held = feasible(codes[todo] == ok_code, objective[todo], violations[todo])
+            messages = status_messages(codes[todo])
+            study.commit(
+                [
+                    {
+                        "seconds": spent(), "phase": "sample", "theta": theta[j],
+                        "objective": objective[i], "violations": violations[i],
+                        "feasible": held[j], "status": messages[j], "status_code": codes[i],
+                        "key": keys[i],
+                        "outputs": {
+                            "objective": objective[i], "violations": violations[i],
+                            "code": codes[i],
+                        },
+                    }
+                    for j, i in enumerate(todo.tolist())
+                ]
+            )  # fmt: skip
+        return objective, violations, codes == ok_code
 
     traces = _TRACES[0]
 
@@ -585,10 +660,36 @@ def search(
     window_lock = threading.Lock()
 
     def gradient_solve(z, level, series_ts=None):
-        f, g, df, dg, exact, code = _gradient_program(
-            problem, box, jnp.asarray(z), jnp.asarray(level, dtype=float), series_ts
-        )
-        return LocalEvaluation(f, g, df, dg, float(exact), int(code) == ok_code)
+        if study is None:
+            f, g, df, dg, exact, code = _gradient_program(
+                problem, box, jnp.asarray(z), jnp.asarray(level, dtype=float), series_ts
+            )
+            return LocalEvaluation(f, g, df, dg, float(exact), int(code) == ok_code)
+        z = np.asarray(z, dtype=float)
+        times = () if series_ts is None else np.asarray(series_ts)
+        key = fingerprint("gradient", z, np.asarray(level, dtype=float), times)
+        out = study.stored(key)
+        if out is None:
+            arrays = _gradient_program(
+                problem, box, jnp.asarray(z), jnp.asarray(level, dtype=float), series_ts
+            )
+            names = ("f", "g", "df", "dg", "exact", "code")
+            out = dict(zip(names, map(np.asarray, arrays), strict=True))
+            code = int(out["code"])
+            study.commit(
+                [
+                    {
+                        "seconds": spent(), "phase": "local",
+                        "theta": np.asarray(box.theta(jnp.asarray(z))),
+                        "objective": out["exact"], "violations": out["g"],
+                        "feasible": feasible(code == ok_code, out["exact"], out["g"]),
+                        "status": status_messages(np.asarray([code]))[0],
+                        "status_code": code, "key": key, "outputs": out,
+                    }
+                ]
+            )  # fmt: skip
+        f, g, df, dg = out["f"], out["g"], out["df"], out["dg"]
+        return LocalEvaluation(f, g, df, dg, float(out["exact"]), int(out["code"]) == ok_code)
 
     def series_ts(z) -> np.ndarray:
         """Save times over the first design's run (from 0 to where its peaks were
@@ -639,21 +740,26 @@ def search(
     initial = []
     if use_design:
         initial.append(box.z(np.asarray(values_of(problem.params, problem.tune))))
-    result = minimise(
-        evaluate_batch,
-        value_and_jacobian,
-        len(problem.tune),
-        samples=samples,
-        starts=starts,
-        initial=initial,
-        local=local,
-        hopping=hopping,
-        seed=seed,
-        max_seconds=max_seconds,
-        workers=default_workers(jax.local_devices()) if workers is None else workers,
-        progress=progress,
-        new_run=new_run,
-    )
+    try:
+        result = minimise(
+            evaluate_batch,
+            value_and_jacobian,
+            len(problem.tune),
+            samples=samples,
+            starts=starts,
+            initial=initial,
+            local=local,
+            hopping=hopping,
+            seed=seed,
+            max_seconds=max_seconds,
+            workers=workers,
+            progress=progress,
+            new_run=new_run,
+            spent=spent,
+        )
+    finally:
+        if study is not None:
+            study.close()
 
     def theta(z) -> np.ndarray | None:
         return np.asarray(box.theta(jnp.asarray(z))) if np.all(np.isfinite(z)) else None
@@ -665,4 +771,48 @@ def search(
         compilations=_TRACES[0] - traces,
         best_theta=theta(result.best_z),
         closest_theta=theta(result.closest_z),
+        replayed=0 if study is None else study.replayed,
     )
+
+
+def _open_study_store(
+    path, problem, local, hopping, samples, starts, use_design, seed, workers, progress
+) -> StudyStore:
+    """The store at `path` for this search (created, or checked to be this search's);
+    its plan's `workers` replaces `workers`."""
+    from . import __version__
+
+    identity = fingerprint(
+        "search", __version__, problem, local, hopping, samples, starts, use_design, seed
+    )
+    runs = starts + int(use_design) + (0 if hopping is None else hopping.hops)
+    n_samples = 0 if samples == 0 else int(2 ** np.ceil(np.log2(samples)))
+    study = StudyStore(
+        path,
+        identity=identity,
+        total=n_samples + runs * len(local.levels) * local.maxiter,
+        plan={"workers": int(workers)},
+        tune=problem.tune,
+        limits=[(name, kind) for name, kind, _ in problem.metric_constraints],
+        description={
+            "study": "search",
+            "tune": list(problem.tune),
+            "local": type(local).__name__,
+            "seed": seed,
+            "created": time.strftime("%Y-%m-%d %H:%M:%S"),
+        },
+    )
+    if progress is not False:
+        if len(study._outputs):
+            print(
+                f"search: resuming from {path}: {len(study._outputs)} evaluations stored "
+                f"(read back, not solved), {study.prior_seconds:.1f} s of the budget spent",
+                file=sys.stderr,
+            )
+        if study.plan["workers"] != workers:
+            print(
+                f"search: {study.plan['workers']} local runs at once, as in the run that "
+                f"made {path} (not {workers}): basin hopping proceeds the same way",
+                file=sys.stderr,
+            )
+    return study

@@ -1,5 +1,5 @@
-"""Campaign stores: a sweep's results committed to an SQLite file chunk by chunk, so that
-a run that is killed resumes where it stopped.
+"""Campaign stores: a sweep's results committed to an SQLite file chunk by chunk, and a
+study's evaluations one by one, so that a run that is killed resumes where it stopped.
 
 SQLite because a store must survive a `kill -9` at any moment and stay readable by
 anyone: each chunk is one transaction (all of its rows or none), the file is one
@@ -15,15 +15,29 @@ and it needs no dependency. The tables:
   failed) and `status_code`;
 - `chunks` (`chunk`, `designs`, `seconds`, `finished`, `run`): each committed chunk, once;
 - `runs` (`run`, `started`, `pid`, `host`): each time the campaign was started or resumed.
+
+A study's store (`StudyStore`) has `meta` and `runs` too, and instead of `points` and
+`chunks`:
+
+- `evaluations`: one row per evaluation, in the order they were made: `evaluation`,
+  `run`, `seconds` (of the study's time budget, runs before included), `phase`
+  (`"sample"`: the global phase, `"local"`: a gradient solve of a local run, `"step"`:
+  a step of an optax run), `start` (the optax run; NULL otherwise), the tuned
+  parameters by flat name, `objective` (exact), the normalised violation of each limit
+  (`violation:<metric>:<max|min>`, `<= 0` where held), `violation` (the largest),
+  `feasible`, `status`, `status_code`; and for the resume, `key` (a digest of what was
+  evaluated) and `outputs` (the evaluation's arrays, bit for bit, as `.npz` bytes).
 """
 
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import socket
 import sqlite3
+import threading
 import time
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -33,7 +47,7 @@ import numpy as np
 
 from ._params import ParameterError
 
-__all__ = ["CampaignProgress", "SweepStore", "campaign_progress", "fingerprint"]
+__all__ = ["CampaignProgress", "StudyStore", "SweepStore", "campaign_progress", "fingerprint"]
 
 #: The layout of the tables; a store of another format is refused, not misread.
 STORE_FORMAT = 1
@@ -65,7 +79,8 @@ def _connect(path: Path) -> sqlite3.Connection:
     if not path.parent.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
     try:
-        db = sqlite3.connect(path, isolation_level=None, timeout=60.0)
+        # Shared by a study's threads, each write under the store's lock.
+        db = sqlite3.connect(path, isolation_level=None, timeout=60.0, check_same_thread=False)
         db.execute("PRAGMA journal_mode=WAL")
         db.execute("PRAGMA synchronous=NORMAL")
         tables = {row[0] for row in db.execute("SELECT name FROM sqlite_master")}
@@ -88,23 +103,15 @@ def _read_meta(db: sqlite3.Connection) -> dict[str, str]:
     return dict(db.execute("SELECT key, value FROM meta").fetchall())
 
 
-class SweepStore:
-    """A sweep's store (see the module's docstring). Opening creates it, or checks that
-    it was made by the same sweep (`identity`, a `fingerprint` of everything its results
-    depend on) and raises `ParameterError` if not. `plan` (the chunking: workers, lanes,
-    chunk size) is kept from the run that made the store, so that a resumed sweep cuts
-    the same chunks and gives the same bits."""
+class _Store:
+    """What every store does on opening: create it, or check that it was made by the same
+    campaign (`identity`, a `fingerprint` of everything its results depend on) and raise
+    `ParameterError` if not; keep the `plan` of the run that made it; add a row to
+    `runs`. A subclass names its `kind` and writes its tables in `_create_tables`."""
 
-    def __init__(
-        self,
-        path,
-        *,
-        identity: str,
-        total: int,
-        plan: dict,
-        columns: list[str],
-        description: dict,
-    ):
+    kind = ""
+
+    def __init__(self, path, *, identity: str, total: int, plan: dict, columns, description):
         self.path = Path(path)
         self.db = _connect(self.path)
         try:
@@ -128,11 +135,11 @@ class SweepStore:
 
     def _check(self, meta: dict[str, str], identity: str) -> None:
         kind, made = meta.get("kind"), json.loads(meta.get("description", "{}"))
-        if kind != "sweep" or meta.get("identity") != identity:
-            what = "a study" if kind == "study" else "a different sweep"
+        if kind != self.kind or meta.get("identity") != identity:
+            what = f"a different {self.kind}" if kind == self.kind else f"a {kind}"
             raise ParameterError(
-                f"store {self.path} holds the results of {what} ({_describe(made)}), not of "
-                "this one: give a new store path, or delete the file to start again"
+                f"store {self.path} holds the results of {what} ({_describe(kind, made)}), "
+                "not of this one: give a new store path, or delete the file to start again"
             )
         if int(meta.get("format", -1)) != STORE_FORMAT:
             raise ParameterError(
@@ -142,7 +149,6 @@ class SweepStore:
 
     def _create(self, identity: str, total: int, description: dict) -> None:
         db = self.db
-        data = ", ".join(f"{_quote(name)} REAL" for name in self.columns)
         db.execute("BEGIN IMMEDIATE")
         try:
             db.execute("CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT)")
@@ -150,20 +156,9 @@ class SweepStore:
                 "CREATE TABLE runs (run INTEGER PRIMARY KEY AUTOINCREMENT, started REAL, "
                 "pid INTEGER, host TEXT)"
             )
-            db.execute(
-                "CREATE TABLE chunks (chunk TEXT PRIMARY KEY, designs INTEGER, seconds REAL, "
-                "finished REAL, run INTEGER)"
-            )
-            # Rows in the order they were committed, `point` not a key: a chunk's points
-            # are scattered over the sweep (sorted by gap), and keeping them in a B-tree
-            # by point made each commit 4 times slower. Each chunk is written once, in
-            # one transaction with its row in `chunks`.
-            db.execute(
-                f"CREATE TABLE points (point INTEGER, chunk TEXT, {data}, "
-                "status TEXT, status_code INTEGER)"
-            )
+            self._create_tables()
             meta = {
-                "kind": "sweep",
+                "kind": self.kind,
                 "format": str(STORE_FORMAT),
                 "identity": identity,
                 "total": str(total),
@@ -176,6 +171,35 @@ class SweepStore:
         except BaseException:
             db.execute("ROLLBACK")
             raise
+
+    def _create_tables(self) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        self.db.close()
+
+
+class SweepStore(_Store):
+    """A sweep's store (see the module's docstring). `plan` (the chunking: workers, lanes,
+    chunk size) is kept from the run that made the store, so that a resumed sweep cuts
+    the same chunks and gives the same bits."""
+
+    kind = "sweep"
+
+    def _create_tables(self) -> None:
+        data = ", ".join(f"{_quote(name)} REAL" for name in self.columns)
+        self.db.execute(
+            "CREATE TABLE chunks (chunk TEXT PRIMARY KEY, designs INTEGER, seconds REAL, "
+            "finished REAL, run INTEGER)"
+        )
+        # Rows in the order they were committed, `point` not a key: a chunk's points
+        # are scattered over the sweep (sorted by gap), and keeping them in a B-tree
+        # by point made each commit 4 times slower. Each chunk is written once, in
+        # one transaction with its row in `chunks`.
+        self.db.execute(
+            f"CREATE TABLE points (point INTEGER, chunk TEXT, {data}, "
+            "status TEXT, status_code INTEGER)"
+        )
 
     def done(self) -> dict[str, int]:
         """The committed chunks: key -> number of designs."""
@@ -244,11 +268,149 @@ class SweepStore:
         data["status_code"] = table[:, -1].astype(np.int32)
         return table[:, 0].astype(int), data
 
-    def close(self) -> None:
-        self.db.close()
+
+def pack(arrays: dict[str, Any]) -> bytes:
+    """Named arrays as compressed `.npz` bytes (read back bit for bit by `unpack`)."""
+    buffer = io.BytesIO()
+    named: dict[str, Any] = {k: np.asarray(v) for k, v in arrays.items()}
+    np.savez_compressed(buffer, **named)
+    return buffer.getvalue()
 
 
-def _describe(description: dict) -> str:
+def unpack(blob: bytes) -> dict[str, np.ndarray]:
+    with np.load(io.BytesIO(blob), allow_pickle=False) as data:
+        return {k: data[k] for k in data.files}
+
+
+class StudyStore(_Store):
+    """A study's store (see the module's docstring): every evaluation committed as it is
+    made, with its outputs, so that a resumed study replays what is stored (`stored`) and
+    solves only the rest. Thread-safe: a study's local runs commit from their threads.
+
+    - `tune`: the tuned parameters' flat names; `limits`: `(metric, kind)` per limit;
+    - `plan`: kept from the run that made the store (`workers`: how many local runs at
+      once, which sets how basin hopping proceeds);
+    - `prior_seconds`: the time budget the earlier runs spent."""
+
+    kind = "study"
+
+    def __init__(self, path, *, identity: str, total: int, plan: dict, tune, limits, description):
+        self.tune = list(tune)
+        self.limit_columns = [f"violation:{name}:{kind}" for name, kind in limits]
+        columns = [*self.tune, "objective", *self.limit_columns]
+        super().__init__(
+            path, identity=identity, total=total, plan=plan, columns=columns,
+            description=description,
+        )  # fmt: skip
+        self.lock = threading.Lock()
+        rows = self.db.execute("SELECT key, outputs FROM evaluations WHERE key IS NOT NULL")
+        self._outputs: dict[str, bytes] = dict(rows.fetchall())
+        self.prior_seconds = float(
+            self.db.execute("SELECT COALESCE(MAX(seconds), 0) FROM evaluations").fetchone()[0]
+        )
+        self.replayed = 0
+
+    def _create_tables(self) -> None:
+        data = ", ".join(f"{_quote(name)} REAL" for name in self.columns)
+        self.db.execute(
+            "CREATE TABLE evaluations (evaluation INTEGER PRIMARY KEY AUTOINCREMENT, "
+            f"run INTEGER, seconds REAL, phase TEXT, start INTEGER, {data}, violation REAL, "
+            "feasible INTEGER, status TEXT, status_code INTEGER, key TEXT, outputs BLOB)"
+        )
+        self.db.execute(
+            "CREATE TABLE checkpoints (step INTEGER PRIMARY KEY, run INTEGER, state BLOB)"
+        )
+
+    def stored(self, key: str) -> dict[str, np.ndarray] | None:
+        """The outputs of the evaluation named `key`, if it is in the store."""
+        with self.lock:
+            blob = self._outputs.get(key)
+            if blob is not None:
+                self.replayed += 1
+        return None if blob is None else unpack(blob)
+
+    def commit(self, rows: list[dict[str, Any]]) -> None:
+        """Write evaluations in one transaction. Each row: `seconds`, `phase`, `theta
+        (P,)`, `objective`, `violations (C,)`, `feasible`, `status`, `status_code`, and
+        optionally `start`, `key` and `outputs` (named arrays, kept for the resume)."""
+        insert, values, blobs = self._insert(rows)
+        with self.lock:
+            self._transaction(lambda db: db.executemany(insert, values))
+            self._outputs.update(blobs)
+
+    def checkpoint(self, step: int, state: dict[str, Any], rows: list[dict[str, Any]]) -> None:
+        """Commit one step of an optax run: its evaluations (`rows`, as `commit`) and the
+        state to resume from (named arrays), in one transaction."""
+        insert, values, _ = self._insert(rows)
+        blob = pack(state)
+
+        def write(db):
+            db.executemany(insert, values)
+            db.execute(
+                "INSERT OR REPLACE INTO checkpoints VALUES (?, ?, ?)", (step, self.run, blob)
+            )
+
+        with self.lock:
+            self._transaction(write)
+
+    def _insert(self, rows: list[dict[str, Any]]):
+        names = [
+            "run", "seconds", "phase", "start", *self.columns, "violation", "feasible",
+            "status", "status_code", "key", "outputs",
+        ]  # fmt: skip
+        values, blobs = [], {}
+        for row in rows:
+            violations = np.asarray(row["violations"], dtype=float).reshape(-1)
+            blob = pack(row["outputs"]) if row.get("outputs") is not None else None
+            if row.get("key") is not None and blob is not None:
+                blobs[row["key"]] = blob
+            values.append(
+                (
+                    self.run,
+                    float(row["seconds"]),
+                    row["phase"],
+                    row.get("start"),
+                    *np.asarray(row["theta"], dtype=float).reshape(-1).tolist(),
+                    float(row["objective"]),
+                    *violations.tolist(),
+                    float(np.max(violations)) if violations.size else None,
+                    int(bool(row["feasible"])),
+                    row["status"],
+                    int(row["status_code"]),
+                    row.get("key"),
+                    blob,
+                )
+            )
+        insert = (
+            f"INSERT INTO evaluations ({', '.join(map(_quote, names))}) "
+            f"VALUES ({', '.join('?' * len(names))})"
+        )
+        return insert, values, blobs
+
+    def _transaction(self, write) -> None:
+        db = self.db
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            write(db)
+            db.execute("COMMIT")
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+
+    def checkpoints(self) -> list[dict[str, np.ndarray]]:
+        """Every committed step's state, in step order."""
+        rows = self.db.execute("SELECT state FROM checkpoints ORDER BY step").fetchall()
+        return [unpack(blob) for (blob,) in rows]
+
+
+def _describe(kind: str | None, description: dict) -> str:
+    if kind == "study":
+        parts = [f"study {description.get('study', '?')}"]
+        if description.get("tune"):
+            parts.append("tuning " + ", ".join(description["tune"]))
+        if description.get("created"):
+            parts.append(f"made {description['created']}")
+        return ", ".join(parts)
     parts = [f"{description.get('designs', '?')} designs"]
     if description.get("names"):
         parts.append("of " + ", ".join(description["names"]))
@@ -260,11 +422,15 @@ def _describe(description: dict) -> str:
 class CampaignProgress(NamedTuple):
     """Where a campaign stands, read from its store (`campaign_progress`).
 
-    - `kind`: `"sweep"`; `total`, `done`: designs in the campaign and committed;
+    - `kind`: `"sweep"` or `"study"`;
+    - `total`, `done`: a sweep's designs, and those committed; a study's planned
+      evaluations (a rough guide: a local run may take more or fewer) and those made;
     - `runs`: how many times it was started or resumed;
-    - `rate`: designs per second over the latest run (from its start to its last
-      commit; NaN before that run's first commit);
-    - `seconds_left`: the designs still to do at that rate (NaN if unknown; 0 when done).
+    - `rate`: designs (evaluations) per second over the latest run (NaN before that
+      run's first commit);
+    - `seconds_left`: what is still to do at that rate (NaN if unknown; 0 when done; a
+      study's by its plan, as rough);
+    - `best`: a study's best feasible objective so far (NaN if none; a sweep: NaN).
     """
 
     kind: str
@@ -273,12 +439,20 @@ class CampaignProgress(NamedTuple):
     runs: int
     rate: float
     seconds_left: float
+    best: float = float("nan")
 
     def line(self) -> str:
-        """One line: done/total, rate, time left."""
+        """One line: done/total, rate, time left (a study: its best so far)."""
+        runs = f"{self.runs} run{'s' * (self.runs != 1)}"
+        if self.kind == "study":
+            best = f"{self.best:.7g}" if np.isfinite(self.best) else "none feasible yet"
+            text = f"study: {self.done} evaluations, {runs}"
+            text += f", best feasible objective {best}"
+            if np.isfinite(self.rate):
+                text += f", {self.rate:.1f}/s in the latest run"
+            return text
         share = self.done / self.total if self.total else 1.0
-        text = f"{self.kind}: {self.done}/{self.total} designs ({100 * share:.1f} %)"
-        text += f", {self.runs} run{'s' * (self.runs != 1)}"
+        text = f"{self.kind}: {self.done}/{self.total} designs ({100 * share:.1f} %), {runs}"
         if self.done >= self.total:
             return text + ", finished"
         if np.isfinite(self.rate):
@@ -294,20 +468,37 @@ def campaign_progress(path) -> CampaignProgress:
     if not path.is_file():
         raise ParameterError(f"store {path}: no such file")
     db = _connect(path)
+    best = float("nan")
     try:
         meta = _read_meta(db)
         if not meta:
             raise ParameterError(f"store {path} is empty: not a recoil-jax store")
         total = int(meta["total"])
-        done = db.execute("SELECT COALESCE(SUM(designs), 0) FROM chunks").fetchone()[0]
         runs, run, started = db.execute(
             "SELECT COUNT(*), MAX(run), MAX(started) FROM runs"
         ).fetchone()
-        made, last = db.execute(
-            "SELECT COALESCE(SUM(designs), 0), MAX(finished) FROM chunks WHERE run = ?", (run,)
-        ).fetchone()
+        if meta["kind"] == "study":
+            done, low = db.execute(
+                "SELECT COUNT(*), MIN(CASE WHEN feasible THEN objective END) FROM evaluations"
+            ).fetchone()
+            best = float("nan") if low is None else float(low)
+            # The latest run's rate over its own stretch of the time budget.
+            made, first, last = db.execute(
+                "SELECT COUNT(*), MIN(seconds), MAX(seconds) FROM evaluations WHERE run = ?",
+                (run,),
+            ).fetchone()
+            span = (last - first) if made and last is not None else 0.0
+        else:
+            done = db.execute("SELECT COALESCE(SUM(designs), 0) FROM chunks").fetchone()[0]
+            made, last = db.execute(
+                "SELECT COALESCE(SUM(designs), 0), MAX(finished) FROM chunks WHERE run = ?",
+                (run,),
+            ).fetchone()
+            span = (last - started) if made and last else 0.0
     finally:
         db.close()
-    rate = made / (last - started) if made and last and last > started else float("nan")
+    rate = made / span if span > 0 else float("nan")
     left = 0.0 if done >= total else (total - done) / rate if np.isfinite(rate) else float("nan")
-    return CampaignProgress(meta["kind"], total, int(done), int(runs), float(rate), float(left))
+    return CampaignProgress(
+        meta["kind"], total, int(done), int(runs), float(rate), float(left), best
+    )

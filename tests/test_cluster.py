@@ -111,3 +111,46 @@ def test_sweep_command_on_a_cluster(client, capsys):
     assert "--workers 0 is invalid" in capsys.readouterr().err
     assert main([*argv, "--workers", "2", "--scheduler", "tcp://127.0.0.1:1"]) == 2
     assert "not both" in capsys.readouterr().err
+
+
+def test_a_search_and_the_tuning_baselines_on_a_cluster(client, tmp_path, capsys):
+    """The optimiser's global phase and the benchmark's batched baselines go through the
+    cluster: the same samples, the same best design, the same penalised objectives."""
+    from recoil_jax.apps._bench_tuning import _Evaluator
+
+    problem = rj.DesignProblem(
+        params=rj.params_from_values(m=1500.0, gap=0.05),
+        objective=rj.Objective({"peak_anchoring_force": 1.0}),
+        tune=("gap", "k_r"),
+        bounds={"gap": (0.0, 0.12)},
+        constraints=(rj.Constraint("max_stroke", upper=0.15),),
+    )
+    settings = dict(samples=64, starts=1, progress=False)
+    alone = rj.search(problem, **settings)
+    spread = rj.search(problem, client=client, **settings)
+    for name in ("objective", "violation", "ok"):
+        assert np.array_equal(spread.samples[name], alone.samples[name]), name
+    assert np.array_equal(spread.best_z, alone.best_z)
+    z = np.random.default_rng(0).uniform(size=(40, 2))
+    assert np.array_equal(
+        _Evaluator(problem, 60.0, client).batch(z), _Evaluator(problem, 60.0).batch(z)
+    )
+    # The command line: a study's global phase on a running cluster, by its address.
+    study = tmp_path / "gap.toml"
+    study.write_text(
+        'description = "gap"\n[design]\nm = 1500.0\n[tune]\ngap = [0.0, 0.12]\n'
+        "[objective]\npeak_anchoring_force = 1.0\n"
+        '[optimiser]\nmethod = "search"\nsamples = 32\nstarts = 1\n'
+    )
+    argv = ["optimise", str(study), "--json"]
+    assert main([*argv, "--out", str(tmp_path / "a")]) == 0
+    first = capsys.readouterr().out
+    assert main([*argv, "--out", str(tmp_path / "b"), "--scheduler", client.scheduler.address]) == 0
+    captured = capsys.readouterr()
+    assert f"2 workers at {client.scheduler.address}" in captured.err
+    import json
+
+    assert (
+        json.loads(captured.out.splitlines()[-1])["best"]
+        == json.loads(first.splitlines()[-1])["best"]
+    )

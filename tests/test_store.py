@@ -19,6 +19,7 @@ import pytest
 
 import recoil_jax as rj
 import recoil_jax._sweep as sweep_module
+from recoil_jax._store import StudyStore
 from recoil_jax.apps import main
 from recoil_jax.apps._bench import bench_designs
 
@@ -240,7 +241,7 @@ def test_the_guide_reads_a_store_with_pandas(uninterrupted, tmp_path):
     store = tmp_path / "map.sqlite"
     rj.sweep(designs, store=store, progress=False, **PLAN)
     guide = (Path(__file__).resolve().parents[1] / "docs" / "campaigns.md").read_text()
-    (snippet,) = [b for b in re.findall(r"```python\n(.*?)```", guide, re.S) if "read_sql" in b]
+    (snippet,) = [b for b in re.findall(r"```python\n(.*?)```", guide, re.S) if "FROM points" in b]
     namespace: dict = {}
     exec(snippet.replace("results/map.sqlite", str(store)), namespace)
     force = plain.peaks["peak_anchoring_force"]
@@ -257,3 +258,237 @@ def test_bench_store_measures_each_way():
         assert result[f"{way}_seconds"] > 0 and result[f"{way}_peak_rss_mb"] > 100
     assert result["store_mb"] > 0
     assert "2 Dask workers" in format_store_bench(result)
+
+
+# Studies: every evaluation committed as it is made; a resumed study reads the stored
+# ones back bit for bit and retraces a seeded run's path to the same best design.
+
+
+def _gap_problem():
+    """`tests/test_search.py`'s problem (one compiled program for both files)."""
+    return rj.DesignProblem(
+        params=rj.params_from_values(m=1500.0, gap=0.05),
+        objective=rj.Objective({"peak_anchoring_force": 1.0}),
+        tune=("gap",),
+        bounds={"gap": (0.0, 0.12)},
+        constraints=(rj.Constraint("max_stroke", upper=0.15),),
+    )
+
+
+SEARCH = dict(samples=32, starts=2, hopping=rj.BasinHopping(hops=2), workers=1, progress=False)
+
+
+def _study_rows(path) -> dict:
+    with sqlite3.connect(path) as db:
+        return {
+            "rows": db.execute("SELECT COUNT(*), COUNT(DISTINCT key) FROM evaluations").fetchone(),
+            "phases": dict(db.execute("SELECT phase, COUNT(*) FROM evaluations GROUP BY phase")),
+            "runs": db.execute("SELECT COUNT(*) FROM runs").fetchone()[0],
+            "integrity": db.execute("PRAGMA integrity_check").fetchone()[0],
+        }
+
+
+def test_interrupted_search_resumes_to_the_same_design(tmp_path, monkeypatch, capsys):
+    problem = _gap_problem()
+    plain = rj.search(problem, **SEARCH)
+    store = tmp_path / "study.sqlite"
+    real = StudyStore.commit
+    commits = []
+
+    def stop_after_ten(self, rows):
+        if len(commits) == 10:
+            raise KeyboardInterrupt  # a Ctrl-C, or a crash, in the local phase
+        commits.append(len(rows))
+        return real(self, rows)
+
+    monkeypatch.setattr(StudyStore, "commit", stop_after_ten)
+    with pytest.raises(KeyboardInterrupt):
+        rj.search(problem, store=store, **SEARCH)
+    monkeypatch.setattr(StudyStore, "commit", real)
+    cut = _study_rows(store)
+    assert cut["phases"] == {"sample": 32, "local": 9}  # the samples in one commit
+    resumed = rj.search(problem, store=store, **(SEARCH | {"progress": True}))
+    assert "resuming from" in capsys.readouterr().err
+    # The same evaluations (the given start's run and the samples interleave by the
+    # threads' timing), to the same best design, bit for bit.
+    assert np.array_equal(resumed.best_z, plain.best_z)
+    assert resumed.best_objective == plain.best_objective
+    assert np.array_equal(np.sort(resumed.trace["objective"]), np.sort(plain.trace["objective"]))
+    for a, b in zip(resumed.starts, plain.starts, strict=True):
+        assert np.array_equal(a["z"], b["z"]) and a["objective"] == b["objective"]
+    assert resumed.replayed >= 41
+    # Each evaluation stored once; the store's best is the search's.
+    done = _study_rows(store)
+    assert done["rows"][0] == done["rows"][1] and done["runs"] == 2
+    assert done["phases"]["sample"] == 32 and done["phases"]["local"] <= plain.gradient_solves
+    progress = rj.campaign_progress(store)
+    assert progress.kind == "study" and progress.done == done["rows"][0]
+    assert progress.best == plain.best_objective
+    with sqlite3.connect(store) as db:
+        gaps, objectives = zip(*db.execute("SELECT gap, objective FROM evaluations"), strict=True)
+    # The rows hold the designs' SI values and exact objectives: re-solved, they agree.
+    i = int(np.argmin(np.where(np.isfinite(objectives), objectives, np.inf)))
+    again = rj.peaks(
+        rj.with_values(problem.params, ("gap",), np.asarray([gaps[i]])),
+        problem.smoothing,
+        problem.options,
+    )
+    assert float(again.peak_anchoring_force) == pytest.approx(objectives[i], rel=1e-6)
+
+
+def test_interrupted_optimise_resumes_to_the_same_bits(tmp_path):
+    problem = _gap_problem()
+    settings = dict(starts=3, steps=16, min_steps=6, progress=False)
+    plain = rj.optimise(problem, **settings)
+    store = tmp_path / "adam.sqlite"
+
+    def stop_at_seven(step, record):
+        if step == 7:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        rj.optimise(problem, store=store, callback=stop_at_seven, **settings)
+    with sqlite3.connect(store) as db:
+        assert db.execute("SELECT COUNT(*) FROM checkpoints").fetchone()[0] == 7
+    resumed = rj.optimise(problem, store=store, **settings)
+    assert resumed.steps == plain.steps
+    for name, history in plain.history.items():
+        assert np.array_equal(resumed.history[name], history, equal_nan=True), name
+    assert np.array_equal(resumed.best_theta, plain.best_theta)
+    assert np.array_equal(resumed.converged_step, plain.converged_step)
+    # One row per run per step it took; the store's best is the result's.
+    steps = np.arange(plain.steps)[:, None]
+    took = int(np.sum((plain.converged_step < 0) | (steps <= plain.converged_step)))
+    assert _study_rows(store)["rows"][0] == took
+    assert rj.campaign_progress(store).best == float(plain.best_objective[0])
+
+
+def test_foreign_study_stores_are_refused(tmp_path):
+    problem = _gap_problem()
+    store = tmp_path / "seed0.sqlite"
+    small = dict(samples=4, starts=0, use_design=False, progress=False)
+    rj.search(problem, store=store, **small)
+    before = store.read_bytes()
+    with pytest.raises(rj.ParameterError, match="holds the results of a different study"):
+        rj.search(problem, store=store, **(small | {"seed": 1}))
+    with pytest.raises(rj.ParameterError, match="holds the results of a different study"):
+        rj.optimise(problem, store=store, starts=1, steps=1, progress=False)
+    with pytest.raises(rj.ParameterError, match="holds the results of a study"):
+        rj.sweep({"gap": [0.05]}, store=store, progress=False)
+    swept = tmp_path / "sweep.sqlite"
+    rj.sweep({"gap": [0.05]}, store=swept, progress=False)
+    with pytest.raises(rj.ParameterError, match="holds the results of a sweep"):
+        rj.search(problem, store=swept, **small)
+    # Another optax schedule is another study, though its functions are not data.
+    adam = tmp_path / "adam.sqlite"
+    rj.optimise(problem, store=adam, starts=1, steps=2, progress=False)
+    with pytest.raises(rj.ParameterError, match="a different study"):
+        rj.optimise(
+            problem, store=adam, starts=1, steps=2, progress=False,
+            optimiser=rj.default_optimiser(0.05, 2),
+        )  # fmt: skip
+    assert store.read_bytes()[:100] == before[:100]
+
+
+_SMALL_STUDY = """
+description = "The gap for the lowest peak anchoring force, stroke within 0.15 m."
+[design]
+m = 1500.0
+gap = 0.05
+[tune]
+gap = [0.0, 0.12]
+[objective]
+peak_anchoring_force = 1.0
+[constraints]
+max_stroke = { max = 0.15 }
+[optimiser]
+method = "search"
+samples = 32
+starts = 2
+hops = 2
+"""
+
+
+def test_optimise_command_resumes_from_its_store(tmp_path, capsys):
+    study = tmp_path / "gap.toml"
+    study.write_text(_SMALL_STUDY)
+    store = tmp_path / "gap.sqlite"
+    argv = ["optimise", str(study), "--store", str(store)]
+    assert main([*argv, "--out", str(tmp_path / "a")]) == 0
+    assert main([*argv, "--out", str(tmp_path / "b")]) == 0
+    assert "resuming from" in capsys.readouterr().err
+    first, second = (json.loads((tmp_path / d / "result.json").read_text()) for d in "ab")
+    assert first["best"] == second["best"] and first["objective"] == second["objective"]
+    assert second["optimiser"]["replayed"] >= first["optimiser"]["gradient_solves"]
+    assert main(["progress", str(store)]) == 0
+    line = capsys.readouterr().out
+    # The store's best is the gradient solve's; result.json's the design re-solved.
+    best = float(
+        re.search(r"study: \d+ evaluations, 2 runs, best feasible objective (\S+)", line)[1]
+    )
+    assert best == pytest.approx(first["objective"], rel=1e-6)
+    # The guide's pandas snippet finds the same best in the store.
+    pd = pytest.importorskip("pandas")
+    guide = (Path(__file__).resolve().parents[1] / "docs" / "campaigns.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", guide, re.S)
+    (snippet,) = [b for b in blocks if "FROM evaluations" in b]
+    namespace: dict = {"sqlite3": sqlite3, "pd": pd}
+    exec(snippet.replace("results/tuned.sqlite", str(store)), namespace)
+    assert float(namespace["best"].objective) == pytest.approx(best, rel=1e-6)
+    # A cluster spreads a global phase: an optax study has none.
+    adam = tmp_path / "adam.toml"
+    adam.write_text(_SMALL_STUDY.split("[optimiser]")[0] + '[optimiser]\nmethod = "adam"\n')
+    assert main(["optimise", str(adam), "--workers", "2"]) == 2
+    assert "has none" in capsys.readouterr().err
+
+
+_KILLED_STUDY = textwrap.dedent(
+    """
+    import sys
+    from recoil_jax.apps._studies import run_study
+    run_study(sys.argv[1], sys.argv[2], progress=False, store=sys.argv[3])
+    """
+)
+
+
+@pytest.mark.slow
+def test_kill_9_of_a_study_at_random_moments_resumes_to_the_same_design(tmp_path):
+    """A study killed with SIGKILL at random moments of its optimiser, three times, then
+    resumed to the end: the store is always readable with each evaluation once, and the
+    best design is an uninterrupted run's, bit for bit."""
+    from recoil_jax.apps._studies import run_study
+
+    study = tmp_path / "gap.toml"
+    # About 600 gradient solves: a few seconds of local runs, killed within the first.
+    study.write_text(_SMALL_STUDY.replace("starts = 2\nhops = 2", "starts = 8\nhops = 48"))
+    script = tmp_path / "study.py"
+    script.write_text(_KILLED_STUDY)
+    store = tmp_path / "killed.sqlite"
+    seed = random.randrange(1 << 30)
+    moments = random.Random(seed)
+    done_before = 0
+    for kill in range(3):
+        process = subprocess.Popen(
+            [sys.executable, str(script), str(study), str(tmp_path / "out"), str(store)]
+        )
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline and process.poll() is None:
+            try:
+                if rj.campaign_progress(store).done > done_before:
+                    break
+            except rj.ParameterError:  # not made yet
+                pass
+            time.sleep(0.02)
+        time.sleep(moments.uniform(0.0, 1.0))
+        assert process.poll() is None, f"the study ended before kill {kill} (seed {seed})"
+        os.kill(process.pid, signal.SIGKILL)
+        process.wait()
+        rows = _study_rows(store)
+        assert rows["integrity"] == "ok", (seed, kill)
+        assert rows["rows"][0] == rows["rows"][1] == rj.campaign_progress(store).done
+        assert rows["rows"][0] > done_before, (seed, kill)
+        done_before = rows["rows"][0]
+    resumed = run_study(study, tmp_path / "resumed", progress=False, store=store)
+    plain = run_study(study, tmp_path / "plain", progress=False)
+    assert resumed["best"] == plain["best"] and resumed["objective"] == plain["objective"]
+    assert _study_rows(store)["runs"] == 4 and _study_rows(store)["integrity"] == "ok"

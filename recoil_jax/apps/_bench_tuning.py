@@ -33,6 +33,7 @@ from scipy.stats import qmc
 
 import recoil_jax as rj
 
+from ._cluster import dask_client
 from ._studies import load_study, search_kwargs
 
 __all__ = [
@@ -67,8 +68,8 @@ class _Evaluator:
     """Plain solves of a problem in normalised coordinates, single or batched, with
     every evaluation recorded (time, exact objective, feasibility)."""
 
-    def __init__(self, problem: rj.DesignProblem, budget: float):
-        self.problem, self.budget = problem, budget
+    def __init__(self, problem: rj.DesignProblem, budget: float, client=None):
+        self.problem, self.budget, self.client = problem, budget, client
         self.space = rj.SearchSpace.of(problem)  # the coordinates `rj.search` moves in
         self.base = rj.params_to_values(problem.params)
         self.start = time.perf_counter()
@@ -103,6 +104,7 @@ class _Evaluator:
             smoothing=self.problem.smoothing,
             options=self.problem.options,
             progress=False,
+            client=self.client,
         )
         return self._score(result.peaks, result.ok)
 
@@ -187,8 +189,9 @@ def _summary(trace: dict, wall: float, solves: int, gradient_solves: int) -> dic
     }
 
 
-def _run_ours(study, budget: float, seed: int) -> dict:
+def _run_ours(study, budget: float, seed: int, client=None) -> dict:
     kwargs = search_kwargs(study, progress=False) | {"seed": seed, "max_seconds": budget}
+    kwargs["client"] = client
     start = time.perf_counter()
     result = rj.search(study.problem, **kwargs)
     wall = time.perf_counter() - start
@@ -199,8 +202,8 @@ def _run_ours(study, budget: float, seed: int) -> dict:
     return _summary(trace, min(wall, budget), int((~gradient).sum()), int(gradient.sum()))
 
 
-def _run_derivative_free(method: str, study, budget: float, seed: int) -> dict:
-    evaluator = _Evaluator(study.problem, budget)
+def _run_derivative_free(method: str, study, budget: float, seed: int, client=None) -> dict:
+    evaluator = _Evaluator(study.problem, budget, client)
     try:
         _DERIVATIVE_FREE[method](evaluator, len(study.problem.tune), seed)
     except _Budget:
@@ -218,6 +221,7 @@ def run_tuning_bench(
     methods: tuple[str, ...] = METHODS,
     out: str | Path | None = None,
     log=None,
+    client=None,
 ) -> dict:
     """Run every method on every problem (study name → budget in s, times
     `budget_scale`) from every seed of `seeds`, cold then warm. Returns `{"problems":
@@ -225,7 +229,10 @@ def run_tuning_bench(
     {method: {"best", "wall_s", "solves", "gradient_solves", "to_target_s", "cold",
     "over_seeds"}}}}}`: the run of the first seed, and `over_seeds` (`over_seeds`) of all
     of them (`speedup`: see `speedup`, of the medians over the seeds); with `out`, a
-    convergence figure per problem there (the first seed's runs)."""
+    convergence figure per problem there (the first seed's runs). With `client` (a
+    `dask.distributed.Client`), every batch of plain solves (our global phase, each
+    generation of differential evolution and CMA-ES) runs its chunks on the cluster
+    (a cold run then drops this process's compiled programs, not the workers')."""
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
     problems = dict(DEFAULT_PROBLEMS if problems is None else problems)
     unknown = set(methods) - set(METHODS)
@@ -253,9 +260,9 @@ def run_tuning_bench(
                     if label == "cold":
                         jax.clear_caches()
                     if method == "recoil-jax":
-                        run = _run_ours(study, budget, seed)
+                        run = _run_ours(study, budget, seed, client)
                     else:
-                        run = _run_derivative_free(method, study, budget, seed)
+                        run = _run_derivative_free(method, study, budget, seed, client)
                     into[method].append(run)
                     log(f"  best {run['best']}, {run['wall_s']} s")
         every = [r["best"] for m in methods for r in [*runs[m], *cold[m]]]
@@ -425,12 +432,14 @@ def main_tuning_bench(args) -> int:
         problems = {p: DEFAULT_PROBLEMS.get(p, 60.0) for p in args.problems}
     if args.seeds is not None and args.seeds < 1:
         raise rj.ParameterError(f"--seeds {args.seeds}: valid >= 1")
-    report = run_tuning_bench(
-        problems,
-        seeds=[args.seed] if args.seeds is None else range(args.seeds),
-        budget_scale=args.budget_scale,
-        methods=tuple(args.methods or METHODS),
-        out=args.out,
-    )
+    with dask_client(args.workers, args.scheduler) as client:
+        report = run_tuning_bench(
+            problems,
+            seeds=[args.seed] if args.seeds is None else range(args.seeds),
+            budget_scale=args.budget_scale,
+            methods=tuple(args.methods or METHODS),
+            out=args.out,
+            client=client,
+        )
     print(json.dumps(report) if args.json else format_report(report))
     return 0

@@ -172,7 +172,15 @@ def _sweep(args) -> int:
 def _optimise(args) -> int:
     from ._studies import run_study
 
-    report = run_study(args.study, args.out, progress=True, seed=args.seed)
+    report = run_study(
+        args.study,
+        args.out,
+        progress=True,
+        seed=args.seed,
+        store=args.store,
+        workers=args.workers,
+        scheduler=args.scheduler,
+    )
     if args.json:
         print(json.dumps(report))
     if not report["feasible"]:
@@ -361,6 +369,23 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="seed of the optimiser's samples and starts (default: the study's, else 0)",
     )
+    opt.add_argument(
+        "--store",
+        metavar="FILE.sqlite",
+        help="commit every evaluation of the optimiser to this SQLite file; the same "
+        "command with the same store resumes a stopped study (docs/campaigns.md)",
+    )
+    opt.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help='run the global phase (method "search") on a local Dask cluster of N worker processes',
+    )
+    opt.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help='run the global phase (method "search") on the running Dask cluster at ADDRESS',
+    )
     opt.set_defaults(func=_optimise)
     tuning = sub.add_parser(
         "bench-tuning",
@@ -400,6 +425,17 @@ def build_parser() -> argparse.ArgumentParser:
         "cma_es (default: all four)",
     )
     tuning.add_argument("--out", help="folder for the convergence figures (default: none)")
+    tuning.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="run every batch of plain solves on a local Dask cluster of N worker processes",
+    )
+    tuning.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="run every batch of plain solves on the running Dask cluster at ADDRESS",
+    )
     tuning.set_defaults(func=_bench_tuning)
     explore = sub.add_parser(
         "explore",

@@ -59,6 +59,7 @@ import numpy as np
 
 import recoil_jax as rj
 
+from ._cluster import dask_client
 from ._inputs import read_text
 
 __all__ = [
@@ -378,6 +379,7 @@ def _search_summary(result: rj.MinimiseResult, local: rj.LocalMethod) -> dict:
         "solves": result.solves,
         "gradient_solves": result.gradient_solves,
         "compilations": result.compilations,
+        "replayed": result.replayed,
         "seconds": round(result.seconds, 2),
     }
 
@@ -524,7 +526,13 @@ class _Phases:
 
 
 def run_study(
-    path, out: str | Path | None = None, progress: bool | None = None, seed: int | None = None
+    path,
+    out: str | Path | None = None,
+    progress: bool | None = None,
+    seed: int | None = None,
+    store: str | Path | None = None,
+    workers: int | None = None,
+    scheduler: str | None = None,
 ) -> dict:
     """Run a study: optimise, check, write `result.json` and figures.
 
@@ -534,6 +542,11 @@ def run_study(
     - `out`: the output folder (default `results/<study name>`).
     - `progress`: progress lines on stderr, for every phase (default: on a terminal).
     - `seed`: replaces the study's `[optimiser] seed`.
+    - `store`: an SQLite file that keeps every evaluation of the optimiser (`rj.search`'s
+      or `rj.optimise`'s `store`): the same study with the same store resumes where it
+      stopped and ends at the same best design. The checks and fronts run again.
+    - `workers`, `scheduler`: the global phase of `method = "search"` on a local Dask
+      cluster of `workers` processes, or on the running one at `scheduler`.
 
     **Returns:** the dict written to `result.json`. Its `feasible` says whether a design
     met every limit. When none did, `best` and `objective` are None and `closest` gives
@@ -543,6 +556,11 @@ def run_study(
     from ._figures import plot_convergence, plot_search_convergence
 
     study = load_study(path)
+    if (workers is not None or scheduler is not None) and study.optimiser["method"] != "search":
+        raise rj.ParameterError(
+            f"{study.name}: --workers and --scheduler spread the global phase of "
+            'method = "search"; this study uses method = "adam", which has none'
+        )
     if seed is not None:
         if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
             raise rj.ParameterError(f"seed = {seed!r} is invalid: valid an integer >= 0")
@@ -560,8 +578,11 @@ def run_study(
     result: rj.OptimiseResult | rj.MinimiseResult
     if study.optimiser["method"] == "search":
         search = search_kwargs(study, progress)
-        with phase("optimiser", f"global search, then {type(search['local']).__name__}"):
-            result = rj.search(problem, **search)
+        with (
+            phase("optimiser", f"global search, then {type(search['local']).__name__}"),
+            dask_client(workers, scheduler) as client,
+        ):
+            result = rj.search(problem, store=store, client=client, **search)
         simulations = {"optimiser": result.solves, "optimiser_gradients": result.gradient_solves}
         seed_used = int(study.optimiser.get("seed", 0))
         report["optimiser"] = _search_summary(result, search["local"]) | {"seed": seed_used}
@@ -574,7 +595,7 @@ def run_study(
         )
     else:
         with phase("optimiser", f"optax from {kwargs['starts']} starts"):
-            result = rj.optimise(problem, **kwargs)
+            result = rj.optimise(problem, store=store, **kwargs)
         simulations = {"optimiser": int(result.simulations)}
         report["optimiser"] = {
             "method": "adam",
