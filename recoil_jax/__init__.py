@@ -118,13 +118,16 @@ from ._store import (
     campaign_progress as campaign_progress,
 )
 from ._sweep import (
+    StoredSweep as StoredSweep,
     SweepResult as SweepResult,
     batch_params as batch_params,
     default_workers as default_workers,
     grid as grid,
+    load_sweep as load_sweep,
     shard_batch as shard_batch,
     sweep as sweep,
     sweep_grid as sweep_grid,
+    sweep_to_store as sweep_to_store,
     with_table as with_table,
 )
 

@@ -161,7 +161,9 @@ def _compile(fn, static):
             # Waited for here, so that a runtime error (`eqx.error_if`, a failed solve
             # with `throw=True`) is raised by this call, as `eqx.filter_jit` does.
             out_dynamic = jax.block_until_ready(jitted(dynamic))
-        except jax.errors.JaxRuntimeError as error:
+        # A callback's error comes as a JaxRuntimeError, or in some processes (seen in
+        # the test suite, under xdist) as a ValueError("INTERNAL: CpuCallback error").
+        except (jax.errors.JaxRuntimeError, ValueError) as error:
             marker = "_EquinoxRuntimeError: "
             text = str(error)
             if marker not in text:

@@ -47,7 +47,16 @@ import numpy as np
 
 from ._params import ParameterError
 
-__all__ = ["CampaignProgress", "StudyStore", "SweepStore", "campaign_progress", "fingerprint"]
+__all__ = [
+    "CampaignProgress",
+    "StudyStore",
+    "SweepStore",
+    "campaign_progress",
+    "fingerprint",
+    "lowest_row",
+    "read_sweep_store",
+    "store_failures",
+]
 
 #: The layout of the tables; a store of another format is refused, not misread.
 STORE_FORMAT = 1
@@ -267,6 +276,74 @@ class SweepStore(_Store):
         data = {name: table[:, j + 1] for j, name in enumerate(self.columns)}
         data["status_code"] = table[:, -1].astype(np.int32)
         return table[:, 0].astype(int), data
+
+
+def _open_sweep(path) -> tuple[sqlite3.Connection, dict[str, str]]:
+    """A sweep's store, to read: its connection and `meta` (raises `ParameterError`)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ParameterError(f"store {path}: no such file")
+    db = _connect(path)
+    meta = _read_meta(db)
+    if meta.get("kind") != "sweep":
+        db.close()
+        what = f"a {meta['kind']}'s" if meta else "empty, not a recoil-jax"
+        raise ParameterError(f"store {path} is {what} store, not a sweep's")
+    return db, meta
+
+
+def read_sweep_store(path) -> tuple[dict[str, str], np.ndarray, dict[str, np.ndarray]]:
+    """A finished sweep's store: its `meta` (with `seconds`, the chunks' solve time),
+    every row's `point` and its columns (`status_code` as integers, NULL as NaN).
+    Raises `ParameterError` if the sweep has not finished."""
+    db, meta = _open_sweep(path)
+    try:
+        columns = json.loads(meta["columns"])
+        done, seconds = db.execute(
+            "SELECT COALESCE(SUM(designs), 0), COALESCE(SUM(seconds), 0) FROM chunks"
+        ).fetchone()
+        if done < int(meta["total"]):
+            raise ParameterError(
+                f"store {path} holds {done} of {meta['total']} designs: run the same sweep "
+                "with this store to finish it first"
+            )
+        names = ["point", *columns, "status_code"]
+        rows = db.execute(f"SELECT {', '.join(map(_quote, names))} FROM points").fetchall()
+    finally:
+        db.close()
+    table = np.array(rows, dtype=float).reshape(len(rows), len(names))
+    data = {name: table[:, j + 1] for j, name in enumerate(columns)}
+    data["status_code"] = table[:, -1].astype(np.int32)
+    return meta | {"seconds": str(seconds)}, table[:, 0].astype(int), data
+
+
+def store_failures(path) -> dict[str, int]:
+    """A sweep store's failed designs: how many per reason (`status`)."""
+    db, _ = _open_sweep(path)
+    try:
+        rows = db.execute(
+            "SELECT status, COUNT(*) FROM points WHERE status != 'ok' GROUP BY status"
+        ).fetchall()
+    finally:
+        db.close()
+    return dict(rows)
+
+
+def lowest_row(path, column: str, ok_code: int) -> dict[str, float] | None:
+    """The row of a sweep store with the lowest `column` among the solves that
+    succeeded (`status_code == ok_code`), by column name; None if there is none."""
+    db, _ = _open_sweep(path)
+    try:
+        cursor = db.execute(
+            f"SELECT * FROM points WHERE status_code = ? AND {_quote(column)} IS NOT NULL "
+            f"ORDER BY {_quote(column)} LIMIT 1",
+            (ok_code,),
+        )
+        row = cursor.fetchone()
+        names = [d[0] for d in cursor.description]
+    finally:
+        db.close()
+    return None if row is None else dict(zip(names, row, strict=True))
 
 
 def pack(arrays: dict[str, Any]) -> bytes:

@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import json
 import os
 import sys
 import time
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import equinox as eqx
@@ -37,16 +39,19 @@ from ._params import (
 from ._progress import Progress
 from ._solve import peaks_batch
 from ._status import Status, status_codes, status_item, status_messages
-from ._store import SweepStore, fingerprint
+from ._store import SweepStore, fingerprint, lowest_row, read_sweep_store, store_failures
 
 __all__ = [
+    "StoredSweep",
     "SweepResult",
     "batch_params",
     "default_workers",
     "grid",
+    "load_sweep",
     "shard_batch",
     "sweep",
     "sweep_grid",
+    "sweep_to_store",
     "with_table",
 ]
 
@@ -201,23 +206,34 @@ def _structure_groups(columns: dict[str, np.ndarray]) -> list[tuple[np.ndarray, 
     simplified = columns["m"] == 0 if "m" in columns else np.zeros(n, dtype=bool)
     shots = columns.get("shots", np.ones(n))
     knots = sorted((PARAMETERS[c].index or 0, c) for c in columns if _is_knot(c))
-    present = np.array([~np.isnan(columns[c]) for _, c in knots]).reshape(len(knots), n)
+    present = np.array([~np.isnan(columns[c]) for _, c in knots], dtype=bool).reshape(len(knots), n)
     # Knots per design: the leading ones present (a missing knot is NaN).
     count = np.argmin(np.vstack([present, np.zeros((1, n), bool)]), axis=0)
-    for i in range(n):
-        if present[count[i] :, i].any():
-            raise ParameterError(
-                f"design {i}: orifice knots must be numbered from 0 without holes: "
-                f"{knots[count[i]][1]} is missing"
-            )
-    keys = list(zip(simplified.tolist(), shots.tolist(), count.tolist(), strict=True))
+    # A knot present after the first missing one is a hole.
+    holes = np.any(present & (np.arange(len(knots))[:, None] >= count[None, :]), axis=0)
+    if holes.any():
+        i = int(np.argmax(holes))
+        raise ParameterError(
+            f"design {i}: orifice knots must be numbered from 0 without holes: "
+            f"{knots[count[i]][1]} is missing"
+        )
+    # One integer per design, no Python object per design (a sweep may have millions):
+    # the knots (at most 32) in the low bits, then the rounds, then the absorber.
+    keys = count.astype(np.int64) + (np.asarray(shots, dtype=np.int64) << 6)
+    keys += simplified.astype(np.int64) << 40
+    if n and np.all(keys == keys[0]):  # one structure: no sorting
+        unique, first, inverse = keys[:1], np.zeros(1, int), np.zeros(0, int)
+    else:
+        unique, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+        inverse = inverse.reshape(-1)
     groups = []
-    for key in dict.fromkeys(keys):
-        indices = np.flatnonzero([k == key for k in keys])
+    for number in np.argsort(first):  # in order of first appearance
+        knots_here = int(unique[number] & 63)
+        indices = np.arange(n) if len(unique) == 1 else np.flatnonzero(inverse == number)
         group = {
-            c: v[indices]
+            c: v if len(unique) == 1 else v[indices]
             for c, v in columns.items()
-            if not (_is_knot(c) and (PARAMETERS[c].index or 0) >= key[2])
+            if not (_is_knot(c) and (PARAMETERS[c].index or 0) >= knots_here)
         }
         groups.append((indices, group))
     return groups
@@ -238,6 +254,13 @@ def batch_params(designs) -> tuple[RecoilParams, dict[str, np.ndarray]]:
             "numbers of orifice knots) and cannot share one RecoilParams; sweep() runs "
             "them as separate groups"
         )
+    values = _group_values(columns)
+    return params_from_values(values), values
+
+
+def _group_values(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The flat columns of designs of one structure (validated), with a full column of
+    defaults for every parameter of every group they have (`batch_params`)."""
     n = len(next(iter(columns.values())))
     simplified = "m" in columns and np.all(columns["m"] == 0)
     # Every parameter of every group the designs have gets a full column of defaults.
@@ -251,7 +274,7 @@ def batch_params(designs) -> tuple[RecoilParams, dict[str, np.ndarray]]:
     values.update(columns)
     if simplified:
         values = {k: v for k, v in values.items() if k == "m" or k not in _ABSORBER}
-    return params_from_values(values), values
+    return values
 
 
 def shard_batch(tree, devices: Sequence[Any] | None = None):
@@ -375,6 +398,69 @@ def _chunk_columns(result, wrt, all_wrt) -> dict[str, np.ndarray]:
     return out
 
 
+class _Group(NamedTuple):
+    """The designs of one structure (one compiled program): `indices` into the sweep's
+    input, their given `columns` (the rest take defaults when a chunk is built, so that
+    a sweep never holds every parameter of every design), end times `t1`, the `wrt` they
+    have, whether they have an `absorber`, and the `force_table` of every design."""
+
+    indices: np.ndarray
+    columns: dict[str, np.ndarray]
+    t1: np.ndarray
+    wrt: tuple[str, ...] | None
+    absorber: bool
+    force_table: ForceTable | None
+
+    def params(self, rows) -> RecoilParams:
+        """The `RecoilParams` of the group's designs at positions `rows`."""
+        values = _group_values({k: v[rows] for k, v in self.columns.items()})
+        params = params_from_values(values)
+        return params if self.force_table is None else with_table(params, self.force_table)
+
+
+#: Designs per slice when a group's end times and loads are checked: the checks never
+#: hold every parameter of every design at once.
+_CHECK_SLICE = 65536
+
+
+def _groups(columns, options: SolverOptions, wrt, force_table) -> list[_Group]:
+    """The sweep's designs by structure (`_structure_groups`), each with its end times,
+    its loads checked to fit them and the `wrt` it has; raises `ParameterError` before
+    anything is compiled."""
+    groups = []
+    for indices, given in _structure_groups(columns):
+        given = dict(given)
+        t1 = given.pop("t1", None)
+        group = _Group(indices, given, np.zeros(0), None, True, force_table)
+        probe = group.params(slice(0, 1))
+        ends = []
+        for begin in range(0, len(indices), _CHECK_SLICE):
+            rows = slice(begin, begin + _CHECK_SLICE)
+            params = group.params(rows)
+            if t1 is not None:
+                end = t1[rows]
+            elif options.t1 is not None:
+                end = np.full(len(indices[rows]), float(options.t1))
+            else:
+                end = np.asarray(default_end_time(params))
+            check_load_fits(params, end, options.max_steps, labels=indices[rows])
+            ends.append(end)
+        group_wrt = None
+        if wrt:
+            # Parameters this group does not have (an absorber's for m = 0, knots beyond
+            # its orifice) change nothing: their derivatives are 0.
+            group_wrt = tuple(w for w in wrt if _has(probe, w)) or None
+        absorber = probe.absorber is not None
+        groups.append(group._replace(t1=np.concatenate(ends), wrt=group_wrt, absorber=absorber))
+    for w in wrt or ():
+        if not any(w in (g.wrt or ()) for g in groups):
+            check_wrt(groups[0].params(slice(0, 1)), (w,))  # raises, naming why
+    for g in groups:
+        if g.wrt:
+            check_wrt(g.params(slice(0, 1)), g.wrt)
+    return groups
+
+
 class _Chunk(NamedTuple):
     """One compiled call's worth of a group's designs: `key` (in the store), the group,
     `points` (indices into the sweep's input, in solving order) and `size` (the padded
@@ -391,10 +477,12 @@ def _chunks(groups, plan: dict) -> list[_Chunk]:
     with `sort_by_gap`, so that the impact-heavy designs start early)."""
     workers = plan["workers"]
     out = []
-    for number, (indices, params, values, _, _) in enumerate(groups):
+    for number, group in enumerate(groups):
+        indices = group.indices
         n = len(indices)
-        sort = plan["sort_by_gap"] and params.absorber is not None
-        order = np.argsort(values["gap"], kind="stable") if sort else np.arange(n)
+        # Without a gap column every design has the default gap: no order to take.
+        sort = plan["sort_by_gap"] and group.absorber and "gap" in group.columns
+        order = np.argsort(group.columns["gap"], kind="stable") if sort else np.arange(n)
         chunk = max(workers, plan["chunk_size"] - plan["chunk_size"] % workers)
         # No bigger than needed, rounded up to a power of two per part and to at least
         # `SHARED_CHUNK`: the padding is never solved, and every sweep of up to that many
@@ -411,10 +499,10 @@ def _chunks(groups, plan: dict) -> list[_Chunk]:
 
 def _chunk_batch(chunk: _Chunk, groups, position: np.ndarray):
     """The chunk's designs and end times, padded to its compiled size with its last."""
-    _, params, _, t1, _ = groups[chunk.group]
+    group = groups[chunk.group]
     local = position[chunk.points]  # positions within the group
     padded = np.concatenate([local, np.full(chunk.size - len(local), local[-1])])
-    return jax.tree.map(lambda leaf: np.asarray(leaf)[padded], params), t1[padded]
+    return jax.tree.map(np.asarray, group.params(padded)), group.t1[padded]
 
 
 def _solve_chunk(batch, t1, count, smoothing, options, wrt, all_wrt, devices, plan):
@@ -451,14 +539,15 @@ def _solved_chunks(todo, groups, smoothing, options, all_wrt, devices, plan, cli
     the other here, or as Dask tasks on `client`'s workers (a chunk whose worker dies is
     run again elsewhere by Dask)."""
     positions = {}
-    for number, (indices, *_) in enumerate(groups):
+    for number, group in enumerate(groups):
+        indices = group.indices
         position = np.zeros(max(indices) + 1 if len(indices) else 0, dtype=int)
         position[indices] = np.arange(len(indices))
         positions[number] = position
     if client is None:
         for chunk in todo:
             batch, t1 = _chunk_batch(chunk, groups, positions[chunk.group])
-            wrt = groups[chunk.group][4]
+            wrt = groups[chunk.group].wrt
             yield (
                 chunk,
                 *_solve_chunk(
@@ -482,7 +571,7 @@ def _solved_chunks(todo, groups, smoothing, options, all_wrt, devices, plan, cli
             len(chunk.points),
             smoothing,
             options,
-            groups[chunk.group][4],
+            groups[chunk.group].wrt,
             all_wrt,
             plan,
             cache,
@@ -612,34 +701,116 @@ def sweep(
     **Raises:** `ParameterError` for an unknown name or a bad value (naming the point's
     index) before anything is compiled.
     """
+    return _sweep(
+        designs,
+        True,
+        smoothing=smoothing,
+        options=options,
+        wrt=wrt,
+        chunk_size=chunk_size,
+        lanes=lanes,
+        progress=progress,
+        sort_by_gap=sort_by_gap,
+        devices=devices,
+        workers=workers,
+        force_table=force_table,
+        store=store,
+        client=client,
+    )
+
+
+class StoredSweep(NamedTuple):
+    """What `sweep_to_store` returns: the sweep's results are in its store, not in memory.
+
+    - `path`: the store; `designs`: how many designs the sweep has, `stored` of them read
+      from the store (a resumed sweep) rather than solved in this run, `failed` of them
+      failed (their peaks NULL, their `status` says why); `seconds`: this run's wall time.
+    """
+
+    path: Path
+    designs: int
+    stored: int
+    failed: int
+    seconds: float
+
+    def load(self) -> SweepResult:
+        """The results as a `SweepResult` (`load_sweep`): every design in memory."""
+        return load_sweep(self.path)
+
+    def lowest(self, metric: str = "peak_anchoring_force") -> dict[str, float] | None:
+        """The design with the lowest `metric` (a `PEAK_FIELDS` name) of those whose solve
+        succeeded, as its store row by column name (None if none did), found by SQLite."""
+        if metric not in PEAK_FIELDS:
+            raise ParameterError(
+                f"lowest: unknown peak {metric!r}; known: {', '.join(PEAK_FIELDS)}"
+            )
+        return lowest_row(self.path, PEAK_FIELDS[metric], int(status_codes(Status.ok)))
+
+
+def sweep_to_store(designs, store: str | os.PathLike, **kwargs: Any) -> StoredSweep:
+    """`sweep(designs, store=store, **kwargs)`, streamed: each chunk's results go to the
+    store and are not kept here, so the sweep's memory does not grow with its results
+    (only with the designs given). For campaigns too big to hold (`docs/campaigns.md`);
+    `StoredSweep.load()` or `load_sweep` reads the results back, and pandas or any
+    SQLite reader reads the store without this project. Resumes as `sweep` does.
+
+    **Arguments:** `designs` and the keyword arguments of `sweep`; `store` is required.
+
+    **Returns:** `StoredSweep`.
+    """
+    return _sweep(designs, False, store=store, **kwargs)
+
+
+def load_sweep(store: str | os.PathLike) -> SweepResult:
+    """The results of a finished sweep, read from its store (`sweep --store`,
+    `sweep_to_store`), in input order. `values` holds the parameters the sweep was given
+    (not the defaults of the others); `stored` is every design.
+
+    **Raises:** `ParameterError` for a file that is not a sweep's store, or a sweep that
+    has not finished (run it again with its store to finish it)."""
+    meta, points, data = read_sweep_store(store)
+    order = np.argsort(points)
+    data = {name: column[order] for name, column in data.items()}
+    description = json.loads(meta["description"])
+    wrt = description.get("wrt") or []
+    gradients = None
+    if wrt:
+        gradients = {m: {w: data[gradient_key(m, w)] for w in wrt} for m in METRICS}
+    return SweepResult(
+        values={name: data[name] for name in description["names"]},
+        peaks={field: data[key] for field, key in PEAK_FIELDS.items()},
+        status=status_item(data["status_code"]),
+        gradients=gradients,
+        seconds=float(meta["seconds"]),
+        stored=len(points),
+    )
+
+
+def _sweep(
+    designs,
+    in_memory: bool,
+    *,
+    smoothing: Smoothing = Smoothing(),
+    options: SolverOptions | None = None,
+    wrt: Sequence[str] | None = None,
+    chunk_size: int = 16384,
+    lanes: int = 1024,
+    progress: bool | None = None,
+    sort_by_gap: bool = True,
+    devices: Sequence[Any] | None = None,
+    workers: int | None = None,
+    force_table: ForceTable | None = None,
+    store: str | os.PathLike | None = None,
+    client: Any = None,
+) -> Any:
+    """`sweep` (`in_memory`), or `sweep_to_store`: the results in the store only."""
+    if not in_memory and store is None:
+        raise ParameterError("a sweep whose results are not kept in memory needs a store")
     wrt = tuple(wrt) if wrt else None
     options = options or (GRADIENT_OPTIONS if wrt else SolverOptions())
     columns = _as_columns(designs)  # validates every point, before any compilation
     n = len(next(iter(columns.values())))
-    groups = []  # (indices into the input, params, values, end times, wrt)
-    for indices, group in _structure_groups(columns):
-        params, values = batch_params(group)
-        if force_table is not None:
-            params = with_table(params, force_table)
-        if "t1" in group:
-            t1 = group["t1"]
-        elif options.t1 is not None:
-            t1 = np.full(len(indices), float(options.t1))
-        else:
-            t1 = np.asarray(default_end_time(params))
-        check_load_fits(params, t1, options.max_steps, labels=indices)
-        group_wrt = None
-        if wrt:
-            # Parameters this group does not have (an absorber's for m = 0, knots beyond
-            # its orifice) change nothing: their derivatives are 0.
-            group_wrt = tuple(w for w in wrt if _has(params, w)) or None
-        groups.append((indices, params, values, t1, group_wrt))
-    for w in wrt or ():
-        if not any(w in (g[4] or ()) for g in groups):
-            check_wrt(groups[0][1], (w,))  # raises, naming why
-    for g in groups:
-        if g[4]:
-            check_wrt(g[1], g[4])
+    groups = _groups(columns, options, wrt, force_table)
 
     devices = list(devices) if devices is not None else jax.local_devices()
     plan = _plan(workers or default_workers(devices), lanes, chunk_size, sort_by_gap)
@@ -652,15 +823,17 @@ def sweep(
         plan = store_.plan
 
     names = list(PEAK_FIELDS.values()) + [gradient_key(m, w) for m in METRICS for w in wrt or ()]
-    out: dict[str, np.ndarray] = {name: np.zeros(n) for name in names}
-    out["status_code"] = np.zeros(n, dtype=np.int32)
-    already = 0
+    out: dict[str, np.ndarray] = {}
+    if in_memory:
+        out = {name: np.zeros(n) for name in names}
+        out["status_code"] = np.zeros(n, dtype=np.int32)
     stored = store_.done() if store_ is not None else {}
+    already = sum(stored.values())
     if store_ is not None:
-        points, data = store_.read(stored)
-        for name in out:
-            out[name][points] = data[name]
-        already = len(points)
+        if in_memory:
+            points, data = store_.read(stored)
+            for name in out:
+                out[name][points] = data[name]
         if already and progress is not False:
             print(
                 f"sweep: resuming from {store}: {already} of {n} designs "
@@ -672,7 +845,7 @@ def sweep(
     try:
         solved = _solved_chunks(todo, groups, smoothing, options, wrt, devices, plan, client)
         for chunk, chunk_columns, chunk_seconds in solved:
-            for name, column in chunk_columns.items():
+            for name, column in chunk_columns.items() if in_memory else ():
                 out[name][chunk.points] = column
             if store_ is not None:
                 # About 0.1 s per 16,384 designs, against about 1.4 s to solve them.
@@ -685,10 +858,21 @@ def sweep(
     finally:
         if store_ is not None:
             store_.close()
+    if not in_memory:
+        assert store is not None
+        failures = store_failures(store)
+        failed = sum(failures.values())
+        if failed and progress is not False:
+            print(
+                f"sweep: {failed} of {n} designs failed ({'; '.join(sorted(failures))}): "
+                f"their peaks are NULL in {store} and their status says why",
+                file=sys.stderr,
+            )
+        return StoredSweep(Path(store), n, already, failed, bar.elapsed)
     values: dict[str, np.ndarray] = {}
-    for indices, _, group_values, _, _ in groups:
-        for name, column in group_values.items():
-            values.setdefault(name, np.full(n, np.nan))[indices] = column
+    for group in groups:
+        for name, column in _group_values(group.columns).items():
+            values.setdefault(name, np.full(n, np.nan))[group.indices] = column
     seconds = bar.elapsed
     # Every requested value as given (absorber parameters of m = 0 points included).
     values = {name: v for name, v in values.items() if not np.all(np.isnan(v))}

@@ -108,6 +108,59 @@ def test_a_store_resumes_with_its_own_chunks(uninterrupted, tmp_path):
     assert other.stored == 1500
 
 
+def test_a_streamed_sweep_keeps_its_results_in_the_store_only(uninterrupted, tmp_path, monkeypatch):
+    """`sweep_to_store`: the same results as `sweep`, read back from the store; resumed
+    like a sweep; a sweep that has not finished cannot be loaded."""
+    designs, plain = uninterrupted
+    store = tmp_path / "streamed.sqlite"
+    real = sweep_module._run_chunk
+    calls = []
+
+    def stop_after_one(*args, **kwargs):
+        if calls:
+            raise KeyboardInterrupt
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(sweep_module, "_run_chunk", stop_after_one)
+    with pytest.raises(KeyboardInterrupt):
+        rj.sweep_to_store(designs, store, progress=False, **PLAN)
+    monkeypatch.setattr(sweep_module, "_run_chunk", real)
+    with pytest.raises(rj.ParameterError, match="holds 512 of 1500 designs"):
+        rj.load_sweep(store)
+    streamed = rj.sweep_to_store(designs, store, progress=False, **PLAN)
+    assert (streamed.designs, streamed.stored, streamed.failed) == (1500, 512, 0)
+    loaded = streamed.load()
+    _assert_same(loaded, plain)
+    assert loaded.stored == 1500 and set(loaded.values) == set(designs)
+    for name, column in designs.items():
+        assert np.array_equal(loaded.values[name], column)
+    # The lowest peak, found by SQLite, is the sweep's.
+    lowest = streamed.lowest("peak_anchoring_force")
+    force = np.where(plain.ok, plain.peaks["peak_anchoring_force"], np.nan)
+    assert lowest["peak_anchoring_force_N"] == np.nanmin(force)
+    assert lowest["point"] == int(np.nanargmin(force))
+    with pytest.raises(rj.ParameterError, match="unknown peak"):
+        streamed.lowest("peak_force")
+
+
+def test_the_sweep_command_streams_to_its_store(tmp_path, capsys):
+    """`sweep --store` without `--out` or `--json` keeps nothing in memory and says the
+    same as with them, the lowest peak read from the store."""
+    argv = ["sweep", "m=500,1500", "gap=0:0.09:10", "k_r=13000"]
+    assert main([*argv, "--out", str(tmp_path / "kept")]) == 0
+    kept = capsys.readouterr().out.splitlines()
+    assert main([*argv, "--store", str(tmp_path / "streamed.sqlite")]) == 0
+    streamed = capsys.readouterr().out.splitlines()
+    assert (
+        streamed[0].startswith("swept 20 designs: 20 solved")
+        and "the results are in" in streamed[0]
+    )
+    assert streamed[1] == kept[1]  # lowest peak anchoring force: ... N at m=..., gap=...
+    loaded = rj.load_sweep(tmp_path / "streamed.sqlite")
+    assert len(loaded) == 20 and loaded.gradients is not None  # a gap sweep: d/d(gap) too
+
+
 def test_foreign_and_broken_stores_are_refused(uninterrupted, tmp_path):
     designs, _ = uninterrupted
     store = tmp_path / "made.sqlite"

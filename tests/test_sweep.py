@@ -219,3 +219,10 @@ def test_padding_is_never_solved_and_small_sweeps_share_one_program():
     assert result.peaks["peak_anchoring_force"][-1] == pytest.approx(
         float(single.peak_anchoring_force), rel=1e-5
     )
+
+
+def test_knots_with_a_hole_are_refused_naming_the_design():
+    nan = float("nan")
+    designs = {"orifice_0": [1e-4, nan, 1e-4], "orifice_1": [1e-4, 1e-4, nan]}
+    with pytest.raises(rj.ParameterError, match=r"design 1: .*orifice_0 is missing"):
+        rj.sweep(designs, progress=False)

@@ -337,11 +337,17 @@ def build_parser() -> argparse.ArgumentParser:
         "bench-store",
         parents=[common],
         help="what a store and a Dask cluster cost a sweep: time, memory, disk",
-        description="Sweep random absorber designs three ways, each in a fresh process "
-        "(compiled on one chunk first, not timed): without a store, with --store, and with "
-        "--store on a local Dask cluster of 2 workers. Prints seconds, designs/s, the peak "
-        "memory of the process that sweeps, the overheads against the first way and the "
-        "store's size on disk.",
+        description="Sweep random absorber designs in several ways, each in a fresh process "
+        "(compiled on one chunk first, not timed): plain (no store), store (results kept "
+        "in memory and stored), stream (results only in the store: rj.sweep_to_store) and "
+        "cluster (streamed, on a local Dask cluster of 2 workers). Prints seconds, "
+        "designs/s, the peak memory of the process that sweeps, the overheads against "
+        "plain and a store's size on disk.",
+    )
+    store_bench.add_argument(
+        "--ways",
+        metavar="W,W",
+        help="which ways, comma-separated (default plain,store,stream,cluster)",
     )
     store_bench.add_argument(
         "--designs", type=int, default=1_000_000, metavar="N", help="designs (default 1000000)"

@@ -278,6 +278,9 @@ def run_sweep(args) -> int:
     options = rj.GRADIENT_OPTIONS if wrt else rj.SolverOptions()
     options = dataclasses.replace(options, max_steps=args.max_steps)
     progress = not args.json
+    if args.store and not args.out and not args.json:
+        # Nothing asks for the results here: they stream to the store, not into memory.
+        return _sweep_to_store(args, axes, fixed, designs, wrt, options, table)
     with dask_client(args.workers, args.scheduler) as client:
         if args.points:
             result = rj.sweep(
@@ -330,3 +333,34 @@ def run_sweep(args) -> int:
                 file=sys.stderr,
             )
     return 0  # failed points are reported per point (status), not as a failed command
+
+
+def _sweep_to_store(args, axes, fixed, designs, wrt, options, table) -> int:
+    """`sweep --store` with neither `--out` nor `--json`: `rj.sweep_to_store`, and a
+    summary read from the store."""
+    with dask_client(args.workers, args.scheduler) as client:
+        if args.points:
+            stored = rj.sweep_to_store(
+                designs, args.store, options=options, force_table=table, client=client
+            )
+        else:
+            columns, _ = rj.grid(axes, fixed)
+            stored = rj.sweep_to_store(
+                columns, args.store, wrt=wrt, options=options, force_table=table, client=client
+            )
+    solved = stored.designs - stored.stored
+    read = f" ({stored.stored} read from the store)" if stored.stored else ""
+    print(
+        f"swept {stored.designs} designs{read}: {solved} solved in {stored.seconds:.1f} s "
+        f"({solved / max(stored.seconds, 1e-9):.0f}/s); {stored.designs - stored.failed} ok, "
+        f"{stored.failed} failed; the results are in {stored.path} (docs/campaigns.md)"
+    )
+    best = stored.lowest("peak_anchoring_force")
+    if best is not None:
+        names = [k for k in (tuple(axes) or ("m", "gap")) if best.get(k) is not None]
+        design = ", ".join(f"{k}={best[k]:g}" for k in names)
+        print(
+            f"lowest peak anchoring force: {best[rj.PEAK_FIELDS['peak_anchoring_force']]:.2f} N"
+            f" at {design}"
+        )
+    return 0
