@@ -1,8 +1,68 @@
-"""The benchmark runs and reports what it promises (speed itself is not asserted)."""
+"""The benchmark runs and reports what it promises (speed itself is not asserted), and
+its anchor, the compiled scalar loop, solves the library's model."""
 
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
 import pytest
 
-from recoil_jax.apps._bench import format_bench, run_bench
+import recoil_jax as rj
+from recoil_jax._model import RECOIL_TERM, initial_state, model_args, tracked_metrics, vector_field
+from recoil_jax._stepping import integrate_peaks
+from recoil_jax.apps._anchor import anchor_field, anchor_peaks
+from recoil_jax.apps._bench import bench_designs, format_bench, run_bench
+
+pytest.importorskip("numba")
+
+
+def test_the_compiled_scalar_loop_solves_the_library_model():
+    """The anchor is a yardstick only if it does the library's work: its vector field is
+    the library's at random states (in contact and out, both damping regimes), and run to
+    t1 it takes the steps the library's loop takes there (same tableau and step-size rule;
+    the grids drift apart by rounding) and finds the same peaks, read at step ends (so at
+    most the located peak, up to the solver's accuracy)."""
+    designs = bench_designs(128, seed=3)
+    rng = np.random.default_rng(0)
+    n = len(designs["m"])
+    x_barrel = rng.uniform(0.0, 0.2, n)
+    states = np.column_stack(
+        [
+            x_barrel,
+            rng.uniform(-1.0, 1.0, n),
+            x_barrel - designs["gap"] + rng.uniform(-2e-4, 2e-4, n),  # around the contact
+            rng.uniform(-1.0, 1.0, n),
+        ]
+    )
+    states[::7, 1] = rng.uniform(-1e-4, 1e-4, len(states[::7]))  # inside the damping band
+    params, _ = rj.batch_params(designs)
+    smoothing = rj.Smoothing()
+    ours = jax.vmap(lambda p, y: jnp.stack(vector_field(0.0, y, model_args(p, smoothing))))(
+        params, jnp.asarray(states)
+    )
+    np.testing.assert_allclose(anchor_field(states, designs), ours, rtol=1e-12, atol=1e-12)
+
+    anchor = anchor_peaks(designs)
+    options = rj.SolverOptions(rtol=1e-6, atol=1e-9)
+    run = eqx.filter_jit(
+        jax.vmap(
+            lambda p: integrate_peaks(
+                RECOIL_TERM,
+                initial_state(p),
+                model_args(p, smoothing),
+                10.0,
+                tracked_metrics,
+                options,
+            )
+        )
+    )(params)
+    steps = np.asarray(run.num_steps)
+    assert abs(anchor["num_steps"].mean() / steps.mean() - 1) < 0.02
+    best = dict(zip(run.names, np.asarray(run.best).T, strict=True))
+    for name in ("peak_displacement", "peak_anchoring_force"):
+        ratio = anchor[name] / best[name]
+        assert np.all(ratio < 1 + 1e-4) and np.all(ratio > 1 - 5e-3), (name, ratio.min())
+    assert anchor["seconds"] > 0
 
 
 @pytest.mark.slow
@@ -25,6 +85,12 @@ def test_bench_smoke():
     ):
         assert key in result
     assert result["sims_per_s"] > 0 and result["scipy_sims_per_s"] > 0
+    assert result["scipy_settings"]["method"] == "DOP853"
+    anchored = result["compiled_scalar_loop"]
+    assert anchored["designs"] == 8 and anchored["anchor"]["cores"] == 1
+    assert anchored["ratio_per_step"] > 0 and anchored["ratio_per_design"] > 0
+    assert anchored["anchor"]["mean_steps"] > anchored["ours"]["mean_steps"]  # no early stop
+    assert "compiled scalar loop (numba, 1 core" in format_bench(result)
     assert result["jacobians_per_s"] > 0 and result["compile_s"] >= 0
     # Both solve the same model to rtol ~1e-5: peaks agree well inside 1e-3.
     assert result["max_rel_error"] < 1e-3

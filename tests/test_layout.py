@@ -48,8 +48,16 @@ def test_engine_never_imports_the_applications():
             assert not module.startswith("recoil_jax.apps"), (path.name, module)
 
 
+#: Applications that read the engine's internals: the benchmark's compiled scalar loop
+#: takes the loop's step-size rule and the model's contact width from where the engine
+#: keeps them, so that it cannot drift from them.
+READS_INTERNALS = {"_anchor.py"}
+
+
 def test_applications_use_only_the_public_api():
     for path in APPS:
+        if path.name in READS_INTERNALS:
+            continue
         for module, name in _imports(path):
             if module.startswith("recoil_jax") and not module.startswith("recoil_jax.apps"):
                 assert module == "recoil_jax" and name is None, (path.name, module, name)
