@@ -458,8 +458,15 @@ def optimise(
             problem, optimiser, u0, starts, steps, params, limits, seed, anneal, update_every,
             penalty, penalty_growth, max_penalty, patience, ftol, vtol, min_steps,
         )  # fmt: skip
-        study = _open_store(store, problem, identity, runs, steps, progress)
-        for saved in study.checkpoints():
+        study = _open_store(store, problem, identity, runs, steps)
+        checkpoints = study.checkpoints()
+        if checkpoints and progress is not False:
+            print(
+                f"optimise: resuming from {store}: {len(checkpoints)} of at most {steps} "
+                "steps stored",
+                file=sys.stderr,
+            )
+        for saved in checkpoints:
             state, record, active, converged_step, best_so_far = _restore(state, saved)
             records.append(record)
     bar = Progress("optimise", steps, "steps", progress, already=len(records))
@@ -548,8 +555,8 @@ def _identity(problem, optimiser: optax.GradientTransformation, u0, *settings) -
     return fingerprint("optimise", __version__, problem, np.asarray(u0), probe, settings)
 
 
-def _open_store(path, problem: DesignProblem, identity: str, runs: int, steps: int, progress):
-    study = StudyStore(
+def _open_store(path, problem: DesignProblem, identity: str, runs: int, steps: int):
+    return StudyStore(
         path,
         identity=identity,
         total=runs * steps,
@@ -563,13 +570,6 @@ def _open_store(path, problem: DesignProblem, identity: str, runs: int, steps: i
             "created": time.strftime("%Y-%m-%d %H:%M:%S"),
         },
     )
-    done = study.db.execute("SELECT COUNT(*) FROM checkpoints").fetchone()[0]
-    if done and progress is not False:
-        print(
-            f"optimise: resuming from {path}: {done} of at most {steps} steps stored",
-            file=sys.stderr,
-        )
-    return study
 
 
 def _saved(state: _State, record: _StepRecord, active, converged_step, best) -> dict:

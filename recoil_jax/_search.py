@@ -803,9 +803,9 @@ def _open_study_store(
         },
     )
     if progress is not False:
-        if len(study._outputs):
+        if study.stored_count:
             print(
-                f"search: resuming from {path}: {len(study._outputs)} evaluations stored "
+                f"search: resuming from {path}: {study.stored_count} evaluations stored "
                 f"(read back, not solved), {study.prior_seconds:.1f} s of the budget spent",
                 file=sys.stderr,
             )

@@ -398,6 +398,11 @@ class StudyStore(_Store):
             "CREATE TABLE checkpoints (step INTEGER PRIMARY KEY, run INTEGER, state BLOB)"
         )
 
+    @property
+    def stored_count(self) -> int:
+        """How many evaluations the store holds the outputs of (to replay on a resume)."""
+        return len(self._outputs)
+
     def stored(self, key: str) -> dict[str, np.ndarray] | None:
         """The outputs of the evaluation named `key`, if it is in the store."""
         with self.lock:
@@ -485,12 +490,10 @@ def _describe(kind: str | None, description: dict) -> str:
         parts = [f"study {description.get('study', '?')}"]
         if description.get("tune"):
             parts.append("tuning " + ", ".join(description["tune"]))
-        if description.get("created"):
-            parts.append(f"made {description['created']}")
-        return ", ".join(parts)
-    parts = [f"{description.get('designs', '?')} designs"]
-    if description.get("names"):
-        parts.append("of " + ", ".join(description["names"]))
+    else:
+        parts = [f"{description.get('designs', '?')} designs"]
+        if description.get("names"):
+            parts.append("of " + ", ".join(description["names"]))
     if description.get("created"):
         parts.append(f"made {description['created']}")
     return ", ".join(parts)

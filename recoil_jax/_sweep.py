@@ -4,6 +4,7 @@ each through the lane scheduler, with a status per point."""
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import itertools
 import json
 import os
@@ -708,22 +709,8 @@ def sweep(
     **Raises:** `ParameterError` for an unknown name or a bad value (naming the point's
     index) before anything is compiled.
     """
-    return _sweep(
-        designs,
-        True,
-        smoothing=smoothing,
-        options=options,
-        wrt=wrt,
-        chunk_size=chunk_size,
-        lanes=lanes,
-        progress=progress,
-        sort_by_gap=sort_by_gap,
-        devices=devices,
-        workers=workers,
-        force_table=force_table,
-        store=store,
-        client=client,
-    )
+    # Every argument, by name, as `_sweep` takes them (nothing else is defined yet).
+    return _sweep(True, **locals())
 
 
 class StoredSweep(NamedTuple):
@@ -765,7 +752,10 @@ def sweep_to_store(designs, store: str | os.PathLike, **kwargs: Any) -> StoredSw
 
     **Returns:** `StoredSweep`.
     """
-    return _sweep(designs, False, store=store, **kwargs)
+    # `sweep`'s defaults, and its refusal of an unknown or repeated argument.
+    arguments = inspect.signature(sweep).bind(designs, store=store, **kwargs)
+    arguments.apply_defaults()
+    return _sweep(False, **arguments.arguments)
 
 
 def load_sweep(store: str | os.PathLike) -> SweepResult:
@@ -794,21 +784,21 @@ def load_sweep(store: str | os.PathLike) -> SweepResult:
 
 
 def _sweep(
-    designs,
     in_memory: bool,
+    designs,
     *,
-    smoothing: Smoothing = Smoothing(),
-    options: SolverOptions | None = None,
-    wrt: Sequence[str] | None = None,
-    chunk_size: int = 16384,
-    lanes: int = DEFAULT_LANES,
-    progress: bool | None = None,
-    sort_by_gap: bool = True,
-    devices: Sequence[Any] | None = None,
-    workers: int | None = None,
-    force_table: ForceTable | None = None,
-    store: str | os.PathLike | None = None,
-    client: Any = None,
+    smoothing: Smoothing,
+    options: SolverOptions | None,
+    wrt: Sequence[str] | None,
+    chunk_size: int,
+    lanes: int,
+    progress: bool | None,
+    sort_by_gap: bool,
+    devices: Sequence[Any] | None,
+    workers: int | None,
+    force_table: ForceTable | None,
+    store: str | os.PathLike | None,
+    client: Any,
 ) -> Any:
     """`sweep` (`in_memory`), or `sweep_to_store`: the results in the store only."""
     if not in_memory and store is None:

@@ -246,6 +246,27 @@ _KILLED_SWEEP = textwrap.dedent(
 )
 
 
+def _kill_after_a_new_commit(process, store, done_before: int, moments) -> bool:
+    """Wait for `process` to commit past `done_before` (so that the kill lands mid-run),
+    then SIGKILL it at a random moment within 0.3 s (`moments`, a seeded `Random`): a
+    later moment may find a fast machine past the end. Returns whether it was still
+    running when killed."""
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and process.poll() is None:
+        try:
+            if rj.campaign_progress(store).done > done_before:
+                break
+        except rj.ParameterError:  # not made yet
+            pass
+        time.sleep(0.02)
+    time.sleep(moments.uniform(0.0, 0.3))
+    running = process.poll() is None
+    if running:
+        os.kill(process.pid, signal.SIGKILL)
+    process.wait()
+    return running
+
+
 @pytest.mark.slow
 def test_kill_9_at_random_moments_loses_only_the_chunk_in_flight(tmp_path):
     """A real process killed with SIGKILL at random moments, three times, then resumed
@@ -259,19 +280,7 @@ def test_kill_9_at_random_moments_loses_only_the_chunk_in_flight(tmp_path):
     done_before = 0
     for kill in range(3):
         process = subprocess.Popen([sys.executable, str(script), str(store)])
-        # Wait for this run's first commit (so that each kill lands mid-campaign), then
-        # kill at a random moment within about two chunks.
-        deadline = time.monotonic() + 300
-        while time.monotonic() < deadline and process.poll() is None:
-            try:
-                if rj.campaign_progress(store).done > done_before:
-                    break
-            except rj.ParameterError:  # not made yet
-                pass
-            time.sleep(0.05)
-        time.sleep(moments.uniform(0.0, 0.3))
-        os.kill(process.pid, signal.SIGKILL)
-        process.wait()
+        _kill_after_a_new_commit(process, store, done_before, moments)
         rows = _rows(store)
         assert rows["integrity"] == "ok", (seed, kill)
         assert rows["points"][0] == rows["points"][1] == rj.campaign_progress(store).done
@@ -524,20 +533,8 @@ def test_kill_9_of_a_study_at_random_moments_resumes_to_the_same_design(tmp_path
         process = subprocess.Popen(
             [sys.executable, str(script), str(study), str(tmp_path / "out"), str(store)]
         )
-        deadline = time.monotonic() + 300
-        while time.monotonic() < deadline and process.poll() is None:
-            try:
-                if rj.campaign_progress(store).done > done_before:
-                    break
-            except rj.ParameterError:  # not made yet
-                pass
-            time.sleep(0.02)
-        # Within the next few evaluations (each is committed as it is made): a later
-        # moment may find a fast machine past the study's end.
-        time.sleep(moments.uniform(0.0, 0.3))
-        assert process.poll() is None, f"the study ended before kill {kill} (seed {seed})"
-        os.kill(process.pid, signal.SIGKILL)
-        process.wait()
+        running = _kill_after_a_new_commit(process, store, done_before, moments)
+        assert running, f"the study ended before kill {kill} (seed {seed})"
         rows = _study_rows(store)
         assert rows["integrity"] == "ok", (seed, kill)
         assert rows["rows"][0] == rows["rows"][1] == rj.campaign_progress(store).done
