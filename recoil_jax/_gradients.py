@@ -548,4 +548,5 @@ def peak_jacobian(
     """
     wrt = tuple(wrt)
     check_wrt(params, wrt)
+    options = with_default_tolerances(params, options)  # one program for any tolerances
     return _peak_jacobian_jit(params, smoothing, options, wrt, throw)

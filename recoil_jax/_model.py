@@ -97,8 +97,6 @@ class Forces(NamedTuple):
 
 def contact_width(params: RecoilParams, smoothing: Smoothing):
     """The contact-onset smoothing width in metres (see `Smoothing`)."""
-    if smoothing.hard:
-        return 0.0
     if smoothing.contact_width is not None:
         return smoothing.contact_width
     return smoothing.contact_width_fraction * characteristic_penetration(params)
@@ -199,14 +197,13 @@ def forces(y, params: RecoilParams, smoothing: Smoothing, width_contact=None, t=
     """
     x_M, v_M, x_m, v_m = y[0], y[1], y[2], y[3]
     barrel = params.barrel
-    width_v = 0.0 if smoothing.hard else smoothing.damping_width
+    width_v = smoothing.damping_width
     # c(v) v = c_ret v + (c_out − c_ret) max(0, v): continuous, only its slope switches.
     recoil_damper = barrel.c_ret * v_M + (barrel.c_out - barrel.c_ret) * smooth_relu(v_M, width_v)
     recoil_spring = barrel.k * x_M
     hardware = {}
     if params.buffer is not None and params.buffer.orifice is not None:
-        fraction = 0.0 if smoothing.hard else smoothing.knot_width_fraction
-        hardware["buffer"] = buffer_force(x_M, v_M, params.buffer, fraction)
+        hardware["buffer"] = buffer_force(x_M, v_M, params.buffer, smoothing.knot_width_fraction)
     if params.recuperator is not None:
         hardware["recuperator"] = recuperator_force(x_M, params.recuperator)
     if params.load is not None and t is not None:
@@ -292,7 +289,7 @@ def future_metric_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
     params, smoothing, width_contact = args
     barrel, absorber, contact = params.barrel, params.absorber, params.contact
     x_M, v_M, x_m, v_m = y[0], y[1], y[2], y[3]
-    width_v = 0.0 if smoothing.hard else smoothing.damping_width
+    width_v = smoothing.damping_width
     spread = jnp.abs(barrel.c_out - barrel.c_ret)
     energy = 0.5 * barrel.M * v_M**2 + 0.5 * barrel.k * x_M**2
     energy = energy + spread * _SWITCH_POWER * width_v**2 * jnp.maximum(t1 - t, 0.0)

@@ -758,8 +758,11 @@ class Smoothing(_Validated):
       so the relative smoothing error is the same over the whole range of `k_c`, `n_c`, `m`, `v0`.
     - `knot_width_fraction`: the kinks of the orifice profile at its knots, over this
       fraction of the knot spacing.
-    - `hard=True` (static): the exact model with hard switches, same code path with
-      zero widths (not differentiable at the switches; for reference and checks).
+
+    A width of 0 makes its switch exact. `Smoothing.exact()` sets every width to 0: the
+    hard-switch model (not differentiable at the switches; for reference and checks). It
+    runs through the same code path and, its widths being values, the same compiled
+    program as the smoothed model.
 
     See `docs/model.md`, *Smoothing*.
     """
@@ -768,34 +771,33 @@ class Smoothing(_Validated):
     contact_width: Any = _leaf(None)
     contact_width_fraction: Any = _leaf(0.005)
     knot_width_fraction: Any = _leaf(1e-4)
-    hard: bool = eqx.field(default=False, static=True)
 
     LIMITS: ClassVar[Mapping[str, Limits]] = {
         "damping_width": Limits(
             unit="m/s",
             lower=0.0,
-            lower_open=True,
+            lower_open=False,
             documented=(1e-4, 1e-1),
-            meaning="damping and clamp smoothing width",
+            meaning="damping and clamp smoothing width (0: the exact switch)",
         ),
         "contact_width": Limits(
             unit="m",
             lower=0.0,
-            lower_open=True,
+            lower_open=False,
             documented=(1e-6, 1e-3),
-            meaning="contact onset smoothing width",
+            meaning="contact onset smoothing width (0: the exact switch)",
         ),
         "knot_width_fraction": Limits(
             unit="",
             lower=0.0,
-            lower_open=True,
+            lower_open=False,
             upper=0.5,
             meaning="orifice knot smoothing width / knot spacing",
         ),
         "contact_width_fraction": Limits(
             unit="",
             lower=0.0,
-            lower_open=True,
+            lower_open=False,
             upper=1.0,
             meaning="contact width / characteristic penetration",
         ),
@@ -803,8 +805,15 @@ class Smoothing(_Validated):
 
     @classmethod
     def exact(cls) -> Smoothing:
-        """The hard-switch model."""
-        return cls(hard=True)
+        """The hard-switch model: every width 0."""
+        return cls(damping_width=0.0, contact_width_fraction=0.0, knot_width_fraction=0.0)
+
+    @property
+    def hard(self) -> bool:
+        """Whether every switch is exact (every width 0); for concrete widths."""
+        contact = self.contact_width_fraction if self.contact_width is None else self.contact_width
+        widths = (self.damping_width, contact, self.knot_width_fraction)
+        return all(bool(np.all(np.asarray(w) == 0)) for w in widths)
 
 
 #: Limits of the end time, the one solver setting that may differ between the points

@@ -168,7 +168,8 @@ def peaks(
     compiling.
     """
     end_time(params, options)  # checks concrete inputs, before compiling
-    return _peaks_jit(params, smoothing, options, throw)
+    # Tolerances as values, also the defaults: one program for any tolerances.
+    return _peaks_jit(params, smoothing, with_default_tolerances(params, options), throw)
 
 
 class History(eqx.Module):
@@ -260,7 +261,7 @@ def simulate(
             raise ParameterError(
                 f"simulate: ts must be sorted save times within [0, t1 = {end:g} s]"
             )
-    return _simulate_jit(params, smoothing, options, ts, throw)
+    return _simulate_jit(params, smoothing, with_default_tolerances(params, options), ts, throw)
 
 
 def _peaks_batch(

@@ -36,6 +36,7 @@ from ._params import (
     default_end_time,
     params_from_values,
     params_to_values,
+    with_default_tolerances,
 )
 from ._progress import Progress
 from ._solve import peaks_batch
@@ -365,6 +366,9 @@ def _run_chunk(
     # steps, and with fewer per lane the batch idles while they finish (measured: 4096
     # Jacobians ran 2.5x faster with 128 lanes per part than with 512).
     lanes = min(lanes, max(32, size // 16))
+    # Tolerances as values, also the defaults: one program for any tolerances (the
+    # smoothed and the hard-switch model of a structure share it too).
+    options = with_default_tolerances(batch, options)
 
     def run(i):
         part, end = jax.device_put(

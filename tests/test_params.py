@@ -75,14 +75,14 @@ def test_leaves_are_float64_arrays():
         (lambda: rj.Contact(lambda_c=-0.1), "Contact.lambda_c", "valid lambda_c >= 0"),
         (lambda: rj.Barrel(v0=0.0), "Barrel.v0", "valid v0 > 0 m/s"),
         (
-            lambda: rj.Smoothing(damping_width=0.0),
+            lambda: rj.Smoothing(damping_width=-1e-3),
             "Smoothing.damping_width",
-            "valid damping_width > 0 m/s",
+            "valid damping_width >= 0 m/s",
         ),
         (
             lambda: rj.Smoothing(contact_width=-1e-4),
             "Smoothing.contact_width",
-            "valid contact_width > 0 m",
+            "valid contact_width >= 0 m",
         ),
         (lambda: rj.SolverOptions(t1=0.0), "SolverOptions.t1", "valid t1 > 0 s"),
         (lambda: rj.SolverOptions(t1=-2.0), "SolverOptions.t1", "valid t1 > 0 s"),

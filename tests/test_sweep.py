@@ -179,7 +179,8 @@ def test_sharded_over_four_host_devices_equals_single_device():
 def test_padding_is_never_solved_and_small_sweeps_share_one_program():
     """A chunk's padding is never solved (its designs take no step), and sweeps of 5, 300
     and 1024 designs of one structure run one compiled program (`SHARED_CHUNK`), with
-    the same peaks as single solves."""
+    the same peaks as single solves; so does the hard-switch model at other tolerances
+    (widths and tolerances are values)."""
     import jax
     import jax.monitoring
 
@@ -212,10 +213,26 @@ def test_padding_is_never_solved_and_small_sweeps_share_one_program():
             gaps = np.linspace(0.0, 0.12, n)
             result = rj.sweep({"gap": gaps, "m": np.full(n, 700.0), "k_r": np.full(n, 3.3e4)})
             assert np.all(result.ok) and len(result) == n
+        hard = rj.sweep(
+            {"gap": gaps[[400, -1]], "m": np.full(2, 700.0), "k_r": np.full(2, 3.3e4)},
+            smoothing=rj.Smoothing.exact(),
+            options=rj.SolverOptions(rtol=1e-9, atol=1e-12),
+        )
     finally:
         jax.monitoring.unregister_event_duration_listener(listen)
     assert len(compiled) == 1
     single = rj.peaks(rj.params_from_values(gap=0.12, m=700.0, k_r=3.3e4))
+    exact = rj.peaks(
+        rj.params_from_values(gap=0.12, m=700.0, k_r=3.3e4),
+        rj.Smoothing.exact(),
+        rj.SolverOptions(rtol=1e-9, atol=1e-12),
+    )
+    assert hard.peaks["peak_anchoring_force"][-1] == pytest.approx(
+        float(exact.peak_anchoring_force), rel=1e-9
+    )
+    # Not the smoothed model's numbers (an impact, gap 47 mm): the widths reached the program.
+    assert hard.peaks["peak_contact_force"][0] > 0
+    assert hard.peaks["peak_contact_force"][0] != result.peaks["peak_contact_force"][400]
     assert result.peaks["peak_anchoring_force"][-1] == pytest.approx(
         float(single.peak_anchoring_force), rel=1e-5
     )

@@ -73,10 +73,12 @@ def _timed(fn, *args):
 GRADIENT_STUDY = "burst_recuperator"
 
 
-def gradient_modes(sizes=(1, 4, 8, 16, 22), repeats: int = 5, log=None) -> list[dict]:
+def gradient_modes(
+    sizes=(1, 4, 8, 16, 22), repeats: int = 5, log=None, study: str = GRADIENT_STUDY
+) -> list[dict]:
     """Milliseconds per gradient of the peak anchoring force with respect to P tuned
-    parameters of `GRADIENT_STUDY` (at its start design; the orifice knots first), for
-    each P in `sizes`:
+    parameters of `study` (default `GRADIENT_STUDY`; at its start design, the orifice
+    knots first), for each P in `sizes`:
     a plain solve, forward sensitivities (P columns, error-controlled; what the
     optimisers use) and reverse mode through the solver's steps (`autodiff="reverse"`,
     diffrax's checkpointed loop; one backward pass for any P), with the largest
@@ -86,7 +88,7 @@ def gradient_modes(sizes=(1, 4, 8, 16, 22), repeats: int = 5, log=None) -> list[
     from ._studies import load_study
 
     log = log or (lambda msg: None)
-    problem = load_study(GRADIENT_STUDY).problem
+    problem = load_study(study).problem
     params, smoothing, options = problem.params, problem.smoothing, problem.options
     reverse_options = dataclasses.replace(options, autodiff="reverse")
 
@@ -230,9 +232,11 @@ def run_bench(
     cli_commands=CLI_COMMANDS,
     anchor: bool = True,
     log=None,
+    gradient_study: str = GRADIENT_STUDY,
 ) -> dict:
     """Measure and return the figures (see `recoil-jax bench --help`). `gradient_sizes`
-    and `cli_commands` empty: those parts are left out; `anchor`: the compiled scalar
+    and `cli_commands` empty: those parts are left out; `gradient_study`: the study whose
+    tuned parameters the gradient modes differentiate; `anchor`: the compiled scalar
     loop beside the largest batch (skipped without numba)."""
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
     smoothing, options = rj.Smoothing(), rj.SolverOptions()
@@ -317,7 +321,9 @@ def run_bench(
     ]
     log(f"  scipy solve_ivp ({_scipy_label()}, serial): {scipy_per_s:.1f} sims/s")
 
-    gradient_rows = gradient_modes(gradient_sizes, log=log) if gradient_sizes else []
+    gradient_rows = (
+        gradient_modes(gradient_sizes, log=log, study=gradient_study) if gradient_sizes else []
+    )
     cli_rows = cli_cache_timings(cli_commands, log=log) if cli_commands else []
 
     best = max(rows, key=lambda r: r["sims_per_s"])
@@ -341,6 +347,7 @@ def run_bench(
         "max_rel_error": max(errors),
         "batches": rows,
         "gradient_modes": gradient_rows,
+        "gradient_study": gradient_study,
         "cli_cache": cli_rows,
         "devices": [str(d) for d in jax.local_devices()],
         "dtype": "float64",
@@ -386,8 +393,9 @@ def format_bench(result: dict) -> str:
     ]
     if result["gradient_modes"]:
         lines.append(
-            f"gradient of the peak anchoring force ({GRADIENT_STUDY}), ms: parameters, plain "
-            "solve, forward sensitivities, reverse through the steps, their largest difference"
+            f"gradient of the peak anchoring force ({result['gradient_study']}), ms: "
+            "parameters, plain solve, forward sensitivities, reverse through the steps, "
+            "their largest difference"
         )
     for row in result["gradient_modes"]:
         lines.append(
