@@ -389,6 +389,13 @@ def _peaks(problem: rj.DesignProblem, params, smoothing=None) -> rj.Peaks:
     return rj.peaks(params, problem.smoothing if smoothing is None else smoothing, problem.options)
 
 
+def _history(problem: rj.DesignProblem, params, time: float) -> rj.History:
+    """The history of `params` with the problem's smoothing and solver options, on 3001
+    points over `[0, time]` (s): one grid size, so that the histories of a structure
+    are one compiled program. Its `peaks` are over the whole solve."""
+    return rj.simulate(params, problem.smoothing, problem.options, ts=np.linspace(0.0, time, 3001))
+
+
 def _scattered(problem: rj.DesignProblem, params, offsets) -> list[rj.Peaks]:
     assert problem.objective.scatter is not None
     name, _ = problem.objective.scatter
@@ -680,9 +687,7 @@ def _checks(study: Study, result, report: dict, simulations: dict, kwargs, out: 
 
     problem = study.problem
     with phase("history", "the best design's history"):
-        history = rj.simulate(
-            result.best_params(0), problem.smoothing, ts=np.linspace(0.0, 3.0, 3001)
-        )
+        history = _history(problem, result.best_params(0), 3.0)
         plot_history(history, out / "best_history.png", title=f"{study.name}: best design")
 
     if _is_throttling(report["best"]):
@@ -776,8 +781,10 @@ def _force_stroke(problem: rj.DesignProblem, params, out: Path) -> dict:
 
     from ._figures import plot_series
 
+    # Every solve here is a history on `_history`'s grid: the tuned design's runs the
+    # program of the best design's history, and the damper's one program of its own.
     design = {k: v for k, v in rj.params_to_values(params).items()}
-    best = _peaks(problem, params)
+    best = _history(problem, params, 3.0).peaks
     stroke = float(best.peak_displacement)
     energy = 0.5 * design["M"] * design["v0"] ** 2
     ideal = energy / stroke
@@ -785,20 +792,21 @@ def _force_stroke(problem: rj.DesignProblem, params, out: Path) -> dict:
 
     def overshoot(c_out):
         params = rj.params_from_values({**plain, "c_out": c_out})
-        return float(_peaks(problem, params).peak_displacement) - stroke
+        return float(_history(problem, params, 3.0).peaks.peak_displacement) - stroke
 
     lo, hi = rj.PARAMETERS["c_out"].documented or (0.0, 1e6)
     c_out, _ = brentq(overshoot, lo, hi, xtol=1e-6 * hi, full_output=True)
     damper = rj.params_from_values({**plain, "c_out": c_out})
+    damper_peaks = _history(problem, damper, 3.0).peaks
 
     def recoil(params, time):
-        history = rj.simulate(params, problem.smoothing, ts=np.linspace(0.0, time, 801))
+        history = _history(problem, params, time)
         return np.asarray(history.x_M), np.asarray(history.anchoring_force)
 
     curves = {
         "tuned orifice": recoil(params, float(best.peak_displacement_time)),
         f"linear damper, c_out = {c_out:.0f} N·s/m": recoil(
-            damper, float(_peaks(problem, damper).peak_displacement_time)
+            damper, float(damper_peaks.peak_displacement_time)
         ),
         f"constant-force ideal E0/L = {ideal:.1f} N": ([0.0, stroke], [ideal, ideal]),
     }
@@ -811,7 +819,7 @@ def _force_stroke(problem: rj.DesignProblem, params, out: Path) -> dict:
         yscale=1e-3,
         title="anchoring force over the recoil stroke",
     )
-    damper_peak = float(_peaks(problem, damper).peak_anchoring_force)
+    damper_peak = float(damper_peaks.peak_anchoring_force)
     return {
         "ideal_force_N": ideal,
         "stroke_m": stroke,
