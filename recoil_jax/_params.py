@@ -778,14 +778,14 @@ class Smoothing(_Validated):
             lower=0.0,
             lower_open=False,
             documented=(1e-4, 1e-1),
-            meaning="damping and clamp smoothing width (0: the exact switch)",
+            meaning="damping and clamp smoothing width; 0 is the exact switch",
         ),
         "contact_width": Limits(
             unit="m",
             lower=0.0,
             lower_open=False,
             documented=(1e-6, 1e-3),
-            meaning="contact onset smoothing width (0: the exact switch)",
+            meaning="contact onset smoothing width; 0 is the exact switch",
         ),
         "knot_width_fraction": Limits(
             unit="",

@@ -1,3 +1,4 @@
+import contextlib
 import json
 import os
 from pathlib import Path
@@ -56,6 +57,25 @@ def batch_peaks(designs, smoothing=None, options=None):
     options = options if options is not None else rj.SolverOptions()
     run = eqx.filter_jit(jax.vmap(rj.peak_metrics, in_axes=(0, None, None)))
     return run(batch_params(designs), smoothing, options)
+
+
+@contextlib.contextmanager
+def compiled_programs():
+    """The names of the programs XLA compiles inside the block (a list, filled as they
+    are; one loaded from the persistent cache counts too: JAX's event wraps the load)."""
+    import jax.monitoring
+
+    names = []
+
+    def listen(event, duration, **kwargs):
+        if event.endswith("backend_compile_duration"):
+            names.append(str(kwargs.get("fun_name")))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        yield names
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
 
 
 def all_ok(status) -> bool:

@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from conftest import compiled_programs
 from scipy.optimize import brentq
 
 import recoil_jax as rj
@@ -349,22 +350,11 @@ def test_throttling_reaches_the_levelled_optimum_for_every_seed(tmp_path):
     the minimax optimum (8969.2 N, the best any method found in `bench-tuning`), where
     the smoothed SLSQP route ended at 9226-9787 N for 2 of 6. One test, so that seed 0's
     search runs once."""
-    import jax.monitoring
-
     from recoil_jax.apps import run_study
     from recoil_jax.apps._studies import load_study, search_kwargs
 
-    programs = []
-
-    def listen(event, duration, **kwargs):
-        if event.endswith("backend_compile_duration"):
-            programs.append(str(kwargs.get("fun_name")))
-
-    jax.monitoring.register_event_duration_secs_listener(listen)
-    try:
+    with compiled_programs() as programs:
         report = run_study("throttling", out=tmp_path, progress=False)
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listen)
     # The checks reuse programs: one history program per structure (the tuned design's,
     # the linear damper's), one single-design solve (the tuned design, smoothed and hard).
     assert sum("_simulate_jit" in p for p in programs) <= 2, programs

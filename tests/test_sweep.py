@@ -8,6 +8,7 @@ import textwrap
 
 import numpy as np
 import pytest
+from conftest import compiled_programs
 
 import recoil_jax as rj
 
@@ -182,7 +183,6 @@ def test_padding_is_never_solved_and_small_sweeps_share_one_program():
     the same peaks as single solves; so does the hard-switch model at other tolerances
     (widths and tolerances are values)."""
     import jax
-    import jax.monitoring
 
     from recoil_jax._solve import peaks_batch
 
@@ -198,17 +198,8 @@ def test_padding_is_never_solved_and_small_sweeps_share_one_program():
             float(single.peak_anchoring_force), rel=1e-5
         )
 
-    compiled = []
-
-    def listen(event, duration, **kwargs):
-        if event.endswith("backend_compile_duration") and "_peaks_batch" in str(
-            kwargs.get("fun_name")
-        ):
-            compiled.append(kwargs["fun_name"])
-
     jax.clear_caches()  # whatever an earlier test compiled
-    jax.monitoring.register_event_duration_secs_listener(listen)
-    try:
+    with compiled_programs() as programs:
         for n in (5, 300, 1024):
             gaps = np.linspace(0.0, 0.12, n)
             result = rj.sweep({"gap": gaps, "m": np.full(n, 700.0), "k_r": np.full(n, 3.3e4)})
@@ -218,8 +209,7 @@ def test_padding_is_never_solved_and_small_sweeps_share_one_program():
             smoothing=rj.Smoothing.exact(),
             options=rj.SolverOptions(rtol=1e-9, atol=1e-12),
         )
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listen)
+    compiled = [name for name in programs if "_peaks_batch" in name]
     assert len(compiled) == 1
     single = rj.peaks(rj.params_from_values(gap=0.12, m=700.0, k_r=3.3e4))
     exact = rj.peaks(

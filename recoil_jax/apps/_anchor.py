@@ -180,13 +180,10 @@ def _settings(options: rj.SolverOptions):
     import diffrax
 
     from recoil_jax._model import RECOIL_TERM
+    from recoil_jax._params import with_default_tolerances
     from recoil_jax._stepping import PeakLoop, make_controller
 
-    options = rj.SolverOptions(
-        rtol=1e-6 if options.rtol is None else options.rtol,
-        atol=1e-9 if options.atol is None else options.atol,
-        max_steps=options.max_steps,
-    )
+    options = with_default_tolerances(rj.RecoilParams(absorber=rj.Absorber()), options)
     controller = make_controller(options)
     tableau = diffrax.Tsit5.tableau
     a = np.zeros((7, 7))

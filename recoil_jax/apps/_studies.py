@@ -692,7 +692,9 @@ def _checks(study: Study, result, report: dict, simulations: dict, kwargs, out: 
 
     if _is_throttling(report["best"]):
         with phase("force_stroke", "force over the stroke, beside a tuned linear damper"):
-            report["force_stroke"] = _force_stroke(problem, result.best_params(0), out)
+            report["force_stroke"] = _force_stroke(
+                problem, result.best_params(0), history.peaks, out
+            )
     check = study.check
     if check.get("hard"):
         with phase("hard_check", "check: the hard-switch model"):
@@ -772,11 +774,12 @@ def _is_throttling(design: dict) -> bool:
     )
 
 
-def _force_stroke(problem: rj.DesignProblem, params, out: Path) -> dict:
+def _force_stroke(problem: rj.DesignProblem, params, best: rj.Peaks, out: Path) -> dict:
     """The anchoring force over the recoil stroke of a throttling design, beside the
     constant-force ideal `E0/L` (the least peak force that stops the impulse's energy
     `E0 = M v0²/2` within the stroke `L`) and the paper's linear damper without the
-    buffer, its `c_out` tuned (Brent) to the same stroke. Writes `force_stroke.png`."""
+    buffer, its `c_out` tuned (Brent) to the same stroke. `best`: the design's peaks (its
+    history's). Writes `force_stroke.png`."""
     from scipy.optimize import brentq
 
     from ._figures import plot_series
@@ -784,7 +787,6 @@ def _force_stroke(problem: rj.DesignProblem, params, out: Path) -> dict:
     # Every solve here is a history on `_history`'s grid: the tuned design's runs the
     # program of the best design's history, and the damper's one program of its own.
     design = {k: v for k, v in rj.params_to_values(params).items()}
-    best = _history(problem, params, 3.0).peaks
     stroke = float(best.peak_displacement)
     energy = 0.5 * design["M"] * design["v0"] ** 2
     ideal = energy / stroke
