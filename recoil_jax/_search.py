@@ -135,7 +135,8 @@ class MinimiseResult:
       largest normalised violation), `ok (N,)`.
     - `starts`: per local run: `z0`, `z`, `objective`, `iterations`, `message`,
       `seconds` (its start and end since the start of the search), `phase` (`"start"`,
-      or `"hop"` for basin hopping).
+      or `"hop"` for basin hopping), `best_feasible` (the best feasible exact objective
+      it evaluated; inf if none).
     - `solves`, `gradient_solves`: plain solves and sensitivity solves; `seconds`;
       `compilations` of the gradient program.
     - `replayed`: of those, the evaluations read from the study's store (a resumed
@@ -158,6 +159,20 @@ class MinimiseResult:
     best_theta: np.ndarray | None = None
     closest_theta: np.ndarray | None = None
     replayed: int = 0
+
+    def starts_reaching_best(self, rtol: float = 1e-3) -> int:
+        """How many local runs from independent starts (phase `"start"`: the given
+        design and the sampled points, not basin hopping's, which start beside the best)
+        evaluated a feasible design within `rtol` of the best objective. One alone means
+        the best basin was found once: another seed of the samples may well end
+        elsewhere (measured on `burst_recuperator`: `optimise/README.md`)."""
+        if not self.feasible:
+            return 0
+        limit = self.best_objective + rtol * abs(self.best_objective)
+        return sum(
+            run["phase"] == "start" and run.get("best_feasible", np.inf) <= limit
+            for run in self.starts
+        )
 
     def best_so_far(self) -> np.ndarray:
         """The best feasible objective after each evaluation of `trace` (inf before)."""
@@ -244,7 +259,7 @@ def minimise(
     workers: int = 1,
     progress: bool | None = None,
     label: str = "search",
-    new_run: Callable[[], None] | None = None,
+    run_evaluator: Callable[[], Callable[[np.ndarray, float], Any]] | None = None,
     spent: Callable[[], float] | None = None,
 ) -> MinimiseResult:
     """Minimise `f(z)` subject to `g(z) <= 0` over the unit box `z ∈ [0, 1]^P`: a scrambled
@@ -274,8 +289,10 @@ def minimise(
       starts run while the global phase samples).
     - `progress`: a progress line with the best feasible objective (default: on a
       terminal).
-    - `new_run`: called at the start of each local run, from its thread (`search`
-      forgets there what it adapted to the previous run's points).
+    - `run_evaluator()`: called at the start of each local run, returns that run's own
+      `value_and_jacobian`, with state of its own (`search`'s minimax adds the signal's
+      local maxima at the run's previous point). Default: `value_and_jacobian` for
+      every run.
     - `spent()`: the seconds of the `max_seconds` budget spent so far (default: since
       this call; a resumed study adds the earlier runs').
 
@@ -316,10 +333,16 @@ def minimise(
         record.add(centre, exact, _worst(np.asarray(g)[None], 1), ok, True, "local")
 
     def local_run(z0):
-        if new_run is not None:
-            new_run()
-        run = run_local(local, value_and_jacobian, z0, record_local, out_of_time, clock)
-        return run | {"phase": "start"}
+        evaluate = value_and_jacobian if run_evaluator is None else run_evaluator()
+        best = [np.inf]  # this run's best feasible exact objective
+
+        def record_run(z, objective, violation, ok):
+            record_local(z, objective, violation, ok)
+            if feasible(ok, objective, [violation]):
+                best[0] = min(best[0], float(objective))
+
+        run = run_local(local, evaluate, z0, record_run, out_of_time, clock)
+        return run | {"phase": "start", "best_feasible": best[0]}
 
     # Given starts first (a design known to be good is polished at once), then the
     # global phase: one batch through the batched solver, and the best distinct samples.
@@ -354,11 +377,11 @@ def minimise(
             runs += hopping.run(record, local_run, pool, max(1, workers), seed, out_of_time)
     bar.update(bar.total, _best_note(record.best), final=True)
     trace = {k: np.asarray(v) for k, v in record.rows.items()}
-    feasible = record.best_z is not None
+    found = record.best_z is not None
     return MinimiseResult(
-        best_z=np.asarray(record.best_z) if feasible else np.full(dimension, np.nan),
-        best_objective=record.best if feasible else np.nan,
-        feasible=feasible,
+        best_z=np.asarray(record.best_z) if found else np.full(dimension, np.nan),
+        best_objective=record.best if found else np.nan,
+        feasible=found,
         trace=trace,
         samples=sampled,
         starts=runs,
@@ -710,32 +733,33 @@ def search(
     # The peaks' own save times, as many as the local method asks for (EpigraphMinimax:
     # the study says the peaks are narrow, it gave them a temperature).
     peak_times = local.peak_times
-    peaks_seen = threading.local()  # per local run (one per thread at a time)
 
-    def new_run():
-        peaks_seen.ts = None
+    def run_evaluator():
+        """One local run's `value_and_jacobian`: at level 0 the minimax's pieces are the
+        signal on the grid and at the local maxima of the run's previous point."""
+        previous_maxima: list[np.ndarray] = []  # this run's, at its last good solve
 
-    def value_and_jacobian(z, level):
-        if level > 0:
-            return gradient_solve(z, level)
-        grid = series_ts(z)
-        extra = getattr(peaks_seen, "ts", None)
-        if extra is None:
-            extra = np.full(peak_times, grid[-1])
-        times = np.concatenate([grid, extra])
-        # Saved in time order; returned in this order, so that each value keeps its
-        # place (one constraint of SLSQP's each) from one point to the next.
-        order = np.argsort(times, kind="stable")
-        f, g, df, dg, exact, ok = gradient_solve(z, level, jnp.asarray(times[order]))
-        f, df = np.array(f), np.array(df)
-        f[1 + order], df[1 + order] = f[1:].copy(), df[1:].copy()
-        if bool(ok) and peak_times:
-            peaks_seen.ts = _local_maxima(times, f[1:], peak_times, grid[-1])
-        # Save times after the solve's end (its peaks certain) are no constraint.
-        after = ~np.isfinite(f)
-        if np.any(np.isfinite(f)):
-            f[after], df[after] = np.nanmin(f), 0.0
-        return LocalEvaluation(f, g, df, dg, exact, ok)
+        def value_and_jacobian(z, level):
+            if level > 0:
+                return gradient_solve(z, level)
+            grid = series_ts(z)
+            extra = previous_maxima[-1] if previous_maxima else np.full(peak_times, grid[-1])
+            times = np.concatenate([grid, extra])
+            # Saved in time order; returned in this order, so that each value keeps its
+            # place (one constraint of SLSQP's each) from one point to the next.
+            order = np.argsort(times, kind="stable")
+            f, g, df, dg, exact, ok = gradient_solve(z, level, jnp.asarray(times[order]))
+            f, df = np.array(f), np.array(df)
+            f[1 + order], df[1 + order] = f[1:].copy(), df[1:].copy()
+            if bool(ok) and peak_times:
+                previous_maxima[:] = [_local_maxima(times, f[1:], peak_times, grid[-1])]
+            # Save times after the solve's end (its peaks certain) are no constraint.
+            after = ~np.isfinite(f)
+            if np.any(np.isfinite(f)):
+                f[after], df[after] = np.nanmin(f), 0.0
+            return LocalEvaluation(f, g, df, dg, exact, ok)
+
+        return value_and_jacobian
 
     initial = []
     if use_design:
@@ -743,7 +767,7 @@ def search(
     try:
         result = minimise(
             evaluate_batch,
-            value_and_jacobian,
+            run_evaluator(),  # the warm-up's
             len(problem.tune),
             samples=samples,
             starts=starts,
@@ -754,7 +778,7 @@ def search(
             max_seconds=max_seconds,
             workers=workers,
             progress=progress,
-            new_run=new_run,
+            run_evaluator=run_evaluator,
             spent=spent,
         )
     finally:

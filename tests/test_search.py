@@ -78,6 +78,54 @@ def test_minimise_finds_the_global_minimum_of_a_multimodal_function():
         assert result.best_objective == pytest.approx(0.0, abs=1e-8)
 
 
+def test_minimise_counts_the_starts_that_reach_the_best_basin():
+    # A wide basin at z = 0.3 (f = -1) and a narrow, deeper one at z = 0.9 (f = -2):
+    # of four given starts, the one at 0.88 alone reaches the best; basin hopping's runs
+    # (started beside the best) are not independent confirmations.
+    def f(z):
+        wide, narrow = ((z[0] - 0.3) / 0.2) ** 2, ((z[0] - 0.9) / 0.03) ** 2
+        return float(-np.exp(-wide) - 2 * np.exp(-narrow))
+
+    def grad(z):
+        wide = np.exp(-(((z[0] - 0.3) / 0.2) ** 2)) * 2 * (z[0] - 0.3) / 0.2**2
+        narrow = 2 * np.exp(-(((z[0] - 0.9) / 0.03) ** 2)) * 2 * (z[0] - 0.9) / 0.03**2
+        return np.asarray([wide + narrow])
+
+    batch, local = _analytic(f, grad)
+    starts = [np.asarray([z]) for z in (0.1, 0.35, 0.5, 0.88)]
+    once = rj.minimise(batch, local, 1, samples=0, initial=starts, progress=False)
+    # The wide basin's tail adds exp(-9) = 1.2e-4 at the narrow one.
+    assert once.best_objective == pytest.approx(-2.0 - np.exp(-9.0), abs=1e-6)
+    assert [run["best_feasible"] < -1.5 for run in once.starts] == [False, False, False, True]
+    assert once.starts_reaching_best() == 1
+    hopped = rj.minimise(
+        batch, local, 1, samples=0, initial=starts, progress=False,
+        hopping=rj.BasinHopping(hops=4, step=0.01),
+    )  # fmt: skip
+    assert sum(run["phase"] == "hop" for run in hopped.starts) == 4
+    assert hopped.starts_reaching_best() == 1
+    everywhere = rj.minimise(
+        batch, local, 1, samples=0, initial=[np.asarray([z]) for z in (0.85, 0.9, 0.95)],
+        progress=False,
+    )  # fmt: skip
+    assert everywhere.starts_reaching_best() == 3
+
+
+def test_a_best_design_found_once_comes_with_a_caution():
+    from recoil_jax.apps._studies import agreement_line
+
+    def report(reached, starts, feasible=True):
+        optimiser = {"starts_reaching_best": reached, "independent_starts": starts}
+        return {"feasible": feasible, "optimiser": optimiser}
+
+    caution = ": compare a few --seed values before relying on it"
+    assert agreement_line(report(1, 8)) == "reached from 1 of 8 independent starts" + caution
+    assert agreement_line(report(0, 8)).endswith(caution)  # basin hopping found it
+    assert agreement_line(report(2, 8)) == "reached from 2 of 8 independent starts"
+    assert agreement_line(report(1, 1)) == "reached from 1 of 1 independent starts"
+    assert agreement_line(report(0, 8, feasible=False)) is None
+
+
 def test_minimise_reports_an_unmeetable_constraint_as_infeasible():
     # z0 >= 2 cannot hold in the unit box.
     batch, local = _analytic(
@@ -375,6 +423,9 @@ def test_throttling_reaches_the_levelled_optimum_for_every_seed(tmp_path):
     assert (tmp_path / "force_stroke.png").stat().st_size > 10_000
     # One program, the minimax's (none when an earlier test compiled it): no smoothed level.
     assert report["optimiser"]["compilations"] <= 1
+    # Both independent starts end at the optimum (measured for seeds 0 to 2).
+    assert report["optimiser"]["starts_reaching_best"] == 2
+    assert report["optimiser"]["independent_starts"] == 2
 
     study = load_study("throttling")
     best = [force]  # seed 0

@@ -72,7 +72,8 @@ def test_interrupted_sweep_resumes_to_the_same_bits(uninterrupted, tmp_path, mon
 
     monkeypatch.setattr(sweep_module, "_run_chunk", real)
     resumed = rj.sweep(designs, store=store, **PLAN)
-    assert "resuming from" in capsys.readouterr().err
+    captured = capsys.readouterr()
+    assert "resuming from" in captured.err
     _assert_same(resumed, plain)
     assert resumed.stored == 1024
     assert _rows(store) == {"points": (1500, 1500), "chunks": 3, "integrity": "ok"}
@@ -370,7 +371,8 @@ def test_interrupted_search_resumes_to_the_same_design(tmp_path, monkeypatch, ca
     cut = _study_rows(store)
     assert cut["phases"] == {"sample": 32, "local": 9}  # the samples in one commit
     resumed = rj.search(problem, store=store, **(SEARCH | {"progress": True}))
-    assert "resuming from" in capsys.readouterr().err
+    captured = capsys.readouterr()
+    assert "resuming from" in captured.err
     # The same evaluations (the given start's run and the samples interleave by the
     # threads' timing), to the same best design, bit for bit.
     assert np.array_equal(resumed.best_z, plain.best_z)
@@ -478,10 +480,15 @@ def test_optimise_command_resumes_from_its_store(tmp_path, capsys):
     argv = ["optimise", str(study), "--store", str(store)]
     assert main([*argv, "--out", str(tmp_path / "a")]) == 0
     assert main([*argv, "--out", str(tmp_path / "b")]) == 0
-    assert "resuming from" in capsys.readouterr().err
+    captured = capsys.readouterr()
+    assert "resuming from" in captured.err
     first, second = (json.loads((tmp_path / d / "result.json").read_text()) for d in "ab")
     assert first["best"] == second["best"] and first["objective"] == second["objective"]
     assert second["optimiser"]["replayed"] >= first["optimiser"]["gradient_solves"]
+    # Each summary says how many independent starts reached its best design.
+    reached = [r["optimiser"]["starts_reaching_best"] for r in (first, second)]
+    assert reached[0] == reached[1] >= 1
+    assert captured.out.count(f"reached from {reached[0]} of ") == 2
     assert main(["progress", str(store)]) == 0
     line = capsys.readouterr().out
     # The store's best is the gradient solve's; result.json's the design re-solved.

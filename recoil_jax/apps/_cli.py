@@ -170,7 +170,7 @@ def _sweep(args) -> int:
 
 
 def _optimise(args) -> int:
-    from ._studies import run_study
+    from ._studies import agreement_line, run_study
 
     report = run_study(
         args.study,
@@ -195,6 +195,8 @@ def _optimise(args) -> int:
         for name, c in report["constraints"].items():
             state = "ok" if c["satisfied"] else "VIOLATED"
             print(f"  {name}: {c['value']:.6g} (limit {c['limit']:g}) {state}")
+        if line := agreement_line(report):
+            print(f"  {line}")
     return 0
 
 

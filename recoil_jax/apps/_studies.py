@@ -355,6 +355,20 @@ def optimise_kwargs(study: Study, progress: bool | None) -> dict:
     return kwargs
 
 
+def agreement_line(report: dict) -> str | None:
+    """How many independent starts reached the best design of a feasible study, with a
+    caution when one alone (or none: basin hopping found it) of several did: a rerun
+    with another seed may end in another basin. None for an infeasible study."""
+    optimiser = report.get("optimiser", {})
+    reached, starts = optimiser.get("starts_reaching_best"), optimiser.get("independent_starts")
+    if not report.get("feasible") or reached is None or not starts:
+        return None
+    line = f"reached from {reached} of {starts} independent starts"
+    if starts >= 2 and reached <= 1:
+        line += ": compare a few --seed values before relying on it"
+    return line
+
+
 def _search_summary(result: rj.MinimiseResult, local: rj.LocalMethod) -> dict:
     """What `result.json` says of a `search` run."""
     samples = result.samples
@@ -376,6 +390,8 @@ def _search_summary(result: rj.MinimiseResult, local: rj.LocalMethod) -> dict:
             }
             for run in result.starts
         ],
+        "independent_starts": sum(run["phase"] == "start" for run in result.starts),
+        "starts_reaching_best": result.starts_reaching_best(),
         "solves": result.solves,
         "gradient_solves": result.gradient_solves,
         "compilations": result.compilations,
@@ -612,6 +628,8 @@ def run_study(
             "compilations": result.compilations,
             "seconds": round(result.seconds, 2),
             "converged_runs": int(result.converged.sum()),
+            "independent_starts": result.starts,
+            "starts_reaching_best": result.starts_reaching_best(0),
             "where_starts_ended": result.clusters(0),
         }
         plot_convergence(result, out / "convergence.png", title=study.name)
