@@ -79,6 +79,7 @@ from ._params import (
 from ._problem import (
     FEASIBILITY_TOLERANCE as FEASIBILITY_TOLERANCE,
     Constraint as Constraint,
+    DesignEvaluation as DesignEvaluation,
     DesignProblem as DesignProblem,
     Objective as Objective,
     closest_miss as closest_miss,

@@ -31,22 +31,23 @@ __all__ = ["design_metrics", "differentiable_peaks"]
 
 
 def _solve(theta, params, wrt, smoothing, options, smooth_max, series):
-    peaks, grads, smooth_values, smooth_grads, on_series = sensitivity_solve(
+    solved = sensitivity_solve(
         with_values(params, wrt, theta), smoothing, options, wrt, smooth_max, series
     )
-    values = {name: getattr(peaks, name) for name in METRICS}
-    jacobian = {name: getattr(grads, name) for name in METRICS}
+    values = {name: getattr(solved.peaks, name) for name in METRICS}
+    jacobian = {name: getattr(solved.gradients, name) for name in METRICS}
     if smooth_max is not None:
-        assert smooth_values is not None and smooth_grads is not None
+        assert solved.smooth_values is not None and solved.smooth_gradients is not None
         for j, name in enumerate(smooth_max.metrics):
-            values[smooth_name(name)] = smooth_values[j]
-            jacobian[smooth_name(name)] = smooth_grads[j]
+            values[smooth_name(name)] = solved.smooth_values[j]
+            jacobian[smooth_name(name)] = solved.smooth_gradients[j]
     if series is not None:
-        assert on_series is not None
+        assert solved.series_values is not None and solved.series_gradients is not None
         for j, name in enumerate(series.metrics):
-            values[series_name(name)] = on_series[0][j]
-            jacobian[series_name(name)] = on_series[1][j]
-    (code,) = jax.tree.leaves(peaks.status)  # the integer code: custom JVPs take arrays
+            values[series_name(name)] = solved.series_values[j]
+            jacobian[series_name(name)] = solved.series_gradients[j]
+    # The integer code: custom JVPs take arrays.
+    (code,) = jax.tree.leaves(solved.peaks.status)
     return values, jacobian, code
 
 

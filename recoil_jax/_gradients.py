@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import diffrax
 import equinox as eqx
@@ -361,11 +361,28 @@ def _sensitivity_setup(params, smoothing, wrt, smooth_max, t1):
     return z0, (params, smoothing, smooth_max, t1)
 
 
+class Sensitivities(NamedTuple):
+    """What one solve of the state with its sensitivities gives (`sensitivity_solve`).
+
+    - `peaks`: the `Peaks`; `gradients`: their `PeakGradients` with respect to `wrt`;
+    - `smooth_values (k,)`, `smooth_gradients (k, len(wrt))`: the smooth maxima of a
+      `SmoothMax` and their gradients (None without one);
+    - `series_values (k, n)`, `series_gradients (k, n, len(wrt))`: the signals of a
+      `MetricSeries` at its save times and their gradients, NaN after the run's end
+      (None without one).
+    """
+
+    peaks: Peaks
+    gradients: PeakGradients
+    smooth_values: Any = None
+    smooth_gradients: Any = None
+    series_values: Any = None
+    series_gradients: Any = None
+
+
 def _sensitivity_post(args, run: PeakRun, wrt, series: MetricSeries | None = None):
-    """Gradients at the located peaks by the envelope theorem: `∇_y g · S(t*) + ∂g/∂θ`.
-    Returns the peaks, their gradients, (with a smooth max) the smooth maxima `(k,)`
-    and their gradients `(k, len(wrt))`, and (with `series`) the signals on its save
-    times `(k, n)` and their gradients `(k, n, len(wrt))` (NaN after the run's end)."""
+    """Gradients at the located peaks by the envelope theorem: `∇_y g · S(t*) + ∂g/∂θ`,
+    as `Sensitivities`."""
     params, smoothing, smooth_max, t1 = args
     n = _state_size(smooth_max)
     theta = values_of(params, wrt)
@@ -410,7 +427,7 @@ def _sensitivity_post(args, run: PeakRun, wrt, series: MetricSeries | None = Non
             [grads[smooth_name(m)] for m in smooth_max.metrics]
         )
     if series is None:
-        return peaks, gradients, smooth_values, smooth_grads, None
+        return Sensitivities(peaks, gradients, smooth_values, smooth_grads)
 
     def on_series(i):
         # The same envelope formula at each save time (a fixed time: no rate term).
@@ -426,14 +443,16 @@ def _sensitivity_post(args, run: PeakRun, wrt, series: MetricSeries | None = Non
     rows = [on_series(run.names.index(name)) for name in series.metrics]
     series_values = jnp.stack([r[0] for r in rows])
     series_grads = jnp.stack([r[1] for r in rows])
-    return peaks, gradients, smooth_values, smooth_grads, (series_values, series_grads)
+    return Sensitivities(peaks, gradients, smooth_values, smooth_grads, series_values, series_grads)
 
 
-def sensitivity_solve(params, smoothing, options, wrt, smooth_max=None, series=None):
-    """Peaks, their gradients with respect to `wrt`, (with `smooth_max`) the smooth
-    maxima `(k,)` and their gradients `(k, len(wrt))`, and (with a `MetricSeries`) the
-    signals at its save times and their gradients (else None): one solve of the state
-    with its sensitivities. Unjitted; `wrt` and the metric names are static."""
+def sensitivity_solve(
+    params, smoothing, options, wrt, smooth_max=None, series=None
+) -> Sensitivities:
+    """Peaks and their gradients with respect to `wrt`, with (given `smooth_max`) the
+    smooth maxima and (given a `MetricSeries`) the signals at its save times, each with
+    its gradients: one solve of the state with its sensitivities (`Sensitivities`).
+    Unjitted; `wrt` and the metric names are static."""
     t1 = end_time(params, options)
     options = with_default_tolerances(params, options)
     z0, args = _sensitivity_setup(params, smoothing, wrt, smooth_max, t1)
@@ -469,10 +488,14 @@ def _peak_gradients_batch(params, t1, smoothing, options, wrt, lanes, count):
         p, end = design
         return *_sensitivity_setup(p, smoothing, wrt, None, end), end
 
+    def post(design, args, run):
+        solved = _sensitivity_post(args, run, wrt)
+        return solved.peaks, solved.gradients
+
     return queued_map(
         loop,
         setup,
-        lambda design, args, run: _sensitivity_post(args, run, wrt)[:2],
+        post,
         (params, t1),
         lanes,
         count,
@@ -487,8 +510,8 @@ peak_gradients_batch = structure_jit(_peak_gradients_batch)
 
 
 def _peaks_and_gradients(params, smoothing, options, wrt):
-    peaks, gradients, *_ = sensitivity_solve(params, smoothing, options, wrt)
-    return peaks, gradients
+    solved = sensitivity_solve(params, smoothing, options, wrt)
+    return solved.peaks, solved.gradients
 
 
 def peak_gradients(

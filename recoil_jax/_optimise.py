@@ -86,15 +86,16 @@ def _make_step(
         theta = _to_theta(space, u)
         # Anneal the smooth-max temperatures geometrically to `anneal` of their start.
         progress = state.step / max(steps - 1, 1)
-        metrics, status, smooth, exact, violations = evaluate_design(
-            problem, theta, params, settings.anneal**progress, limits
-        )
+        evaluation = evaluate_design(problem, theta, params, settings.anneal**progress, limits)
+        smooth, violations = evaluation.smooth_objective, evaluation.violations
         scale = jnp.where(state.step == 0, jax.lax.stop_gradient(jnp.abs(smooth)), state.scale)
         scale = jnp.where(scale > 0, scale, 1.0)
         lam, rho = state.multipliers, state.penalty
         augmented = jnp.sum(jnp.maximum(lam + rho * violations, 0.0) ** 2 - lam**2) / (2.0 * rho)
-        (code,) = jax.tree.leaves(status)
-        record = _StepRecord(theta, metrics, code, smooth, exact, violations)
+        (code,) = jax.tree.leaves(evaluation.status)
+        record = _StepRecord(
+            theta, evaluation.metrics, code, smooth, evaluation.objective, violations
+        )
         return smooth / scale + augmented, (record, scale)
 
     @eqx.debug.assert_max_traces(max_traces=1)

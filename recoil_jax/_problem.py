@@ -14,7 +14,7 @@ evaluation of one design as a differentiable function of its tuned values.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -40,6 +40,7 @@ from ._status import status_item
 __all__ = [
     "FEASIBILITY_TOLERANCE",
     "Constraint",
+    "DesignEvaluation",
     "DesignProblem",
     "Objective",
     "closest_miss",
@@ -209,6 +210,25 @@ class DesignProblem(eqx.Module):
         ]
 
 
+class DesignEvaluation(NamedTuple):
+    """What `evaluate_design` gives at one point (arrays; traced inside a `jit`).
+
+    - `metrics`: metric name → value (worst case over the objective's scatter);
+    - `status`: the solve's `Status`;
+    - `smooth_objective`: the objective the optimiser sees (smooth maxima where the
+      objective has temperatures);
+    - `objective`: the objective with the true peaks;
+    - `violations (C,)`: the normalised violations of the metric constraints (`<= 0`
+      where held).
+    """
+
+    metrics: dict[str, Any]
+    status: Any
+    smooth_objective: Any
+    objective: Any
+    violations: Any
+
+
 def evaluate_design(
     problem: DesignProblem,
     theta,
@@ -229,10 +249,10 @@ def evaluate_design(
     - `series`: a `MetricSeries`: its signals join the metrics (`series_<metric>`), and
       the objective is not smoothed (the smooth objective is the exact one).
 
-    **Returns:** `(metrics, status, smooth_objective, objective, violations)`: the metrics
-    by name (worst case over the objective's scatter), the solve's `Status`, the
-    objective the optimiser sees and the one with true peaks, and the normalised
-    violations of the metric constraints (`<= 0` when satisfied).
+    **Returns:** a `DesignEvaluation`: the metrics by name (worst case over the
+    objective's scatter), the solve's `Status`, the objective the optimiser sees and the
+    one with true peaks, and the normalised violations of the metric constraints (`<= 0`
+    when satisfied).
     """
     params = problem.params if params is None else params
     if limits is None:
@@ -269,19 +289,19 @@ def evaluate_design(
         metrics = {k: jnp.max(v) for k, v in per_sample.items()}
         metrics["min_stroke"] = jnp.min(per_sample["min_stroke"])
         status = jax.tree.map(jnp.max, statuses)
-        return (
-            metrics,
-            status,
-            jnp.max(smooth_values),
-            jnp.max(exact_values),
-            _violations(problem, metrics, limits),
+        return DesignEvaluation(
+            metrics=metrics,
+            status=status,
+            smooth_objective=jnp.max(smooth_values),
+            objective=jnp.max(exact_values),
+            violations=_violations(problem, metrics, limits),
         )
-    return (
-        metrics,
-        status,
-        objective(metrics, smooth=smooth_max is not None),
-        objective(metrics),
-        _violations(problem, metrics, limits),
+    return DesignEvaluation(
+        metrics=metrics,
+        status=status,
+        smooth_objective=objective(metrics, smooth=smooth_max is not None),
+        objective=objective(metrics),
+        violations=_violations(problem, metrics, limits),
     )
 
 

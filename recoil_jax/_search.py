@@ -28,7 +28,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -431,6 +431,18 @@ def _distinct_best(sampled: dict, count: int) -> list[np.ndarray]:
 _TRACES = [0]  # how many times the gradient program was traced (compiled)
 
 
+class _GradientSolve(NamedTuple):
+    """`_gradient_program`'s outputs: `LocalEvaluation`'s, with the solve's integer
+    `Status` code in place of `ok`."""
+
+    f: Any
+    g: Any
+    df: Any
+    dg: Any
+    objective: Any
+    status_code: Any
+
+
 @structure_jit
 def _gradient_program(problem: DesignProblem, box: SearchSpace, z, temperature, series_ts=None):
     """The smooth objective, the violations, their Jacobians, the exact objective and
@@ -448,28 +460,28 @@ def _gradient_program(problem: DesignProblem, box: SearchSpace, z, temperature, 
         weight = problem.objective.weights[name]
 
         def minimax_outputs(z):
-            metrics, status, _, exact, violations = evaluate_design(
+            evaluation = evaluate_design(
                 problem, box.theta(z), series=MetricSeries((name,), series_ts)
             )
-            (code,) = jax.tree.leaves(status)
+            metrics = evaluation.metrics
             peaks = weight * jnp.concatenate([metrics[name][None], metrics[series_name(name)]])
-            values = jnp.concatenate([peaks, violations])
-            return values, (values, exact, code)
+            values = jnp.concatenate([peaks, evaluation.violations])
+            return values, (values, evaluation)
 
-        jacobian, (values, exact, code) = jax.jacfwd(minimax_outputs, has_aux=True)(z)
+        jacobian, (values, evaluation) = jax.jacfwd(minimax_outputs, has_aux=True)(z)
         n = series_ts.shape[0] + 1
-        return values[:n], values[n:], jacobian[:n], jacobian[n:], exact, code
+    else:
 
-    def outputs(z):
-        _, status, smooth, exact, violations = evaluate_design(
-            problem, box.theta(z), temperature_scale=temperature
-        )
-        (code,) = jax.tree.leaves(status)
-        values = jnp.concatenate([smooth[None], violations])
-        return values, (values, exact, code)
+        def outputs(z):
+            evaluation = evaluate_design(problem, box.theta(z), temperature_scale=temperature)
+            values = jnp.concatenate([evaluation.smooth_objective[None], evaluation.violations])
+            return values, (values, evaluation)
 
-    jacobian, (values, exact, code) = jax.jacrev(outputs, has_aux=True)(z)
-    return values[0], values[1:], jacobian[0], jacobian[1:], exact, code
+        jacobian, (values, evaluation) = jax.jacrev(outputs, has_aux=True)(z)
+        n = 1
+    (code,) = jax.tree.leaves(evaluation.status)
+    f, df = (values[0], jacobian[0]) if series_ts is None else (values[:n], jacobian[:n])
+    return _GradientSolve(f, values[n:], df, jacobian[n:], evaluation.objective, code)
 
 
 def minimax_metric(problem: DesignProblem) -> str | None:
@@ -684,20 +696,22 @@ def search(
 
     def gradient_solve(z, level, series_ts=None):
         if study is None:
-            f, g, df, dg, exact, code = _gradient_program(
+            solve = _gradient_program(
                 problem, box, jnp.asarray(z), jnp.asarray(level, dtype=float), series_ts
             )
-            return LocalEvaluation(f, g, df, dg, float(exact), int(code) == ok_code)
+            ok = int(solve.status_code) == ok_code
+            return LocalEvaluation(solve.f, solve.g, solve.df, solve.dg, float(solve.objective), ok)
         z = np.asarray(z, dtype=float)
         times = () if series_ts is None else np.asarray(series_ts)
         key = fingerprint("gradient", z, np.asarray(level, dtype=float), times)
         out = study.stored(key)
         if out is None:
-            arrays = _gradient_program(
+            solve = _gradient_program(
                 problem, box, jnp.asarray(z), jnp.asarray(level, dtype=float), series_ts
             )
+            # The store's names for the outputs (stores written before keep resuming).
             names = ("f", "g", "df", "dg", "exact", "code")
-            out = dict(zip(names, map(np.asarray, arrays), strict=True))
+            out = dict(zip(names, map(np.asarray, solve), strict=True))
             code = int(out["code"])
             study.commit(
                 [

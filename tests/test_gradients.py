@@ -195,11 +195,11 @@ def test_smooth_maximum_stops_early_without_changing_value_or_gradient(monkeypat
     early = solve()
     monkeypatch.setattr(_gradients, "_SMOOTH_TAIL", 0.0)  # never stops: integrates to t1
     full = solve()
-    assert all_ok(early[0].status) and all_ok(full[0].status)
-    assert int(early[0].num_steps) < 0.8 * int(full[0].num_steps)
-    np.testing.assert_allclose(early[2], full[2], rtol=1e-12)
-    np.testing.assert_allclose(early[3], full[3], rtol=1e-9)
-    assert float(full[2][0]) < float(full[0].peak_anchoring_force)
+    assert all_ok(early.peaks.status) and all_ok(full.peaks.status)
+    assert int(early.peaks.num_steps) < 0.8 * int(full.peaks.num_steps)
+    np.testing.assert_allclose(early.smooth_values, full.smooth_values, rtol=1e-12)
+    np.testing.assert_allclose(early.smooth_gradients, full.smooth_gradients, rtol=1e-9)
+    assert float(full.smooth_values[0]) < float(full.peaks.peak_anchoring_force)
 
 
 def test_metric_series_matches_the_history_and_finite_differences():
@@ -221,7 +221,8 @@ def test_metric_series_matches_the_history_and_finite_differences():
             p, rj.Smoothing(), rj.GRADIENT_OPTIONS, wrt, None, series
         )
     )
-    peaks, _, _, _, (force, slopes) = solve(rj.params_from_values(values))
+    solved = solve(rj.params_from_values(values))
+    peaks, force, slopes = solved.peaks, solved.series_values, solved.series_gradients
     assert all_ok(peaks.status)
     force, slopes = np.asarray(force[0]), np.asarray(slopes[0])
     assert np.isnan(force[-1]) and np.all(np.isnan(slopes[-1]))

@@ -164,7 +164,8 @@ def test_scatter_objective_is_the_worst_case():
         tune=("gap",),
         objective=rj.Objective({"peak_anchoring_force": 1.0}, scatter=("v0", offsets)),
     )
-    _, status, _, worst, _ = jax.jit(lambda th: rj.evaluate_design(problem, th))(jnp.array([0.062]))
+    evaluation = jax.jit(lambda th: rj.evaluate_design(problem, th))(jnp.array([0.062]))
+    status, worst = evaluation.status, evaluation.objective
     assert bool(status == rj.Status.ok)
     v0 = float(PAPER_BEST.barrel.v0)
     separate = [

@@ -66,6 +66,7 @@ __all__ = [
     "LOCAL_METHODS",
     "SHIPPED",
     "Study",
+    "agreement_line",
     "load_study",
     "local_method",
     "optimise_kwargs",
