@@ -198,14 +198,15 @@ class OptimiseResult:
         return with_values(base, self.tune, self.closest_theta[scenario])
 
     def starts_reaching_best(self, scenario: int = 0, rtol: float = 1e-3) -> int:
-        """How many starts of `scenario` reached a feasible point within `rtol` of its
-        best objective (as `MinimiseResult.starts_reaching_best`): one alone means the
-        best basin was found once."""
+        """How many starts of `scenario` (each of its `starts` runs every step) reached
+        a feasible point within `rtol` of its best objective (as
+        `MinimiseResult.starts_reaching_best`): one alone means the best basin was
+        found once."""
         if not self.feasible[scenario]:
             return 0
         best = self.best_objective[scenario]
         values = self.run_best_objective[scenario * self.starts : (scenario + 1) * self.starts]
-        return int(np.sum(np.nan_to_num(values, nan=np.inf) <= best + rtol * abs(best)))
+        return int(np.sum(values <= best + rtol * abs(best)))  # NaN: no feasible point
 
     def clusters(self, scenario: int = 0, rtol: float = 1e-3) -> list[dict]:
         """Where the starts of `scenario` ended: groups of runs whose best objectives agree

@@ -135,8 +135,9 @@ class MinimiseResult:
       largest normalised violation), `ok (N,)`.
     - `starts`: per local run: `z0`, `z`, `objective`, `iterations`, `message`,
       `seconds` (its start and end since the start of the search), `phase` (`"start"`,
-      or `"hop"` for basin hopping), `best_feasible` (the best feasible exact objective
-      it evaluated; inf if none).
+      or `"hop"` for basin hopping), `evaluations` (gradient solves; 0 for a run the
+      time budget stopped before its first) and `best_feasible` (the best feasible
+      exact objective it evaluated; inf if none).
     - `solves`, `gradient_solves`: plain solves and sensitivity solves; `seconds`;
       `compilations` of the gradient program.
     - `replayed`: of those, the evaluations read from the study's store (a resumed
@@ -160,19 +161,28 @@ class MinimiseResult:
     closest_theta: np.ndarray | None = None
     replayed: int = 0
 
+    def starts_run(self) -> int:
+        """How many local runs from the starts (phase `"start"`: the given design and the
+        sampled points, not basin hopping's) evaluated at least one point."""
+        return sum(run["phase"] == "start" and run["evaluations"] > 0 for run in self.starts)
+
     def starts_reaching_best(self, rtol: float = 1e-3) -> int:
-        """How many local runs from independent starts (phase `"start"`: the given
-        design and the sampled points, not basin hopping's, which start beside the best)
-        evaluated a feasible design within `rtol` of the best objective. One alone means
-        the best basin was found once: another seed of the samples may well end
-        elsewhere (measured on `burst_recuperator`: `optimise/README.md`)."""
+        """How many of those runs evaluated a feasible design within `rtol` of the best
+        objective, a start within `SPACING` (max-norm) of one already counted counting
+        once: `search` places every other start beside an earlier one, and two starts
+        in one region are one confirmation. One alone means the best basin was found
+        once: another seed of the samples may well end elsewhere (measured on
+        `burst_recuperator`: `optimise/README.md`)."""
         if not self.feasible:
             return 0
         limit = self.best_objective + rtol * abs(self.best_objective)
-        return sum(
-            run["phase"] == "start" and run.get("best_feasible", np.inf) <= limit
-            for run in self.starts
-        )
+        counted: list[np.ndarray] = []
+        for run in self.starts:
+            if run["phase"] != "start" or not run["best_feasible"] <= limit:
+                continue
+            if all(np.max(np.abs(run["z0"] - z0)) > SPACING for z0 in counted):
+                counted.append(run["z0"])
+        return len(counted)
 
     def best_so_far(self) -> np.ndarray:
         """The best feasible objective after each evaluation of `trace` (inf before)."""
@@ -271,10 +281,11 @@ def minimise(
       the exact objective, the normalised constraint values (`<= 0` when held) and whether
       the evaluation succeeded.
     - `value_and_jacobian(z, level)`: `z (P,)` → a `LocalEvaluation` (or the same
-      6-tuple): the smoothed objective the local method minimises at continuation
-      `level` (one of `local.levels`), its constraints, their Jacobians, the exact
-      objective at `z`, and whether the evaluation succeeded. At level 0 (a minimax
-      method) `f` is a vector `(K,)` with `df (K, P)`: the objective is its maximum.
+      6-tuple; with `run_evaluator`, only the warm-up's): the smoothed objective the
+      local method minimises at continuation `level` (one of `local.levels`), its
+      constraints, their Jacobians, the exact objective at `z`, and whether the
+      evaluation succeeded. At level 0 (a minimax method) `f` is a vector `(K,)` with
+      `df (K, P)`: the objective is its maximum.
     - `dimension`: `P`.
     - `local`: the local method, a `LocalMethod` with its own settings (default
       `SLSQP()`): `SLSQP`, `EpigraphMinimax`, `TrustRegionLP`, or one of your own.
@@ -334,15 +345,16 @@ def minimise(
 
     def local_run(z0):
         evaluate = value_and_jacobian if run_evaluator is None else run_evaluator()
-        best = [np.inf]  # this run's best feasible exact objective
+        seen = {"evaluations": 0, "best_feasible": np.inf}  # this run's
 
         def record_run(z, objective, violation, ok):
             record_local(z, objective, violation, ok)
+            seen["evaluations"] += 1
             if feasible(ok, objective, [violation]):
-                best[0] = min(best[0], float(objective))
+                seen["best_feasible"] = min(seen["best_feasible"], float(objective))
 
         run = run_local(local, evaluate, z0, record_run, out_of_time, clock)
-        return run | {"phase": "start", "best_feasible": best[0]}
+        return run | {"phase": "start"} | seen
 
     # Given starts first (a design known to be good is polished at once), then the
     # global phase: one batch through the batched solver, and the best distinct samples.

@@ -81,7 +81,8 @@ def test_minimise_finds_the_global_minimum_of_a_multimodal_function():
 def test_minimise_counts_the_starts_that_reach_the_best_basin():
     # A wide basin at z = 0.3 (f = -1) and a narrow, deeper one at z = 0.9 (f = -2):
     # of four given starts, the one at 0.88 alone reaches the best; basin hopping's runs
-    # (started beside the best) are not independent confirmations.
+    # (started beside the best) are no confirmation, nor is a second start within
+    # SPACING (0.25) of a counted one.
     def f(z):
         wide, narrow = ((z[0] - 0.3) / 0.2) ** 2, ((z[0] - 0.9) / 0.03) ** 2
         return float(-np.exp(-wide) - 2 * np.exp(-narrow))
@@ -91,38 +92,68 @@ def test_minimise_counts_the_starts_that_reach_the_best_basin():
         narrow = 2 * np.exp(-(((z[0] - 0.9) / 0.03) ** 2)) * 2 * (z[0] - 0.9) / 0.03**2
         return np.asarray([wide + narrow])
 
+    def run(starts, **kwargs):
+        initial = [np.asarray([z]) for z in starts]
+        return rj.minimise(batch, local, 1, samples=0, initial=initial, progress=False, **kwargs)
+
     batch, local = _analytic(f, grad)
-    starts = [np.asarray([z]) for z in (0.1, 0.35, 0.5, 0.88)]
-    once = rj.minimise(batch, local, 1, samples=0, initial=starts, progress=False)
+    once = run((0.1, 0.35, 0.5, 0.88))
     # The wide basin's tail adds exp(-9) = 1.2e-4 at the narrow one.
     assert once.best_objective == pytest.approx(-2.0 - np.exp(-9.0), abs=1e-6)
     assert [run["best_feasible"] < -1.5 for run in once.starts] == [False, False, False, True]
-    assert once.starts_reaching_best() == 1
-    hopped = rj.minimise(
-        batch, local, 1, samples=0, initial=starts, progress=False,
-        hopping=rj.BasinHopping(hops=4, step=0.01),
-    )  # fmt: skip
+    assert once.starts_run() == 4 and once.starts_reaching_best() == 1
+    hopped = run((0.1, 0.35, 0.5, 0.88), hopping=rj.BasinHopping(hops=4, step=0.01))
     assert sum(run["phase"] == "hop" for run in hopped.starts) == 4
-    assert hopped.starts_reaching_best() == 1
-    everywhere = rj.minimise(
-        batch, local, 1, samples=0, initial=[np.asarray([z]) for z in (0.85, 0.9, 0.95)],
-        progress=False,
+    assert hopped.starts_run() == 4 and hopped.starts_reaching_best() == 1
+    assert run((0.85, 0.95)).starts_reaching_best() == 1  # one region
+    # A bowl: starts far apart all reach its minimum.
+    batch, local = _analytic(lambda z: float((z[0] - 0.5) ** 2), lambda z: 2 * (z - 0.5))
+    assert run((0.0, 0.3, 0.6, 1.0)).starts_reaching_best() == 4
+    # Runs the time budget stopped before their first evaluation ran nothing.
+    stopped = run((0.0, 1.0), max_seconds=0.0)
+    assert [r["evaluations"] for r in stopped.starts] == [0, 0] and stopped.starts_run() == 0
+
+
+def test_each_local_run_gets_its_own_evaluation_function():
+    # A stateful evaluator per run (what search's minimax keeps: the previous point's
+    # local maxima): one per start and per hop, never shared, also with two workers.
+    made = []
+
+    def run_evaluator():
+        state = {"calls": 0}
+        made.append(state)
+
+        def value_and_jacobian(z, level):
+            state["calls"] += 1
+            value, slope = float((z[0] - 0.5) ** 2), 2 * (z - 0.5)
+            return value, np.zeros(0), slope, np.zeros((0, 1)), value, True
+
+        return value_and_jacobian
+
+    batch, local = _analytic(lambda z: float((z[0] - 0.5) ** 2), lambda z: 2 * (z - 0.5))
+    result = rj.minimise(
+        batch, local, 1, samples=16, starts=3, workers=2, progress=False,
+        hopping=rj.BasinHopping(hops=2), run_evaluator=run_evaluator,
     )  # fmt: skip
-    assert everywhere.starts_reaching_best() == 3
+    assert len(made) == len(result.starts) == 5  # 3 starts, 2 hops
+    assert [run["evaluations"] for run in result.starts] == [m["calls"] for m in made]
+    assert all(m["calls"] > 0 for m in made)
 
 
 def test_a_best_design_found_once_comes_with_a_caution():
     from recoil_jax.apps._studies import agreement_line
 
     def report(reached, starts, feasible=True):
-        optimiser = {"starts_reaching_best": reached, "independent_starts": starts}
+        optimiser = {"starts_reaching_best": reached, "starts_run": starts}
         return {"feasible": feasible, "optimiser": optimiser}
 
     caution = ": compare a few --seed values before relying on it"
-    assert agreement_line(report(1, 8)) == "reached from 1 of 8 independent starts" + caution
-    assert agreement_line(report(0, 8)).endswith(caution)  # basin hopping found it
-    assert agreement_line(report(2, 8)) == "reached from 2 of 8 independent starts"
-    assert agreement_line(report(1, 1)) == "reached from 1 of 1 independent starts"
+    assert agreement_line(report(1, 8)) == "reached from 1 of 8 starts" + caution
+    assert agreement_line(report(0, 8)).endswith(caution)  # a sample or a hop found it
+    assert agreement_line(report(0, 1)).endswith(caution)
+    assert agreement_line(report(2, 8)) == "reached from 2 of 8 starts"
+    assert agreement_line(report(1, 1)) == "reached from 1 of 1 starts"  # nothing to compare
+    assert agreement_line(report(0, 0)) is None  # no start ran
     assert agreement_line(report(0, 8, feasible=False)) is None
 
 
@@ -423,9 +454,9 @@ def test_throttling_reaches_the_levelled_optimum_for_every_seed(tmp_path):
     assert (tmp_path / "force_stroke.png").stat().st_size > 10_000
     # One program, the minimax's (none when an earlier test compiled it): no smoothed level.
     assert report["optimiser"]["compilations"] <= 1
-    # Both independent starts end at the optimum (measured for seeds 0 to 2).
+    # Both starts end at the optimum, far apart (measured for seeds 0 to 2).
     assert report["optimiser"]["starts_reaching_best"] == 2
-    assert report["optimiser"]["independent_starts"] == 2
+    assert report["optimiser"]["starts_run"] == 2
 
     study = load_study("throttling")
     best = [force]  # seed 0

@@ -357,15 +357,16 @@ def optimise_kwargs(study: Study, progress: bool | None) -> dict:
 
 
 def agreement_line(report: dict) -> str | None:
-    """How many independent starts reached the best design of a feasible study, with a
-    caution when one alone (or none: basin hopping found it) of several did: a rerun
-    with another seed may end in another basin. None for an infeasible study."""
+    """How many of the optimiser's starts reached the best design of a feasible study
+    (`starts_reaching_best` of `starts_run`), with a caution when at most one of several
+    did (none: a sample or basin hopping found it): a rerun with another seed may end
+    in another basin. None for an infeasible study, or when no start ran."""
     optimiser = report.get("optimiser", {})
-    reached, starts = optimiser.get("starts_reaching_best"), optimiser.get("independent_starts")
+    reached, starts = optimiser.get("starts_reaching_best"), optimiser.get("starts_run")
     if not report.get("feasible") or reached is None or not starts:
         return None
-    line = f"reached from {reached} of {starts} independent starts"
-    if starts >= 2 and reached <= 1:
+    line = f"reached from {reached} of {starts} starts"
+    if reached == 0 or (starts >= 2 and reached == 1):
         line += ": compare a few --seed values before relying on it"
     return line
 
@@ -391,7 +392,7 @@ def _search_summary(result: rj.MinimiseResult, local: rj.LocalMethod) -> dict:
             }
             for run in result.starts
         ],
-        "independent_starts": sum(run["phase"] == "start" for run in result.starts),
+        "starts_run": result.starts_run(),
         "starts_reaching_best": result.starts_reaching_best(),
         "solves": result.solves,
         "gradient_solves": result.gradient_solves,
@@ -629,7 +630,7 @@ def run_study(
             "compilations": result.compilations,
             "seconds": round(result.seconds, 2),
             "converged_runs": int(result.converged.sum()),
-            "independent_starts": result.starts,
+            "starts_run": result.starts,
             "starts_reaching_best": result.starts_reaching_best(0),
             "where_starts_ended": result.clusters(0),
         }
