@@ -28,12 +28,11 @@ import jax.numpy as jnp
 from ._cache import structure_jit
 from ._metrics import METRICS, PeakGradients, Peaks
 from ._model import (
-    contact_width,
     future_metric_bounds,
     initial_state,
     load_jump,
     load_stops,
-    metric_ceilings,
+    model_args,
     restart_step,
     tracked_metrics,
     vector_field,
@@ -51,7 +50,7 @@ from ._params import (
     with_values,
 )
 from ._queue import queued_map
-from ._solve import model_samples, peaks_of_run
+from ._solve import model_ceilings, model_samples, peaks_of_run
 from ._status import raise_on_failure
 from ._stepping import Events, PeakLoop, PeakRun, integrate_peaks
 
@@ -130,10 +129,6 @@ def _directions(wrt: tuple[str, ...]):
     return jnp.diag(jnp.asarray([parameter_scale(name) for name in wrt]))
 
 
-def _model_args(params, smoothing):
-    return (params, smoothing, contact_width(params, smoothing))
-
-
 # The log-integral starts from a seed worth `_SEED * t1` seconds at the initial value,
 # so that it is finite at t = 0 and its first steps are not stiff.
 _SEED = 1e-3
@@ -205,17 +200,17 @@ def _smoothed(values: dict, smooth_max: SmoothMax):
 
 
 def _augmented_vf(t, y, params, smoothing, smooth_max, t1):
-    f = vector_field(t, y[:_N_STATE], _model_args(params, smoothing))
+    f = vector_field(t, y[:_N_STATE], model_args(params, smoothing))
     if smooth_max is None:
         return f
-    g = _smoothed(tracked_metrics(y[:_N_STATE], _model_args(params, smoothing)), smooth_max)
+    g = _smoothed(tracked_metrics(y[:_N_STATE], model_args(params, smoothing)), smooth_max)
     # Clipped so that a sudden rise far above the running integral cannot overflow.
     exponent = jnp.minimum(g / smooth_max.temperatures - y[_N_STATE:], 700.0)
     return jnp.concatenate([f, jnp.exp(exponent) / t1])
 
 
 def _augmented_metrics(y, params, smoothing, smooth_max) -> dict[str, Any]:
-    values = tracked_metrics(y[:_N_STATE], _model_args(params, smoothing))
+    values = tracked_metrics(y[:_N_STATE], model_args(params, smoothing))
     if smooth_max is not None:
         # The log-integrals increase monotonically: their maximum is their value at t1.
         for j, name in enumerate(smooth_max.metrics):
@@ -227,7 +222,7 @@ def _augmented_initial_state(params, smoothing, smooth_max):
     y0 = initial_state(params)
     if smooth_max is None:
         return y0
-    g0 = _smoothed(tracked_metrics(y0, _model_args(params, smoothing)), smooth_max)
+    g0 = _smoothed(tracked_metrics(y0, model_args(params, smoothing)), smooth_max)
     return jnp.concatenate([y0, g0 / smooth_max.temperatures + jnp.log(_SEED)])
 
 
@@ -266,7 +261,7 @@ def _sensitivity_metrics(z, args):
 def _sensitivity_bounds(z, args, t, t1):
     """`future_metric_bounds` of the state part of `z` (without smooth maxima)."""
     params, smoothing, _, _ = args
-    return future_metric_bounds(z[:_N_STATE], _model_args(params, smoothing), t, t1)
+    return future_metric_bounds(z[:_N_STATE], model_args(params, smoothing), t, t1)
 
 
 #: A smooth maximum stops integrating once the rest of `[t, t1]` can add less than this to
@@ -341,10 +336,6 @@ def _sensitivity_events(wrt: tuple[str, ...]) -> Events:
 
 def _events(params, wrt):
     return None if params.load is None else _sensitivity_events(wrt)
-
-
-def _ceilings(args):
-    return metric_ceilings(args[0])
 
 
 def _sensitivity_setup(params, smoothing, wrt, smooth_max, t1):
@@ -466,7 +457,7 @@ def sensitivity_solve(
         options,
         bounds,
         _events(params, wrt),
-        _ceilings,
+        model_ceilings,
         save_ts=None if series is None else series.ts,
         **model_samples(params),
     )
@@ -480,7 +471,7 @@ def _peak_gradients_batch(params, t1, smoothing, options, wrt, lanes, count):
         with_default_tolerances(params, options),
         _sensitivity_bounds,
         _events(params, wrt),
-        _ceilings,
+        model_ceilings,
         **model_samples(params),
     )
 
