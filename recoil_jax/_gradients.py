@@ -52,7 +52,7 @@ from ._params import (
 from ._queue import queued_map
 from ._solve import model_ceilings, model_samples, peaks_of_run
 from ._status import raise_on_failure
-from ._stepping import Events, PeakLoop, PeakRun, integrate_peaks
+from ._stepping import Events, PeakLoop, PeakRun
 
 __all__ = [
     "DESIGN_PARAMETERS",
@@ -64,6 +64,7 @@ __all__ = [
     "peak_gradients",
     "peak_gradients_batch",
     "peak_jacobian",
+    "sensitivity_loop",
     "sensitivity_solve",
     "series_name",
     "smooth_name",
@@ -445,35 +446,29 @@ def sensitivity_solve(
     its gradients: one solve of the state with its sensitivities (`Sensitivities`).
     Unjitted; `wrt` and the metric names are static."""
     t1 = end_time(params, options)
-    options = with_default_tolerances(params, options)
     z0, args = _sensitivity_setup(params, smoothing, wrt, smooth_max, t1)
-    bounds = _sensitivity_bounds if smooth_max is None else _smooth_sensitivity_bounds
-    run = integrate_peaks(
-        _sensitivity_term(wrt),
-        z0,
-        args,
-        t1,
-        _sensitivity_metrics,
-        options,
-        bounds,
-        _events(params, wrt),
-        model_ceilings,
-        save_ts=None if series is None else series.ts,
-        **model_samples(params),
-    )
+    loop = sensitivity_loop(params, options, wrt, smooth_max)
+    run = loop.integrate(z0, args, t1, save_ts=None if series is None else series.ts)
     return _sensitivity_post(args, run, wrt, series)
 
 
-def _peak_gradients_batch(params, t1, smoothing, options, wrt, lanes, count):
-    loop = PeakLoop(
+def sensitivity_loop(params, options, wrt, smooth_max=None) -> PeakLoop:
+    """The stepping loop of the state with its sensitivities to `wrt` (and the smooth
+    maxima of `smooth_max`) for the structure of `params`: the one place that wires the
+    sensitivity system into a solve (as `model_loop` for the model alone)."""
+    return PeakLoop(
         _sensitivity_term(wrt),
         _sensitivity_metrics,
         with_default_tolerances(params, options),
-        _sensitivity_bounds,
+        _sensitivity_bounds if smooth_max is None else _smooth_sensitivity_bounds,
         _events(params, wrt),
         model_ceilings,
         **model_samples(params),
     )
+
+
+def _peak_gradients_batch(params, t1, smoothing, options, wrt, lanes, count):
+    loop = sensitivity_loop(params, options, wrt)
 
     def setup(design):
         p, end = design

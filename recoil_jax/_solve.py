@@ -37,13 +37,14 @@ from ._params import (
 )
 from ._queue import queued_map
 from ._status import raise_on_failure
-from ._stepping import Events, PeakLoop, PeakRun, integrate_peaks
+from ._stepping import Events, PeakLoop, PeakRun
 
 __all__ = [
     "MODEL_EVENTS",
     "History",
     "model_ceilings",
     "model_events",
+    "model_loop",
     "model_samples",
     "peak_metrics",
     "peaks",
@@ -87,6 +88,22 @@ def model_ceilings(args):
     return metric_ceilings(args[0])
 
 
+def model_loop(params: RecoilParams, options: SolverOptions, stop_early: bool = True) -> PeakLoop:
+    """The stepping loop of the recoil model for the structure of `params`: the one place
+    that wires the model (its term, tracked metrics, load events, ceilings and peak
+    samples) into a solve. `stop_early`: stop once the peaks are certain (a history runs
+    to `t1`). Its `integrate(initial_state(p), model_args(p, smoothing), t1)` solves."""
+    return PeakLoop(
+        RECOIL_TERM,
+        tracked_metrics,
+        with_default_tolerances(params, options),
+        future_metric_bounds if stop_early else None,
+        model_events(params),
+        model_ceilings,
+        **model_samples(params),
+    )
+
+
 def peaks_of_run(run: PeakRun) -> Peaks:
     """The `Peaks` of a loop run that tracked `tracked_metrics` (maxima of `sign · signal`,
     so a minimum comes back with its sign restored)."""
@@ -121,18 +138,8 @@ def peak_metrics(
     **Returns:** `Peaks`, whose `status` says whether the solve succeeded (a failure is
     never raised here: see `peaks`).
     """
-    args = model_args(params, smoothing)
-    run = integrate_peaks(
-        RECOIL_TERM,
-        initial_state(params),
-        args,
-        end_time(params, options),
-        tracked_metrics,
-        with_default_tolerances(params, options),
-        future_metric_bounds,
-        model_events(params),
-        model_ceilings,
-        **model_samples(params),
+    run = model_loop(params, options).integrate(
+        initial_state(params), model_args(params, smoothing), end_time(params, options)
     )
     return peaks_of_run(run)
 
@@ -199,17 +206,8 @@ class History(eqx.Module):
 @structure_jit
 def _simulate_jit(params, smoothing, options, ts, throw: bool) -> History:
     args = model_args(params, smoothing)
-    run = integrate_peaks(
-        RECOIL_TERM,
-        initial_state(params),
-        args,
-        end_time(params, options),
-        tracked_metrics,
-        with_default_tolerances(params, options),
-        events=model_events(params),
-        ceilings_fn=model_ceilings,
-        save_ts=ts,
-        **model_samples(params),
+    run = model_loop(params, options, stop_early=False).integrate(
+        initial_state(params), args, end_time(params, options), save_ts=ts
     )
     ys = run.saved
     f = jax.vmap(lambda t, y: forces(y, params, smoothing, args[2], t=t))(ts, ys)
@@ -267,15 +265,7 @@ def simulate(
 def _peaks_batch(
     params: RecoilParams, t1, smoothing: Smoothing, options: SolverOptions, lanes: int, count
 ) -> Peaks:
-    loop = PeakLoop(
-        RECOIL_TERM,
-        tracked_metrics,
-        with_default_tolerances(params, options),
-        future_metric_bounds,
-        model_events(params),
-        model_ceilings,
-        **model_samples(params),
-    )
+    loop = model_loop(params, options)
 
     def setup(design):
         p, end = design

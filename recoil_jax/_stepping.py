@@ -179,6 +179,18 @@ class PeakLoop:
         self.solver, self.controller = make_solver(options), make_controller(options)
         self.error_order = self.solver.order(term) + 1
 
+    def integrate(self, z0, args, t1, save_ts=None) -> PeakRun:
+        """One solve from `z0` over `[0, t1]` in one while loop (`integrate_peaks`)."""
+        kind = "lax" if self.options.autodiff == "forward" else "checkpointed"
+        final = eqxi.while_loop(
+            self.running,
+            lambda c: self.body(c, args, save_ts),
+            self.init(z0, args, t1, save_ts),
+            max_steps=self.options.max_steps,
+            kind=kind,
+        )
+        return self.finish(final, args)
+
     def _vector(self, names, z, args):
         values = self.metrics_fn(z, args)
         return jnp.stack([values[name] for name in names])
@@ -443,12 +455,4 @@ def integrate_peaks(
     With `bounds_fn` (see `PeakLoop`) it stops once the peaks are certain; `events`,
     `ceilings_fn`, `samples`, `kinks_fn` and `save_ts` as `PeakLoop`."""
     loop = PeakLoop(term, metrics_fn, options, bounds_fn, events, ceilings_fn, samples, kinks_fn)
-    kind = "lax" if options.autodiff == "forward" else "checkpointed"
-    final = eqxi.while_loop(
-        loop.running,
-        lambda c: loop.body(c, args, save_ts),
-        loop.init(z0, args, t1, save_ts),
-        max_steps=options.max_steps,
-        kind=kind,
-    )
-    return loop.finish(final, args)
+    return loop.integrate(z0, args, t1, save_ts)
