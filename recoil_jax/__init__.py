@@ -78,6 +78,7 @@ from ._params import (
 )
 from ._problem import (
     FEASIBILITY_TOLERANCE as FEASIBILITY_TOLERANCE,
+    Agreement as Agreement,
     Constraint as Constraint,
     DesignEvaluation as DesignEvaluation,
     DesignProblem as DesignProblem,

@@ -27,7 +27,7 @@ import numpy as np
 import optax
 
 from ._params import ParameterError, RecoilParams, params_to_values, values_of, with_values
-from ._problem import DesignProblem, evaluate_design, feasible
+from ._problem import Agreement, DesignProblem, evaluate_design, feasible
 from ._progress import Progress
 from ._space import SearchSpace
 from ._status import Status, status_codes, status_messages
@@ -197,16 +197,15 @@ class OptimiseResult:
         base = jax.tree.map(lambda x: x[scenario], self.scenario_params)
         return with_values(base, self.tune, self.closest_theta[scenario])
 
-    def starts_reaching_best(self, scenario: int = 0, rtol: float = 1e-3) -> int:
-        """How many starts of `scenario` (each of its `starts` runs every step) reached
-        a feasible point within `rtol` of its best objective (as
-        `MinimiseResult.starts_reaching_best`): one alone means the best basin was
-        found once."""
-        if not self.feasible[scenario]:
-            return 0
+    def agreement(self, scenario: int = 0, rtol: float = 1e-3) -> Agreement:
+        """How firmly the best design of `scenario` was found (`Agreement`, as
+        `MinimiseResult.agreement`): each start is its own region (Latin hypercube
+        starts), and `reached` counts those whose best feasible point is within `rtol`
+        of the scenario's best."""
         best = self.best_objective[scenario]
         values = self.run_best_objective[scenario * self.starts : (scenario + 1) * self.starts]
-        return int(np.sum(values <= best + rtol * abs(best)))  # NaN: no feasible point
+        reached = int(np.sum(values <= best + rtol * abs(best)))  # NaN: none feasible
+        return Agreement(reached=reached, regions=self.starts, starts=self.starts)
 
     def clusters(self, scenario: int = 0, rtol: float = 1e-3) -> list[dict]:
         """Where the starts of `scenario` ended: groups of runs whose best objectives agree

@@ -39,6 +39,7 @@ from ._status import status_item
 
 __all__ = [
     "FEASIBILITY_TOLERANCE",
+    "Agreement",
     "Constraint",
     "DesignEvaluation",
     "DesignProblem",
@@ -208,6 +209,52 @@ class DesignProblem(eqx.Module):
             if c.is_metric
             for kind, limit in c.limits()
         ]
+
+
+class Agreement(NamedTuple):
+    """How firmly an optimiser run found its best design (`MinimiseResult.agreement`,
+    `OptimiseResult.agreement`).
+
+    - `starts`: local runs from the starts (the given design and the sampled points;
+      not basin hopping's, which start beside the best) that evaluated a point;
+    - `regions`: those starts grouped by where they began (`search` places every other
+      start beside an earlier one: a start within `SPACING`, max-norm in normalised
+      coordinates, of a region's first joins it; `optimise`'s starts are each their
+      own);
+    - `reached`: the regions with a run that evaluated a feasible design within `rtol`
+      (0.1 %) of the best objective.
+    """
+
+    reached: int
+    regions: int
+    starts: int
+
+    @property
+    def found_once(self) -> bool:
+        """Whether at most one of several regions reached the best, or none did (a sample
+        or basin hopping found it): a rerun with another seed may end in another
+        basin."""
+        return self.starts > 0 and (self.reached == 0 or (self.regions >= 2 and self.reached == 1))
+
+    def line(self) -> str | None:
+        """The summary line, `best design reached from 2 of 5 start regions (8 starts,
+        within 0.1 %)` (`k of n starts` where each start is its own region), with a
+        caution when `found_once`; None when no start ran. The 0.1 % is the default
+        `rtol`."""
+        if self.starts == 0:
+            return None
+        if self.regions == self.starts:
+            plural = "s" if self.starts != 1 else ""
+            counted = f"{self.reached} of {self.starts} start{plural} (within 0.1 %)"
+        else:
+            counted = (
+                f"{self.reached} of {self.regions} start regions "
+                f"({self.starts} starts, within 0.1 %)"
+            )
+        line = f"best design reached from {counted}"
+        if self.found_once:
+            line += ": compare a few --seed values before relying on it"
+        return line
 
 
 class DesignEvaluation(NamedTuple):

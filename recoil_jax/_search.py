@@ -54,7 +54,7 @@ from ._params import (
     values_of,
     with_values,
 )
-from ._problem import DesignProblem, evaluate_design, feasible, metric_violations
+from ._problem import Agreement, DesignProblem, evaluate_design, feasible, metric_violations
 from ._progress import Progress
 from ._space import SearchSpace
 from ._status import Status, status_codes, status_messages
@@ -161,28 +161,30 @@ class MinimiseResult:
     closest_theta: np.ndarray | None = None
     replayed: int = 0
 
-    def starts_run(self) -> int:
-        """How many local runs from the starts (phase `"start"`: the given design and the
-        sampled points, not basin hopping's) evaluated at least one point."""
-        return sum(run["phase"] == "start" and run["evaluations"] > 0 for run in self.starts)
-
-    def starts_reaching_best(self, rtol: float = 1e-3) -> int:
-        """How many of those runs evaluated a feasible design within `rtol` of the best
-        objective, a start within `SPACING` (max-norm) of one already counted counting
-        once: `search` places every other start beside an earlier one, and two starts
-        in one region are one confirmation. One alone means the best basin was found
-        once: another seed of the samples may well end elsewhere (measured on
+    def agreement(self, rtol: float = 1e-3) -> Agreement:
+        """How firmly the best design was found (`Agreement`): of the local runs from
+        the starts that evaluated a point, grouped into regions by where they began
+        (within `SPACING`), how many regions reached a feasible design within `rtol` of
+        the best objective. One region alone means the best basin was found once:
+        another seed of the samples may well end elsewhere (measured on
         `burst_recuperator`: `optimise/README.md`)."""
-        if not self.feasible:
-            return 0
-        limit = self.best_objective + rtol * abs(self.best_objective)
-        counted: list[np.ndarray] = []
+        limit = self.best_objective + rtol * abs(self.best_objective)  # NaN if none
+        regions: list[tuple[np.ndarray, list[bool]]] = []
         for run in self.starts:
-            if run["phase"] != "start" or not run["best_feasible"] <= limit:
+            if run["phase"] != "start" or run["evaluations"] == 0:
                 continue
-            if all(np.max(np.abs(run["z0"] - z0)) > SPACING for z0 in counted):
-                counted.append(run["z0"])
-        return len(counted)
+            reached = bool(run["best_feasible"] <= limit)
+            for first, members in regions:
+                if np.max(np.abs(run["z0"] - first)) <= SPACING:
+                    members.append(reached)
+                    break
+            else:
+                regions.append((run["z0"], [reached]))
+        return Agreement(
+            reached=sum(any(members) for _, members in regions),
+            regions=len(regions),
+            starts=sum(len(members) for _, members in regions),
+        )
 
     def best_so_far(self) -> np.ndarray:
         """The best feasible objective after each evaluation of `trace` (inf before)."""

@@ -304,14 +304,14 @@ grid = { gap = [0.04, 0.08, 5] }
     assert result["simulations"] >= 60
     assert result["optimiser"]["compilations"] == 1
     # How many of the 2 starts reached the best (within 0.1 %), said on the summary.
-    reached = result["optimiser"]["starts_reaching_best"]
-    assert result["optimiser"]["starts_run"] == 2
+    agreement = result["optimiser"]["agreement"]
+    assert agreement["starts"] == agreement["regions"] == 2
     groups = result["optimiser"]["where_starts_ended"]  # best first
     best = groups[0]["objective"]
-    assert reached == sum(
+    assert agreement["reached"] == sum(
         g["count"] for g in groups if g["objective"] is not None and g["objective"] <= best * 1.001
     )
-    assert f"reached from {reached} of 2 starts" in capsys.readouterr().out
+    assert rj.Agreement(**agreement).line() in capsys.readouterr().out
     assert result["hard_model"]["max_relative_difference"] < 1e-3
     # The reported metrics are those of the problem's own solver options (rtol 1e-7).
     best = rj.params_from_values(result["best"])

@@ -101,17 +101,19 @@ def test_minimise_counts_the_starts_that_reach_the_best_basin():
     # The wide basin's tail adds exp(-9) = 1.2e-4 at the narrow one.
     assert once.best_objective == pytest.approx(-2.0 - np.exp(-9.0), abs=1e-6)
     assert [run["best_feasible"] < -1.5 for run in once.starts] == [False, False, False, True]
-    assert once.starts_run() == 4 and once.starts_reaching_best() == 1
+    # 0.35 and 0.5 began in one region (within 0.25): 4 starts, 3 regions.
+    assert once.agreement() == rj.Agreement(reached=1, regions=3, starts=4)
     hopped = run((0.1, 0.35, 0.5, 0.88), hopping=rj.BasinHopping(hops=4, step=0.01))
     assert sum(run["phase"] == "hop" for run in hopped.starts) == 4
-    assert hopped.starts_run() == 4 and hopped.starts_reaching_best() == 1
-    assert run((0.85, 0.95)).starts_reaching_best() == 1  # one region
+    assert hopped.agreement() == rj.Agreement(reached=1, regions=3, starts=4)
+    assert run((0.85, 0.95)).agreement() == rj.Agreement(reached=1, regions=1, starts=2)
     # A bowl: starts far apart all reach its minimum.
     batch, local = _analytic(lambda z: float((z[0] - 0.5) ** 2), lambda z: 2 * (z - 0.5))
-    assert run((0.0, 0.3, 0.6, 1.0)).starts_reaching_best() == 4
+    assert run((0.0, 0.3, 0.6, 1.0)).agreement() == rj.Agreement(4, 4, 4)
     # Runs the time budget stopped before their first evaluation ran nothing.
     stopped = run((0.0, 1.0), max_seconds=0.0)
-    assert [r["evaluations"] for r in stopped.starts] == [0, 0] and stopped.starts_run() == 0
+    assert [r["evaluations"] for r in stopped.starts] == [0, 0]
+    assert stopped.agreement() == rj.Agreement(0, 0, 0) and stopped.agreement().line() is None
 
 
 def test_each_local_run_gets_its_own_evaluation_function():
@@ -143,18 +145,21 @@ def test_each_local_run_gets_its_own_evaluation_function():
 def test_a_best_design_found_once_comes_with_a_caution():
     from recoil_jax.apps._studies import agreement_line
 
-    def report(reached, starts, feasible=True):
-        optimiser = {"starts_reaching_best": reached, "starts_run": starts}
-        return {"feasible": feasible, "optimiser": optimiser}
-
     caution = ": compare a few --seed values before relying on it"
-    assert agreement_line(report(1, 8)) == "reached from 1 of 8 starts" + caution
-    assert agreement_line(report(0, 8)).endswith(caution)  # a sample or a hop found it
-    assert agreement_line(report(0, 1)).endswith(caution)
-    assert agreement_line(report(2, 8)) == "reached from 2 of 8 starts"
-    assert agreement_line(report(1, 1)) == "reached from 1 of 1 starts"  # nothing to compare
-    assert agreement_line(report(0, 0)) is None  # no start ran
-    assert agreement_line(report(0, 8, feasible=False)) is None
+    line = "best design reached from 2 of 5 start regions (8 starts, within 0.1 %)"
+    assert rj.Agreement(reached=2, regions=5, starts=8).line() == line
+    assert rj.Agreement(1, 5, 8).line() == line.replace("2 of", "1 of") + caution
+    assert rj.Agreement(0, 5, 8).line().endswith(caution)  # a sample or a hop found it
+    assert rj.Agreement(6, 8, 8).line() == "best design reached from 6 of 8 starts (within 0.1 %)"
+    assert rj.Agreement(1, 1, 1).line() == "best design reached from 1 of 1 start (within 0.1 %)"
+    assert rj.Agreement(1, 1, 2).line().endswith("(2 starts, within 0.1 %)")  # one region
+    assert rj.Agreement(0, 0, 0).line() is None  # no start ran
+    report = {
+        "feasible": True,
+        "optimiser": {"agreement": {"reached": 1, "regions": 5, "starts": 8}},
+    }
+    assert agreement_line(report) == rj.Agreement(1, 5, 8).line()
+    assert agreement_line(report | {"feasible": False}) is None
 
 
 def test_minimise_reports_an_unmeetable_constraint_as_infeasible():
@@ -455,8 +460,7 @@ def test_throttling_reaches_the_levelled_optimum_for_every_seed(tmp_path):
     # One program, the minimax's (none when an earlier test compiled it): no smoothed level.
     assert report["optimiser"]["compilations"] <= 1
     # Both starts end at the optimum, far apart (measured for seeds 0 to 2).
-    assert report["optimiser"]["starts_reaching_best"] == 2
-    assert report["optimiser"]["starts_run"] == 2
+    assert report["optimiser"]["agreement"] == {"reached": 2, "regions": 2, "starts": 2}
 
     study = load_study("throttling")
     best = [force]  # seed 0

@@ -381,7 +381,7 @@ def test_interrupted_search_resumes_to_the_same_design(tmp_path, monkeypatch, ca
     for a, b in zip(resumed.starts, plain.starts, strict=True):
         assert np.array_equal(a["z"], b["z"]) and a["objective"] == b["objective"]
         assert a["best_feasible"] == b["best_feasible"] and a["evaluations"] == b["evaluations"]
-    assert resumed.starts_reaching_best() == plain.starts_reaching_best() >= 1
+    assert resumed.agreement() == plain.agreement() and plain.agreement().reached >= 1
     assert resumed.replayed >= 41
     # Each evaluation stored once; the store's best is the search's.
     done = _study_rows(store)
@@ -488,9 +488,9 @@ def test_optimise_command_resumes_from_its_store(tmp_path, capsys):
     assert first["best"] == second["best"] and first["objective"] == second["objective"]
     assert second["optimiser"]["replayed"] >= first["optimiser"]["gradient_solves"]
     # Each summary says how many starts reached its best design.
-    reached = [r["optimiser"]["starts_reaching_best"] for r in (first, second)]
-    assert reached[0] == reached[1] >= 1
-    assert captured.out.count(f"reached from {reached[0]} of ") == 2
+    agreement = [r["optimiser"]["agreement"] for r in (first, second)]
+    assert agreement[0] == agreement[1] and agreement[0]["reached"] >= 1
+    assert captured.out.count(rj.Agreement(**agreement[0]).line()) == 2
     assert main(["progress", str(store)]) == 0
     line = capsys.readouterr().out
     # The store's best is the gradient solve's; result.json's the design re-solved.

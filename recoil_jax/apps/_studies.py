@@ -357,18 +357,13 @@ def optimise_kwargs(study: Study, progress: bool | None) -> dict:
 
 
 def agreement_line(report: dict) -> str | None:
-    """How many of the optimiser's starts reached the best design of a feasible study
-    (`starts_reaching_best` of `starts_run`), with a caution when at most one of several
-    did (none: a sample or basin hopping found it): a rerun with another seed may end
-    in another basin. None for an infeasible study, or when no start ran."""
-    optimiser = report.get("optimiser", {})
-    reached, starts = optimiser.get("starts_reaching_best"), optimiser.get("starts_run")
-    if not report.get("feasible") or reached is None or not starts:
+    """The summary's line on how firmly a feasible study found its best design
+    (`rj.Agreement.line`, from result.json's `optimiser.agreement`); None for an
+    infeasible study."""
+    agreement = report.get("optimiser", {}).get("agreement")
+    if not report.get("feasible") or agreement is None:
         return None
-    line = f"reached from {reached} of {starts} starts"
-    if reached == 0 or (starts >= 2 and reached == 1):
-        line += ": compare a few --seed values before relying on it"
-    return line
+    return rj.Agreement(**agreement).line()
 
 
 def _search_summary(result: rj.MinimiseResult, local: rj.LocalMethod) -> dict:
@@ -392,8 +387,7 @@ def _search_summary(result: rj.MinimiseResult, local: rj.LocalMethod) -> dict:
             }
             for run in result.starts
         ],
-        "starts_run": result.starts_run(),
-        "starts_reaching_best": result.starts_reaching_best(),
+        "agreement": result.agreement()._asdict(),
         "solves": result.solves,
         "gradient_solves": result.gradient_solves,
         "compilations": result.compilations,
@@ -630,8 +624,7 @@ def run_study(
             "compilations": result.compilations,
             "seconds": round(result.seconds, 2),
             "converged_runs": int(result.converged.sum()),
-            "starts_run": result.starts,
-            "starts_reaching_best": result.starts_reaching_best(0),
+            "agreement": result.agreement(0)._asdict(),
             "where_starts_ended": result.clusters(0),
         }
         plot_convergence(result, out / "convergence.png", title=study.name)
