@@ -484,6 +484,7 @@ def _gradient_program(problem: DesignProblem, box: SearchSpace, z, temperature, 
 
         jacobian, (values, evaluation) = jax.jacfwd(minimax_outputs, has_aux=True)(z)
         n = series_ts.shape[0] + 1
+        f, df = values[:n], jacobian[:n]
     else:
 
         def outputs(z):
@@ -493,8 +494,8 @@ def _gradient_program(problem: DesignProblem, box: SearchSpace, z, temperature, 
 
         jacobian, (values, evaluation) = jax.jacrev(outputs, has_aux=True)(z)
         n = 1
+        f, df = values[0], jacobian[0]
     (code,) = jax.tree.leaves(evaluation.status)
-    f, df = (values[0], jacobian[0]) if series_ts is None else (values[:n], jacobian[:n])
     return _GradientSolve(f, values[n:], df, jacobian[n:], evaluation.objective, code)
 
 
