@@ -78,7 +78,7 @@ result = rj.search(
 )
 best = rj.peaks(result.best_params())
 hard = rj.peaks(result.best_params(), rj.Smoothing.exact())
-print(f"feasible: {result.feasible}; {result.solves} solves, {result.gradient_solves} gradient")
+print(f"feasible: {result.feasible[0]}; {result.solves} solves, {result.gradient_solves} gradient")
 print(
     f"peak anchoring force {float(best.peak_anchoring_force):.1f} N "
     f"({float(best.peak_anchoring_force) / ideal - 1:+.2%} over E0/L), "

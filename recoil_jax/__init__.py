@@ -48,7 +48,6 @@ from ._metrics import (
 )
 from ._model import Forces as Forces
 from ._optimise import (
-    OptimiseResult as OptimiseResult,
     default_optimiser as default_optimiser,
     optimise as optimise,
 )
@@ -90,9 +89,9 @@ from ._problem import (
     metric_violations as metric_violations,
 )
 from ._reference import reference_peaks as reference_peaks
+from ._result import OptimiseResult as OptimiseResult
 from ._search import (
     BasinHopping as BasinHopping,
-    MinimiseResult as MinimiseResult,
     default_local as default_local,
     minimise as minimise,
     search as search,

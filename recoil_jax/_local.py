@@ -235,17 +235,18 @@ def run_local(
     out_of_time,
     clock: Callable[[], float],
 ) -> dict:
-    """One local run of `method` from `z0`: what `MinimiseResult.starts` holds."""
+    """One local run of `method` from `z0`, in normalised coordinates (`search` turns
+    it into one of `OptimiseResult.runs`)."""
     began = clock()
     local = LocalRun(method, value_and_jacobian, z0.size, record, out_of_time)
-    message = ""
+    message, stopped = "", False
     try:
         z, message = method.run(local, z0)
         local.level_done(z, method.levels[-1])
     except SolveFailed:
-        message = f"solves failed ({local.failures}): this start ended there"
+        message, stopped = f"solves failed ({local.failures}): this start ended there", True
     except OutOfTime:
-        message = "the time budget ran out"
+        message, stopped = "the time budget ran out", True
     except Stalled:
         local.z, local.final = local.stall_z, local.stall_best
         message = (
@@ -257,6 +258,9 @@ def run_local(
         "objective": local.final,
         "iterations": local.iterations,
         "message": message,
+        # Its own stopping rule ended it (a stall included), not the budget, failed
+        # solves or an iteration limit.
+        "converged": not stopped and "iteration limit" not in message.lower(),
         "seconds": (began, clock()),
     }
 

@@ -26,14 +26,15 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ._params import ParameterError, RecoilParams, params_to_values, values_of, with_values
-from ._problem import Agreement, DesignProblem, evaluate_design, feasible
+from ._params import ParameterError, RecoilParams, values_of
+from ._problem import DesignProblem, evaluate_design, feasible
 from ._progress import Progress
+from ._result import OptimiseResult
 from ._space import SearchSpace
 from ._status import Status, status_codes, status_messages
 from ._store import StudyStore, fingerprint
 
-__all__ = ["OptimiseResult", "default_optimiser", "optimise"]
+__all__ = ["default_optimiser", "optimise"]
 
 
 def _to_theta(space: SearchSpace, u):
@@ -130,133 +131,6 @@ def _make_step(
         return new, record
 
     return eqx.filter_jit(jax.vmap(one)), one
-
-
-@dataclasses.dataclass
-class OptimiseResult:
-    """Outcome of `optimise` (host NumPy arrays; `R` runs = scenarios × starts, `N`
-    steps taken).
-
-    - `best_theta`, `best_objective`, `best_run`, `best_step`: the best feasible point
-      found over every evaluated point of every run (NaN objective if none was feasible),
-      per scenario (`(S, P)`, `(S,)`...); `feasible (S,)`: whether there is one.
-    - `closest_theta (S, P)`, `closest_violation (S,)`: per scenario, the evaluated point
-      whose largest normalised limit violation is least (of the successful solves), and
-      that violation: where nothing is feasible, which limit is missed and by how much.
-    - `history`: per step, arrays of shape `(N, R, ...)`: `theta`, `objective` (exact,
-      with peaks), `smooth_objective`, `violations`, `status` (integer `Status` codes),
-      and each metric by name.
-    - `converged`: per run, whether its stopping rule fired (`(R,)`); `converged_step`.
-    - `simulations`: solves used (each with sensitivities; times the scatter samples).
-    - `compilations`: how many times the step was traced (1).
-    """
-
-    problem: DesignProblem
-    scenarios: int
-    starts: int
-    history: dict[str, np.ndarray]
-    converged: np.ndarray
-    converged_step: np.ndarray
-    best_theta: np.ndarray
-    best_objective: np.ndarray
-    best_run: np.ndarray
-    best_step: np.ndarray
-    run_best_objective: np.ndarray
-    run_best_theta: np.ndarray
-    simulations: int
-    steps: int
-    seconds: float
-    compilations: int
-    scenario_params: RecoilParams  # the base design of each scenario, leading axis S
-    scenario_limits: np.ndarray  # (S, C) the metric limits of each scenario
-    closest_theta: np.ndarray
-    closest_violation: np.ndarray
-
-    @property
-    def feasible(self) -> np.ndarray:
-        """`(S,)`: whether each scenario has a feasible design."""
-        return np.isfinite(self.best_objective)
-
-    @property
-    def tune(self) -> tuple[str, ...]:
-        return self.problem.tune
-
-    def best_design(self, scenario: int = 0) -> dict[str, float]:
-        """Every parameter of the best design of `scenario`, by flat name."""
-        params = self.best_params(scenario)
-        return {k: float(np.asarray(v)) for k, v in params_to_values(params).items()}
-
-    def best_params(self, scenario: int = 0) -> RecoilParams:
-        if not self.feasible[scenario]:
-            raise ParameterError("no feasible design was found: there is no best design")
-        base = jax.tree.map(lambda x: x[scenario], self.scenario_params)
-        return with_values(base, self.tune, self.best_theta[scenario])
-
-    def closest_params(self, scenario: int = 0) -> RecoilParams:
-        """The least violating design of `scenario` (`closest_theta`)."""
-        base = jax.tree.map(lambda x: x[scenario], self.scenario_params)
-        return with_values(base, self.tune, self.closest_theta[scenario])
-
-    def agreement(self, scenario: int = 0, rtol: float = 1e-3) -> Agreement:
-        """How firmly the best design of `scenario` was found (`Agreement`, as
-        `MinimiseResult.agreement`): each start is its own region (Latin hypercube
-        starts), and `reached` counts those whose best feasible point is within `rtol`
-        of the scenario's best."""
-        best = self.best_objective[scenario]
-        values = self.run_best_objective[scenario * self.starts : (scenario + 1) * self.starts]
-        reached = int(np.sum(values <= best + rtol * abs(best)))  # NaN: none feasible
-        return Agreement(reached=reached, regions=self.starts, starts=self.starts)
-
-    def clusters(self, scenario: int = 0, rtol: float = 1e-3) -> list[dict]:
-        """Where the starts of `scenario` ended: groups of runs whose best objectives agree
-        within `rtol`, best first, with their count, how many converged, the group's best
-        design, and how many of its runs ended with no impact at all (on the plateau
-        where the gap gradient is exactly zero)."""
-        runs = np.arange(scenario * self.starts, (scenario + 1) * self.starts)
-        values = self.run_best_objective[runs]
-        order = runs[np.argsort(np.where(np.isfinite(values), values, np.inf))]
-        groups: list[dict] = []
-        for r in order:
-            value = self.run_best_objective[r]
-            if not np.isfinite(value):
-                groups.append(
-                    {
-                        "objective": None,
-                        "count": 1,
-                        "runs": [int(r)],
-                        "design": None,
-                        "converged": int(self.converged[r]),
-                        "no_impact": int(self._no_impact(r)),
-                    }
-                )
-                continue
-            for g in groups:
-                if g["objective"] is not None and abs(value - g["objective"]) <= rtol * abs(
-                    g["objective"]
-                ):
-                    g["count"] += 1
-                    g["runs"].append(int(r))
-                    g["converged"] += int(self.converged[r])
-                    g["no_impact"] += int(self._no_impact(r))
-                    break
-            else:
-                groups.append(
-                    {
-                        "objective": float(value),
-                        "count": 1,
-                        "runs": [int(r)],
-                        "design": dict(
-                            zip(self.tune, map(float, self.run_best_theta[r]), strict=True)
-                        ),
-                        "converged": int(self.converged[r]),
-                        "no_impact": int(self._no_impact(r)),
-                    }
-                )
-        return groups
-
-    def _no_impact(self, run: int) -> bool:
-        contact = self.history["peak_contact_force"][:, run]
-        return bool(contact[-1] == 0.0)
 
 
 def _start_points(problem: DesignProblem, params, scenarios: int, starts: int, seed: int):
@@ -461,6 +335,8 @@ def optimise(
     active = np.ones(runs, dtype=bool)
     converged_step = np.full(runs, -1)
     records: list[_StepRecord] = []
+    stepped_masks: list[np.ndarray] = []  # which runs took each step
+    step_seconds: list[float] = []  # when each step ended, the earlier runs' included
     best_so_far = np.inf
     ok = int(status_codes(Status.ok))
     study = None
@@ -478,10 +354,13 @@ def optimise(
                 file=sys.stderr,
             )
         for saved in checkpoints:
-            state, record, active, converged_step, best_so_far = _restore(state, saved)
+            stepped_masks.append(active.copy())
+            state, record, active, converged_step, best_so_far, seconds = _restore(state, saved)
             records.append(record)
+            step_seconds.append(seconds)
     bar = Progress("optimise", steps, "steps", progress, already=len(records))
     began = time.perf_counter()
+    prior = 0.0 if study is None else study.prior_seconds
     try:
         for k in range(len(records), steps if active.any() else 0):
             state, record = step_fn(state, run_params, run_limits, jnp.asarray(active))
@@ -494,16 +373,17 @@ def optimise(
             converged_step = np.where(stop & ~failed, k, converged_step)
             stepped = active.copy()
             active &= ~stop
+            stepped_masks.append(stepped)
+            step_seconds.append(prior + time.perf_counter() - began)
             if callback is not None:
                 callback(k, {"objective": record.objective, "active": active.copy()})
             held = feasible(~failed, record.objective, record.violations)
             best_so_far = min(best_so_far, float(np.min(np.where(held, record.objective, np.inf))))
             if study is not None:
-                seconds = study.prior_seconds + time.perf_counter() - began
                 study.checkpoint(
                     k,
-                    _saved(state, record, active, converged_step, best_so_far),
-                    _step_rows(record, held, stepped, seconds),
+                    _saved(state, record, active, converged_step, best_so_far, step_seconds[-1]),
+                    _step_rows(record, held, stepped, step_seconds[-1]),
                 )
             best = f"{best_so_far:.6g}" if np.isfinite(best_so_far) else "none feasible yet"
             bar.update(
@@ -525,27 +405,62 @@ def optimise(
         "status": np.stack([r.status for r in records]),
     } | {name: np.stack([r.metrics[name] for r in records]) for name in records[0].metrics}
     best, run_best_objective, run_best_theta = _select_best(history, n_scenarios, starts)
+    took = np.stack(stepped_masks)  # (N, R): which runs took each step
+    held = feasible(history["status"] == ok, history["objective"], history["violations"])
+    seconds = np.asarray(step_seconds)
+    theta0 = np.asarray(_to_theta(space, u0))
+    runs_taken = took.sum(axis=0)
+    out = []
+    for r in range(runs):
+        failed = bool(np.any(took[:, r] & (history["status"][:, r] != ok)))
+        found = np.isfinite(run_best_objective[r])
+        message = (
+            "converged" if converged_step[r] >= 0
+            else "a solve failed: this start ended there" if failed
+            else f"step limit ({steps}) reached"
+        )  # fmt: skip
+        out.append(
+            {
+                "scenario": r // starts,
+                "region": r % starts,  # each start its own region
+                "phase": "start",
+                "theta0": theta0[r],
+                "theta": history["theta"][runs_taken[r] - 1, r],
+                "objective": float(history["objective"][runs_taken[r] - 1, r]),
+                "best_objective": float(run_best_objective[r]) if found else np.inf,
+                "best_theta": run_best_theta[r] if found else np.full(len(problem.tune), np.nan),
+                "evaluations": int(runs_taken[r]),
+                "iterations": int(runs_taken[r]),
+                "converged": bool(converged_step[r] >= 0),
+                "message": message,
+                "seconds": (0.0, float(seconds[runs_taken[r] - 1])),
+                "no_impact": bool(history["peak_contact_force"][runs_taken[r] - 1, r] == 0.0),
+            }
+        )
+    steps_of, runs_of = np.nonzero(took)  # every evaluation, step by step
     return OptimiseResult(
+        method="optax",
         problem=problem,
-        scenarios=n_scenarios,
-        starts=starts,
-        history=history,
-        converged=converged_step >= 0,
-        converged_step=converged_step,
         best_theta=best["theta"],
         best_objective=best["objective"],
-        best_run=best["run"],
-        best_step=best["step"],
-        run_best_objective=run_best_objective,
-        run_best_theta=run_best_theta,
-        simulations=len(records) * runs * samples,
-        steps=len(records),
+        closest_theta=best["closest_theta"],
+        closest_violation=best["closest_violation"],
+        runs=tuple(out),
+        trace={
+            "seconds": seconds[steps_of],
+            "scenario": runs_of // starts,
+            "objective": history["objective"][steps_of, runs_of],
+            "feasible": held[steps_of, runs_of],
+            "gradient": np.ones(len(steps_of), dtype=bool),
+            "phase": np.full(len(steps_of), "step"),
+        },
+        solves=0,
+        gradient_solves=len(records) * runs * samples,
         seconds=bar.elapsed,
         compilations=eqx.debug.get_num_traces(traced),
         scenario_params=params,
         scenario_limits=limits,
-        closest_theta=best["closest_theta"],
-        closest_violation=best["closest_violation"],
+        history=history,
     )
 
 
@@ -583,7 +498,9 @@ def _open_store(path, problem: DesignProblem, identity: str, runs: int, steps: i
     )
 
 
-def _saved(state: _State, record: _StepRecord, active, converged_step, best) -> dict:
+def _saved(
+    state: _State, record: _StepRecord, active, converged_step, best, seconds: float
+) -> dict:
     """What a step's checkpoint holds, by name (`_restore` reads it back)."""
     saved = {f"state:{i}": leaf for i, leaf in enumerate(jax.tree.leaves(state))}
     saved |= {
@@ -595,13 +512,15 @@ def _saved(state: _State, record: _StepRecord, active, converged_step, best) -> 
         "active": active,
         "converged_step": converged_step,
         "best_so_far": best,
+        "seconds": seconds,
     }
     return saved | {f"metric:{name}": value for name, value in record.metrics.items()}
 
 
 def _restore(state: _State, saved: dict[str, np.ndarray]):
     """The state after a stored step (`state` gives the structure), its record, which
-    runs were active, their converged steps and the best feasible objective so far."""
+    runs were active, their converged steps, the best feasible objective so far and when
+    the step ended (0 in a store written before that was kept)."""
     treedef = jax.tree.structure(state)
     leaves = [jnp.asarray(saved[f"state:{i}"]) for i in range(treedef.num_leaves)]
     metrics = {k.split(":", 1)[1]: v for k, v in saved.items() if k.startswith("metric:")}
@@ -620,6 +539,7 @@ def _restore(state: _State, saved: dict[str, np.ndarray]):
         saved["active"].copy(),
         saved["converged_step"].copy(),
         float(saved["best_so_far"]),
+        float(saved.get("seconds", 0.0)),
     )
 
 

@@ -212,8 +212,7 @@ class DesignProblem(eqx.Module):
 
 
 class Agreement(NamedTuple):
-    """How firmly an optimiser run found its best design (`MinimiseResult.agreement`,
-    `OptimiseResult.agreement`).
+    """How firmly an optimiser run found its best design (`OptimiseResult.agreement`).
 
     - `starts`: local runs from the starts (the given design and the sampled points;
       not basin hopping's, which start beside the best) that evaluated a point;

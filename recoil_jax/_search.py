@@ -21,7 +21,6 @@ solve. Measured against the optax Adam loop of `optimise` in `optimise/README.md
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import sys
 import threading
@@ -48,14 +47,13 @@ from ._local import (
 from ._metrics import METRICS
 from ._params import (
     ParameterError,
-    RecoilParams,
     end_time,
     params_to_values,
     values_of,
-    with_values,
 )
-from ._problem import Agreement, DesignProblem, evaluate_design, feasible, metric_violations
+from ._problem import DesignProblem, evaluate_design, feasible, metric_violations
 from ._progress import Progress
+from ._result import OptimiseResult
 from ._space import SearchSpace
 from ._status import Status, status_codes, status_messages
 from ._store import StudyStore, fingerprint
@@ -63,7 +61,6 @@ from ._sweep import default_workers, sweep
 
 __all__ = [
     "BasinHopping",
-    "MinimiseResult",
     "default_local",
     "minimax_metric",
     "minimise",
@@ -117,106 +114,22 @@ class BasinHopping(eqx.Module):
         return runs
 
 
-@dataclasses.dataclass
-class MinimiseResult:
-    """Outcome of `minimise` / `search` (host NumPy values).
-
-    - `best_z`: the best feasible point in normalised coordinates `(P,)`, `best_theta`
-      in SI units (`search`), `best_objective` (NaN and `feasible = False` when no
-      evaluated point held every limit: the problem is reported infeasible).
-    - `closest_z`, `closest_violation`: the evaluated point whose largest normalised
-      violation is least (of those whose solve succeeded; NaN if none did), and that
-      violation; `closest_theta` in SI units (`search`). When the problem is infeasible
-      it says which limit is missed, and by how much.
-    - `trace`: every evaluation in order: `seconds` since the start, `objective` (exact),
-      `feasible`, `gradient` (whether it was a gradient solve), `phase` (`"sample"`,
-      `"start"` or `"local"`).
-    - `samples`: the global phase: `z (N, P)`, `objective (N,)`, `violation (N,)` (the
-      largest normalised violation), `ok (N,)`.
-    - `starts`: per local run: `z0`, `z`, `objective`, `iterations`, `message`,
-      `seconds` (its start and end since the start of the search), `phase` (`"start"`,
-      or `"hop"` for basin hopping), `evaluations` (gradient solves; 0 for a run the
-      time budget stopped before its first) and `best_feasible` (the best feasible
-      exact objective it evaluated; inf if none).
-    - `solves`, `gradient_solves`: plain solves and sensitivity solves; `seconds`;
-      `compilations` of the gradient program.
-    - `replayed`: of those, the evaluations read from the study's store (a resumed
-      study) instead of solved.
-    """
+class _Minimum(NamedTuple):
+    """What `_minimise` found, in normalised coordinates: the best feasible point
+    (`best_z`, NaN if none), the least violating one, every evaluation (`trace`), the
+    global phase (`samples`) and each local run (`run_local`'s dicts with `phase`,
+    `evaluations`, `best_feasible`, `best_z`)."""
 
     best_z: np.ndarray
     best_objective: float
-    feasible: bool
+    closest_z: np.ndarray
+    closest_violation: float
     trace: dict[str, np.ndarray]
     samples: dict[str, np.ndarray]
-    starts: list[dict]
+    runs: list[dict]
     solves: int
     gradient_solves: int
     seconds: float
-    compilations: int
-    closest_z: np.ndarray
-    closest_violation: float
-    problem: DesignProblem | None = None
-    best_theta: np.ndarray | None = None
-    closest_theta: np.ndarray | None = None
-    replayed: int = 0
-
-    def agreement(self, rtol: float = 1e-3) -> Agreement:
-        """How firmly the best design was found (`Agreement`): of the local runs from
-        the starts that evaluated a point, grouped into regions by where they began
-        (within `SPACING`), how many regions reached a feasible design within `rtol` of
-        the best objective. One region alone means the best basin was found once:
-        another seed of the samples may well end elsewhere (measured on
-        `burst_recuperator`: `optimise/README.md`)."""
-        limit = self.best_objective + rtol * abs(self.best_objective)  # NaN if none
-        regions: list[tuple[np.ndarray, list[bool]]] = []
-        for run in self.starts:
-            if run["phase"] != "start" or run["evaluations"] == 0:
-                continue
-            reached = bool(run["best_feasible"] <= limit)
-            for first, members in regions:
-                if np.max(np.abs(run["z0"] - first)) <= SPACING:
-                    members.append(reached)
-                    break
-            else:
-                regions.append((run["z0"], [reached]))
-        return Agreement(
-            reached=sum(any(members) for _, members in regions),
-            regions=len(regions),
-            starts=sum(len(members) for _, members in regions),
-        )
-
-    def best_so_far(self) -> np.ndarray:
-        """The best feasible objective after each evaluation of `trace` (inf before)."""
-        values = np.where(self.trace["feasible"], self.trace["objective"], np.inf)
-        return np.minimum.accumulate(values)
-
-    def seconds_to(self, target: float) -> float | None:
-        """Wall seconds until a feasible objective ≤ `target` was found (None if never)."""
-        hits = np.nonzero(self.best_so_far() <= target)[0]
-        return float(self.trace["seconds"][hits[0]]) if hits.size else None
-
-    # The interface of `OptimiseResult` that studies read (one scenario).
-    @property
-    def tune(self) -> tuple[str, ...]:
-        assert self.problem is not None
-        return self.problem.tune
-
-    @property
-    def scenario_limits(self) -> np.ndarray:
-        assert self.problem is not None
-        return np.asarray([[limit for _, _, limit in self.problem.metric_constraints]])
-
-    def best_params(self, scenario: int = 0) -> RecoilParams:
-        if not self.feasible:
-            raise ParameterError("no feasible design was found: there is no best design")
-        assert self.problem is not None and self.best_theta is not None and scenario == 0
-        return with_values(self.problem.params, self.problem.tune, self.best_theta)
-
-    def best_design(self, scenario: int = 0) -> dict[str, float]:
-        """Every parameter of the best design, by flat name."""
-        params = self.best_params(scenario)
-        return {k: float(np.asarray(v)) for k, v in params_to_values(params).items()}
 
 
 class _Recorder:
@@ -273,7 +186,7 @@ def minimise(
     label: str = "search",
     run_evaluator: Callable[[], Callable[[np.ndarray, float], Any]] | None = None,
     spent: Callable[[], float] | None = None,
-) -> MinimiseResult:
+) -> OptimiseResult:
     """Minimise `f(z)` subject to `g(z) <= 0` over the unit box `z ∈ [0, 1]^P`: a scrambled
     Sobol sample of the box, then a local method from the best few distinct points.
 
@@ -309,8 +222,22 @@ def minimise(
     - `spent()`: the seconds of the `max_seconds` budget spent so far (default: since
       this call; a resumed study adds the earlier runs').
 
-    **Returns:** `MinimiseResult`.
+    **Returns:** `OptimiseResult` (`method` `"minimise"`, one scenario, `θ = z`).
     """
+    minimum = _minimise(
+        evaluate_batch, value_and_jacobian, dimension, local=local, samples=samples,
+        starts=starts, initial=initial, hopping=hopping, seed=seed, max_seconds=max_seconds,
+        workers=workers, progress=progress, label=label, run_evaluator=run_evaluator,
+        spent=spent,
+    )  # fmt: skip
+    return _result(minimum, "minimise", None, lambda z: np.asarray(z, dtype=float))
+
+
+def _minimise(
+    evaluate_batch, value_and_jacobian, dimension: int, *, local, samples, starts, initial,
+    hopping, seed, max_seconds, workers, progress, label, run_evaluator, spent,
+) -> _Minimum:  # fmt: skip
+    """`minimise`, in normalised coordinates."""
     # scipy is imported when used: `import recoil_jax` stays quick for the command line.
     import scipy.stats
 
@@ -347,13 +274,13 @@ def minimise(
 
     def local_run(z0):
         evaluate = value_and_jacobian if run_evaluator is None else run_evaluator()
-        seen = {"evaluations": 0, "best_feasible": np.inf}  # this run's
+        seen = {"evaluations": 0, "best_feasible": np.inf, "best_z": None}  # this run's
 
         def record_run(z, objective, violation, ok):
             record_local(z, objective, violation, ok)
             seen["evaluations"] += 1
-            if feasible(ok, objective, [violation]):
-                seen["best_feasible"] = min(seen["best_feasible"], float(objective))
+            if feasible(ok, objective, [violation]) and objective < seen["best_feasible"]:
+                seen["best_feasible"], seen["best_z"] = float(objective), np.array(z)
 
         run = run_local(local, evaluate, z0, record_run, out_of_time, clock)
         return run | {"phase": "start"} | seen
@@ -391,20 +318,96 @@ def minimise(
             runs += hopping.run(record, local_run, pool, max(1, workers), seed, out_of_time)
     bar.update(bar.total, _best_note(record.best), final=True)
     trace = {k: np.asarray(v) for k, v in record.rows.items()}
-    found = record.best_z is not None
-    return MinimiseResult(
-        best_z=np.asarray(record.best_z) if found else np.full(dimension, np.nan),
-        best_objective=record.best if found else np.nan,
-        feasible=found,
+    nowhere = np.full(dimension, np.nan)
+    return _Minimum(
+        best_z=nowhere if record.best_z is None else np.asarray(record.best_z),
+        best_objective=record.best if record.best_z is not None else np.nan,
+        closest_z=nowhere if record.closest_z is None else np.asarray(record.closest_z),
+        closest_violation=float(record.closest) if record.closest_z is not None else np.nan,
         trace=trace,
         samples=sampled,
-        starts=runs,
+        runs=runs,
         solves=n_samples,
         gradient_solves=record.gradient_solves,
         seconds=time.perf_counter() - record.start,
-        compilations=0,
-        closest_z=np.full(dimension, np.nan) if record.closest_z is None else record.closest_z,
-        closest_violation=float(record.closest) if record.closest_z is not None else np.nan,
+    )
+
+
+def _regions(runs: list[dict]) -> list[int | None]:
+    """The start region of each run: a start that evaluated a point joins the first
+    region whose first start is within `SPACING` (max-norm) of its own, or begins a
+    new one; basin hopping's runs and those that evaluated nothing have none."""
+    firsts: list[np.ndarray] = []
+    regions: list[int | None] = []
+    for run in runs:
+        if run["phase"] != "start" or run["evaluations"] == 0:
+            regions.append(None)
+            continue
+        near = [k for k, first in enumerate(firsts) if np.max(np.abs(run["z0"] - first)) <= SPACING]
+        if not near:
+            firsts.append(run["z0"])
+        regions.append(near[0] if near else len(firsts) - 1)
+    return regions
+
+
+def _result(
+    minimum: _Minimum,
+    method: str,
+    problem: DesignProblem | None,
+    theta: Callable[[np.ndarray], np.ndarray],
+    *,
+    extra_gradient_solves: int = 0,
+    compilations: int = 0,
+    replayed: int = 0,
+) -> OptimiseResult:
+    """The `OptimiseResult` of a `_minimise` run, its points mapped to parameter values by
+    `theta` (NaN stays NaN)."""
+
+    def to_theta(z) -> np.ndarray:
+        z = np.asarray(z, dtype=float)
+        return np.asarray(theta(z)) if np.all(np.isfinite(z)) else np.full(z.shape, np.nan)
+
+    runs = []
+    for run, region in zip(minimum.runs, _regions(minimum.runs), strict=True):
+        best_z = run["z0"] * np.nan if run["best_z"] is None else run["best_z"]
+        runs.append(
+            {
+                "scenario": 0,
+                "region": region,
+                "phase": run["phase"],
+                "theta0": to_theta(run["z0"]),
+                "theta": to_theta(run["z"]),
+                "objective": float(run["objective"]),
+                "best_objective": float(run["best_feasible"]),
+                "best_theta": to_theta(best_z),
+                "evaluations": run["evaluations"],
+                "iterations": run["iterations"],
+                "converged": run["converged"],
+                "message": run["message"],
+                "seconds": run["seconds"],
+            }
+        )
+    trace = minimum.trace | {"scenario": np.zeros(len(minimum.trace["seconds"]), dtype=int)}
+    limits = [] if problem is None else [limit for _, _, limit in problem.metric_constraints]
+    return OptimiseResult(
+        method=method,
+        problem=problem,
+        best_theta=to_theta(minimum.best_z)[None],
+        best_objective=np.array([minimum.best_objective]),
+        closest_theta=to_theta(minimum.closest_z)[None],
+        closest_violation=np.array([minimum.closest_violation]),
+        runs=tuple(runs),
+        trace=trace,
+        solves=minimum.solves,
+        gradient_solves=minimum.gradient_solves + extra_gradient_solves,
+        seconds=minimum.seconds,
+        compilations=compilations,
+        scenario_params=(
+            None if problem is None else jax.tree.map(lambda x: np.asarray(x)[None], problem.params)
+        ),
+        scenario_limits=np.asarray([limits], dtype=float).reshape(1, len(limits)),
+        samples=minimum.samples,
+        replayed=replayed,
     )
 
 
@@ -573,7 +576,7 @@ def search(
     progress: bool | None = None,
     store: str | os.PathLike | None = None,
     client: Any = None,
-) -> MinimiseResult:
+) -> OptimiseResult:
     """Minimise `problem.objective` subject to `problem.constraints` by global search
     plus gradient polish (`minimise`): `samples` Sobol designs over the bounds through
     the batched sweep, then a local method with exact gradients (forward sensitivities,
@@ -613,10 +616,9 @@ def search(
     Parameters whose bounds are positive and at least a factor 1000 apart are searched
     in log coordinates (`SearchSpace`).
 
-    **Returns:** `MinimiseResult` with `best_theta` and the `OptimiseResult` methods that
-    studies use (`best_design`, `best_params`). Its objectives are exact (true peaks).
+    **Returns:** `OptimiseResult` (`method` `"search"`, one scenario). Its objectives are
+    exact (true peaks).
 
-    **Raises:** `ParameterError` for bad arguments, before compiling.
     """
     if problem.objective.scatter is not None:
         raise ParameterError(
@@ -794,36 +796,33 @@ def search(
     if use_design:
         initial.append(box.z(np.asarray(values_of(problem.params, problem.tune))))
     try:
-        result = minimise(
+        minimum = _minimise(
             evaluate_batch,
             run_evaluator(),  # the warm-up's
             len(problem.tune),
+            local=local,
             samples=samples,
             starts=starts,
             initial=initial,
-            local=local,
             hopping=hopping,
             seed=seed,
             max_seconds=max_seconds,
             workers=workers,
             progress=progress,
+            label="search",
             run_evaluator=run_evaluator,
             spent=spent,
         )
     finally:
         if study is not None:
             study.close()
-
-    def theta(z) -> np.ndarray | None:
-        return np.asarray(box.theta(jnp.asarray(z))) if np.all(np.isfinite(z)) else None
-
-    return dataclasses.replace(
-        result,
-        problem=problem,
-        gradient_solves=result.gradient_solves + len(window),  # + the window's solve
+    return _result(
+        minimum,
+        "search",
+        problem,
+        lambda z: np.asarray(box.theta(jnp.asarray(z))),
+        extra_gradient_solves=len(window),  # the window's solve
         compilations=_TRACES[0] - traces,
-        best_theta=theta(result.best_z),
-        closest_theta=theta(result.closest_z),
         replayed=0 if study is None else study.replayed,
     )
 

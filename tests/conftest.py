@@ -111,3 +111,41 @@ def _release_compiled_code_when_mappings_run_high():
         import jax
 
         jax.clear_caches()
+
+
+RUN_FIELDS = {
+    "scenario", "region", "phase", "theta0", "theta", "objective", "best_objective",
+    "best_theta", "evaluations", "iterations", "converged", "message", "seconds",
+}  # fmt: skip
+
+
+def assert_complete_result(result, method: str, dimension: int):
+    """Every optimiser returns one `OptimiseResult`, built complete: per scenario its
+    best and closest points; every run with the same named fields; a trace whose best
+    feasible evaluation is the reported best (an independent read of the same
+    evaluations)."""
+    import numpy as np
+
+    import recoil_jax as rj
+
+    assert type(result) is rj.OptimiseResult and result.method == method
+    scenarios = result.scenarios
+    assert result.best_theta.shape == result.closest_theta.shape == (scenarios, dimension)
+    assert result.best_objective.shape == result.closest_violation.shape == (scenarios,)
+    assert result.scenario_limits.shape[0] == scenarios and result.runs
+    for run in result.runs:
+        assert RUN_FIELDS <= set(run), RUN_FIELDS - set(run)
+        for name in ("theta0", "theta", "best_theta"):
+            assert np.shape(run[name]) == (dimension,), name
+        if result.feasible[run["scenario"]]:
+            assert run["best_objective"] >= result.best_objective[run["scenario"]]
+    trace = result.trace
+    assert {"seconds", "scenario", "objective", "feasible", "gradient", "phase"} <= set(trace)
+    assert len({len(column) for column in trace.values()}) == 1
+    assert np.all(np.diff(trace["seconds"]) >= 0)
+    for s in range(scenarios):
+        held = trace["feasible"] & (trace["scenario"] == s)
+        best = np.min(trace["objective"][held]) if held.any() else np.nan
+        np.testing.assert_array_equal(best, result.best_objective[s])
+        assert result.best_so_far(s)[-1] == (best if held.any() else np.inf)
+    assert result.simulations == result.solves + result.gradient_solves

@@ -130,7 +130,7 @@ def test_a_search_and_the_tuning_baselines_on_a_cluster(client, tmp_path, capsys
     spread = rj.search(problem, client=client, **settings)
     for name in ("objective", "violation", "ok"):
         assert np.array_equal(spread.samples[name], alone.samples[name]), name
-    assert np.array_equal(spread.best_z, alone.best_z)
+    assert np.array_equal(spread.best_theta, alone.best_theta)
     z = np.random.default_rng(0).uniform(size=(40, 2))
     assert np.array_equal(
         _Evaluator(problem, 60.0, client).batch(z), _Evaluator(problem, 60.0).batch(z)

@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from conftest import compiled_programs
+from conftest import assert_complete_result, compiled_programs
 from scipy.optimize import brentq
 
 import recoil_jax as rj
@@ -38,10 +38,11 @@ def test_minimise_finds_the_optimum_on_an_active_bound():
         lambda z: np.asarray([2 * (z[0] - 0.3), 2 * (z[1] - 1.5)]),
     )
     result = rj.minimise(batch, local, 2, samples=64, starts=2, progress=False)
-    assert result.feasible
-    np.testing.assert_allclose(result.best_z, [0.3, 1.0], atol=1e-6)
-    assert result.best_objective == pytest.approx(0.25, abs=1e-9)
+    assert result.feasible[0]
+    np.testing.assert_allclose(result.best_theta[0], [0.3, 1.0], atol=1e-6)
+    assert result.best_objective[0] == pytest.approx(0.25, abs=1e-9)
     assert result.gradient_solves > 0 and result.solves == 64
+    assert_complete_result(result, "minimise", 2)
 
 
 def test_minimise_holds_an_active_constraint():
@@ -54,11 +55,11 @@ def test_minimise_holds_an_active_constraint():
         constraint_grads=(lambda z: np.ones(2),),
     )
     result = rj.minimise(batch, local, 2, samples=32, starts=2, progress=False)
-    assert result.feasible
-    z = result.best_z
+    assert result.feasible[0]
+    z = result.best_theta[0]
     assert z[0] + z[1] <= 1.0 - 1e-6  # held, with the feasibility tolerance
     np.testing.assert_allclose(z, [0.5, 0.5], atol=1e-4)
-    assert result.best_objective == pytest.approx(0.5, rel=1e-4)
+    assert result.best_objective[0] == pytest.approx(0.5, rel=1e-4)
 
 
 def test_minimise_finds_the_global_minimum_of_a_multimodal_function():
@@ -74,8 +75,8 @@ def test_minimise_finds_the_global_minimum_of_a_multimodal_function():
     batch, local = _analytic(f, grad)
     for seed in range(8):
         result = rj.minimise(batch, local, 2, samples=256, starts=8, seed=seed, progress=False)
-        np.testing.assert_allclose(result.best_z, [0.6, 0.6], atol=1e-5)
-        assert result.best_objective == pytest.approx(0.0, abs=1e-8)
+        np.testing.assert_allclose(result.best_theta[0], [0.6, 0.6], atol=1e-5)
+        assert result.best_objective[0] == pytest.approx(0.0, abs=1e-8)
 
 
 def test_minimise_counts_the_starts_that_reach_the_best_basin():
@@ -99,12 +100,12 @@ def test_minimise_counts_the_starts_that_reach_the_best_basin():
     batch, local = _analytic(f, grad)
     once = run((0.1, 0.35, 0.5, 0.88))
     # The wide basin's tail adds exp(-9) = 1.2e-4 at the narrow one.
-    assert once.best_objective == pytest.approx(-2.0 - np.exp(-9.0), abs=1e-6)
-    assert [run["best_feasible"] < -1.5 for run in once.starts] == [False, False, False, True]
+    assert once.best_objective[0] == pytest.approx(-2.0 - np.exp(-9.0), abs=1e-6)
+    assert [run["best_objective"] < -1.5 for run in once.runs] == [False, False, False, True]
     # 0.35 and 0.5 began in one region (within 0.25): 4 starts, 3 regions.
     assert once.agreement() == rj.Agreement(reached=1, regions=3, starts=4)
     hopped = run((0.1, 0.35, 0.5, 0.88), hopping=rj.BasinHopping(hops=4, step=0.01))
-    assert sum(run["phase"] == "hop" for run in hopped.starts) == 4
+    assert sum(run["phase"] == "hop" for run in hopped.runs) == 4
     assert hopped.agreement() == rj.Agreement(reached=1, regions=3, starts=4)
     assert run((0.85, 0.95)).agreement() == rj.Agreement(reached=1, regions=1, starts=2)
     # A bowl: starts far apart all reach its minimum.
@@ -112,7 +113,7 @@ def test_minimise_counts_the_starts_that_reach_the_best_basin():
     assert run((0.0, 0.3, 0.6, 1.0)).agreement() == rj.Agreement(4, 4, 4)
     # Runs the time budget stopped before their first evaluation ran nothing.
     stopped = run((0.0, 1.0), max_seconds=0.0)
-    assert [r["evaluations"] for r in stopped.starts] == [0, 0]
+    assert [r["evaluations"] for r in stopped.runs] == [0, 0]
     assert stopped.agreement() == rj.Agreement(0, 0, 0) and stopped.agreement().line() is None
 
 
@@ -137,8 +138,8 @@ def test_each_local_run_gets_its_own_evaluation_function():
         batch, local, 1, samples=16, starts=3, workers=2, progress=False,
         hopping=rj.BasinHopping(hops=2), run_evaluator=run_evaluator,
     )  # fmt: skip
-    assert len(made) == len(result.starts) == 5  # 3 starts, 2 hops
-    assert [run["evaluations"] for run in result.starts] == [m["calls"] for m in made]
+    assert len(made) == len(result.runs) == 5  # 3 starts, 2 hops
+    assert [run["evaluations"] for run in result.runs] == [m["calls"] for m in made]
     assert all(m["calls"] > 0 for m in made)
 
 
@@ -171,8 +172,8 @@ def test_minimise_reports_an_unmeetable_constraint_as_infeasible():
         constraint_grads=(lambda z: np.asarray([-1.0, 0.0]),),
     )
     result = rj.minimise(batch, local, 2, samples=32, starts=2, progress=False)
-    assert not result.feasible
-    assert np.isnan(result.best_objective) and np.all(np.isnan(result.best_z))
+    assert not result.feasible[0]
+    assert np.isnan(result.best_objective[0]) and np.all(np.isnan(result.best_theta[0]))
     assert not result.trace["feasible"].any()
 
 
@@ -188,8 +189,8 @@ def test_minimise_steps_back_from_failed_solves():
         return (z[:, 0] - 1.0) ** 2, np.zeros((len(z), 0)), z[:, 0] <= 0.5
 
     result = rj.minimise(batch, value_and_jacobian, 1, samples=16, starts=1, progress=False)
-    assert result.feasible and result.best_z[0] <= 0.5
-    assert result.best_objective == pytest.approx(0.25, abs=0.02)
+    assert result.feasible[0] and result.best_theta[0, 0] <= 0.5
+    assert result.best_objective[0] == pytest.approx(0.25, abs=0.02)
 
 
 @pytest.mark.parametrize(
@@ -225,9 +226,9 @@ def test_minimise_solves_a_minimax_with_an_active_constraint(limit, z_opt, f_opt
     result = rj.minimise(
         batch, value_and_jacobian, 2, samples=64, starts=2, local=method, progress=False
     )
-    assert result.feasible
-    np.testing.assert_allclose(result.best_z, [0.5, z_opt], atol=1e-4)
-    assert result.best_objective == pytest.approx(f_opt, rel=1e-4)
+    assert result.feasible[0]
+    np.testing.assert_allclose(result.best_theta[0], [0.5, z_opt], atol=1e-4)
+    assert result.best_objective[0] == pytest.approx(f_opt, rel=1e-4)
 
 
 @pytest.mark.parametrize(
@@ -259,10 +260,10 @@ def test_minimise_ends_a_noisy_minimax(method, ending):
     result = rj.minimise(
         batch, value_and_jacobian, 1, samples=8, starts=1, local=method, progress=False
     )
-    (run,) = result.starts
+    (run,) = result.runs
     assert run["message"].startswith(ending), run["message"]
     assert result.gradient_solves < 200
-    assert abs(run["z"][0] - 0.5) < 0.01 and run["objective"] < 0.0902
+    assert abs(run["theta"][0] - 0.5) < 0.01 and run["objective"] < 0.0902
 
 
 @pytest.mark.parametrize(
@@ -306,9 +307,9 @@ def test_a_new_local_method_plugs_in_without_touching_the_library():
     )
     method = _ProjectedGradient(maxiter=60)
     result = rj.minimise(batch, local, 2, samples=16, starts=2, local=method, progress=False)
-    assert result.feasible
-    np.testing.assert_allclose(result.best_z, [0.3, 1.0], atol=1e-6)
-    assert [run["iterations"] for run in result.starts] == [60, 60]
+    assert result.feasible[0]
+    np.testing.assert_allclose(result.best_theta[0], [0.3, 1.0], atol=1e-6)
+    assert [run["iterations"] for run in result.runs] == [60, 60]
     # Each iteration and the end point, and the warm-up at the centre of the box.
     assert result.gradient_solves == 2 * 61 + 1
     assert result.trace["phase"].tolist().count("local") == 2 * 61 + 1
@@ -335,14 +336,15 @@ def _grid_best(problem) -> float:
 def test_search_matches_a_dense_grid_with_one_compilation():
     problem = _gap_problem()
     result = rj.search(problem, samples=32, starts=2, progress=False)
-    assert result.feasible and result.compilations == 1
+    assert result.feasible[0] and result.compilations == 1
+    assert_complete_result(result, "search", 1)
     # Independent: the best feasible point of a dense grid of plain solves.
     grid_best = _grid_best(problem)
-    assert result.best_objective <= grid_best * (1 + 1e-5)
-    assert result.best_objective >= grid_best * (1 - 2e-3)  # the grid is fine enough
+    assert result.best_objective[0] <= grid_best * (1 + 1e-5)
+    assert result.best_objective[0] >= grid_best * (1 - 2e-3)  # the grid is fine enough
     # The reported best design re-solves to the reported objective and holds the limit.
     peaks = rj.peaks(result.best_params(), problem.smoothing, problem.options)
-    assert float(peaks.peak_anchoring_force) == pytest.approx(result.best_objective, rel=1e-6)
+    assert float(peaks.peak_anchoring_force) == pytest.approx(result.best_objective[0], rel=1e-6)
     assert float(peaks.max_stroke) <= 0.15
     # Another run of the same problem compiles nothing new.
     again = rj.search(problem, samples=32, starts=1, seed=1, progress=False)
@@ -355,9 +357,9 @@ def test_search_as_a_minimax_matches_the_dense_grid():
     # peak as constraints): the same optimum as the grid, one program compiled.
     problem = _gap_problem()
     result = rj.search(problem, samples=32, starts=2, minimax=True, progress=False)
-    assert result.feasible and result.compilations == 1
+    assert result.feasible[0] and result.compilations == 1
     grid_best = _grid_best(problem)
-    assert grid_best * (1 - 2e-3) <= result.best_objective <= grid_best * (1 + 1e-5)
+    assert grid_best * (1 - 2e-3) <= result.best_objective[0] <= grid_best * (1 + 1e-5)
 
 
 @pytest.mark.slow
@@ -374,9 +376,9 @@ def test_search_levels_narrow_peaks_on_the_epigraph():
         ),
     )
     result = rj.search(problem, samples=32, starts=2, progress=False)
-    assert result.feasible and result.compilations == 2
+    assert result.feasible[0] and result.compilations == 2
     grid_best = _grid_best(problem)
-    assert grid_best * (1 - 2e-3) <= result.best_objective <= grid_best * (1 + 1e-5)
+    assert grid_best * (1 - 2e-3) <= result.best_objective[0] <= grid_best * (1 + 1e-5)
 
 
 def test_local_maxima_are_refined_onto_the_peaks():
@@ -406,7 +408,7 @@ def test_local_maxima_are_refined_onto_the_peaks():
 def test_search_reports_an_unmeetable_limit_as_infeasible():
     problem = _gap_problem(limit=1e-4)  # no absorber stroke is that small
     result = rj.search(problem, samples=16, starts=0, use_design=False, progress=False)
-    assert not result.feasible and np.isnan(result.best_objective)
+    assert not result.feasible[0] and np.isnan(result.best_objective[0])
     with pytest.raises(rj.ParameterError, match="no feasible design"):
         result.best_design()
 
@@ -420,7 +422,7 @@ def test_tuned_absorber_without_a_start_finds_the_optimum_for_every_seed():
     best = []
     for seed in range(10):
         kwargs = search_kwargs(study, progress=False) | {"seed": seed}
-        best.append(rj.search(study.problem, **kwargs).best_objective)
+        best.append(rj.search(study.problem, **kwargs).best_objective[0])
     # The known optimum (gap 0.0575 m, m 1500 kg, k_r 17.4 kN/m, c_r 1.8 kN s/m):
     # 5323.93 N; the next local optimum is 5410 N.
     assert max(best) <= 5324.05 * 1.001, best
@@ -468,7 +470,7 @@ def test_throttling_reaches_the_levelled_optimum_for_every_seed(tmp_path):
         kwargs = search_kwargs(study, progress=False) | {"seed": seed}
         result = rj.search(study.problem, **kwargs)
         assert result.compilations == 0  # the study's program
-        best.append(result.best_objective)
+        best.append(result.best_objective[0])
     assert max(best) <= 8969.2 * 1.001, best
     assert min(best) >= PAPER_LIMIT, best
 
@@ -565,13 +567,13 @@ def test_basin_hopping_finds_a_narrow_basin_beside_the_best_one_found():
     batch, local = _analytic(f, grad)
     common = dict(samples=0, starts=0, initial=[np.asarray([0.3])], progress=False, workers=2)
     alone = rj.minimise(batch, local, 1, **common)
-    assert alone.best_z[0] == pytest.approx(0.3, abs=1e-4)  # the wide basin only
+    assert alone.best_theta[0, 0] == pytest.approx(0.3, abs=1e-4)  # the wide basin only
     hopping = rj.BasinHopping(hops=16, step=0.1)
     runs = [rj.minimise(batch, local, 1, hopping=hopping, seed=4, **common) for _ in range(2)]
     for result in runs:
-        assert result.best_objective < -0.4
-        assert abs(result.best_z[0] - 0.36) < 0.002
-        assert sum(run.get("phase") == "hop" for run in result.starts) == 16
-    np.testing.assert_array_equal(runs[0].best_z, runs[1].best_z)
+        assert result.best_objective[0] < -0.4
+        assert abs(result.best_theta[0, 0] - 0.36) < 0.002
+        assert sum(run.get("phase") == "hop" for run in result.runs) == 16
+    np.testing.assert_array_equal(runs[0].best_theta[0], runs[1].best_theta[0])
     with pytest.raises(rj.ParameterError, match="0 < step <= 1"):
         rj.BasinHopping(step=0.0)

@@ -230,7 +230,7 @@ def plot_series(
 
 
 @_styled
-def plot_search_convergence(result: rj.MinimiseResult, path, title: str = "") -> Path:
+def plot_search_convergence(result: rj.OptimiseResult, path, title: str = "") -> Path:
     """Convergence of `rj.search`: each evaluated design's objective (sampled designs and
     gradient solves, infeasible ones faint) and the best feasible objective so far,
     against wall time."""

@@ -366,7 +366,7 @@ def agreement_line(report: dict) -> str | None:
     return rj.Agreement(**agreement).line()
 
 
-def _search_summary(result: rj.MinimiseResult, local: rj.LocalMethod) -> dict:
+def _search_summary(result: rj.OptimiseResult, local: rj.LocalMethod) -> dict:
     """What `result.json` says of a `search` run."""
     samples = result.samples
     feasible = rj.feasible(samples["ok"], samples["objective"], samples["violation"][:, None])
@@ -385,7 +385,7 @@ def _search_summary(result: rj.MinimiseResult, local: rj.LocalMethod) -> dict:
                 "iterations": run["iterations"],
                 "message": run["message"],
             }
-            for run in result.starts
+            for run in result.runs
         ],
         "agreement": result.agreement()._asdict(),
         "solves": result.solves,
@@ -425,9 +425,7 @@ def _worst_case(problem: rj.DesignProblem, runs: list[rj.Peaks]) -> tuple[dict, 
     return worst, max(float(problem.objective(r.metrics())) for r in runs)
 
 
-def _best_summary(
-    study: Study, result: rj.OptimiseResult | rj.MinimiseResult, scenario: int
-) -> dict:
+def _best_summary(study: Study, result: rj.OptimiseResult, scenario: int) -> dict:
     problem = study.problem
     params = result.best_params(scenario)
     design = result.best_design(scenario)
@@ -594,7 +592,6 @@ def run_study(
         print(f"study {study.name}: {study.description}", file=sys.stderr)
 
     report: dict[str, Any] = {"study": study.name, "description": study.description}
-    result: rj.OptimiseResult | rj.MinimiseResult
     if study.optimiser["method"] == "search":
         search = search_kwargs(study, progress)
         with (
@@ -606,12 +603,6 @@ def run_study(
         seed_used = int(study.optimiser.get("seed", 0))
         report["optimiser"] = _search_summary(result, search["local"]) | {"seed": seed_used}
         plot_search_convergence(result, out / "convergence.png", title=study.name)
-        feasible = result.feasible
-        closest = (
-            None
-            if result.closest_theta is None
-            else rj.with_values(problem.params, problem.tune, result.closest_theta)
-        )
     else:
         with phase("optimiser", f"optax from {kwargs['starts']} starts"):
             result = rj.optimise(problem, store=store, **kwargs)
@@ -619,17 +610,17 @@ def run_study(
         report["optimiser"] = {
             "method": "adam",
             "seed": kwargs["seed"],
-            "starts": result.starts,
-            "steps": result.steps,
+            "starts": kwargs["starts"],
+            "steps": len(result.history["objective"]),
             "compilations": result.compilations,
             "seconds": round(result.seconds, 2),
-            "converged_runs": int(result.converged.sum()),
-            "agreement": result.agreement(0)._asdict(),
-            "where_starts_ended": result.clusters(0),
+            "converged_runs": sum(run["converged"] for run in result.runs),
+            "agreement": result.agreement()._asdict(),
+            "where_starts_ended": result.clusters(),
         }
         plot_convergence(result, out / "convergence.png", title=study.name)
-        feasible = bool(result.feasible[0])
-        closest = result.closest_params(0) if np.isfinite(result.closest_violation[0]) else None
+    feasible = bool(result.feasible[0])
+    closest = result.closest_params(0) if np.isfinite(result.closest_violation[0]) else None
     report["feasible"] = feasible
     if feasible:
         report |= _best_summary(study, result, 0)
