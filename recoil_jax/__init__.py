@@ -36,6 +36,7 @@ from ._local import (
     LocalEvaluation as LocalEvaluation,
     LocalMethod as LocalMethod,
     LocalRun as LocalRun,
+    OptaxLocal as OptaxLocal,
     TrustRegionLP as TrustRegionLP,
 )
 from ._metrics import (

@@ -31,13 +31,21 @@ def _analytic(f, grad, constraints=(), constraint_grads=()):
     return evaluate_batch, value_and_jacobian
 
 
-def test_minimise_finds_the_optimum_on_an_active_bound():
+# SLSQP and optax's Adam (projected, an augmented Lagrangian for the limits): the
+# library's quasi-Newton method and a first-order one, plugged in the same way.
+LOCAL_SMOOTH = pytest.mark.parametrize(
+    "method", [rj.SLSQP(), rj.OptaxLocal()], ids=["slsqp", "optax-adam"]
+)
+
+
+@LOCAL_SMOOTH
+def test_minimise_finds_the_optimum_on_an_active_bound(method):
     # min (z0 - 0.3)^2 + (z1 - 1.5)^2 on [0, 1]^2: the bound z1 <= 1 is active.
     batch, local = _analytic(
         lambda z: (z[0] - 0.3) ** 2 + (z[1] - 1.5) ** 2,
         lambda z: np.asarray([2 * (z[0] - 0.3), 2 * (z[1] - 1.5)]),
     )
-    result = rj.minimise(batch, local, 2, samples=64, starts=2, progress=False)
+    result = rj.minimise(batch, local, 2, samples=64, starts=2, local=method, progress=False)
     assert result.feasible[0]
     np.testing.assert_allclose(result.best_theta[0], [0.3, 1.0], atol=1e-6)
     assert result.best_objective[0] == pytest.approx(0.25, abs=1e-9)
@@ -45,7 +53,8 @@ def test_minimise_finds_the_optimum_on_an_active_bound():
     assert_complete_result(result, "minimise", 2)
 
 
-def test_minimise_holds_an_active_constraint():
+@LOCAL_SMOOTH
+def test_minimise_holds_an_active_constraint(method):
     # min (z0 - 1)^2 + (z1 - 1)^2 subject to z0 + z1 <= 1: optimum (1/2, 1/2), f = 1/2,
     # approached from inside by the margin the local phase keeps.
     batch, local = _analytic(
@@ -54,7 +63,7 @@ def test_minimise_holds_an_active_constraint():
         constraints=(lambda z: z[0] + z[1] - 1.0,),
         constraint_grads=(lambda z: np.ones(2),),
     )
-    result = rj.minimise(batch, local, 2, samples=32, starts=2, progress=False)
+    result = rj.minimise(batch, local, 2, samples=32, starts=2, local=method, progress=False)
     assert result.feasible[0]
     z = result.best_theta[0]
     assert z[0] + z[1] <= 1.0 - 1e-6  # held, with the feasibility tolerance
@@ -274,6 +283,9 @@ def test_minimise_ends_a_noisy_minimax(method, ending):
         (dict(local=lambda: rj.SLSQP(schedule=(1.0, -1.0))), "levels must be factors >= 0"),
         (dict(local=lambda: rj.SLSQP(schedule=(1.0, 0.0))), "0 is the minimax"),
         (dict(local="slsqp"), "local must be a LocalMethod"),
+        (dict(local=lambda: rj.OptaxLocal(optimiser="nope")), "not an optax optimiser"),
+        (dict(local=lambda: rj.OptaxLocal(learning_rate=0.0)), "learning_rate > 0"),
+        (dict(local=lambda: rj.OptaxLocal(schedule=(0.0,))), "0 is the minimax"),
     ],
 )
 def test_minimise_rejects_bad_arguments(kwargs, match):
@@ -346,9 +358,14 @@ def test_search_matches_a_dense_grid_with_one_compilation():
     peaks = rj.peaks(result.best_params(), problem.smoothing, problem.options)
     assert float(peaks.peak_anchoring_force) == pytest.approx(result.best_objective[0], rel=1e-6)
     assert float(peaks.max_stroke) <= 0.15
-    # Another run of the same problem compiles nothing new.
-    again = rj.search(problem, samples=32, starts=1, seed=1, progress=False)
+    # Another run of the same problem compiles nothing new, also with optax driving the
+    # local runs (the same gradient program), to the same optimum.
+    again = rj.search(
+        problem, samples=32, starts=1, seed=1, local=rj.OptaxLocal(maxiter=40), progress=False
+    )
     assert again.compilations == 0
+    assert grid_best * (1 - 2e-3) <= again.best_objective[0] <= grid_best * (1 + 1e-5)
+    assert [run["iterations"] for run in again.runs] == [40, 40]
 
 
 @pytest.mark.slow

@@ -16,9 +16,10 @@ v0 = [-0.05, 0.0, 0.05]
 max_stroke = {max = 0.15}
 [optimiser]                   # method = "search" (global + a local method): samples, starts,
 starts = 8                    #   maxiter, seed, max_seconds, and local = "slsqp",
-                              #   "epigraph_minimax" or "trust_region_lp" (or minimax = true
-                              #   / false to choose the default), hops and hop_step (basin
-                              #   hopping after the starts); "adam" (default; fronts,
+                              #   "epigraph_minimax", "trust_region_lp" or "optax_adam"
+                              #   (or minimax = true / false to choose the default),
+                              #   hops and hop_step (basin hopping after the starts);
+                              #   "adam" (default; fronts,
                               #   scatter): starts, steps, learning_rate, seed, anneal,
                               #   patience
 
@@ -126,6 +127,7 @@ LOCAL_METHODS = {
     "slsqp": rj.SLSQP,
     "epigraph_minimax": rj.EpigraphMinimax,
     "trust_region_lp": rj.TrustRegionLP,
+    "optax_adam": rj.OptaxLocal,
 }
 _CHECK_KEYS = {"grid", "local", "hard", "nominal"}
 
