@@ -371,6 +371,7 @@ def agreement_line(report: dict) -> str | None:
 def _search_summary(result: rj.OptimiseResult, local: rj.LocalMethod) -> dict:
     """What `result.json` says of a `search` run."""
     samples = result.samples
+    assert samples is not None  # search's global phase
     feasible = rj.feasible(samples["ok"], samples["objective"], samples["violation"][:, None])
     return {
         "method": "search",
@@ -613,7 +614,7 @@ def run_study(
             "method": "adam",
             "seed": kwargs["seed"],
             "starts": kwargs["starts"],
-            "steps": len(result.history["objective"]),
+            "steps": len(result.history["objective"]) if result.history else 0,
             "compilations": result.compilations,
             "seconds": round(result.seconds, 2),
             "converged_runs": sum(run["converged"] for run in result.runs),
