@@ -69,8 +69,7 @@ print(f"constant-force limit E0/L = {ideal:.1f} N")
 # %%
 result = rj.search(
     problem,
-    samples=64 if FAST else 512,
-    starts=1 if FAST else 2,
+    global_phase=rj.SobolStarts(64, 1) if FAST else rj.SobolStarts(512, 2),
     local=rj.TrustRegionLP(maxiter=15 if FAST else 100),
     use_design=False,
     max_seconds=60 if FAST else 300,

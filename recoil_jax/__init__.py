@@ -93,6 +93,7 @@ from ._reference import reference_peaks as reference_peaks
 from ._result import OptimiseResult as OptimiseResult
 from ._search import (
     BasinHopping as BasinHopping,
+    SobolStarts as SobolStarts,
     default_local as default_local,
     minimise as minimise,
     search as search,

@@ -61,6 +61,7 @@ from ._sweep import default_workers, sweep
 
 __all__ = [
     "BasinHopping",
+    "SobolStarts",
     "default_local",
     "minimax_metric",
     "minimise",
@@ -114,6 +115,61 @@ class BasinHopping(eqx.Module):
         return runs
 
 
+class SobolStarts(eqx.Module):
+    """The global phase of `minimise` and `search`: a scrambled Sobol sample of
+    `samples` points of the box (rounded up to a power of 2; 0: none), solved in one
+    batch, then `starts` local runs from the best distinct ones, ranked feasible first
+    by objective, then the others by violation: alternately the best not within
+    `spacing` (max-norm, normalised coordinates) of any chosen (spread over basins) and
+    the best not within `spacing / 10` (the best basin's neighbours), so that both a
+    crowded best basin and a narrow one elsewhere are tried early. Starts within
+    `spacing` of one another count as one region in `OptimiseResult.agreement`."""
+
+    samples: int = 1024
+    starts: int = 8
+    spacing: float = SPACING
+
+    def __check_init__(self):
+        if not (self.samples >= 0 and self.starts >= 0 and 0.0 < self.spacing <= 1.0):
+            raise ParameterError(
+                f"SobolStarts: need samples >= 0, starts >= 0 and 0 < spacing <= 1 (got "
+                f"{self.samples}, {self.starts}, {self.spacing})"
+            )
+
+    @property
+    def points(self) -> int:
+        """How many points are sampled: `samples` rounded up to a power of 2."""
+        return 0 if self.samples == 0 else int(2 ** np.ceil(np.log2(self.samples)))
+
+    def sample(self, dimension: int, seed: int) -> np.ndarray:
+        """`(points, dimension)`: the scrambled Sobol points of the unit box."""
+        import scipy.stats
+
+        sobol = scipy.stats.qmc.Sobol(dimension, scramble=True, rng=np.random.default_rng(seed))
+        return sobol.random(self.points)
+
+    def choose(self, sampled: dict[str, np.ndarray]) -> list[np.ndarray]:
+        """The start points (up to `starts`) from the evaluated samples (`z`,
+        `objective`, `violation`, `ok`)."""
+        if self.starts == 0 or not len(sampled["z"]):
+            return []
+        ok = sampled["ok"].astype(bool) & np.isfinite(sampled["objective"])
+        held = feasible(ok, sampled["objective"], sampled["violation"][:, None])
+        key = np.where(held, 0, np.where(ok, 1, 2))
+        order = np.lexsort((np.where(held, sampled["objective"], sampled["violation"]), key))
+        order = order[key[order] < 2]
+        chosen: list[np.ndarray] = []
+        for spacing in [self.spacing, self.spacing / 10] * self.starts:
+            for i in order:
+                z = sampled["z"][i]
+                if all(np.max(np.abs(z - c)) > spacing for c in chosen):
+                    chosen.append(z)
+                    break
+            if len(chosen) == self.starts:
+                break
+        return chosen
+
+
 class _Minimum(NamedTuple):
     """What `_minimise` found, in normalised coordinates: the best feasible point
     (`best_z`, NaN if none), the least violating one, every evaluation (`trace`), the
@@ -130,6 +186,7 @@ class _Minimum(NamedTuple):
     solves: int
     gradient_solves: int
     seconds: float
+    spacing: float  # the global phase's: starts this close are one region
 
 
 class _Recorder:
@@ -175,8 +232,7 @@ def minimise(
     dimension: int,
     *,
     local: LocalMethod | None = None,
-    samples: int = 1024,
-    starts: int = 8,
+    global_phase: SobolStarts | None = None,
     initial: Sequence[np.ndarray] = (),
     hopping: BasinHopping | None = None,
     seed: int = 0,
@@ -204,9 +260,9 @@ def minimise(
     - `dimension`: `P`.
     - `local`: the local method, a `LocalMethod` with its own settings (default
       `SLSQP()`): `SLSQP`, `EpigraphMinimax`, `TrustRegionLP`, or one of your own.
-    - `samples`: Sobol points of the global phase (rounded up to a power of 2; 0: none).
-    - `starts`: local runs, from the best distinct points (feasible first, then the least
-      violating); `initial` points (e.g. a given design) come first.
+    - `global_phase`: the samples and the starts chosen from them, an object with its
+      own settings (default `SobolStarts()`: 1024 Sobol points, 8 starts); `initial`
+      points (e.g. a given design) start local runs first.
     - `hopping`: after the starts, more local runs from the best point so far,
       perturbed (`BasinHopping`); None: none.
     - `max_seconds`: a wall-time budget: once spent, no further gradient solve starts
@@ -225,34 +281,30 @@ def minimise(
     **Returns:** `OptimiseResult` (`method` `"minimise"`, one scenario, `θ = z`).
     """
     minimum = _minimise(
-        evaluate_batch, value_and_jacobian, dimension, local=local, samples=samples,
-        starts=starts, initial=initial, hopping=hopping, seed=seed, max_seconds=max_seconds,
-        workers=workers, progress=progress, label=label, run_evaluator=run_evaluator,
-        spent=spent,
+        evaluate_batch, value_and_jacobian, dimension, local=local, global_phase=global_phase,
+        initial=initial, hopping=hopping, seed=seed, max_seconds=max_seconds, workers=workers,
+        progress=progress, label=label, run_evaluator=run_evaluator, spent=spent,
     )  # fmt: skip
     return _result(minimum, "minimise", None, lambda z: np.asarray(z, dtype=float))
 
 
 def _minimise(
-    evaluate_batch, value_and_jacobian, dimension: int, *, local, samples, starts, initial,
+    evaluate_batch, value_and_jacobian, dimension: int, *, local, global_phase, initial,
     hopping, seed, max_seconds, workers, progress, label, run_evaluator, spent,
 ) -> _Minimum:  # fmt: skip
     """`minimise`, in normalised coordinates."""
-    # scipy is imported when used: `import recoil_jax` stays quick for the command line.
-    import scipy.stats
-
     local = SLSQP() if local is None else local
+    global_phase = SobolStarts() if global_phase is None else global_phase
     if not isinstance(local, LocalMethod):
         raise ParameterError(f"minimise: local must be a LocalMethod, got {local!r}")
-    if dimension < 1 or starts < 0 or samples < 0:
-        raise ParameterError(
-            f"minimise: need dimension >= 1, starts >= 0, samples >= 0 "
-            f"(got {dimension}, {starts}, {samples})"
-        )
+    if not isinstance(global_phase, SobolStarts):
+        raise ParameterError(f"minimise: global_phase must be a SobolStarts, got {global_phase!r}")
+    if dimension < 1:
+        raise ParameterError(f"minimise: need dimension >= 1 (got {dimension})")
     initial = [np.clip(np.asarray(z, dtype=float), 0.0, 1.0) for z in initial]
-    n_samples = 0 if samples == 0 else int(2 ** np.ceil(np.log2(samples)))
+    n_samples = global_phase.points
     levels = local.levels
-    runs = starts + len(initial) + (0 if hopping is None else hopping.hops)
+    runs = global_phase.starts + len(initial) + (0 if hopping is None else hopping.hops)
     budget = n_samples + len(initial) + runs * len(levels) * local.maxiter
     bar = Progress(label, budget, "solves", progress)
     record = _Recorder(bar)
@@ -289,16 +341,14 @@ def _minimise(
     # global phase: one batch through the batched solver, and the best distinct samples.
     with ThreadPoolExecutor(max(1, workers)) as pool:
         given = [pool.submit(local_run, z0) for z0 in initial]
-        if not given and starts:
+        if not given and global_phase.starts:
             # Compile the gradient program while the global phase samples: one
             # gradient solve at the centre of the box, recorded like the others.
             given_warmup = pool.submit(warm_up)
         else:
             given_warmup = None
         if n_samples and not out_of_time():
-            z = scipy.stats.qmc.Sobol(
-                dimension, scramble=True, rng=np.random.default_rng(seed)
-            ).random(n_samples)
+            z = global_phase.sample(dimension, seed)
             objective, violations, ok = (np.asarray(a) for a in evaluate_batch(z))
             violation = _worst(violations, len(z))
             record.add(z, objective, violation, ok, False, "sample")
@@ -310,7 +360,7 @@ def _minimise(
                 "violation": np.zeros(0),
                 "ok": np.zeros(0, bool),
             }
-        sampled_runs = pool.map(local_run, _distinct_best(sampled, starts))
+        sampled_runs = pool.map(local_run, global_phase.choose(sampled))
         runs = [future.result() for future in given] + list(sampled_runs)
         if given_warmup is not None:
             given_warmup.result()
@@ -330,12 +380,13 @@ def _minimise(
         solves=n_samples,
         gradient_solves=record.gradient_solves,
         seconds=time.perf_counter() - record.start,
+        spacing=global_phase.spacing,
     )
 
 
-def _regions(runs: list[dict]) -> list[int | None]:
+def _regions(runs: list[dict], spacing: float) -> list[int | None]:
     """The start region of each run: a start that evaluated a point joins the first
-    region whose first start is within `SPACING` (max-norm) of its own, or begins a
+    region whose first start is within `spacing` (max-norm) of its own, or begins a
     new one; basin hopping's runs and those that evaluated nothing have none."""
     firsts: list[np.ndarray] = []
     regions: list[int | None] = []
@@ -343,7 +394,7 @@ def _regions(runs: list[dict]) -> list[int | None]:
         if run["phase"] != "start" or run["evaluations"] == 0:
             regions.append(None)
             continue
-        near = [k for k, first in enumerate(firsts) if np.max(np.abs(run["z0"] - first)) <= SPACING]
+        near = [k for k, first in enumerate(firsts) if np.max(np.abs(run["z0"] - first)) <= spacing]
         if not near:
             firsts.append(run["z0"])
         regions.append(near[0] if near else len(firsts) - 1)
@@ -368,7 +419,7 @@ def _result(
         return np.asarray(theta(z)) if np.all(np.isfinite(z)) else np.full(z.shape, np.nan)
 
     runs = []
-    for run, region in zip(minimum.runs, _regions(minimum.runs), strict=True):
+    for run, region in zip(minimum.runs, _regions(minimum.runs, minimum.spacing), strict=True):
         best_z = run["z0"] * np.nan if run["best_z"] is None else run["best_z"]
         runs.append(
             {
@@ -418,31 +469,6 @@ def _best_note(best: float) -> str:
 def _worst(violations, n: int) -> np.ndarray:
     violations = np.asarray(violations, dtype=float).reshape(n, -1)
     return np.max(violations, axis=1) if violations.shape[1] else np.full(n, -np.inf)
-
-
-def _distinct_best(sampled: dict, count: int) -> list[np.ndarray]:
-    """`count` start points from the samples, ranked feasible first by objective, then
-    the others by violation: alternately the best not within `SPACING` of any chosen
-    (spread over basins) and the best not within `SPACING / 10` (the best basin's
-    neighbours), so that both a crowded best basin and a narrow one elsewhere are
-    tried early."""
-    if count == 0 or not len(sampled["z"]):
-        return []
-    ok = sampled["ok"].astype(bool) & np.isfinite(sampled["objective"])
-    held = feasible(ok, sampled["objective"], sampled["violation"][:, None])
-    key = np.where(held, 0, np.where(ok, 1, 2))
-    order = np.lexsort((np.where(held, sampled["objective"], sampled["violation"]), key))
-    order = order[key[order] < 2]
-    chosen: list[np.ndarray] = []
-    for spacing in [SPACING, SPACING / 10] * count:
-        for i in order:
-            z = sampled["z"][i]
-            if all(np.max(np.abs(z - c)) > spacing for c in chosen):
-                chosen.append(z)
-                break
-        if len(chosen) == count:
-            break
-    return chosen
 
 
 _TRACES = [0]  # how many times the gradient program was traced (compiled)
@@ -566,8 +592,7 @@ def search(
     *,
     local: LocalMethod | None = None,
     minimax: bool | None = None,
-    samples: int = 1024,
-    starts: int = 8,
+    global_phase: SobolStarts | None = None,
     use_design: bool = True,
     hopping: BasinHopping | None = None,
     seed: int = 0,
@@ -578,9 +603,9 @@ def search(
     client: Any = None,
 ) -> OptimiseResult:
     """Minimise `problem.objective` subject to `problem.constraints` by global search
-    plus gradient polish (`minimise`): `samples` Sobol designs over the bounds through
-    the batched sweep, then a local method with exact gradients (forward sensitivities,
-    error controlled) from the `starts` best distinct ones.
+    plus gradient polish (`minimise`): the global phase's Sobol designs over the bounds
+    through the batched sweep, then a local method with exact gradients (forward
+    sensitivities, error controlled) from its best distinct ones.
 
     **Arguments:**
 
@@ -591,7 +616,8 @@ def search(
       `EpigraphMinimax` or `TrustRegionLP` (the minimax below), or your own
       `LocalMethod`.
     - `minimax`: which default to take, when `local` is not given.
-    - `samples`, `starts`, `hopping`, `seed`, `max_seconds`, `progress`: as `minimise`.
+    - `global_phase`, `hopping`, `seed`, `max_seconds`, `progress`: as `minimise`
+      (default `SobolStarts()`: 1024 designs, 8 starts).
     - `workers`: local runs at the same time (default `default_workers`: one per core
       on CPU, where one solve keeps about one core busy).
     - `use_design`: start one local run at the problem's base design (clipped to the
@@ -619,6 +645,7 @@ def search(
     **Returns:** `OptimiseResult` (`method` `"search"`, one scenario). Its objectives are
     exact (true peaks).
 
+    **Raises:** `ParameterError` for bad arguments, before compiling.
     """
     if problem.objective.scatter is not None:
         raise ParameterError(
@@ -631,6 +658,9 @@ def search(
     local = default_local(problem, minimax) if local is None else local
     if not isinstance(local, LocalMethod):
         raise ParameterError(f"search: local must be a LocalMethod, got {local!r}")
+    global_phase = SobolStarts() if global_phase is None else global_phase
+    if not isinstance(global_phase, SobolStarts):
+        raise ParameterError(f"search: global_phase must be a SobolStarts, got {global_phase!r}")
     if local.minimax and minimax_metric(problem) is None:
         raise ParameterError(
             "search: minimax needs an objective that is one peak over time "
@@ -643,7 +673,7 @@ def search(
     study = None
     if store is not None:
         study = _open_study_store(
-            store, problem, local, hopping, samples, starts, use_design, seed, workers, progress
+            store, problem, local, hopping, global_phase, use_design, seed, workers, progress
         )
         workers = int(study.plan["workers"])
     began = time.perf_counter()
@@ -801,8 +831,7 @@ def search(
             run_evaluator(),  # the warm-up's
             len(problem.tune),
             local=local,
-            samples=samples,
-            starts=starts,
+            global_phase=global_phase,
             initial=initial,
             hopping=hopping,
             seed=seed,
@@ -828,17 +857,17 @@ def search(
 
 
 def _open_study_store(
-    path, problem, local, hopping, samples, starts, use_design, seed, workers, progress
+    path, problem, local, hopping, global_phase, use_design, seed, workers, progress
 ) -> StudyStore:
     """The store at `path` for this search (created, or checked to be this search's);
     its plan's `workers` replaces `workers`."""
     from . import __version__
 
     identity = fingerprint(
-        "search", __version__, problem, local, hopping, samples, starts, use_design, seed
+        "search", __version__, problem, local, hopping, global_phase, use_design, seed
     )
-    runs = starts + int(use_design) + (0 if hopping is None else hopping.hops)
-    n_samples = 0 if samples == 0 else int(2 ** np.ceil(np.log2(samples)))
+    runs = global_phase.starts + int(use_design) + (0 if hopping is None else hopping.hops)
+    n_samples = global_phase.points
     study = StudyStore(
         path,
         identity=identity,

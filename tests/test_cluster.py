@@ -125,7 +125,7 @@ def test_a_search_and_the_tuning_baselines_on_a_cluster(client, tmp_path, capsys
         bounds={"gap": (0.0, 0.12)},
         constraints=(rj.Constraint("max_stroke", upper=0.15),),
     )
-    settings = dict(samples=64, starts=1, progress=False)
+    settings = dict(global_phase=rj.SobolStarts(64, 1), progress=False)
     alone = rj.search(problem, **settings)
     spread = rj.search(problem, client=client, **settings)
     for name in ("objective", "violation", "ok"):

@@ -45,7 +45,9 @@ def test_minimise_finds_the_optimum_on_an_active_bound(method):
         lambda z: (z[0] - 0.3) ** 2 + (z[1] - 1.5) ** 2,
         lambda z: np.asarray([2 * (z[0] - 0.3), 2 * (z[1] - 1.5)]),
     )
-    result = rj.minimise(batch, local, 2, samples=64, starts=2, local=method, progress=False)
+    result = rj.minimise(
+        batch, local, 2, global_phase=rj.SobolStarts(64, 2), local=method, progress=False
+    )
     assert result.feasible[0]
     np.testing.assert_allclose(result.best_theta[0], [0.3, 1.0], atol=1e-6)
     assert result.best_objective[0] == pytest.approx(0.25, abs=1e-9)
@@ -63,7 +65,9 @@ def test_minimise_holds_an_active_constraint(method):
         constraints=(lambda z: z[0] + z[1] - 1.0,),
         constraint_grads=(lambda z: np.ones(2),),
     )
-    result = rj.minimise(batch, local, 2, samples=32, starts=2, local=method, progress=False)
+    result = rj.minimise(
+        batch, local, 2, global_phase=rj.SobolStarts(32, 2), local=method, progress=False
+    )
     assert result.feasible[0]
     z = result.best_theta[0]
     assert z[0] + z[1] <= 1.0 - 1e-6  # held, with the feasibility tolerance
@@ -83,7 +87,9 @@ def test_minimise_finds_the_global_minimum_of_a_multimodal_function():
 
     batch, local = _analytic(f, grad)
     for seed in range(8):
-        result = rj.minimise(batch, local, 2, samples=256, starts=8, seed=seed, progress=False)
+        result = rj.minimise(
+            batch, local, 2, global_phase=rj.SobolStarts(256, 8), seed=seed, progress=False
+        )
         np.testing.assert_allclose(result.best_theta[0], [0.6, 0.6], atol=1e-5)
         assert result.best_objective[0] == pytest.approx(0.0, abs=1e-8)
 
@@ -104,7 +110,10 @@ def test_minimise_counts_the_starts_that_reach_the_best_basin():
 
     def run(starts, **kwargs):
         initial = [np.asarray([z]) for z in starts]
-        return rj.minimise(batch, local, 1, samples=0, initial=initial, progress=False, **kwargs)
+        return rj.minimise(
+            batch, local, 1, global_phase=rj.SobolStarts(0, 0), initial=initial, progress=False,
+            **kwargs,
+        )  # fmt: skip
 
     batch, local = _analytic(f, grad)
     once = run((0.1, 0.35, 0.5, 0.88))
@@ -144,7 +153,7 @@ def test_each_local_run_gets_its_own_evaluation_function():
 
     batch, local = _analytic(lambda z: float((z[0] - 0.5) ** 2), lambda z: 2 * (z - 0.5))
     result = rj.minimise(
-        batch, local, 1, samples=16, starts=3, workers=2, progress=False,
+        batch, local, 1, global_phase=rj.SobolStarts(16, 3), workers=2, progress=False,
         hopping=rj.BasinHopping(hops=2), run_evaluator=run_evaluator,
     )  # fmt: skip
     assert len(made) == len(result.runs) == 5  # 3 starts, 2 hops
@@ -180,7 +189,7 @@ def test_minimise_reports_an_unmeetable_constraint_as_infeasible():
         constraints=(lambda z: 2.0 - z[0],),
         constraint_grads=(lambda z: np.asarray([-1.0, 0.0]),),
     )
-    result = rj.minimise(batch, local, 2, samples=32, starts=2, progress=False)
+    result = rj.minimise(batch, local, 2, global_phase=rj.SobolStarts(32, 2), progress=False)
     assert not result.feasible[0]
     assert np.isnan(result.best_objective[0]) and np.all(np.isnan(result.best_theta[0]))
     assert not result.trace["feasible"].any()
@@ -197,7 +206,9 @@ def test_minimise_steps_back_from_failed_solves():
     def batch(z):
         return (z[:, 0] - 1.0) ** 2, np.zeros((len(z), 0)), z[:, 0] <= 0.5
 
-    result = rj.minimise(batch, value_and_jacobian, 1, samples=16, starts=1, progress=False)
+    result = rj.minimise(
+        batch, value_and_jacobian, 1, global_phase=rj.SobolStarts(16, 1), progress=False
+    )
     assert result.feasible[0] and result.best_theta[0, 0] <= 0.5
     assert result.best_objective[0] == pytest.approx(0.25, abs=0.02)
 
@@ -233,7 +244,12 @@ def test_minimise_solves_a_minimax_with_an_active_constraint(limit, z_opt, f_opt
         return f, g, df, dg, values(z).max(), True
 
     result = rj.minimise(
-        batch, value_and_jacobian, 2, samples=64, starts=2, local=method, progress=False
+        batch,
+        value_and_jacobian,
+        2,
+        global_phase=rj.SobolStarts(64, 2),
+        local=method,
+        progress=False,
     )
     assert result.feasible[0]
     np.testing.assert_allclose(result.best_theta[0], [0.5, z_opt], atol=1e-4)
@@ -267,7 +283,12 @@ def test_minimise_ends_a_noisy_minimax(method, ending):
         return np.asarray([values(x).max() for x in z]), np.zeros((len(z), 0)), np.ones(len(z))
 
     result = rj.minimise(
-        batch, value_and_jacobian, 1, samples=8, starts=1, local=method, progress=False
+        batch,
+        value_and_jacobian,
+        1,
+        global_phase=rj.SobolStarts(8, 1),
+        local=method,
+        progress=False,
     )
     (run,) = result.runs
     assert run["message"].startswith(ending), run["message"]
@@ -278,7 +299,9 @@ def test_minimise_ends_a_noisy_minimax(method, ending):
 @pytest.mark.parametrize(
     "kwargs, match",
     [
-        (dict(samples=-1), "samples"),
+        (dict(global_phase=lambda: rj.SobolStarts(samples=-1)), "samples >= 0"),
+        (dict(global_phase=lambda: rj.SobolStarts(spacing=0.0)), "0 < spacing <= 1"),
+        (dict(global_phase=8), "global_phase must be a SobolStarts"),
         (dict(local=lambda: rj.SLSQP(maxiter=0)), "maxiter = 0: valid >= 1"),
         (dict(local=lambda: rj.SLSQP(schedule=(1.0, -1.0))), "levels must be factors >= 0"),
         (dict(local=lambda: rj.SLSQP(schedule=(1.0, 0.0))), "0 is the minimax"),
@@ -291,8 +314,8 @@ def test_minimise_ends_a_noisy_minimax(method, ending):
 def test_minimise_rejects_bad_arguments(kwargs, match):
     batch, local = _analytic(lambda z: 0.0, lambda z: np.zeros(1))
     with pytest.raises(rj.ParameterError, match=match):
-        if callable(kwargs.get("local")):
-            kwargs = {"local": kwargs["local"]()}  # the method's own check raises
+        # A method's or phase's own check raises as it is made.
+        kwargs = {k: v() if callable(v) else v for k, v in kwargs.items()}
         rj.minimise(batch, local, 1, **kwargs)
 
 
@@ -318,7 +341,9 @@ def test_a_new_local_method_plugs_in_without_touching_the_library():
         lambda z: np.asarray([2 * (z[0] - 0.3), 2 * (z[1] - 1.5)]),
     )
     method = _ProjectedGradient(maxiter=60)
-    result = rj.minimise(batch, local, 2, samples=16, starts=2, local=method, progress=False)
+    result = rj.minimise(
+        batch, local, 2, global_phase=rj.SobolStarts(16, 2), local=method, progress=False
+    )
     assert result.feasible[0]
     np.testing.assert_allclose(result.best_theta[0], [0.3, 1.0], atol=1e-6)
     assert [run["iterations"] for run in result.runs] == [60, 60]
@@ -347,7 +372,7 @@ def _grid_best(problem) -> float:
 
 def test_search_matches_a_dense_grid_with_one_compilation():
     problem = _gap_problem()
-    result = rj.search(problem, samples=32, starts=2, progress=False)
+    result = rj.search(problem, global_phase=rj.SobolStarts(32, 2), progress=False)
     assert result.feasible[0] and result.compilations == 1
     assert_complete_result(result, "search", 1)
     # Independent: the best feasible point of a dense grid of plain solves.
@@ -361,7 +386,11 @@ def test_search_matches_a_dense_grid_with_one_compilation():
     # Another run of the same problem compiles nothing new, also with optax driving the
     # local runs (the same gradient program), to the same optimum.
     again = rj.search(
-        problem, samples=32, starts=1, seed=1, local=rj.OptaxLocal(maxiter=40), progress=False
+        problem,
+        global_phase=rj.SobolStarts(32, 1),
+        seed=1,
+        local=rj.OptaxLocal(maxiter=40),
+        progress=False,
     )
     assert again.compilations == 0
     assert grid_best * (1 - 2e-3) <= again.best_objective[0] <= grid_best * (1 + 1e-5)
@@ -373,7 +402,7 @@ def test_search_as_a_minimax_matches_the_dense_grid():
     # The same problem as a minimax with no smoothing (the signal at 1024 times and its
     # peak as constraints): the same optimum as the grid, one program compiled.
     problem = _gap_problem()
-    result = rj.search(problem, samples=32, starts=2, minimax=True, progress=False)
+    result = rj.search(problem, global_phase=rj.SobolStarts(32, 2), minimax=True, progress=False)
     assert result.feasible[0] and result.compilations == 1
     grid_best = _grid_best(problem)
     assert grid_best * (1 - 2e-3) <= result.best_objective[0] <= grid_best * (1 + 1e-5)
@@ -392,7 +421,7 @@ def test_search_levels_narrow_peaks_on_the_epigraph():
             {"peak_anchoring_force": 1.0}, temperatures={"peak_anchoring_force": 300.0}
         ),
     )
-    result = rj.search(problem, samples=32, starts=2, progress=False)
+    result = rj.search(problem, global_phase=rj.SobolStarts(32, 2), progress=False)
     assert result.feasible[0] and result.compilations == 2
     grid_best = _grid_best(problem)
     assert grid_best * (1 - 2e-3) <= result.best_objective[0] <= grid_best * (1 + 1e-5)
@@ -424,7 +453,9 @@ def test_local_maxima_are_refined_onto_the_peaks():
 
 def test_search_reports_an_unmeetable_limit_as_infeasible():
     problem = _gap_problem(limit=1e-4)  # no absorber stroke is that small
-    result = rj.search(problem, samples=16, starts=0, use_design=False, progress=False)
+    result = rj.search(
+        problem, global_phase=rj.SobolStarts(16, 0), use_design=False, progress=False
+    )
     assert not result.feasible[0] and np.isnan(result.best_objective[0])
     with pytest.raises(rj.ParameterError, match="no feasible design"):
         result.best_design()
@@ -582,7 +613,9 @@ def test_basin_hopping_finds_a_narrow_basin_beside_the_best_one_found():
         return np.asarray([2 * (z[0] - 0.3) + bump])
 
     batch, local = _analytic(f, grad)
-    common = dict(samples=0, starts=0, initial=[np.asarray([0.3])], progress=False, workers=2)
+    common = dict(
+        global_phase=rj.SobolStarts(0, 0), initial=[np.asarray([0.3])], progress=False, workers=2
+    )
     alone = rj.minimise(batch, local, 1, **common)
     assert alone.best_theta[0, 0] == pytest.approx(0.3, abs=1e-4)  # the wide basin only
     hopping = rj.BasinHopping(hops=16, step=0.1)

@@ -338,7 +338,9 @@ def _gap_problem():
     )
 
 
-SEARCH = dict(samples=32, starts=2, hopping=rj.BasinHopping(hops=2), workers=1, progress=False)
+SEARCH = dict(
+    global_phase=rj.SobolStarts(32, 2), hopping=rj.BasinHopping(hops=2), workers=1, progress=False
+)
 
 
 def _study_rows(path) -> dict:
@@ -435,7 +437,7 @@ def test_interrupted_optimise_resumes_to_the_same_bits(tmp_path):
 def test_foreign_study_stores_are_refused(tmp_path):
     problem = _gap_problem()
     store = tmp_path / "seed0.sqlite"
-    small = dict(samples=4, starts=0, use_design=False, progress=False)
+    small = dict(global_phase=rj.SobolStarts(4, 0), use_design=False, progress=False)
     rj.search(problem, store=store, **small)
     before = store.read_bytes()
     with pytest.raises(rj.ParameterError, match="holds the results of a different study"):

@@ -325,9 +325,14 @@ def search_kwargs(study: Study, progress: bool | None) -> dict:
     kwargs: dict[str, Any] = dict(
         use_design=study.has_start, progress=progress, local=local_method(study)
     )
-    for key in ("samples", "starts", "seed"):
-        if key in o:
-            kwargs[key] = int(o[key])
+    if "seed" in o:
+        kwargs["seed"] = int(o["seed"])
+    if "samples" in o or "starts" in o:
+        defaults = rj.SobolStarts()
+        kwargs["global_phase"] = rj.SobolStarts(
+            samples=int(o.get("samples", defaults.samples)),
+            starts=int(o.get("starts", defaults.starts)),
+        )
     if "max_seconds" in o:
         kwargs["max_seconds"] = float(o["max_seconds"])
     if "hops" in o or "hop_step" in o:
