@@ -67,6 +67,12 @@ class Stalled(Exception):
     """A minimax run stopped improving (`LocalMethod.stall_solves`)."""
 
 
+#: How a local method's message starts when its own test of convergence ended the run
+#: (`OptimiseResult.runs`' `converged`); a stall of a minimax counts. Anything else (an
+#: iteration limit, a failed line search or LP, the time budget, failed solves) does not.
+CONVERGED = ("converged", "stalled", "Optimization terminated successfully")
+
+
 class LocalMethod(eqx.Module):
     """A local method of `minimise`: its settings, and `run`.
 
@@ -113,7 +119,8 @@ class LocalMethod(eqx.Module):
         return self.levels[-1] == 0
 
     def run(self, local: LocalRun, z0: np.ndarray) -> tuple[np.ndarray, str]:
-        """Minimise from `z0`; returns the end point and a message."""
+        """Minimise from `z0`; returns the end point and a message (starting with
+        `"converged"` when the method's own test ended it: `CONVERGED`)."""
         raise NotImplementedError
 
 
@@ -261,9 +268,7 @@ def run_local(
         "objective": local.final,
         "iterations": local.iterations,
         "message": message,
-        # Its own stopping rule ended it (a stall included), not the budget, failed
-        # solves or an iteration limit.
-        "converged": not stopped and "iteration limit" not in message.lower(),
+        "converged": not stopped and message.startswith(CONVERGED),
         "seconds": (began, clock()),
     }
 
@@ -443,7 +448,9 @@ class OptaxLocal(LocalMethod):
     updated every `update_every` steps, the `penalty` multiplied by `penalty_growth`
     while a limit is violated, up to `max_penalty`). One gradient solve a step; a level
     ends after `maxiter` steps or once a step moves no coordinate by more than `xtol`.
-    The best feasible point of every evaluation is the run's, as for every method.
+    A point whose solve fails is stepped back from: the run returns to the last good
+    point and halves its steps from there. The best feasible point of every evaluation
+    is the run's, as for every method.
 
     First-order steps need more gradient solves than SLSQP's quasi-Newton ones (the
     tests: a few hundred against a few tens), so `search` defaults to SLSQP; this is the
@@ -465,13 +472,6 @@ class OptaxLocal(LocalMethod):
         return tuple(self.schedule)
 
     def __check_init__(self):
-        import optax
-
-        if not callable(getattr(optax, self.optimiser, None)):
-            raise ParameterError(
-                f"OptaxLocal: optimiser = {self.optimiser!r} is not an optax optimiser "
-                "(valid: the name of one, e.g. 'adam', 'sgd', 'lion')"
-            )
         if not (self.learning_rate > 0 and 0 < self.final_fraction <= 1):
             raise ParameterError(
                 f"OptaxLocal: need learning_rate > 0 and 0 < final_fraction <= 1 (got "
@@ -487,29 +487,52 @@ class OptaxLocal(LocalMethod):
                 f"OptaxLocal: schedule must be factors > 0 (0 is the minimax: "
                 f"EpigraphMinimax or TrustRegionLP), got {self.schedule}"
             )
+        try:  # one update of a 2-vector: the name is an optimiser that takes a gradient
+            probe = self._transformation()
+            probe.update(np.ones(2), probe.init(np.zeros(2)), np.zeros(2))
+        except Exception as error:
+            raise ParameterError(
+                f"OptaxLocal: optimiser = {self.optimiser!r} is not an optax optimiser that "
+                f"steps on a gradient alone (valid: the name of one, e.g. 'adam', 'sgd', "
+                f"'lion'): {type(error).__name__}: {error}"
+            ) from None
 
-    def run(self, local: LocalRun, z0: np.ndarray) -> tuple[np.ndarray, str]:
+    def _transformation(self):
         import optax
 
+        step = optax.cosine_decay_schedule(
+            self.learning_rate, self.maxiter, alpha=self.final_fraction
+        )
+        transformation = getattr(optax, self.optimiser)(step)
+        if not isinstance(transformation, optax.GradientTransformation):
+            raise TypeError(f"optax.{self.optimiser}(learning_rate) is not an optimiser")
+        return transformation
+
+    def run(self, local: LocalRun, z0: np.ndarray) -> tuple[np.ndarray, str]:
         z, message = np.asarray(z0, dtype=float), ""
         for level in self.schedule:
             scale = local.start_level(z, level)
-            step = optax.cosine_decay_schedule(
-                self.learning_rate, self.maxiter, alpha=self.final_fraction
-            )
-            optimiser = getattr(optax, self.optimiser)(step)
+            optimiser = self._transformation()
             state = optimiser.init(z)
             multipliers, penalty = None, self.penalty
+            # The last point whose solve succeeded, and a factor on the steps that halves
+            # at each failed one: the run steps back from where the model fails.
+            last, shrink = None, 1.0
             message = f"iteration limit reached: {self.maxiter} steps"
             for k in range(self.maxiter):
+                failures = local.failures
                 _, g, df, dg = local.evaluate(z, level)
+                if local.failures > failures and last is not None:
+                    (z, g, df, dg), shrink = last, shrink / 2
+                else:
+                    last = (z, g, df, dg)
                 if multipliers is None:
                     multipliers = np.zeros_like(g)
                 # The gradient of f/scale + Σ(max(λ + ρ(g + margin), 0)² - λ²) / 2ρ.
                 active = np.maximum(multipliers + penalty * (g + self.margin), 0.0)
                 gradient = df / scale + active @ dg
                 updates, state = optimiser.update(gradient, state, z)
-                moved = np.clip(z + np.asarray(updates), 0.0, 1.0)
+                moved = np.clip(z + shrink * np.asarray(updates), 0.0, 1.0)
                 local.iterations += 1
                 if (k + 1) % self.update_every == 0:
                     multipliers = active

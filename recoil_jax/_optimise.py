@@ -425,19 +425,23 @@ def optimise(
                 "region": r % starts,  # each start its own region
                 "phase": "start",
                 "theta0": theta0[r],
-                "theta": history["theta"][runs_taken[r] - 1, r],
-                "objective": float(history["objective"][runs_taken[r] - 1, r]),
+                # Where it ended: a stopped run stays at the point its last step
+                # moved to, evaluated at every later step of the others.
+                "theta": history["theta"][-1, r],
+                "objective": float(history["objective"][-1, r]),
                 "best_objective": float(run_best_objective[r]) if found else np.inf,
                 "best_theta": run_best_theta[r] if found else np.full(len(problem.tune), np.nan),
-                "evaluations": int(runs_taken[r]),
+                "evaluations": len(records),
                 "iterations": int(runs_taken[r]),
                 "converged": bool(converged_step[r] >= 0),
                 "message": message,
                 "seconds": (0.0, float(seconds[runs_taken[r] - 1])),
-                "no_impact": bool(history["peak_contact_force"][runs_taken[r] - 1, r] == 0.0),
+                "no_impact": bool(history["peak_contact_force"][-1, r] == 0.0),
             }
         )
-    steps_of, runs_of = np.nonzero(took)  # every evaluation, step by step
+    # Every evaluation, step by step: the vmapped step solves every run, a stopped one
+    # at where it stopped ("stopped"), so its last move is judged like the others.
+    steps_of, runs_of = np.nonzero(np.ones_like(took))
     return OptimiseResult(
         method="optax",
         problem=problem,
@@ -452,7 +456,7 @@ def optimise(
             "objective": history["objective"][steps_of, runs_of],
             "feasible": held[steps_of, runs_of],
             "gradient": np.ones(len(steps_of), dtype=bool),
-            "phase": np.full(len(steps_of), "step"),
+            "phase": np.where(took[steps_of, runs_of], "step", "stopped"),
         },
         solves=0,
         gradient_solves=len(records) * runs * samples,

@@ -217,7 +217,7 @@ class Agreement(NamedTuple):
     - `starts`: local runs from the starts (the given design and the sampled points;
       not basin hopping's, which start beside the best) that evaluated a point;
     - `regions`: those starts grouped by where they began (`search` places every other
-      start beside an earlier one: a start within `SPACING`, max-norm in normalised
+      start beside an earlier one: a start within `SobolStarts.spacing`, max-norm in normalised
       coordinates, of a region's first joins it; `optimise`'s starts are each their
       own);
     - `reached`: the regions with a run that evaluated a feasible design within `rtol`

@@ -35,13 +35,17 @@ class OptimiseResult:
     - `runs`: every local run, in order, a dict by name: `scenario`, `region` (starts
       that began in one region of the box share it; None for basin hopping's runs),
       `phase` (`"start"` or `"hop"`), `theta0`, `theta` (where it ended),
-      `objective` (exact, at its end; NaN if it evaluated nothing), `best_objective`
+      `objective` (what the method minimised, at its end: the smoothed objective at a
+      smoothed level; NaN if the run ended before a level did), `best_objective`
       and `best_theta` (the best feasible point it evaluated: inf and NaN if none),
       `evaluations` (0 for a run the time budget stopped before its first),
-      `iterations`, `converged`, `message`, `seconds` (its start and end).
+      `iterations`, `converged` (its own test ended it, not a limit, a failure or the
+      budget), `message`, `seconds` (its start and end).
     - `trace`: every evaluation in order, arrays by name: `seconds` since the start,
       `scenario`, `objective` (exact), `feasible`, `gradient` (whether it was a
-      gradient solve), `phase` (`"sample"`, `"start"`/`"local"`, or `"step"`).
+      gradient solve), `phase` (`"sample"` and `"local"` for `search`; `"step"` for
+      `optimise`, or `"stopped"` for a stopped run evaluated again where it stopped, as
+      every step solves every run).
     - `solves`, `gradient_solves`: plain solves and solves with sensitivities
       (`simulations`: both); `seconds`; `compilations` of the gradient program;
       `replayed`: evaluations read back from a study's store instead of solved.
@@ -122,8 +126,8 @@ class OptimiseResult:
         they began in, how many regions reached a feasible design within `rtol` of the
         best objective. One region alone means the best basin was found once: another
         seed may well end elsewhere (measured on `burst_recuperator`:
-        `optimise/README.md`). `search` groups its starts by `SPACING`; each start of
-        `optimise` is its own region."""
+        `optimise/README.md`). `search` groups its starts by its global phase's
+        `spacing` (`SobolStarts`); each start of `optimise` is its own region."""
         best = self.best_objective[scenario]
         limit = best + rtol * abs(best)  # NaN where none was feasible: none reached
         regions: dict[Any, bool] = {}

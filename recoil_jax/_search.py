@@ -864,8 +864,12 @@ def _open_study_store(
     from . import __version__
 
     identity = fingerprint(
-        "search", __version__, problem, local, hopping, global_phase, use_design, seed
-    )
+        "search", __version__, problem, local, hopping, global_phase.samples,
+        global_phase.starts, use_design, seed,
+        # (the spacing only when it is not the default: stores made before it was a
+        # setting keep resuming)
+        *([] if global_phase.spacing == SPACING else [global_phase.spacing]),
+    )  # fmt: skip
     runs = global_phase.starts + int(use_design) + (0 if hopping is None else hopping.hops)
     n_samples = global_phase.points
     study = StudyStore(

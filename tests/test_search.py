@@ -75,6 +75,28 @@ def test_minimise_holds_an_active_constraint(method):
     assert result.best_objective[0] == pytest.approx(0.5, rel=1e-4)
 
 
+@LOCAL_SMOOTH
+def test_a_local_run_steps_back_from_failed_solves(method):
+    # min (z - 0.9)^2, but every solve above z = 0.7 fails: the runs end at the edge of
+    # where the model solves, not beyond it, and do not call that converged.
+    def value_and_jacobian(z, level):
+        ok = bool(z[0] <= 0.7)
+        f = (z[0] - 0.9) ** 2 if ok else np.nan
+        return f, np.zeros(0), np.asarray([2 * (z[0] - 0.9)]), np.zeros((0, 1)), f, ok
+
+    def batch(z):
+        ok = z[:, 0] <= 0.7
+        return np.where(ok, (z[:, 0] - 0.9) ** 2, np.nan), np.zeros((len(z), 0)), ok
+
+    result = rj.minimise(
+        batch, value_and_jacobian, 1, local=method, global_phase=rj.SobolStarts(0, 0),
+        initial=[np.asarray([0.2])], progress=False,
+    )  # fmt: skip
+    (run,) = result.runs
+    assert result.best_theta[0, 0] == pytest.approx(0.7, abs=0.01)
+    assert run["message"].startswith("solves failed") and not run["converged"]
+
+
 def test_minimise_finds_the_global_minimum_of_a_multimodal_function():
     # A 2-D Rastrigin function, 4 local minima per axis in the box; global at z = 0.6.
     def f(z):
@@ -307,6 +329,8 @@ def test_minimise_ends_a_noisy_minimax(method, ending):
         (dict(local=lambda: rj.SLSQP(schedule=(1.0, 0.0))), "0 is the minimax"),
         (dict(local="slsqp"), "local must be a LocalMethod"),
         (dict(local=lambda: rj.OptaxLocal(optimiser="nope")), "not an optax optimiser"),
+        (dict(local=lambda: rj.OptaxLocal(optimiser="apply_updates")), "not an optax optimiser"),
+        (dict(local=lambda: rj.OptaxLocal(optimiser="lbfgs")), "on a gradient alone"),
         (dict(local=lambda: rj.OptaxLocal(learning_rate=0.0)), "learning_rate > 0"),
         (dict(local=lambda: rj.OptaxLocal(schedule=(0.0,))), "0 is the minimax"),
     ],
@@ -347,6 +371,7 @@ def test_a_new_local_method_plugs_in_without_touching_the_library():
     assert result.feasible[0]
     np.testing.assert_allclose(result.best_theta[0], [0.3, 1.0], atol=1e-6)
     assert [run["iterations"] for run in result.runs] == [60, 60]
+    assert not any(run["converged"] for run in result.runs)  # an iteration limit
     # Each iteration and the end point, and the warm-up at the centre of the box.
     assert result.gradient_solves == 2 * 61 + 1
     assert result.trace["phase"].tolist().count("local") == 2 * 61 + 1
