@@ -497,6 +497,13 @@ def test_optimise_command_resumes_from_its_store(tmp_path, capsys):
     # Each summary says how many starts reached its best design.
     agreement = [r["optimiser"]["agreement"] for r in (first, second)]
     assert agreement[0] == agreement[1] and agreement[0]["reached"] >= 1
+    # Where every local run ended (starts and hops), best first, the same when resumed;
+    # no run beats the best design (a sample may have found it).
+    groups = first["optimiser"]["where_starts_ended"]
+    assert groups == second["optimiser"]["where_starts_ended"]
+    assert sum(g["count"] for g in groups) == len(first["optimiser"]["local_runs"]) == 5
+    ends = [g["objective"] for g in groups if g["objective"] is not None]
+    assert ends == sorted(ends) and ends[0] >= first["objective"] * (1 - 1e-6)
     assert captured.out.count(rj.Agreement(**agreement[0]).line()) == 2
     assert main(["progress", str(store)]) == 0
     line = capsys.readouterr().out

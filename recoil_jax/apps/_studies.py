@@ -396,6 +396,7 @@ def _search_summary(result: rj.OptimiseResult, local: rj.LocalMethod) -> dict:
             for run in result.runs
         ],
         "agreement": result.agreement()._asdict(),
+        "where_starts_ended": result.clusters(),
         "solves": result.solves,
         "gradient_solves": result.gradient_solves,
         "compilations": result.compilations,
