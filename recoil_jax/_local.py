@@ -286,11 +286,7 @@ class SLSQP(LocalMethod):
         return tuple(self.schedule)
 
     def __check_init__(self):
-        if not self.schedule or 0.0 in self.schedule:
-            raise ParameterError(
-                f"SLSQP: schedule must be factors > 0 (0 is the minimax: EpigraphMinimax "
-                f"or TrustRegionLP), got {self.schedule}"
-            )
+        _check_smoothed_schedule(self)
 
     def run(self, local: LocalRun, z0: np.ndarray) -> tuple[np.ndarray, str]:
         z, message = z0, ""
@@ -482,11 +478,7 @@ class OptaxLocal(LocalMethod):
                 f"OptaxLocal: need penalty > 0, penalty_growth >= 1, update_every >= 1 (got "
                 f"{self.penalty}, {self.penalty_growth}, {self.update_every})"
             )
-        if not self.schedule or 0.0 in self.schedule:
-            raise ParameterError(
-                f"OptaxLocal: schedule must be factors > 0 (0 is the minimax: "
-                f"EpigraphMinimax or TrustRegionLP), got {self.schedule}"
-            )
+        _check_smoothed_schedule(self)
         try:  # one update of a 2-vector: the name is an optimiser that takes a gradient
             probe = self._transformation()
             probe.update(np.ones(2), probe.init(np.zeros(2)), np.zeros(2))
@@ -544,6 +536,16 @@ class OptaxLocal(LocalMethod):
                 z = moved
             local.level_done(z, level)
         return z, message
+
+
+def _check_smoothed_schedule(method) -> None:
+    """A method on the smoothed objective only: its `schedule` of temperature factors
+    is not empty and has no 0 (the minimax's level)."""
+    if not method.schedule or 0.0 in method.schedule:
+        raise ParameterError(
+            f"{type(method).__name__}: schedule must be factors > 0 (0 is the minimax: "
+            f"EpigraphMinimax or TrustRegionLP), got {method.schedule}"
+        )
 
 
 def _padded(jacobian: np.ndarray, columns: int) -> np.ndarray:

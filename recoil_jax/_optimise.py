@@ -219,18 +219,17 @@ def _scenarios(
     return params, limits
 
 
-def _select_best(history: dict[str, np.ndarray], scenarios: int, starts: int):
-    """The best feasible point of each run, and of each scenario; and the least
-    violating point of each scenario."""
+def _select_best(history: dict[str, np.ndarray], held: np.ndarray, scenarios: int, starts: int):
+    """The best feasible point of each run (inf where none), and of each scenario (NaN
+    where none); and the least violating point of each scenario. `held (N, R)`: which
+    evaluations held every limit."""
     ok = history["status"] == int(status_codes(Status.ok))
     runs = scenarios * starts
-    held = feasible(ok, history["objective"], history["violations"])
     values = np.where(held, history["objective"], np.inf)  # (N, R)
     run_best_step = np.argmin(values, axis=0)
     run_best_objective = values[run_best_step, np.arange(runs)]
-    run_best_objective = np.where(np.isfinite(run_best_objective), run_best_objective, np.nan)
     run_best_theta = history["theta"][run_best_step, np.arange(runs)]
-    best = {"theta": [], "objective": [], "run": [], "step": []}
+    best = {"theta": [], "objective": []}
     # The largest violation of each point; inf where the solve failed.
     worst = np.max(history["violations"], axis=-1, initial=-np.inf)
     worst = np.where(ok & np.isfinite(history["objective"]), worst, np.inf)
@@ -240,11 +239,9 @@ def _select_best(history: dict[str, np.ndarray], scenarios: int, starts: int):
         step, run = np.unravel_index(np.argmin(worst[:, rs]), worst[:, rs].shape)
         best["closest_theta"].append(history["theta"][step, rs[run]])
         best["closest_violation"].append(worst[step, rs[run]])
-        scores = np.where(np.isnan(run_best_objective[rs]), np.inf, run_best_objective[rs])
-        r = int(rs[np.argmin(scores)])
-        best["run"].append(r)
-        best["step"].append(int(run_best_step[r]))
-        best["objective"].append(run_best_objective[r])
+        r = int(rs[np.argmin(run_best_objective[rs])])
+        found = np.isfinite(run_best_objective[r])
+        best["objective"].append(run_best_objective[r] if found else np.nan)
         best["theta"].append(run_best_theta[r])
     return ({k: np.asarray(v) for k, v in best.items()}, run_best_objective, run_best_theta)
 
@@ -404,9 +401,9 @@ def optimise(
         "violations": np.stack([r.violations for r in records]),
         "status": np.stack([r.status for r in records]),
     } | {name: np.stack([r.metrics[name] for r in records]) for name in records[0].metrics}
-    best, run_best_objective, run_best_theta = _select_best(history, n_scenarios, starts)
-    took = np.stack(stepped_masks)  # (N, R): which runs took each step
     held = feasible(history["status"] == ok, history["objective"], history["violations"])
+    best, run_best_objective, run_best_theta = _select_best(history, held, n_scenarios, starts)
+    took = np.stack(stepped_masks)  # (N, R): which runs took each step
     seconds = np.asarray(step_seconds)
     theta0 = np.asarray(_to_theta(space, u0))
     runs_taken = took.sum(axis=0)
@@ -429,7 +426,7 @@ def optimise(
                 # moved to, evaluated at every later step of the others.
                 "theta": history["theta"][-1, r],
                 "objective": float(history["objective"][-1, r]),
-                "best_objective": float(run_best_objective[r]) if found else np.inf,
+                "best_objective": float(run_best_objective[r]),
                 "best_theta": run_best_theta[r] if found else np.full(len(problem.tune), np.nan),
                 "evaluations": len(records),
                 "iterations": int(runs_taken[r]),
@@ -441,7 +438,7 @@ def optimise(
         )
     # Every evaluation, step by step: the vmapped step solves every run, a stopped one
     # at where it stopped ("stopped"), so its last move is judged like the others.
-    steps_of, runs_of = np.nonzero(np.ones_like(took))
+    steps_of, runs_of = np.indices(took.shape).reshape(2, -1)
     return OptimiseResult(
         method="optax",
         problem=problem,

@@ -131,14 +131,13 @@ class OptimiseResult:
         best = self.best_objective[scenario]
         limit = best + rtol * abs(best)  # NaN where none was feasible: none reached
         regions: dict[Any, bool] = {}
+        starts = 0
         for run in self._runs_of(scenario):
             if run["phase"] != "start" or run["evaluations"] == 0:
                 continue
+            starts += 1
             reached = bool(run["best_objective"] <= limit)  # NaN limit: none feasible
             regions[run["region"]] = regions.get(run["region"], False) or reached
-        starts = sum(
-            run["phase"] == "start" and run["evaluations"] > 0 for run in self._runs_of(scenario)
-        )
         return Agreement(reached=sum(regions.values()), regions=len(regions), starts=starts)
 
     def clusters(self, scenario: int = 0, rtol: float = 1e-3) -> list[dict]:
