@@ -248,7 +248,9 @@ class PeakLoop:
     def running(self, c: _Carry):
         return (c.t < c.t1) & (c.status == Status.ok) & ~c.settled
 
-    def body(self, c: _Carry, args, save_ts=None) -> _Carry:
+    def body(self, c: _Carry, args, save_ts=None, check_bounds=None) -> _Carry:
+        """One attempted step. `check_bounds` (a traced bool, the same for every lane
+        under `vmap`; None: always): whether to test if the peaks are now certain."""
         term, solver = self.term, self.solver
         t1, t1_floor = _end_times(c.t1)
         t_end = c.t_next
@@ -301,9 +303,19 @@ class PeakLoop:
         best = jnp.where(improve, step_best, c.best)
         settled = c.settled
         if self.bounds_fn is not None:
-            bounds = self.bounds_fn(z1, args, t_end, t1)
-            bounds = jnp.stack([bounds[name] for name in c.names])
-            settled = settled | (keep & jnp.all(bounds <= best))
+            bounds_fn = self.bounds_fn
+
+            def certain():
+                bounds = bounds_fn(z1, args, t_end, t1)
+                bounds = jnp.stack([bounds[name] for name in c.names])
+                return settled | (keep & jnp.all(bounds <= best))
+
+            # A flag not batched keeps the `cond` a branch under `vmap`, not a select.
+            settled = (
+                certain()
+                if check_bounds is None
+                else jax.lax.cond(check_bounds, certain, lambda: settled)
+            )
         step = dict(t0=c.t, t1=t_end, **dense_info)
         best_step = jax.tree.map(
             lambda new, old: jnp.where(
