@@ -19,6 +19,7 @@ from ._cache import (
     live_programs as live_programs,
     set_max_programs as set_max_programs,
     structure_jit as structure_jit,
+    use_avx2_codegen as use_avx2_codegen,
 )
 from ._design import differentiable_peaks as differentiable_peaks
 from ._gradients import (

@@ -535,10 +535,11 @@ def _cache_dir() -> str | None:
 def _solve_chunk_on_worker(batch, t1, count, smoothing, options, wrt, all_wrt, plan, cache):
     """`_solve_chunk` as a Dask task, on the worker's own devices, with the persistent
     compilation cache of the process that made the sweep (so each structure compiles
-    once for all workers)."""
-    if cache and _cache_dir() != cache:
-        from ._cache import enable_compilation_cache
+    once for all workers), and AVX2 code where the worker has not computed yet."""
+    from ._cache import enable_compilation_cache, use_avx2_codegen
 
+    use_avx2_codegen()
+    if cache and _cache_dir() != cache:
         enable_compilation_cache(cache)
     return _solve_chunk(
         batch, t1, count, smoothing, options, wrt, all_wrt, jax.local_devices(), plan

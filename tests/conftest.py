@@ -14,6 +14,10 @@ SHARED = ROOT.parent / "shared"
 # to the user's cache. Tests of the cache set it per subprocess.
 os.environ["RECOIL_JAX_CACHE"] = "off"
 
+# The code the command line runs (and the same bits): AVX2 on x86-64, for this process
+# and, through XLA_FLAGS, every process it starts.
+recoil_jax.use_avx2_codegen()
+
 # One persistent compilation cache for the test session and every process it starts
 # (notebook kernels, commands, the explorer, xdist's workers): the modules and processes
 # solve the same structures, and a program compiled once is loaded after that. A fresh

@@ -4,6 +4,7 @@ Linux allows a process about 65,000) is freed."""
 
 import gc
 import json
+import os
 import subprocess
 import sys
 import textwrap
@@ -145,3 +146,43 @@ def test_five_hundred_structures_in_one_process_stay_below_a_bound():
     assert figures["wrong"] == [] and figures["traces"] == 500 and figures["live"] <= 8
     # Unbounded, 492 more programs would map about 1,500 more regions.
     assert figures["grown"] < 100, figures
+
+
+#: In a fresh process: the flag counts only if set before the CPU backend starts.
+_AVX2 = """
+import json, os, platform, sys
+import numpy as np
+import recoil_jax as rj
+first = rj.use_avx2_codegen()
+flags = os.environ.get("XLA_FLAGS", "")
+designs = {"m": np.linspace(100.0, 3000.0, 48), "gap": np.linspace(0.0, 0.15, 48)}
+peaks = rj.sweep(designs, progress=False, workers=1).peaks
+later = rj.use_avx2_codegen() if not first else None  # started: too late now
+print(json.dumps({"first": first, "flags": flags, "later": later, "x86": platform.machine(),
+                  "peaks": {k: np.asarray(v).tolist() for k, v in peaks.items()}}))
+"""
+
+
+def _fresh(flags: str | None) -> dict:
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    if flags is not None:
+        env["XLA_FLAGS"] = flags
+    out = subprocess.run(
+        [sys.executable, "-c", _AVX2], env=env, capture_output=True, text=True, check=True
+    )
+    return json.loads(out.stdout.splitlines()[-1])
+
+
+def test_avx2_codegen_is_set_before_the_backend_and_changes_no_result():
+    """`rj.use_avx2_codegen()` sets the flag on x86-64 in a fresh process, leaves a cap
+    the user chose alone, and does nothing once JAX has computed; the peaks come out the
+    same to the bit with and without it (on an AVX-512 machine the code differs)."""
+    chosen = _fresh(None)
+    x86 = chosen["x86"].lower() in ("x86_64", "amd64")
+    assert chosen["first"] is x86
+    assert ("--xla_cpu_max_isa=AVX2" in chosen["flags"]) is x86
+    own = _fresh("--xla_cpu_max_isa=SSE4_2")
+    assert own["first"] is False and own["flags"] == "--xla_cpu_max_isa=SSE4_2"
+    assert own["later"] is False
+    default = _fresh("--xla_cpu_max_isa=AVX512" if x86 else "")
+    assert chosen["peaks"] == default["peaks"]

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -350,6 +351,7 @@ def run_bench(
         "gradient_study": gradient_study,
         "cli_cache": cli_rows,
         "devices": [str(d) for d in jax.local_devices()],
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "dtype": "float64",
     }
 
@@ -389,7 +391,7 @@ def format_bench(result: dict) -> str:
         f"compile: {result['compile_s']:.2f} s (solve), {result['jacobian_compile_s']:.2f} s "
         "(jacobian)",
         f"max relative error vs the scipy baseline's peaks: {result['max_rel_error']:.1e}",
-        f"devices: {', '.join(result['devices'])}",
+        f"devices: {', '.join(result['devices'])}; XLA_FLAGS: {result['xla_flags'] or '(none)'}",
     ]
     if result["gradient_modes"]:
         lines.append(

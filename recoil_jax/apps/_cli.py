@@ -481,6 +481,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Run the command line with `argv` (default `sys.argv[1:]`); returns the exit code:
     0 done, 1 a solve failed, 2 bad input, 3 (`optimise`) no design met every limit."""
+    rj.use_avx2_codegen()  # before any computation: the flag is read as the backend starts
     parser = build_parser()
     # name=value items may come after the flags (`simulate m=500 --hard t1=2`).
     args, extra = parser.parse_known_args(argv)
