@@ -652,3 +652,32 @@ def test_basin_hopping_finds_a_narrow_basin_beside_the_best_one_found():
     np.testing.assert_array_equal(runs[0].best_theta[0], runs[1].best_theta[0])
     with pytest.raises(rj.ParameterError, match="0 < step <= 1"):
         rj.BasinHopping(step=0.0)
+
+
+@pytest.mark.parametrize(
+    "settings, message",
+    [
+        ('method = "search"\nsamples = -5', r"\[optimiser\] SobolStarts: need samples >= 0"),
+        ('method = "search"\nhops = -1', r"\[optimiser\] BasinHopping: need hops >= 0"),
+        ('method = "search"\nhop_step = "big"', r"\[optimiser\] hop_step = 'big': valid a number"),
+        ('method = "search"\nmaxiter = 0', r"\[optimiser\] SLSQP: maxiter = 0: valid >= 1"),
+        ('method = "adam"\nstarts = 0', r"\[optimiser\] starts = 0 is invalid: valid an integer"),
+        ('method = "adam"\nsteps = 2.5', r"\[optimiser\] steps = 2.5 is invalid: valid an integer"),
+        (
+            'method = "adam"\nlearning_rate = true',
+            r"\[optimiser\] learning_rate = True: valid a number",
+        ),
+    ],
+)
+def test_a_bad_optimiser_setting_names_the_file_and_section(tmp_path, settings, message):
+    """Every `[optimiser]` setting is checked as the study loads, before anything runs:
+    the error names the file, the section and the setting."""
+    study = tmp_path / "bad.toml"
+    study.write_text(
+        f"[tune]\ngap = [0.0, 0.1]\n[objective]\npeak_anchoring_force = 1.0\n"
+        f"[optimiser]\n{settings}\n"
+    )
+    from recoil_jax.apps._studies import load_study
+
+    with pytest.raises(rj.ParameterError, match=r"bad\.toml: " + message):
+        load_study(study)

@@ -270,6 +270,11 @@ def load_study(path) -> Study:
             f"[optimiser] key(s) {', '.join(sorted(set(optimiser) - allowed))} do not apply "
             f"to method = {method!r}; it takes {', '.join(sorted(allowed))}",
         )
+    for key, value in optimiser.items():
+        if key not in ("method", "local", "minimax") and (
+            isinstance(value, bool) or not isinstance(value, int | float)
+        ):
+            raise _error(path, f"[optimiser] {key} = {value!r}: valid a number")
     if not isinstance(optimiser.get("minimax", False), bool):
         raise _error(path, f"[optimiser] minimax = {optimiser['minimax']!r}: valid true or false")
     if "local" in optimiser:
@@ -295,7 +300,7 @@ def load_study(path) -> Study:
     check = dict(config.get("check", {}))
     if set(check) - _CHECK_KEYS:
         raise _error(path, f"[check] unknown key(s) {', '.join(sorted(set(check) - _CHECK_KEYS))}")
-    return Study(
+    study = Study(
         name=path.stem,
         description=config.get("description", ""),
         problem=problem,
@@ -304,6 +309,13 @@ def load_study(path) -> Study:
         check=check,
         has_start=has_start,
     )
+    # Build the optimiser's parts now, so that a bad setting names the file and the
+    # section here, before anything runs.
+    try:
+        (search_kwargs if method == "search" else optimise_kwargs)(study, progress=False)
+    except (rj.ParameterError, TypeError, ValueError) as error:
+        raise _error(path, f"[optimiser] {error}") from None
+    return study
 
 
 def local_method(study: Study) -> rj.LocalMethod:
@@ -346,6 +358,9 @@ def search_kwargs(study: Study, progress: bool | None) -> dict:
 def optimise_kwargs(study: Study, progress: bool | None) -> dict:
     """The keyword arguments of `rj.optimise` that the study's `[optimiser]` sets."""
     o = study.optimiser
+    for key in ("starts", "steps"):
+        if key in o and (isinstance(o[key], bool) or not isinstance(o[key], int) or o[key] < 1):
+            raise rj.ParameterError(f"{key} = {o[key]!r} is invalid: valid an integer >= 1")
     steps = int(o.get("steps", 200))
     kwargs: dict[str, Any] = dict(
         starts=int(o.get("starts", 8)),
