@@ -221,12 +221,13 @@ class Agreement(NamedTuple):
       coordinates, of a region's first joins it; `optimise`'s starts are each their
       own);
     - `reached`: the regions with a run that evaluated a feasible design within `rtol`
-      (0.1 %) of the best objective.
+      (relative, default 1e-3: 0.1 %) of the best objective.
     """
 
     reached: int
     regions: int
     starts: int
+    rtol: float = 1e-3
 
     @property
     def found_once(self) -> bool:
@@ -237,18 +238,18 @@ class Agreement(NamedTuple):
 
     def line(self) -> str | None:
         """The summary line, `best design reached from 2 of 5 start regions (8 starts,
-        within 0.1 %)` (`k of n starts` where each start is its own region), with a
-        caution when `found_once`; None when no start ran. The 0.1 % is the default
-        `rtol`."""
+        within 0.1 %)` (`k of n starts` where each start is its own region; the
+        percentage is `rtol`'s), with a caution when `found_once`; None when no start
+        ran."""
         if self.starts == 0:
             return None
+        within = f"within {100 * self.rtol:g} %"
         if self.regions == self.starts:
             plural = "s" if self.starts != 1 else ""
-            counted = f"{self.reached} of {self.starts} start{plural} (within 0.1 %)"
+            counted = f"{self.reached} of {self.starts} start{plural} ({within})"
         else:
             counted = (
-                f"{self.reached} of {self.regions} start regions "
-                f"({self.starts} starts, within 0.1 %)"
+                f"{self.reached} of {self.regions} start regions ({self.starts} starts, {within})"
             )
         line = f"best design reached from {counted}"
         if self.found_once:

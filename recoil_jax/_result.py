@@ -138,7 +138,7 @@ class OptimiseResult:
             starts += 1
             reached = bool(run["best_objective"] <= limit)  # NaN limit: none feasible
             regions[run["region"]] = regions.get(run["region"], False) or reached
-        return Agreement(reached=sum(regions.values()), regions=len(regions), starts=starts)
+        return Agreement(sum(regions.values()), len(regions), starts, rtol)
 
     def clusters(self, scenario: int = 0, rtol: float = 1e-3) -> list[dict]:
         """Where the runs of `scenario` ended: groups of runs whose best feasible

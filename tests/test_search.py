@@ -147,6 +147,7 @@ def test_minimise_counts_the_starts_that_reach_the_best_basin():
     hopped = run((0.1, 0.35, 0.5, 0.88), hopping=rj.BasinHopping(hops=4, step=0.01))
     assert sum(run["phase"] == "hop" for run in hopped.runs) == 4
     assert hopped.agreement() == rj.Agreement(reached=1, regions=3, starts=4)
+    assert hopped.agreement(rtol=0.01) == rj.Agreement(1, 3, 4, rtol=0.01)
     assert run((0.85, 0.95)).agreement() == rj.Agreement(reached=1, regions=1, starts=2)
     # A bowl: starts far apart all reach its minimum.
     batch, local = _analytic(lambda z: float((z[0] - 0.5) ** 2), lambda z: 2 * (z - 0.5))
@@ -192,6 +193,8 @@ def test_a_best_design_found_once_comes_with_a_caution():
     assert rj.Agreement(1, 5, 8).line() == line.replace("2 of", "1 of") + caution
     assert rj.Agreement(0, 5, 8).line().endswith(caution)  # a sample or a hop found it
     assert rj.Agreement(6, 8, 8).line() == "best design reached from 6 of 8 starts (within 0.1 %)"
+    # The tolerance the counts were made with is the one the line gives.
+    assert rj.Agreement(6, 8, 8, rtol=0.01).line().endswith("6 of 8 starts (within 1 %)")
     assert rj.Agreement(1, 1, 1).line() == "best design reached from 1 of 1 start (within 0.1 %)"
     assert rj.Agreement(1, 1, 2).line().endswith("(2 starts, within 0.1 %)")  # one region
     assert rj.Agreement(0, 0, 0).line() is None  # no start ran
