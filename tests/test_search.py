@@ -684,3 +684,23 @@ def test_a_bad_optimiser_setting_names_the_file_and_section(tmp_path, settings, 
 
     with pytest.raises(rj.ParameterError, match=r"bad\.toml: " + message):
         load_study(study)
+
+
+@pytest.mark.parametrize(
+    "bound, message",
+    [
+        ("[0.2, 0.0]", r"\[tune\] gap = \[0.2, 0.0\]: need lo < hi"),
+        ("[0.1, 0.1]", r"\[tune\] gap = \[0.1, 0.1\]: need lo < hi"),
+        ('[0.0, "x"]', r"\[tune\] gap = \[lo, hi\] \(numbers\) expected"),
+        ("[-1.0, 0.1]", r"\[tune\] at the lower bounds: Absorber.gap = -1 m is invalid"),
+    ],
+)
+def test_bad_bounds_name_the_file_and_the_bound(tmp_path, bound, message):
+    """Bounds the box cannot have are refused as the study loads, by the bound the user
+    wrote (not the midpoint a design without a start takes)."""
+    from recoil_jax.apps._studies import load_study
+
+    study = tmp_path / "bad.toml"
+    study.write_text(f"[tune]\ngap = {bound}\n[objective]\npeak_anchoring_force = 1.0\n")
+    with pytest.raises(rj.ParameterError, match=r"bad\.toml: " + message):
+        load_study(study)

@@ -215,8 +215,14 @@ def load_study(path) -> Study:
     for name, bound in config["tune"].items():
         if name not in rj.PARAMETERS:
             raise _error(path, f"[tune] unknown parameter {name!r}")
-        if not (isinstance(bound, list) and len(bound) == 2):
-            raise _error(path, f"[tune] {name} = [lo, hi] expected, got {bound!r}")
+        if not (
+            isinstance(bound, list)
+            and len(bound) == 2
+            and all(isinstance(b, int | float) and not isinstance(b, bool) for b in bound)
+        ):
+            raise _error(path, f"[tune] {name} = [lo, hi] (numbers) expected, got {bound!r}")
+        if not bound[0] < bound[1]:
+            raise _error(path, f"[tune] {name} = {bound!r}: need lo < hi")
         tune.append(name)
         bounds[name] = (float(bound[0]), float(bound[1]))
     objective_config = dict(config["objective"])
@@ -243,6 +249,12 @@ def load_study(path) -> Study:
             lo, hi = bounds[name]
             log = bool(rj.log_coordinates(np.asarray([lo]), np.asarray([hi]))[0])
             design[name] = float(np.sqrt(lo * hi)) if log else 0.5 * (lo + hi)
+    for side, end in (("lower", 0), ("upper", 1)):
+        # The box's corners must be designs too, not only the midpoint a design takes.
+        try:
+            rj.params_from_values(design | {name: bounds[name][end] for name in tune})
+        except rj.ParameterError as error:
+            raise _error(path, f"[tune] at the {side} bounds: {error}") from None
     params = rj.params_from_values(design)
     problem = rj.DesignProblem(
         params=params,
