@@ -12,6 +12,7 @@ import collections
 import functools
 import os
 import platform
+import re
 import threading
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,7 @@ from ._params import ParameterError, is_concrete
 
 __all__ = [
     "CACHE_ENVIRONMENT",
+    "avx2_codegen_set",
     "compilation_cache_dir",
     "enable_compilation_cache",
     "live_programs",
@@ -45,18 +47,35 @@ _MIN_COMPILE_SECONDS = 0.0
 #: The XLA flag that caps the instruction set of XLA:CPU's generated code.
 AVX2_FLAG = "--xla_cpu_max_isa=AVX2"
 
+# XLA aborts on a flag it does not know: `xla_cpu_max_isa` came in late 2024 (jax and
+# jaxlib share their version number).
+_MAX_ISA_SINCE = (0, 4, 36)
+
+
+def _isa_cap(flags: str) -> str | None:
+    """The `xla_cpu_max_isa` value in `flags` (upper case), or None."""
+    found = re.findall(r"--xla_cpu_max_isa=(\S+)", flags)
+    return found[-1].upper() if found else None
+
+
+def avx2_codegen_set() -> bool:
+    """Whether this process's `XLA_FLAGS` caps XLA:CPU's code at AVX2."""
+    return _isa_cap(os.environ.get("XLA_FLAGS", "")) == "AVX2"
+
 
 def use_avx2_codegen() -> bool:
-    """Have XLA:CPU generate AVX2 code for this process: on x86-64, unless `XLA_FLAGS`
-    already sets `xla_cpu_max_isa`, and only before JAX's first computation (the flag
-    is read when the CPU backend starts). Returns whether the flag is now set.
+    """Have XLA:CPU generate AVX2 code for this process: on x86-64 with a jaxlib that
+    knows the flag, unless `XLA_FLAGS` already sets `xla_cpu_max_isa`, and only before
+    JAX's first computation (the flag is read when the CPU backend starts). Returns
+    whether the code is now capped at AVX2.
 
     On the 2-core AMD EPYC development machine (AVX-512 with BF16), `recoil-jax bench`
     ran 1.16× the sims/s with it (30,840 against 26,484) and 1.05–1.17× the
     Jacobians/s, with every peak and step count the same to the bit. Capped at `AVX512`
     or `AVX512_VNNI` the batched solves ran as fast as at `AVX2`; from `AVX512_BF16` up
     (the default there) about 1.2× slower, for a reason not found. The command line
-    calls it for every command; a CPU without those instructions is unaffected.
+    calls it for every command (and its Dask workers follow); a CPU without those
+    instructions is unaffected.
 
     ```python
     import recoil_jax as rj
@@ -65,14 +84,15 @@ def use_avx2_codegen() -> bool:
     """
     from jax._src import xla_bridge  # the one place that says whether a backend started
 
-    started = getattr(xla_bridge, "backends_are_initialized", lambda: False)
     flags = os.environ.get("XLA_FLAGS", "")
-    if AVX2_FLAG in flags.split():
-        return True
+    if _isa_cap(flags) is not None:
+        return _isa_cap(flags) == "AVX2"
+    version = tuple(int(part) for part in re.findall(r"\d+", jax.__version__)[:3])
+    started = getattr(xla_bridge, "backends_are_initialized", None)
     if (
         platform.machine().lower() not in ("x86_64", "amd64")
-        or "xla_cpu_max_isa" in flags
-        or started()
+        or version < _MAX_ISA_SINCE
+        or (started() if started is not None else bool(getattr(xla_bridge, "_backends", 1)))
     ):
         return False
     os.environ["XLA_FLAGS"] = f"{flags} {AVX2_FLAG}".strip()

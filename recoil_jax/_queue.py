@@ -14,9 +14,11 @@ __all__ = ["queued_map"]
 
 #: The lanes test whether their peaks are certain (`PeakLoop`'s bounds) at every
 #: `BOUNDS_EVERY`-th iteration only, all at the same one, so that the other iterations
-#: skip the bounds (a `cond` on a flag the lanes share): a solve ends at most 3 steps
-#: later (78.3 against 76.7 steps on the bench's designs), for 13 % more sims/s on the
-#: paper's model and 10 % on the hardware designs (`docs/speed.md`).
+#: skip the bounds (a `cond` on a flag the lanes share). Lanes are loaded at those
+#: iterations too, so a design is tested at its attempts 0, 4, 8, … whatever else is in
+#: the batch: it ends a few attempts after a solve tested at every step would (78.3
+#: against 76.7 steps on the bench's designs), with the same peaks, for 13 % more sims/s
+#: on the paper's model and 10 % on the hardware designs (`docs/speed.md`).
 BOUNDS_EVERY = 4
 
 
@@ -33,7 +35,9 @@ class _Lanes(NamedTuple):
 def queued_map(loop: PeakLoop, setup, post, designs, lanes: int, count=None):
     """`jax.vmap(lambda d: post(d, loop.finish(solve(*setup(d)))))(designs)`, but with
     `lanes` designs in flight at a time, each lane taking the next design as soon as its
-    own has finished (refilled in groups of at least `lanes // 16`).
+    own has finished (refilled in groups of at least `lanes // 16`), and with the peaks
+    tested for certainty at every `BOUNDS_EVERY`-th attempt of a design rather than at
+    each (the same peaks; a few more steps).
 
     A plain `vmap` of the stepping loop runs every member for as many steps as the
     slowest one needs; over random designs that used under a third of the lanes' steps.
@@ -70,7 +74,7 @@ def queued_map(loop: PeakLoop, setup, post, designs, lanes: int, count=None):
     def cond(carry: _Lanes):
         return carry.done < solved
 
-    def refill(state, args, index, next_index):
+    def refill(state, args, index, next_index, aligned):
         idle = index < 0
         new_index = next_index + jnp.cumsum(idle) - 1
         fill = idle & (new_index < solved)
@@ -87,16 +91,18 @@ def queued_map(loop: PeakLoop, setup, post, designs, lanes: int, count=None):
             args = jax.tree.map(pick, fresh_args, args)
             return state, args, jnp.where(fill, new_index, index), next_index + count
 
-        now = (count >= threshold) | ((count > 0) & ~jnp.any(index >= 0))
+        # Only at a checking iteration, so that each design's checks fall on its own
+        # attempts 0, 4, 8, … whatever shares the batch with it.
+        now = aligned & ((count >= threshold) | ((count > 0) & ~jnp.any(index >= 0)))
         return jax.lax.cond(now, load, lambda operands: operands, (state, args, index, next_index))
 
     def body(carry: _Lanes) -> _Lanes:
         state, args, index, next_index, finals, done, iteration = carry
-        state, args, index, next_index = refill(state, args, index, next_index)
+        check = iteration % BOUNDS_EVERY == 0
+        state, args, index, next_index = refill(state, args, index, next_index, check)
         # Every lane holding a design is still running: a lane is emptied the moment its
         # design finishes, and a freshly loaded one starts at t = 0 < t1.
         active = index >= 0
-        check = iteration % BOUNDS_EVERY == 0
         stepped = jax.vmap(lambda s, a: loop.body(s, a, check_bounds=check))(state, args)
         state = jax.tree.map(
             lambda new, old: jnp.where(active.reshape((-1,) + (1,) * (new.ndim - 1)), new, old),

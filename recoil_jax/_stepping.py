@@ -385,7 +385,14 @@ class PeakLoop:
         )
 
     def finish(self, final: _Carry, args) -> PeakRun:
-        unfinished = (final.status == Status.ok) & (final.t < final.t1) & ~final.settled
+        settled = final.settled
+        if self.bounds_fn is not None:
+            # A solve that tested its bounds only at some steps (`check_bounds`) and ran
+            # out of attempts may have become certain since its last test.
+            bounds = self.bounds_fn(final.y, args, final.t, _end_times(final.t1)[0])
+            bounds = jnp.stack([bounds[name] for name in final.names])
+            settled = settled | jnp.all(bounds <= final.best)
+        unfinished = (final.status == Status.ok) & (final.t < final.t1) & ~settled
         status = Status.where(unfinished, Status.max_steps, final.status)
         best, best_time, best_state = polish(
             self.solver,

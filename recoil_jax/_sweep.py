@@ -20,6 +20,7 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from ._cache import avx2_codegen_set
 from ._gradients import GRADIENT_OPTIONS, check_wrt, peak_gradients_batch
 from ._metrics import METRICS, PEAK_FIELDS, gradient_key
 from ._params import (
@@ -532,13 +533,17 @@ def _cache_dir() -> str | None:
     return jax.config.values.get("jax_compilation_cache_dir")
 
 
-def _solve_chunk_on_worker(batch, t1, count, smoothing, options, wrt, all_wrt, plan, cache):
+def _solve_chunk_on_worker(
+    batch, t1, count, smoothing, options, wrt, all_wrt, plan, cache, avx2: bool
+):
     """`_solve_chunk` as a Dask task, on the worker's own devices, with the persistent
     compilation cache of the process that made the sweep (so each structure compiles
-    once for all workers), and AVX2 code where the worker has not computed yet."""
+    once for all workers), and its AVX2 code if it has it (`use_avx2_codegen`; a worker
+    that has computed already keeps its own)."""
     from ._cache import enable_compilation_cache, use_avx2_codegen
 
-    use_avx2_codegen()
+    if avx2:
+        use_avx2_codegen()
     if cache and _cache_dir() != cache:
         enable_compilation_cache(cache)
     return _solve_chunk(
@@ -570,6 +575,7 @@ def _solved_chunks(todo, groups, smoothing, options, all_wrt, devices, plan, cli
     from distributed import as_completed
 
     cache = _cache_dir()
+    avx2 = avx2_codegen_set()
     futures = {}
     done = as_completed()
     waiting = iter(todo)
@@ -587,6 +593,7 @@ def _solved_chunks(todo, groups, smoothing, options, all_wrt, devices, plan, cli
             all_wrt,
             plan,
             cache,
+            avx2,
             pure=False,
             retries=2,
         )

@@ -148,23 +148,25 @@ def test_five_hundred_structures_in_one_process_stay_below_a_bound():
     assert figures["grown"] < 100, figures
 
 
-#: In a fresh process: the flag counts only if set before the CPU backend starts.
+#: In a fresh process: the flag counts only if set before the CPU backend starts. `WHEN`:
+#: call `use_avx2_codegen` before the first computation, after it, or not at all.
 _AVX2 = """
-import json, os, platform, sys
+import json, os, platform
 import numpy as np
 import recoil_jax as rj
-first = rj.use_avx2_codegen()
-flags = os.environ.get("XLA_FLAGS", "")
+when = os.environ["WHEN"]
+first = rj.use_avx2_codegen() if when == "before" else None
 designs = {"m": np.linspace(100.0, 3000.0, 48), "gap": np.linspace(0.0, 0.15, 48)}
 peaks = rj.sweep(designs, progress=False, workers=1).peaks
-later = rj.use_avx2_codegen() if not first else None  # started: too late now
-print(json.dumps({"first": first, "flags": flags, "later": later, "x86": platform.machine(),
+later = rj.use_avx2_codegen() if when == "after" else None
+print(json.dumps({"first": first, "later": later, "flags": os.environ.get("XLA_FLAGS", ""),
+                  "x86": platform.machine(),
                   "peaks": {k: np.asarray(v).tolist() for k, v in peaks.items()}}))
 """
 
 
-def _fresh(flags: str | None) -> dict:
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+def _fresh(when: str, flags: str | None = None) -> dict:
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"} | {"WHEN": when}
     if flags is not None:
         env["XLA_FLAGS"] = flags
     out = subprocess.run(
@@ -175,14 +177,17 @@ def _fresh(flags: str | None) -> dict:
 
 def test_avx2_codegen_is_set_before_the_backend_and_changes_no_result():
     """`rj.use_avx2_codegen()` sets the flag on x86-64 in a fresh process, leaves a cap
-    the user chose alone, and does nothing once JAX has computed; the peaks come out the
-    same to the bit with and without it (on an AVX-512 machine the code differs)."""
-    chosen = _fresh(None)
+    the user chose alone (reporting whether it is AVX2), and does nothing once JAX has
+    computed; the peaks come out the same to the bit as with XLA's own choice (on an
+    AVX-512 machine the code differs)."""
+    chosen = _fresh("before")
     x86 = chosen["x86"].lower() in ("x86_64", "amd64")
     assert chosen["first"] is x86
     assert ("--xla_cpu_max_isa=AVX2" in chosen["flags"]) is x86
-    own = _fresh("--xla_cpu_max_isa=SSE4_2")
+    late = _fresh("after")
+    assert late["later"] is False and late["flags"] == ""
+    own = _fresh("before", "--xla_cpu_max_isa=SSE4_2")
     assert own["first"] is False and own["flags"] == "--xla_cpu_max_isa=SSE4_2"
-    assert own["later"] is False
-    default = _fresh("--xla_cpu_max_isa=AVX512" if x86 else "")
-    assert chosen["peaks"] == default["peaks"]
+    assert _fresh("before", "--xla_cpu_max_isa=avx2")["first"] is True  # already AVX2
+    default = _fresh("never")
+    assert default["flags"] == "" and chosen["peaks"] == default["peaks"]

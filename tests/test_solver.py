@@ -303,3 +303,39 @@ def test_stopping_when_the_peaks_are_certain_changes_no_peak():
         np.testing.assert_array_equal(getattr(early, field), getattr(full, field), field)
     assert np.all(early.num_steps <= full.num_steps)
     assert early.num_steps.sum() < 0.6 * full.num_steps.sum()
+
+
+def test_testing_the_bounds_every_few_iterations_changes_no_peak_or_failure(monkeypatch):
+    """The lane scheduler tests whether the peaks are certain at one iteration in
+    `BOUNDS_EVERY` only: against the same scheduler testing at every iteration, the same
+    designs succeed under a tight `max_steps` (one that became certain between tests is
+    not reported as out of steps), with the same peaks, a few steps later."""
+    import recoil_jax._queue as queue
+    from recoil_jax._solve import _peaks_batch
+
+    rng = np.random.default_rng(11)
+    designs = {
+        "m": rng.uniform(100, 3000, 40),
+        "gap": rng.uniform(0, 0.15, 40),
+        "k_r": rng.uniform(5e3, 5e4, 40),
+        "c_r": rng.uniform(0, 1e4, 40),
+    }
+    params = rj.batch_params(designs)[0]
+    t1 = jnp.full(40, 10.0)
+    options = rj.SolverOptions(max_steps=90)  # some designs need more
+
+    def solve(every):
+        monkeypatch.setattr(queue, "BOUNDS_EVERY", every)
+        program = eqx.filter_jit(lambda p, t: _peaks_batch(p, t, rj.Smoothing(), options, 8, None))
+        return program(params, t1)
+
+    each, fourth = solve(1), solve(4)
+    ok = np.asarray(each.status == rj.Status.ok)
+    assert 5 <= ok.sum() <= 35  # the limit bites for some, not all
+    np.testing.assert_array_equal(np.asarray(fourth.status == rj.Status.ok), ok)
+    for field in ("peak_displacement", "peak_anchoring_force", "peak_contact_force", "max_stroke"):
+        np.testing.assert_array_equal(
+            np.asarray(getattr(fourth, field))[ok], np.asarray(getattr(each, field))[ok], field
+        )
+    extra = np.asarray(fourth.num_steps - each.num_steps)[ok]
+    assert extra.min() >= 0 and extra.max() <= 8 and extra.mean() > 0

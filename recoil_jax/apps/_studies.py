@@ -130,6 +130,19 @@ LOCAL_METHODS = {
     "optax_adam": rj.OptaxLocal,
 }
 _CHECK_KEYS = {"grid", "local", "hard", "nominal"}
+#: The `[optimiser]` settings that are counts, with their least value (`adam` needs
+#: `starts` and `steps` >= 1, `optimise_kwargs`), and those that must be positive.
+_INTEGER_KEYS = {
+    "hops": 0,
+    "samples": 0,
+    "starts": 0,
+    "steps": 1,
+    "maxiter": 1,
+    "seed": 0,
+    "patience": 1,
+    "update_every": 1,
+}
+_POSITIVE_KEYS = {"hop_step", "max_seconds", "learning_rate", "anneal", "penalty"}
 
 #: Where the shipped studies live: `optimise/` beside the package, in a checkout or an
 #: editable install.
@@ -283,10 +296,16 @@ def load_study(path) -> Study:
             f"to method = {method!r}; it takes {', '.join(sorted(allowed))}",
         )
     for key, value in optimiser.items():
-        if key not in ("method", "local", "minimax") and (
-            isinstance(value, bool) or not isinstance(value, int | float)
-        ):
-            raise _error(path, f"[optimiser] {key} = {value!r}: valid a number")
+        if key in ("method", "local", "minimax"):
+            continue
+        if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
+            raise _error(path, f"[optimiser] {key} = {value!r}: valid a finite number")
+        if key in _INTEGER_KEYS and (not isinstance(value, int) or value < _INTEGER_KEYS[key]):
+            raise _error(
+                path, f"[optimiser] {key} = {value!r}: valid an integer >= {_INTEGER_KEYS[key]}"
+            )
+        if key in _POSITIVE_KEYS and not value > 0:
+            raise _error(path, f"[optimiser] {key} = {value!r}: valid a number > 0")
     if not isinstance(optimiser.get("minimax", False), bool):
         raise _error(path, f"[optimiser] minimax = {optimiser['minimax']!r}: valid true or false")
     if "local" in optimiser:
