@@ -86,7 +86,7 @@ def use_avx2_codegen() -> bool:
 
     flags = os.environ.get("XLA_FLAGS", "")
     if _isa_cap(flags) is not None:
-        return _isa_cap(flags) == "AVX2"
+        return avx2_codegen_set()
     version = tuple(int(part) for part in re.findall(r"\d+", jax.__version__)[:3])
     started = getattr(xla_bridge, "backends_are_initialized", None)
     if (

@@ -198,6 +198,13 @@ class PeakLoop:
     def _metric_and_rate(self, names, z, f, args):
         return jax.jvp(lambda x: self._vector(names, x, args), (z,), (f,))
 
+    def _certain(self, names, z, args, t, t1, best):
+        """Whether no tracked quantity can exceed its running maximum `best` after `t`
+        (`bounds_fn` at state `z`)."""
+        assert self.bounds_fn is not None
+        bounds = self.bounds_fn(z, args, t, t1)
+        return jnp.all(jnp.stack([bounds[name] for name in names]) <= best)
+
     def _stops(self, args):
         return None if self.events is None else self.events.stops(args)
 
@@ -303,12 +310,9 @@ class PeakLoop:
         best = jnp.where(improve, step_best, c.best)
         settled = c.settled
         if self.bounds_fn is not None:
-            bounds_fn = self.bounds_fn
 
             def certain():
-                bounds = bounds_fn(z1, args, t_end, t1)
-                bounds = jnp.stack([bounds[name] for name in c.names])
-                return settled | (keep & jnp.all(bounds <= best))
+                return settled | (keep & self._certain(c.names, z1, args, t_end, t1, best))
 
             # A flag not batched keeps the `cond` a branch under `vmap`, not a select.
             settled = (
@@ -389,9 +393,9 @@ class PeakLoop:
         if self.bounds_fn is not None:
             # A solve that tested its bounds only at some steps (`check_bounds`) and ran
             # out of attempts may have become certain since its last test.
-            bounds = self.bounds_fn(final.y, args, final.t, _end_times(final.t1)[0])
-            bounds = jnp.stack([bounds[name] for name in final.names])
-            settled = settled | jnp.all(bounds <= final.best)
+            t1 = _end_times(final.t1)[0]
+            certain = self._certain(final.names, final.y, args, final.t, t1, final.best)
+            settled = settled | certain
         unfinished = (final.status == Status.ok) & (final.t < final.t1) & ~settled
         status = Status.where(unfinished, Status.max_steps, final.status)
         best, best_time, best_state = polish(
