@@ -106,7 +106,9 @@ def polish(solver, args, vector_fn, best, best_time, best_step, search: bool = F
         low, width = step["t0"], safe_dt
         if not search:
             width = 2e-2 * safe_dt  # the refinement's first spacing: 1 % of the step
-        for _ in range(_ZOOMS if search else 0):
+
+        def zoom(_, carry):
+            begin, start, low, width = carry
             grid = low + width * jnp.linspace(0.0, 1.0, _GRID + 1)
             sampled = values(grid)
             j = jnp.argmax(jnp.where(jnp.isfinite(sampled), sampled, -jnp.inf))
@@ -115,7 +117,12 @@ def polish(solver, args, vector_fn, best, best_time, best_step, search: bool = F
             start = jnp.where(found, sampled[j], start)
             spacing = width / _GRID
             low = jnp.clip(begin - spacing, step["t0"], step["t0"] + safe_dt - 2.0 * spacing)
-            width = 2.0 * spacing
+            return begin, start, low, 2.0 * spacing
+
+        if search:  # a loop, so that the interpolant and the quantities are traced once
+            begin, start, low, width = jax.lax.fori_loop(
+                0, _ZOOMS, zoom, (begin, start, low, width)
+            )
         t, _ = jax.lax.fori_loop(0, _REFINE_ITERATIONS, refine, (begin, width / 2.0))
         polished = values(t[None])[0]
         interior = has_step & (best_time > step["t0"]) & (best_time < step["t1"])

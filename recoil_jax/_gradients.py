@@ -254,6 +254,10 @@ def _sensitivity_term(wrt: tuple[str, ...]) -> diffrax.ODETerm:
     return diffrax.ODETerm(functools.partial(_sensitivity_vf, wrt=wrt))
 
 
+#: The state (and smooth maxima) of the sensitivity system alone, with its `args`.
+_STATE_TERM = diffrax.ODETerm(lambda t, y, args: _augmented_vf(t, y, *args))
+
+
 def _sensitivity_metrics(z, args):
     params, smoothing, smooth_max, _ = args
     return _augmented_metrics(z[: _state_size(smooth_max)], params, smoothing, smooth_max)
@@ -295,9 +299,10 @@ def _augmented_jump(t, y, params):
     return y.at[:_N_STATE].set(load_jump(t, y[:_N_STATE], params))
 
 
-def _sensitivity_jump(before, t, z, args, wrt):
+def _sensitivity_jump(before, t, z, f_before, args, wrt):
     """The state and its sensitivities right after the stop `t` (from `z` at `before`,
-    one ULP earlier). For a jump `y⁺ = g(y⁻, θ)` at a time `τ(θ)`, the sensitivities jump
+    one ULP earlier, where the system's vector field is `f_before`). For a jump
+    `y⁺ = g(y⁻, θ)` at a time `τ(θ)`, the sensitivities jump
     by `S⁺ = g_y (S⁻ + f⁻ τ_θ) + g_θ − f⁺ τ_θ`: the round's firing time moves with
     `fire_interval`, and `f⁻ ≠ f⁺` where a force table starts or ends off zero."""
     params, smoothing, smooth_max, t1 = args
@@ -313,7 +318,7 @@ def _sensitivity_jump(before, t, z, args, wrt):
         return _augmented_jump(t, y_, with_values(params, wrt, theta_))
 
     after = jump(y, theta)
-    f_before = _augmented_vf(before, y, params, smoothing, smooth_max, t1)
+    f_before = f_before[:n]
     f_after = _augmented_vf(t, after, params, smoothing, smooth_max, t1)
 
     def column(s, d):
@@ -464,6 +469,7 @@ def sensitivity_loop(params, options, wrt, smooth_max=None) -> PeakLoop:
         _events(params, wrt),
         model_ceilings,
         **model_samples(params),
+        leading_term=(_STATE_TERM, _state_size(smooth_max)),
     )
 
 

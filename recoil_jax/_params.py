@@ -1075,6 +1075,7 @@ def with_values(params: RecoilParams, names: Sequence[str], values: Any) -> Reco
     """`params` with the parameters `names` (flat names) set to `values` (shape
     `(len(names),)`). Concrete values are validated like the constructors do (tracers,
     inside transformations, are not)."""
+    knots: dict[int, Any] = {}  # orifice index -> value
     for j, name in enumerate(names):
         p = parameter(name)
         _check_present(params, p)
@@ -1086,8 +1087,18 @@ def with_values(params: RecoilParams, names: Sequence[str], values: Any) -> Reco
                 lambda q, p=p: getattr(getattr(q, p.group), p.attribute), params, value
             )
         else:
-            knots = jnp.asarray(getattr(params, p.group).orifice).at[..., p.index].set(value)
-            params = eqx.tree_at(lambda q: q.buffer.orifice, params, knots)
+            knots[p.index] = value
+    if knots:
+        # All knots in one update: this runs in every stage of a sensitivity solve, where
+        # a scatter per knot made the 22-parameter program larger and slower.
+        assert params.buffer is not None  # (_check_present)
+        orifice = jnp.asarray(params.buffer.orifice, dtype=float)
+        given = jnp.stack(list(knots.values()), axis=-1)
+        if list(knots) == list(range(orifice.shape[-1])):
+            orifice = jnp.broadcast_to(given, jnp.broadcast_shapes(given.shape, orifice.shape))
+        else:
+            orifice = orifice.at[..., np.asarray(list(knots))].set(given)
+        params = eqx.tree_at(lambda q: q.buffer.orifice, params, orifice)
     return params
 
 

@@ -57,7 +57,7 @@ __all__ = [
 #: The model's load events, for `args = model_args(params, smoothing)`.
 MODEL_EVENTS = Events(
     stops=lambda args: load_stops(args[0]),
-    jump=lambda before, t, y, args: load_jump(t, y, args[0]),
+    jump=lambda before, t, y, f_before, args: load_jump(t, y, args[0]),
     restart=lambda args: restart_step(args[0]),
 )
 

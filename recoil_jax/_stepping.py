@@ -46,14 +46,15 @@ class Events(NamedTuple):
     - `stops(args)`: the times (s, shape `(n,)`) at which a step must end, or None. A
       step ends one ULP before a stop (evaluations on its left side see the left limits),
       and the next starts at the stop itself;
-    - `jump(t_before, t, z, args)`: the state at the stop `t`, from the state `z` one ULP
-      before it (a velocity jump, or `z` itself);
+    - `jump(t_before, t, z, f_before, args)`: the state at the stop `t`, from the state
+      `z` one ULP before it, where the vector field is `f_before` (a velocity jump, or
+      `z` itself);
     - `restart(args)`: the longest first step at t = 0 and after a stop (s), so that a
       short pulse is not stepped over.
     """
 
     stops: Callable[[Any], Any]
-    jump: Callable[[Any, Any, Any, Any], Any]
+    jump: Callable[[Any, Any, Any, Any, Any], Any]
     restart: Callable[[Any], Any]
 
 
@@ -105,13 +106,23 @@ def make_solver(options: SolverOptions) -> diffrax.Tsit5:
     return diffrax.Tsit5(scan_kind="lax" if options.autodiff == "forward" else None)
 
 
+#: Error vectors up to this length are normed as a chain of adds, longer ones as a sum.
+_CHAIN_NORM_MAX = 20
+
+
 def _rms_norm(x):
-    """Root mean square of the (1-D) scaled error, as a chain of adds: the default norm's
-    `dot` becomes a library call per step on XLA:CPU, several times slower for a
-    4–20-element vector under `vmap`. Zero at zero with finite derivatives."""
-    total = x[0] * x[0]
-    for i in range(1, x.shape[0]):
-        total = total + x[i] * x[i]
+    """Root mean square of the (1-D) scaled error. A short vector as a chain of adds:
+    diffrax's default norm is a `dot`, which XLA:CPU sends to a library call per step,
+    several times slower for a 4–20-element vector under `vmap`. A longer one (the
+    sensitivities of many parameters) as a sum: the chain of 115 adds was 14 % of the
+    22-parameter gradient program's operations, 2 s of its compile time, and made it run
+    1.25× slower. Zero at zero with finite derivatives."""
+    if x.shape[0] > _CHAIN_NORM_MAX:
+        total = jnp.sum(x * x)
+    else:
+        total = x[0] * x[0]
+        for i in range(1, x.shape[0]):
+            total = total + x[i] * x[i]
     positive = total > 0
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, total, 1.0) / x.shape[0]), 0.0)
 
@@ -160,6 +171,11 @@ class PeakLoop:
       dense polynomial.
     - `save_ts` (shape `(n,)`, sorted), if given: the state is also written at these
       times (`PeakRun.saved`), from the solver's dense polynomial.
+    - `leading_term`, if given, `(term, size)`: a term for the first `size` components of
+      the state alone (their derivatives do not depend on the rest, as the model's do
+      not on its sensitivities). The first step is then chosen on them: diffrax's
+      initial-step rule evaluates the vector field twice, and a gradient program's
+      compile time grew by a whole copy of the sensitivity system for it.
     """
 
     def __init__(
@@ -172,10 +188,12 @@ class PeakLoop:
         ceilings_fn=None,
         samples: int = 0,
         kinks_fn=None,
+        leading_term=None,
     ):
         self.term, self.metrics_fn, self.options = term, metrics_fn, options
         self.bounds_fn, self.events, self.ceilings_fn = bounds_fn, events, ceilings_fn
         self.samples, self.kinks_fn = samples, kinks_fn
+        self.leading_term = leading_term
         self.solver, self.controller = make_solver(options), make_controller(options)
         self.error_order = self.solver.order(term) + 1
 
@@ -198,6 +216,20 @@ class PeakLoop:
     def _metric_and_rate(self, names, z, f, args):
         return jax.jvp(lambda x: self._vector(names, x, args), (z,), (f,))
 
+    def _start(self, c: _Carry, f_start, args):
+        """The tracked quantities and their rates at the start of the step: carried from
+        the last accepted step, or after a jump (and at t = 0) evaluated at `c.y` with
+        `f_start`, the step's first stage. Under `vmap` the evaluation runs only on the
+        iterations where a lane needs it (a flag the lanes share keeps the `cond` a
+        branch), as diffrax's own first stage does."""
+        stale = c.made_jump
+
+        def fresh():
+            metric, rate = self._metric_and_rate(c.names, c.y, f_start, args)
+            return jnp.where(stale, metric, c.metric), jnp.where(stale, rate, c.metric_rate)
+
+        return jax.lax.cond(eqxi.unvmap_any(stale), fresh, lambda: (c.metric, c.metric_rate))
+
     def _certain(self, names, z, args, t, t1, best):
         """Whether no tracked quantity can exceed its running maximum `best` after `t`
         (`bounds_fn` at state `z`)."""
@@ -212,15 +244,18 @@ class PeakLoop:
         term, solver = self.term, self.solver
         t0 = jnp.zeros((), dtype=float)
         t1, _ = _end_times(t1)
+        first_term, first_state = term, z0
+        if self.leading_term is not None:
+            first_term, size = self.leading_term
+            first_state = z0[:size]
         t_next, controller_state = self.controller.init(
-            term, t0, t1, z0, None, args, solver.func, self.error_order
+            first_term, t0, t1, first_state, None, args, solver.func, self.error_order
         )
         t_next = jnp.minimum(t_next, t1)
         if self.events is not None:
             t_next = jnp.minimum(t_next, t0 + self.events.restart(args))
-        f0 = term.vf(t0, z0, args)
         names = tuple(self.metrics_fn(z0, args))
-        metric0, rate0 = self._metric_and_rate(names, z0, f0, args)
+        metric0 = self._vector(names, z0, args)
         saved = save_index = None
         if save_ts is not None:
             # NaN until written: a solve that stops early leaves the later times NaN,
@@ -232,14 +267,14 @@ class PeakLoop:
             t_next=t_next,
             t1=t1,
             y=z0,
-            # Tsit5 is FSAL: hand it f(t0, z0) rather than diffrax's "first step" flag,
-            # which under vmap makes every lane evaluate the first stage while any one
-            # lane has it set (as a freshly loaded lane of `queued_map` does).
-            solver_state=(jnp.array(False), f0),
+            # Tsit5 is FSAL; with `made_jump` set, the first step evaluates f(t0, z0) as
+            # its first stage (inside diffrax's stage loop, so the program holds no
+            # other copy of the vector field), and the rates at the start come from it.
+            solver_state=(jnp.array(False), jnp.zeros_like(z0)),
             controller_state=controller_state,
-            made_jump=jnp.array(False),
+            made_jump=jnp.array(True),
             metric=metric0,
-            metric_rate=rate0,
+            metric_rate=jnp.zeros_like(metric0),
             best=metric0,
             best_time=jnp.zeros_like(metric0),
             best_step=placeholder_steps(t0, z0, metric0.shape[0]),
@@ -277,13 +312,15 @@ class PeakLoop:
             c.t, t_end, c.y, z1, args, z_error, self.error_order, c.controller_state
         )
         t_prev = jnp.minimum(t_prev, t1)
+        metric0, rate0 = self._start(c, dense_info["k"][0] / dt, args)
         t_next = jnp.where(
             t_next > t1_floor, jnp.where(keep, t1, t_prev + 0.5 * (t1 - t_prev)), t_next
         )
         # Tsit5 is FSAL: its last stage is dt * f(t + dt, z1).
-        metric1, rate1 = self._metric_and_rate(c.names, z1, dense_info["k"][-1] / dt, args)
+        f_end = dense_info["k"][-1] / dt
+        metric1, rate1 = self._metric_and_rate(c.names, z1, f_end, args)
         if not self.samples:
-            step_best, s = hermite_max(c.metric, c.metric_rate * dt, metric1, rate1 * dt)
+            step_best, s = hermite_max(metric0, rate0 * dt, metric1, rate1 * dt)
         else:
             interpolation = solver.interpolation_cls(t0=c.t, t1=t_end, **dense_info)
             # Sampled on the dense polynomial instead: the end rates of a quantity that is
@@ -294,7 +331,7 @@ class PeakLoop:
                 c.t,
                 dt,
                 self.samples,
-                c.metric,
+                metric0,
                 metric1,
             )
             if self.kinks_fn is not None:
@@ -343,21 +380,17 @@ class PeakLoop:
             )
         if stops is not None:
             # Landed one ULP before a stop: continue from the stop itself, with the state
-            # after any jump, a fresh FSAL stage, and a first step of at most `restart`.
+            # after any jump and a first step of at most `restart`; `made_jump` makes
+            # that step evaluate its first stage afresh, and the rates at its start
+            # (and the quantities, counted then as the step's start) come from it.
             assert self.events is not None
             hit = keep & landing
-            jumped = self.events.jump(t_end, upcoming, z1, args)
-            f_jumped = term.vf(upcoming, jumped, args)
-            m_jumped, r_jumped = self._metric_and_rate(c.names, jumped, f_jumped, args)
+            jumped = self.events.jump(t_end, upcoming, z1, f_end, args)
             restart = jnp.minimum(t_next - t_prev, self.events.restart(args))
             t_next = jnp.where(hit, jnp.minimum(upcoming + restart, t1), t_next)
             t_prev = jnp.where(hit, upcoming, t_prev)
             z1 = jnp.where(hit, jumped, z1)
-            solver_state = jax.tree.map(
-                lambda a, b: jnp.where(hit, a, b), (jnp.array(False), f_jumped), solver_state
-            )
-            metric1 = jnp.where(hit, m_jumped, metric1)
-            rate1 = jnp.where(hit, r_jumped, rate1)
+            made_jump = made_jump | hit
             if save_ts is not None:
                 saved, save_index = _write_saves(
                     save_ts, saved, save_index, jnp.where(hit, upcoming, c.t), lambda t: jumped

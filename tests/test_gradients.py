@@ -241,3 +241,36 @@ def test_metric_series_matches_the_history_and_finite_differences():
         np.testing.assert_allclose(
             slopes[:, j] * values[name], fd * values[name], atol=2e-3 * np.max(force)
         )
+
+
+@pytest.mark.parametrize("hardware", [False, True], ids=["paper", "burst"])
+def test_the_sensitivity_system_is_traced_once(hardware):
+    """The state with a sensitivity column per parameter is the largest part of a gradient
+    program. Its vector field is traced once, inside diffrax's stage loop: not again for
+    the first step's size, at t = 0, or after a load's stops, each of which was a whole
+    further copy for XLA to compile (4 and 5 traces before)."""
+    from recoil_jax import _gradients
+    from recoil_jax.apps._bench import hardware_designs
+
+    traces = []
+    original = _gradients._sensitivity_vf
+
+    def counted(*args, **kwargs):
+        traces.append(1)
+        return original(*args, **kwargs)
+
+    params, wrt = rj.RecoilParams(), ("gap", "m")
+    if hardware:
+        params = jax.tree.map(lambda x: x[0], rj.batch_params(hardware_designs(1))[0])
+        wrt = ("gap", "orifice_2", "recuperator_force")
+    _gradients._sensitivity_term.cache_clear()
+    _gradients._sensitivity_vf = counted
+    try:
+        jax.eval_shape(
+            lambda p: _gradients.sensitivity_solve(p, rj.Smoothing(), rj.GRADIENT_OPTIONS, wrt),
+            params,
+        )
+    finally:
+        _gradients._sensitivity_vf = original
+        _gradients._sensitivity_term.cache_clear()
+    assert len(traces) == 1

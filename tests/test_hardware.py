@@ -330,7 +330,7 @@ def _energy_run(params, smoothing, t1):
         work = 0.0 if f.breech is None else f.breech * y[1]
         return jnp.concatenate([vector_field(t, y, args), jnp.stack([loss, work])])
 
-    def jump(before, t, z, args):
+    def jump(before, t, z, f_before, args):
         y = load_jump(t, z[:4], params)
         gained = 0.5 * params.barrel.M * (y[1] ** 2 - z[1] ** 2)
         return jnp.concatenate([y, z[4:5], z[5:] + gained])

@@ -189,3 +189,24 @@ def test_with_values_validates_like_the_constructors():
         rj.with_values(params, ("k",), [np.nan])
     with pytest.raises(rj.ParameterError, match="unknown parameter 'mass'"):
         rj.with_values(params, ("mass",), [1.0])
+
+
+def test_with_values_sets_any_orifice_knots_at_once():
+    """The knots named go in one update (all of them, or any subset in any order), and
+    the others keep their values, also with a batch of designs."""
+    knots = np.linspace(1e-3, 4e-3, 6)
+    params = rj.params_from_values(
+        {"piston_area": 0.01} | {f"orifice_{i}": k for i, k in enumerate(knots)}
+    )
+    subset = rj.with_values(params, ("orifice_4", "gap", "orifice_1"), [9e-3, 0.02, 8e-3])
+    expected = knots.copy()
+    expected[[4, 1]] = [9e-3, 8e-3]
+    np.testing.assert_array_equal(np.asarray(subset.buffer.orifice), expected)
+    assert float(subset.absorber.gap) == 0.02
+    every = rj.with_values(params, [f"orifice_{i}" for i in range(6)], knots[::-1])
+    np.testing.assert_array_equal(np.asarray(every.buffer.orifice), knots[::-1])
+    batch = jax.tree.map(lambda x: jnp.stack([x, x]), params)
+    moved = rj.with_values(batch, ("orifice_2",), [7e-3])
+    assert moved.buffer.orifice.shape == (2, 6)
+    np.testing.assert_array_equal(np.asarray(moved.buffer.orifice[:, 2]), [7e-3, 7e-3])
+    np.testing.assert_array_equal(np.asarray(moved.buffer.orifice[:, 3]), knots[[3, 3]])

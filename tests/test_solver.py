@@ -21,6 +21,22 @@ from recoil_jax._model import (
 )
 
 
+@pytest.mark.parametrize("size", [4, 20, 21, 115])
+def test_error_norm_is_the_root_mean_square_either_way(size):
+    """The step-size controller's norm: a chain of adds up to 20 components, a sum above
+    (the sensitivities of many parameters); the same root mean square, zero at zero with
+    a finite gradient there."""
+    from recoil_jax._stepping import _rms_norm
+
+    x = jnp.asarray(np.random.default_rng(size).normal(size=size))
+    np.testing.assert_allclose(
+        float(_rms_norm(x)), np.sqrt(np.mean(np.asarray(x) ** 2)), rtol=1e-14
+    )
+    zero = jnp.zeros(size)
+    assert float(_rms_norm(zero)) == 0.0
+    assert np.all(np.isfinite(np.asarray(jax.grad(_rms_norm)(zero))))
+
+
 def test_hermite_max_matches_brute_force():
     rng = np.random.default_rng(0)
     p0, d0, p1, d1 = (jnp.asarray(rng.normal(size=500)) for _ in range(4))
