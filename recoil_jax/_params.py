@@ -1093,7 +1093,7 @@ def with_values(params: RecoilParams, names: Sequence[str], values: Any) -> Reco
         # a scatter per knot made the 22-parameter program larger and slower.
         assert params.buffer is not None  # (_check_present)
         orifice = jnp.asarray(params.buffer.orifice, dtype=float)
-        given = jnp.stack(list(knots.values()), axis=-1)
+        given = jnp.stack(jnp.broadcast_arrays(*knots.values()), axis=-1)
         if list(knots) == list(range(orifice.shape[-1])):
             orifice = jnp.broadcast_to(given, jnp.broadcast_shapes(given.shape, orifice.shape))
         else:

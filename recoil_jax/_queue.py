@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -103,6 +104,9 @@ def queued_map(loop: PeakLoop, setup, post, designs, lanes: int, count=None):
         # Every lane holding a design is still running: a lane is emptied the moment its
         # design finishes, and a freshly loaded one starts at t = 0 < t1.
         active = index >= 0
+        # An idle lane's `made_jump` (its design ended on a stop's step) would otherwise
+        # make every lane evaluate a fresh first stage until the lane is loaded again.
+        state = eqx.tree_at(lambda s: s.made_jump, state, state.made_jump & active)
         stepped = jax.vmap(lambda s, a: loop.body(s, a, check_bounds=check))(state, args)
         state = jax.tree.map(
             lambda new, old: jnp.where(active.reshape((-1,) + (1,) * (new.ndim - 1)), new, old),

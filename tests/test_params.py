@@ -210,3 +210,13 @@ def test_with_values_sets_any_orifice_knots_at_once():
     assert moved.buffer.orifice.shape == (2, 6)
     np.testing.assert_array_equal(np.asarray(moved.buffer.orifice[:, 2]), [7e-3, 7e-3])
     np.testing.assert_array_equal(np.asarray(moved.buffer.orifice[:, 3]), knots[[3, 3]])
+
+
+def test_with_values_mixes_scalar_and_batched_knots():
+    """A scalar knot beside a knot given per design, as when each was set on its own."""
+    params = rj.params_from_values({"piston_area": 0.01} | {f"orifice_{i}": 2e-3 for i in range(4)})
+    batch = jax.tree.map(lambda x: jnp.stack([x, x, x]), params)
+    moved = rj.with_values(batch, ("orifice_0", "orifice_3"), [1e-3, jnp.array([4e-3, 5e-3, 6e-3])])
+    np.testing.assert_array_equal(np.asarray(moved.buffer.orifice[:, 0]), [1e-3] * 3)
+    np.testing.assert_array_equal(np.asarray(moved.buffer.orifice[:, 3]), [4e-3, 5e-3, 6e-3])
+    np.testing.assert_array_equal(np.asarray(moved.buffer.orifice[:, 1:3]), 2e-3)
