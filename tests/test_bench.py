@@ -1,6 +1,10 @@
 """The benchmark runs and reports what it promises (speed itself is not asserted), and
 its anchor, the compiled scalar loop, solves the library's model."""
 
+import os
+import platform
+from pathlib import Path
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -11,7 +15,13 @@ import recoil_jax as rj
 from recoil_jax._model import RECOIL_TERM, initial_state, model_args, tracked_metrics, vector_field
 from recoil_jax._stepping import integrate_peaks
 from recoil_jax.apps._anchor import anchor_field, anchor_peaks
-from recoil_jax.apps._bench import bench_designs, format_bench, run_bench
+from recoil_jax.apps._bench import (
+    _host_label,
+    bench_designs,
+    format_bench,
+    host_description,
+    run_bench,
+)
 
 pytest.importorskip("numba")
 
@@ -65,6 +75,29 @@ def test_the_compiled_scalar_loop_solves_the_library_model():
     assert anchor["seconds"] > 0
 
 
+def test_the_host_is_described():
+    """The bench's figures carry the machine they come from (figures from two hosts do
+    not compare): its CPU, the widest vector extension the CPU lists, and the cores."""
+    host = host_description()
+    assert host["cpu"] and 1 <= host["cores"] <= (os.cpu_count() or 1)
+    info = Path("/proc/cpuinfo")
+    if platform.machine().lower() in ("x86_64", "amd64") and info.exists():
+        flags = next(
+            set(line.split(":", 1)[1].split())
+            for line in info.read_text().splitlines()
+            if line.startswith("flags")
+        )
+        # The widest the CPU lists: the one named is there, and none wider is.
+        named = host["vector_extension"]
+        ladder = ("avx512f", "avx2", "avx", "sse4_2")
+        if named is None:
+            assert not flags & set(ladder)
+        else:
+            assert named in flags and not flags & set(ladder[: ladder.index(named)])
+    label = _host_label({**host, "vector_extension": None})
+    assert "vector extensions unknown" in label and str(host["cores"]) in label
+
+
 @pytest.mark.slow
 def test_bench_smoke():
     result = run_bench(
@@ -94,6 +127,8 @@ def test_bench_smoke():
     assert anchored["ratio_per_step"] > 0 and anchored["ratio_per_design"] > 0
     assert anchored["anchor"]["mean_steps"] > anchored["ours"]["mean_steps"]  # no early stop
     assert "compiled scalar loop (numba, 1 core" in format_bench(result)
+    assert result["host"] == host_description()
+    assert f"host: {result['host']['cpu']}" in format_bench(result)
     assert result["jacobians_per_s"] > 0 and result["compile_s"] >= 0
     # Both solve the same model to rtol ~1e-5: peaks agree well inside 1e-3.
     assert result["max_rel_error"] < 1e-3

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import platform
 import sys
 import time
 from pathlib import Path
@@ -23,6 +24,7 @@ __all__ = [
     "format_bench",
     "gradient_modes",
     "hardware_designs",
+    "host_description",
     "main_bench",
     "run_bench",
 ]
@@ -179,6 +181,35 @@ def cli_cache_timings(commands=CLI_COMMANDS, log=None) -> list[dict]:
 #: 20 designs: DOP853 59 sims/s at 2.7e-6 from a 1e-10 solution, RK45 43 at 6.9e-6, Radau
 #: 12, BDF 12, RK23 12; LSODA fails on the event search).
 SCIPY_SETTINGS = {"method": "DOP853", "rtol": 1e-6, "atol": 1e-9}
+
+
+#: x86 vector extensions, widest first: the one a host's figures are labelled with.
+_VECTOR_EXTENSIONS = ("avx512f", "avx2", "avx", "sse4_2")
+
+
+def host_description() -> dict:
+    """The machine the figures come from: its CPU's model name, the widest x86 vector
+    extension it lists (`avx512f`, `avx2`, ...; None where `/proc/cpuinfo` does not say)
+    and the cores this process may use. Figures from different hosts do not compare: on
+    two 2-core AMD EPYC machines, one with AVX-512 and one with AVX2 only, nearly the same
+    code ran the bench's largest batch at 29-31k and at 14.5-21.3k sims/s, and the
+    compiled scalar loop led 3.9-4.4x and 4.4-5.6x per step."""
+    from ._anchor import cores
+
+    model, flags = platform.processor() or platform.machine(), set()
+    try:
+        with open("/proc/cpuinfo") as info:
+            for line in info:
+                key, _, value = line.partition(":")
+                if key.strip() == "model name":
+                    model = value.strip()
+                elif key.strip() == "flags":
+                    flags = set(value.split())
+                    break  # every core lists the same; the model name comes first
+    except OSError:  # not Linux
+        pass
+    widest = next((name for name in _VECTOR_EXTENSIONS if name in flags), None)
+    return {"cpu": model, "vector_extension": widest, "cores": cores()}
 
 
 def anchor_comparison(designs, ours_seconds: float, ours_steps, log=None) -> dict | None:
@@ -355,6 +386,7 @@ def run_bench(
         "cli_cache": cli_rows,
         "devices": [str(d) for d in jax.local_devices()],
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "host": host_description(),
         "dtype": "float64",
     }
 
@@ -395,6 +427,7 @@ def format_bench(result: dict) -> str:
         "(jacobian)",
         f"max relative error vs the scipy baseline's peaks: {result['max_rel_error']:.1e}",
         f"devices: {', '.join(result['devices'])}; XLA_FLAGS: {result['xla_flags'] or '(none)'}",
+        f"host: {_host_label(result['host'])} (figures from another host do not compare)",
     ]
     if result["gradient_modes"]:
         lines.append(
@@ -417,6 +450,12 @@ def format_bench(result: dict) -> str:
     if not result["gradient_modes"] and not result["cli_cache"]:
         lines.append("(--full adds gradients by forward and reverse mode and the CLI's cache)")
     return "\n".join(lines)
+
+
+def _host_label(host: dict) -> str:
+    extension = host["vector_extension"]
+    extension = extension.upper() if extension else "vector extensions unknown"
+    return f"{host['cpu']}, {extension}, {host['cores']} cores"
 
 
 def _scipy_label() -> str:
