@@ -22,7 +22,7 @@ import equinox as eqx
 import numpy as np
 
 from ._params import ParameterError
-from ._problem import feasible
+from ._problem import feasible, largest_violation
 
 __all__ = [
     "SLSQP",
@@ -181,7 +181,7 @@ class LocalRun:
             self._cache.clear()
             f, g, df, dg, exact, ok = self._value_and_jacobian(x, level)
             f, g, df, dg = (np.asarray(a, dtype=float) for a in (f, g, df, dg))
-            violation = float(np.max(g, initial=-np.inf))
+            violation = float(largest_violation(g))
             self._record(x, exact, violation, ok)
             self._watch(x, exact, violation, ok, level)
             finite = all(np.all(np.isfinite(a)) for a in (f, g, df, dg))

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -27,12 +26,19 @@ import numpy as np
 import optax
 
 from ._params import ParameterError, RecoilParams, values_of
-from ._problem import DesignProblem, evaluate_design, feasible
+from ._problem import (
+    DesignProblem,
+    best_feasible_note,
+    closest_index,
+    evaluate_design,
+    feasible,
+    largest_violation,
+)
 from ._progress import Progress
 from ._result import OptimiseResult
 from ._space import SearchSpace
-from ._status import Status, status_codes, status_messages
-from ._store import StudyStore, fingerprint
+from ._status import Status, status_codes
+from ._store import evaluation_row, fingerprint, open_study
 
 __all__ = ["default_optimiser", "optimise"]
 
@@ -158,7 +164,7 @@ def _stationary(records, patience: int, ftol: float, vtol: float) -> np.ndarray:
     spread = np.max(window, axis=0) - np.min(window, axis=0)
     flat = spread <= ftol * np.abs(window[-1])
     violations = np.stack([r.violations for r in records[-patience:]])
-    worst = np.max(violations, axis=(0, 2)) if violations.shape[-1] else np.zeros_like(spread)
+    worst = np.max(largest_violation(violations), axis=0)
     return flat & (worst <= vtol)
 
 
@@ -230,15 +236,19 @@ def _select_best(history: dict[str, np.ndarray], held: np.ndarray, scenarios: in
     run_best_objective = values[run_best_step, np.arange(runs)]
     run_best_theta = history["theta"][run_best_step, np.arange(runs)]
     best = {"theta": [], "objective": []}
-    # The largest violation of each point; inf where the solve failed.
-    worst = np.max(history["violations"], axis=-1, initial=-np.inf)
-    worst = np.where(ok & np.isfinite(history["objective"]), worst, np.inf)
+    worst = largest_violation(history["violations"])  # (N, R)
     best["closest_theta"], best["closest_violation"] = [], []
     for s in range(scenarios):
         rs = np.arange(s * starts, (s + 1) * starts)
-        step, run = np.unravel_index(np.argmin(worst[:, rs]), worst[:, rs].shape)
-        best["closest_theta"].append(history["theta"][step, rs[run]])
-        best["closest_violation"].append(worst[step, rs[run]])
+        objective, violation = history["objective"][:, rs], worst[:, rs]
+        i = closest_index(ok[:, rs].ravel(), objective.ravel(), violation.ravel())
+        if i is None:  # no solve succeeded: no closest design
+            best["closest_theta"].append(np.full(history["theta"].shape[-1], np.nan))
+            best["closest_violation"].append(np.nan)
+        else:
+            step, run = np.unravel_index(i, violation.shape)
+            best["closest_theta"].append(history["theta"][step, rs[run]])
+            best["closest_violation"].append(violation[step, run])
         r = int(rs[np.argmin(run_best_objective[rs])])
         found = np.isfinite(run_best_objective[r])
         best["objective"].append(run_best_objective[r] if found else np.nan)
@@ -342,14 +352,11 @@ def optimise(
             problem, optimiser, u0, starts, steps, params, limits, seed, anneal, update_every,
             penalty, penalty_growth, max_penalty, patience, ftol, vtol, min_steps,
         )  # fmt: skip
-        study = _open_store(store, problem, identity, runs, steps)
+        study = open_study(
+            store, label="optimise", problem=problem, identity=identity, total=runs * steps,
+            plan={}, description={"runs": runs}, progress=progress,
+        )  # fmt: skip
         checkpoints = study.checkpoints()
-        if checkpoints and progress is not False:
-            print(
-                f"optimise: resuming from {store}: {len(checkpoints)} of at most {steps} "
-                "steps stored",
-                file=sys.stderr,
-            )
         for saved in checkpoints:
             stepped_masks.append(active.copy())
             state, record, active, converged_step, best_so_far, seconds = _restore(state, saved)
@@ -380,12 +387,11 @@ def optimise(
                 study.checkpoint(
                     k,
                     _saved(state, record, active, converged_step, best_so_far, step_seconds[-1]),
-                    _step_rows(record, held, stepped, step_seconds[-1]),
+                    _step_rows(record, stepped, step_seconds[-1]),
                 )
-            best = f"{best_so_far:.6g}" if np.isfinite(best_so_far) else "none feasible yet"
             bar.update(
                 k + 1,
-                f"{int(active.sum())}/{runs} runs active, best feasible objective {best}",
+                f"{int(active.sum())}/{runs} runs active, {best_feasible_note(best_so_far)}",
                 final=not active.any(),
             )
             if not active.any():
@@ -482,23 +488,6 @@ def _identity(problem, optimiser: optax.GradientTransformation, u0, *settings) -
     return fingerprint("optimise", __version__, problem, np.asarray(u0), probe, settings)
 
 
-def _open_store(path, problem: DesignProblem, identity: str, runs: int, steps: int):
-    return StudyStore(
-        path,
-        identity=identity,
-        total=runs * steps,
-        plan={},
-        tune=problem.tune,
-        limits=[(name, kind) for name, kind, _ in problem.metric_constraints],
-        description={
-            "study": "optimise",
-            "tune": list(problem.tune),
-            "runs": runs,
-            "created": time.strftime("%Y-%m-%d %H:%M:%S"),
-        },
-    )
-
-
 def _saved(
     state: _State, record: _StepRecord, active, converged_step, best, seconds: float
 ) -> dict:
@@ -544,17 +533,14 @@ def _restore(state: _State, saved: dict[str, np.ndarray]):
     )
 
 
-def _step_rows(record: _StepRecord, held, stepped, seconds: float) -> list[dict]:
+def _step_rows(record: _StepRecord, stepped, seconds: float) -> list[dict]:
     """A step's evaluations as store rows, one per run that took the step."""
-    runs = np.nonzero(stepped)[0]
-    messages = status_messages(record.status[runs])
     return [
-        {
-            "seconds": seconds, "phase": "step", "start": int(r), "theta": record.theta[r],
-            "objective": record.objective[r], "violations": record.violations[r],
-            "feasible": held[r], "status": message, "status_code": record.status[r],
-        }
-        for r, message in zip(runs.tolist(), messages, strict=True)
+        evaluation_row(
+            seconds, "step", record.theta[r], record.objective[r], record.violations[r],
+            record.status[r], start=r,
+        )
+        for r in np.nonzero(stepped)[0].tolist()
     ]  # fmt: skip
 
 

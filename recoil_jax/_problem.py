@@ -44,10 +44,13 @@ __all__ = [
     "DesignEvaluation",
     "DesignProblem",
     "Objective",
+    "best_feasible_note",
+    "closest_index",
     "closest_miss",
     "constraint_report",
     "evaluate_design",
     "feasible",
+    "largest_violation",
     "metric_violations",
 ]
 
@@ -390,6 +393,29 @@ def feasible(ok, objective, violations) -> np.ndarray:
     violations = np.asarray(violations, dtype=float)
     held = np.all(violations <= -FEASIBILITY_TOLERANCE, axis=-1)
     return np.asarray(ok, dtype=bool) & np.isfinite(np.asarray(objective, dtype=float)) & held
+
+
+def largest_violation(violations) -> np.ndarray:
+    """`violations (..., C)` → `(...)`: the largest normalised violation of each point
+    (`-inf` where there are no limits)."""
+    return np.max(np.asarray(violations, dtype=float), axis=-1, initial=-np.inf)
+
+
+def closest_index(ok, objective, violation) -> int | None:
+    """The index of the least violating point (`violation (n,)`, its largest normalised
+    violation) among those whose solve succeeded (`ok (n,)`) with a finite objective:
+    the first of equals; None if there is none."""
+    violation = np.asarray(violation, dtype=float)
+    valid = np.asarray(ok, dtype=bool) & np.isfinite(np.asarray(objective, dtype=float))
+    valid &= ~np.isnan(violation)
+    if not np.any(valid):
+        return None
+    return int(np.argmin(np.where(valid, violation, np.inf)))
+
+
+def best_feasible_note(best: float) -> str:
+    """How a progress line and a store's summary give the best feasible objective so far."""
+    return f"best feasible objective {best:.7g}" if np.isfinite(best) else "none feasible yet"
 
 
 def closest_miss(problem: DesignProblem, violations) -> dict[str, dict]:

@@ -21,6 +21,7 @@ solve. Measured against the optax Adam loop of `optimise` in `optimise/README.md
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import threading
@@ -34,36 +35,41 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._cache import structure_jit
-from ._gradients import MetricSeries, series_name
+from ._evaluators import (
+    BatchEvaluation,
+    BatchEvaluator,
+    GradientEvaluator,
+    MinimaxEvaluator,
+    MinimaxWindow,
+    StoredEvaluator,
+    gradient_traces,
+    minimax_metric,
+)
 from ._local import (
     SLSQP,
     EpigraphMinimax,
-    LocalEvaluation,
     LocalMethod,
     TrustRegionLP,
     run_local,
 )
-from ._metrics import METRICS
-from ._params import (
-    ParameterError,
-    end_time,
-    params_to_values,
-    values_of,
+from ._params import ParameterError, values_of
+from ._problem import (
+    DesignProblem,
+    best_feasible_note,
+    closest_index,
+    feasible,
+    largest_violation,
 )
-from ._problem import DesignProblem, evaluate_design, feasible, metric_violations
 from ._progress import Progress
 from ._result import OptimiseResult
 from ._space import SearchSpace
-from ._status import Status, status_codes, status_messages
-from ._store import StudyStore, fingerprint
-from ._sweep import default_workers, sweep
+from ._store import StudyStore, fingerprint, open_study
+from ._sweep import default_workers
 
 __all__ = [
     "BasinHopping",
     "SobolStarts",
     "default_local",
-    "minimax_metric",
     "minimise",
     "search",
 ]
@@ -190,7 +196,8 @@ class _Minimum(NamedTuple):
 
 
 class _Recorder:
-    """Every evaluation, in order, with the best feasible point so far."""
+    """Every evaluation, in order, with the best feasible point and the least violating
+    one so far (`add` is called from the local runs' threads)."""
 
     def __init__(self, bar: Progress):
         self.bar, self.start = bar, time.perf_counter()
@@ -203,27 +210,118 @@ class _Recorder:
         self.closest_z, self.closest = None, np.inf  # the least worst violation
         self.count = 0
 
-    def add(self, z, objective, violation, ok, gradient: bool, phase: str):
-        with self.lock:
-            self._add(z, objective, violation, ok, gradient, phase)
+    def clock(self) -> float:
+        """Seconds since this run began."""
+        return time.perf_counter() - self.start
 
-    def _add(self, z, objective, violation, ok, gradient: bool, phase: str):
-        now = time.perf_counter() - self.start
-        self.gradient_solves += int(gradient)
-        for zi, f, v, good in zip(
-            np.atleast_2d(z), np.atleast_1d(objective), np.atleast_1d(violation),
-            np.atleast_1d(ok), strict=True
-        ):  # fmt: skip
-            held = bool(feasible(good, f, [v]))
-            for key, value in zip(self.rows, (now, float(f), held, gradient, phase), strict=True):
-                self.rows[key].append(value)
-            if held and f < self.best:
-                self.best, self.best_z = float(f), np.array(zi, dtype=float)
-            if bool(good) and np.isfinite(f) and v < self.closest:
-                self.closest, self.closest_z = float(v), np.array(zi, dtype=float)
-        self.count += int(np.size(objective))
-        best = f"{self.best:.7g}" if np.isfinite(self.best) else "none feasible yet"
-        self.bar.update(min(self.count, self.bar.total - 1), f"best feasible objective {best}")
+    def add(self, z, objective, violation, ok, gradient: bool, phase: str):
+        """Record evaluations: `z (n, P)` or `(P,)`, with their exact objectives, largest
+        violations and whether their solves succeeded."""
+        z = np.atleast_2d(np.asarray(z, dtype=float))
+        objective, violation = np.atleast_1d(objective), np.atleast_1d(violation)
+        held = feasible(np.atleast_1d(ok), objective, violation[:, None])
+        with self.lock:
+            now = self.clock()
+            self.gradient_solves += int(gradient)
+            n = len(objective)
+            for key, values in zip(
+                self.rows, ([now] * n, objective.tolist(), held.tolist(), [gradient] * n,
+                            [phase] * n), strict=True
+            ):  # fmt: skip
+                self.rows[key].extend(values)
+            best = np.where(held, objective, np.inf)
+            if np.min(best) < self.best:
+                i = int(np.argmin(best))
+                self.best, self.best_z = float(objective[i]), z[i].copy()
+            i = closest_index(np.atleast_1d(ok), objective, violation)
+            if i is not None and violation[i] < self.closest:
+                self.closest, self.closest_z = float(violation[i]), z[i].copy()
+            self.count += n
+            self.bar.update(min(self.count, self.bar.total - 1), best_feasible_note(self.best))
+
+    def minimum(self, samples, runs, solves: int, spacing: float) -> _Minimum:
+        """What the run found (`_Minimum`), once every phase has ended."""
+        self.bar.update(self.bar.total, best_feasible_note(self.best), final=True)
+        nowhere = np.full(samples["z"].shape[1], np.nan)
+        return _Minimum(
+            best_z=nowhere if self.best_z is None else self.best_z,
+            best_objective=self.best if self.best_z is not None else np.nan,
+            closest_z=nowhere if self.closest_z is None else self.closest_z,
+            closest_violation=float(self.closest) if self.closest_z is not None else np.nan,
+            trace={k: np.asarray(v) for k, v in self.rows.items()},
+            samples=samples,
+            runs=runs,
+            solves=solves,
+            gradient_solves=self.gradient_solves,
+            seconds=self.clock(),
+            spacing=spacing,
+        )
+
+
+class _LocalRunner:
+    """Runs one local run of `method` from a start (`__call__(z0)`, a dict as
+    `run_local`'s with `phase`, `evaluations`, `best_feasible` and `best_z`), each with
+    its own evaluator from `evaluator()`, recording every evaluation."""
+
+    def __init__(self, method: LocalMethod, evaluator, record: _Recorder, out_of_time):
+        self.method, self.evaluator, self.record = method, evaluator, record
+        self.out_of_time = out_of_time
+
+    def __call__(self, z0: np.ndarray) -> dict:
+        seen = {"evaluations": 0, "best_feasible": np.inf, "best_z": None}  # this run's
+
+        def record_run(z, objective, violation, ok):
+            self.record.add(z, objective, violation, ok, True, "local")
+            seen["evaluations"] += 1
+            if feasible(ok, objective, [violation]) and objective < seen["best_feasible"]:
+                seen["best_feasible"], seen["best_z"] = float(objective), np.array(z)
+
+        run = run_local(
+            self.method, self.evaluator(), z0, record_run, self.out_of_time, self.record.clock
+        )
+        return run | {"phase": "start"} | seen
+
+    def warm_up(self, dimension: int, evaluate) -> None:
+        """One gradient solve at the centre of the box with `evaluate`, recorded like
+        the others: the gradient program compiles while the global phase samples."""
+        centre = np.full(dimension, 0.5)
+        _, g, _, _, exact, ok = evaluate(centre, self.method.levels[0])
+        self.record.add(centre, exact, largest_violation(np.asarray(g)[None]), ok, True, "local")
+
+
+def _sample(global_phase: SobolStarts, evaluate_batch, dimension: int, seed: int, record):
+    """The global phase's samples, evaluated in one batch and recorded: `z (N, P)`,
+    `objective`, `violation` (largest), `ok`."""
+    z = global_phase.sample(dimension, seed)
+    evaluation = evaluate_batch(z)
+    if isinstance(evaluation, BatchEvaluation):
+        evaluation = (evaluation.objective, evaluation.violations, evaluation.ok)
+    objective, violations, ok = (np.asarray(a) for a in evaluation)
+    violation = largest_violation(np.asarray(violations, dtype=float).reshape(len(z), -1))
+    record.add(z, objective, violation, ok, False, "sample")
+    return {"z": z, "objective": objective, "violation": violation, "ok": ok}
+
+
+def _no_samples(dimension: int) -> dict[str, np.ndarray]:
+    return {
+        "z": np.zeros((0, dimension)),
+        "objective": np.zeros(0),
+        "violation": np.zeros(0),
+        "ok": np.zeros(0, bool),
+    }
+
+
+def _checked_methods(local, global_phase, dimension: int, caller: str):
+    """`local` and `global_phase` (defaults `SLSQP()` and `SobolStarts()`), checked."""
+    local = SLSQP() if local is None else local
+    global_phase = SobolStarts() if global_phase is None else global_phase
+    if not isinstance(local, LocalMethod):
+        raise ParameterError(f"{caller}: local must be a LocalMethod, got {local!r}")
+    if not isinstance(global_phase, SobolStarts):
+        raise ParameterError(f"{caller}: global_phase must be a SobolStarts, got {global_phase!r}")
+    if dimension < 1:
+        raise ParameterError(f"{caller}: need dimension >= 1 (got {dimension})")
+    return local, global_phase
 
 
 def minimise(
@@ -292,96 +390,38 @@ def _minimise(
     evaluate_batch, value_and_jacobian, dimension: int, *, local, global_phase, initial,
     hopping, seed, max_seconds, workers, progress, label, run_evaluator, spent,
 ) -> _Minimum:  # fmt: skip
-    """`minimise`, in normalised coordinates."""
-    local = SLSQP() if local is None else local
-    global_phase = SobolStarts() if global_phase is None else global_phase
-    if not isinstance(local, LocalMethod):
-        raise ParameterError(f"minimise: local must be a LocalMethod, got {local!r}")
-    if not isinstance(global_phase, SobolStarts):
-        raise ParameterError(f"minimise: global_phase must be a SobolStarts, got {global_phase!r}")
-    if dimension < 1:
-        raise ParameterError(f"minimise: need dimension >= 1 (got {dimension})")
+    """`minimise`, in normalised coordinates: the given starts and the global phase at
+    once, then the local runs from the best samples, then basin hopping."""
+    local, global_phase = _checked_methods(local, global_phase, dimension, "minimise")
     initial = [np.clip(np.asarray(z, dtype=float), 0.0, 1.0) for z in initial]
-    n_samples = global_phase.points
-    levels = local.levels
     runs = global_phase.starts + len(initial) + (0 if hopping is None else hopping.hops)
-    budget = n_samples + len(initial) + runs * len(levels) * local.maxiter
-    bar = Progress(label, budget, "solves", progress)
-    record = _Recorder(bar)
+    budget = global_phase.points + len(initial) + runs * len(local.levels) * local.maxiter
+    record = _Recorder(Progress(label, budget, "solves", progress))
 
     def out_of_time() -> bool:
-        used = spent() if spent is not None else time.perf_counter() - record.start
+        used = spent() if spent is not None else record.clock()
         return max_seconds is not None and used > max_seconds
 
-    def clock() -> float:
-        return time.perf_counter() - record.start
-
-    def record_local(z, objective, violation, ok):
-        record.add(z, objective, violation, ok, True, "local")
-
-    def warm_up():
-        centre = np.full(dimension, 0.5)
-        _, g, _, _, exact, ok = value_and_jacobian(centre, levels[0])
-        record.add(centre, exact, _worst(np.asarray(g)[None], 1), ok, True, "local")
-
-    def local_run(z0):
-        evaluate = value_and_jacobian if run_evaluator is None else run_evaluator()
-        seen = {"evaluations": 0, "best_feasible": np.inf, "best_z": None}  # this run's
-
-        def record_run(z, objective, violation, ok):
-            record_local(z, objective, violation, ok)
-            seen["evaluations"] += 1
-            if feasible(ok, objective, [violation]) and objective < seen["best_feasible"]:
-                seen["best_feasible"], seen["best_z"] = float(objective), np.array(z)
-
-        run = run_local(local, evaluate, z0, record_run, out_of_time, clock)
-        return run | {"phase": "start"} | seen
-
+    evaluator = run_evaluator if run_evaluator is not None else lambda: value_and_jacobian
+    runner = _LocalRunner(local, evaluator, record, out_of_time)
     # Given starts first (a design known to be good is polished at once), then the
     # global phase: one batch through the batched solver, and the best distinct samples.
     with ThreadPoolExecutor(max(1, workers)) as pool:
-        given = [pool.submit(local_run, z0) for z0 in initial]
+        given = [pool.submit(runner, z0) for z0 in initial]
+        warm_up = None
         if not given and global_phase.starts:
-            # Compile the gradient program while the global phase samples: one
-            # gradient solve at the centre of the box, recorded like the others.
-            given_warmup = pool.submit(warm_up)
+            warm_up = pool.submit(runner.warm_up, dimension, value_and_jacobian)
+        if global_phase.points and not out_of_time():
+            sampled = _sample(global_phase, evaluate_batch, dimension, seed, record)
         else:
-            given_warmup = None
-        if n_samples and not out_of_time():
-            z = global_phase.sample(dimension, seed)
-            objective, violations, ok = (np.asarray(a) for a in evaluate_batch(z))
-            violation = _worst(violations, len(z))
-            record.add(z, objective, violation, ok, False, "sample")
-            sampled = {"z": z, "objective": objective, "violation": violation, "ok": ok}
-        else:
-            sampled = {
-                "z": np.zeros((0, dimension)),
-                "objective": np.zeros(0),
-                "violation": np.zeros(0),
-                "ok": np.zeros(0, bool),
-            }
-        sampled_runs = pool.map(local_run, global_phase.choose(sampled))
-        runs = [future.result() for future in given] + list(sampled_runs)
-        if given_warmup is not None:
-            given_warmup.result()
+            sampled = _no_samples(dimension)
+        sampled_runs = pool.map(runner, global_phase.choose(sampled))
+        done = [future.result() for future in given] + list(sampled_runs)
+        if warm_up is not None:
+            warm_up.result()
         if hopping is not None:
-            runs += hopping.run(record, local_run, pool, max(1, workers), seed, out_of_time)
-    bar.update(bar.total, _best_note(record.best), final=True)
-    trace = {k: np.asarray(v) for k, v in record.rows.items()}
-    nowhere = np.full(dimension, np.nan)
-    return _Minimum(
-        best_z=nowhere if record.best_z is None else np.asarray(record.best_z),
-        best_objective=record.best if record.best_z is not None else np.nan,
-        closest_z=nowhere if record.closest_z is None else np.asarray(record.closest_z),
-        closest_violation=float(record.closest) if record.closest_z is not None else np.nan,
-        trace=trace,
-        samples=sampled,
-        runs=runs,
-        solves=n_samples,
-        gradient_solves=record.gradient_solves,
-        seconds=time.perf_counter() - record.start,
-        spacing=global_phase.spacing,
-    )
+            done += hopping.run(record, runner, pool, max(1, workers), seed, out_of_time)
+    return record.minimum(sampled, done, global_phase.points, global_phase.spacing)
 
 
 def _regions(runs: list[dict], spacing: float) -> list[int | None]:
@@ -460,112 +500,6 @@ def _result(
         samples=minimum.samples,
         replayed=replayed,
     )
-
-
-def _best_note(best: float) -> str:
-    return f"best feasible objective {best:.7g}" if np.isfinite(best) else "nothing feasible"
-
-
-def _worst(violations, n: int) -> np.ndarray:
-    violations = np.asarray(violations, dtype=float).reshape(n, -1)
-    return np.max(violations, axis=1) if violations.shape[1] else np.full(n, -np.inf)
-
-
-_TRACES = [0]  # how many times the gradient program was traced (compiled)
-
-
-class _GradientSolve(NamedTuple):
-    """`_gradient_program`'s outputs: `LocalEvaluation`'s, with the solve's integer
-    `Status` code in place of `ok`."""
-
-    f: Any
-    g: Any
-    df: Any
-    dg: Any
-    objective: Any
-    status_code: Any
-
-
-@structure_jit
-def _gradient_program(problem: DesignProblem, box: SearchSpace, z, temperature, series_ts=None):
-    """The smooth objective, the violations, their Jacobians, the exact objective and
-    the status code at `z`: one sensitivity solve, reverse mode through the custom JVP
-    (the Jacobian of all outputs from the one solve). One compilation per problem
-    structure: re-running a study, or another seed, reuses it.
-
-    With `series_ts` (`(n,)` save times), the objective comes as a minimax instead:
-    `(1 + n,)` values, its peak then the weighted signal at each save time (NaN after
-    the solve's end), with their Jacobian `(1 + n, P)` (forward mode: P columns)."""
-    _TRACES[0] += 1
-    if series_ts is not None:
-        name = minimax_metric(problem)
-        assert name is not None
-        weight = problem.objective.weights[name]
-
-        def minimax_outputs(z):
-            evaluation = evaluate_design(
-                problem, box.theta(z), series=MetricSeries((name,), series_ts)
-            )
-            metrics = evaluation.metrics
-            peaks = weight * jnp.concatenate([metrics[name][None], metrics[series_name(name)]])
-            values = jnp.concatenate([peaks, evaluation.violations])
-            return values, (values, evaluation)
-
-        jacobian, (values, evaluation) = jax.jacfwd(minimax_outputs, has_aux=True)(z)
-        n = series_ts.shape[0] + 1
-        f, df = values[:n], jacobian[:n]
-    else:
-
-        def outputs(z):
-            evaluation = evaluate_design(problem, box.theta(z), temperature_scale=temperature)
-            values = jnp.concatenate([evaluation.smooth_objective[None], evaluation.violations])
-            return values, (values, evaluation)
-
-        jacobian, (values, evaluation) = jax.jacrev(outputs, has_aux=True)(z)
-        n = 1
-        f, df = values[0], jacobian[0]
-    (code,) = jax.tree.leaves(evaluation.status)
-    return _GradientSolve(f, values[n:], df, jacobian[n:], evaluation.objective, code)
-
-
-def minimax_metric(problem: DesignProblem) -> str | None:
-    """The metric when `problem`'s objective is a positive multiple of one maximum over
-    time (a metric with a `SmoothMax`), with no scatter: `search` then treats it as a
-    minimax over time. Else None."""
-    objective = problem.objective
-    if objective.scatter is not None or len(objective.weights) != 1:
-        return None
-    ((name, weight),) = objective.weights.items()
-    return name if weight > 0 and METRICS[name].smoothable else None
-
-
-#: Save times of the minimax's series: the signal's maximum is levelled on this grid.
-SERIES_POINTS = 1024
-
-
-def _local_maxima(ts: np.ndarray, values: np.ndarray, count: int, fill: float) -> np.ndarray:
-    """The times `(count,)` of the `count` highest interior local maxima of a sampled
-    signal (`ts` in any order, NaN values ignored), each refined to the vertex of the
-    parabola through it and its neighbours; `fill` where there are fewer."""
-    keep = np.isfinite(values)
-    t, first = np.unique(ts[keep], return_index=True)  # sorted, each time once
-    v = values[keep][first]
-    out = np.full(count, fill)
-    if t.size < 3:
-        return out
-    interior = np.nonzero((v[1:-1] >= v[:-2]) & (v[1:-1] > v[2:]))[0] + 1
-    # The highest `count`, in time order (a slot keeps its peak while they persist).
-    interior = np.sort(interior[np.argsort(-v[interior], kind="stable")][:count])
-    t0, t1, t2 = t[interior - 1], t[interior], t[interior + 1]
-    v0, v1, v2 = v[interior - 1], v[interior], v[interior + 1]
-    # Vertex of the parabola through three points (unequal spacing).
-    num = (t1 - t0) ** 2 * (v1 - v2) - (t1 - t2) ** 2 * (v1 - v0)
-    den = (t1 - t0) * (v1 - v2) - (t1 - t2) * (v1 - v0)
-    safe = np.abs(den) > 0
-    vertex = t1 - 0.5 * num / np.where(safe, den, 1.0)
-    vertex = np.where(safe & (vertex > t0) & (vertex < t2), vertex, t1)
-    out[: vertex.size] = vertex
-    return out
 
 
 def default_local(problem: DesignProblem, minimax: bool | None = None) -> LocalMethod:
@@ -647,29 +581,10 @@ def search(
 
     **Raises:** `ParameterError` for bad arguments, before compiling.
     """
-    if problem.objective.scatter is not None:
-        raise ParameterError(
-            "search does not take a scatter objective yet; use optimise for robust designs"
-        )
-    if local is not None and minimax is not None and bool(minimax) != local.minimax:
-        raise ParameterError(
-            f"search: minimax = {minimax} contradicts local = {type(local).__name__}"
-        )
-    local = default_local(problem, minimax) if local is None else local
-    if not isinstance(local, LocalMethod):
-        raise ParameterError(f"search: local must be a LocalMethod, got {local!r}")
-    global_phase = SobolStarts() if global_phase is None else global_phase
-    if not isinstance(global_phase, SobolStarts):
-        raise ParameterError(f"search: global_phase must be a SobolStarts, got {global_phase!r}")
-    if local.minimax and minimax_metric(problem) is None:
-        raise ParameterError(
-            "search: minimax needs an objective that is one peak over time "
-            "(peak_anchoring_force or peak_displacement, positive weight, no scatter)"
-        )
-    box = SearchSpace.of(problem)
-    base = params_to_values(problem.params)
-    ok_code = int(status_codes(Status.ok))
+    local, global_phase = _search_methods(problem, local, minimax, global_phase)
+    space = SearchSpace.of(problem)
     workers = default_workers(jax.local_devices()) if workers is None else workers
+    batch, gradient = BatchEvaluator(problem, space, client), GradientEvaluator(problem, space)
     study = None
     if store is not None:
         study = _open_study_store(
@@ -682,178 +597,49 @@ def search(
         """Seconds of the time budget spent, the earlier runs' included."""
         return (study.prior_seconds if study else 0.0) + time.perf_counter() - began
 
-    def solve_batch(z):
-        theta = np.asarray(jax.vmap(box.theta)(jnp.asarray(z)))
-        designs = {k: np.full(len(z), float(v)) for k, v in base.items()}
-        designs |= {name: theta[:, j] for j, name in enumerate(problem.tune)}
-        result = sweep(
-            designs,
-            smoothing=problem.smoothing,
-            options=problem.options,
-            progress=False,
-            client=client,
-        )
-        metrics = result.peaks
-        objective = np.asarray(problem.objective(metrics), dtype=float)
-        violations = np.asarray(metric_violations(problem, metrics), dtype=float)
-        return theta, objective, violations.reshape(len(z), -1), status_codes(result.status)
-
-    def evaluate_batch(z):
-        if study is None:
-            _, objective, violations, codes = solve_batch(z)
-            return objective, violations, codes == ok_code
-        keys = [fingerprint("sample", row) for row in z]
-        stored = [study.stored(key) for key in keys]
-        todo = np.asarray([i for i, out in enumerate(stored) if out is None], dtype=int)
-        objective = np.zeros(len(z))
-        violations = np.zeros((len(z), len(problem.metric_constraints)))
-        codes = np.zeros(len(z), dtype=np.int32)
-        for i, out in enumerate(stored):
-            if out is not None:
-                objective[i], violations[i], codes[i] = (
-                    out["objective"],
-                    out["violations"],
-                    out["code"],
-                )
-        if todo.size:
-            theta, objective[todo], violations[todo], codes[todo] = solve_batch(z[todo])
-            held = feasible(codes[todo] == ok_code, objective[todo], violations[todo])
-            messages = status_messages(codes[todo])
-            study.commit(
-                [
-                    {
-                        "seconds": spent(), "phase": "sample", "theta": theta[j],
-                        "objective": objective[i], "violations": violations[i],
-                        "feasible": held[j], "status": messages[j], "status_code": codes[i],
-                        "key": keys[i],
-                        "outputs": {
-                            "objective": objective[i], "violations": violations[i],
-                            "code": codes[i],
-                        },
-                    }
-                    for j, i in enumerate(todo.tolist())
-                ]
-            )  # fmt: skip
-        return objective, violations, codes == ok_code
-
-    traces = _TRACES[0]
-
-    window: list[np.ndarray] = []  # the minimax's save times, set at the first call
-    window_lock = threading.Lock()
-
-    def gradient_solve(z, level, series_ts=None):
-        if study is None:
-            solve = _gradient_program(
-                problem, box, jnp.asarray(z), jnp.asarray(level, dtype=float), series_ts
-            )
-            ok = int(solve.status_code) == ok_code
-            return LocalEvaluation(solve.f, solve.g, solve.df, solve.dg, float(solve.objective), ok)
-        z = np.asarray(z, dtype=float)
-        times = () if series_ts is None else np.asarray(series_ts)
-        key = fingerprint("gradient", z, np.asarray(level, dtype=float), times)
-        out = study.stored(key)
-        if out is None:
-            solve = _gradient_program(
-                problem, box, jnp.asarray(z), jnp.asarray(level, dtype=float), series_ts
-            )
-            # The store's names for the outputs (stores written before keep resuming).
-            names = ("f", "g", "df", "dg", "exact", "code")
-            out = dict(zip(names, map(np.asarray, solve), strict=True))
-            code = int(out["code"])
-            study.commit(
-                [
-                    {
-                        "seconds": spent(), "phase": "local",
-                        "theta": np.asarray(box.theta(jnp.asarray(z))),
-                        "objective": out["exact"], "violations": out["g"],
-                        "feasible": feasible(code == ok_code, out["exact"], out["g"]),
-                        "status": status_messages(np.asarray([code]))[0],
-                        "status_code": code, "key": key, "outputs": out,
-                    }
-                ]
-            )  # fmt: skip
-        f, g, df, dg = out["f"], out["g"], out["df"], out["dg"]
-        return LocalEvaluation(f, g, df, dg, float(out["exact"]), int(out["code"]) == ok_code)
-
-    def series_ts(z) -> np.ndarray:
-        """Save times over the first design's run (from 0 to where its peaks were
-        certain, plus a quarter): a later design's maximum outside them still counts,
-        through the located peak."""
-        with window_lock:
-            if not window:
-                t1 = float(np.max(np.asarray(end_time(problem.params, problem.options))))
-                whole = np.linspace(0.0, t1, SERIES_POINTS)
-                padded = np.concatenate([whole, np.full(peak_times, t1)])
-                f = np.asarray(gradient_solve(z, 1.0, jnp.asarray(padded))[0])[1:]
-                f = f[:SERIES_POINTS]
-                written = np.nonzero(np.isfinite(f))[0]
-                end = whole[written[-1]] if written.size else t1
-                window.append(np.linspace(0.0, min(t1, 1.25 * end), SERIES_POINTS))
-            return window[0]
-
-    # The peaks' own save times, as many as the local method asks for (EpigraphMinimax:
-    # the study says the peaks are narrow, it gave them a temperature).
-    peak_times = local.peak_times
-
-    def run_evaluator():
-        """One local run's `value_and_jacobian`: at level 0 the minimax's pieces are the
-        signal on the grid and at the local maxima of the run's previous point."""
-        previous_maxima: list[np.ndarray] = []  # this run's, at its last good solve
-
-        def value_and_jacobian(z, level):
-            if level > 0:
-                return gradient_solve(z, level)
-            grid = series_ts(z)
-            extra = previous_maxima[-1] if previous_maxima else np.full(peak_times, grid[-1])
-            times = np.concatenate([grid, extra])
-            # Saved in time order; returned in this order, so that each value keeps its
-            # place (one constraint of SLSQP's each) from one point to the next.
-            order = np.argsort(times, kind="stable")
-            f, g, df, dg, exact, ok = gradient_solve(z, level, jnp.asarray(times[order]))
-            f, df = np.array(f), np.array(df)
-            f[1 + order], df[1 + order] = f[1:].copy(), df[1:].copy()
-            if bool(ok) and peak_times:
-                previous_maxima[:] = [_local_maxima(times, f[1:], peak_times, grid[-1])]
-            # Save times after the solve's end (its peaks certain) are no constraint.
-            after = ~np.isfinite(f)
-            if np.any(np.isfinite(f)):
-                f[after], df[after] = np.nanmin(f), 0.0
-            return LocalEvaluation(f, g, df, dg, exact, ok)
-
-        return value_and_jacobian
-
-    initial = []
-    if use_design:
-        initial.append(box.z(np.asarray(values_of(problem.params, problem.tune))))
-    try:
+    if study is not None:
+        stored = StoredEvaluator(study, spent, batch, gradient)
+        batch, gradient = stored.batch, stored.gradient
+    window = MinimaxWindow(problem, local.peak_times)
+    initial = [space.z(np.asarray(values_of(problem.params, problem.tune)))] if use_design else []
+    traces = gradient_traces()
+    with contextlib.nullcontext() if study is None else study:
         minimum = _minimise(
-            evaluate_batch,
-            run_evaluator(),  # the warm-up's
-            len(problem.tune),
-            local=local,
-            global_phase=global_phase,
-            initial=initial,
-            hopping=hopping,
-            seed=seed,
-            max_seconds=max_seconds,
-            workers=workers,
-            progress=progress,
-            label="search",
-            run_evaluator=run_evaluator,
-            spent=spent,
-        )
-    finally:
-        if study is not None:
-            study.close()
+            batch, MinimaxEvaluator(gradient, window), len(problem.tune), local=local,
+            global_phase=global_phase, initial=initial, hopping=hopping, seed=seed,
+            max_seconds=max_seconds, workers=workers, progress=progress, label="search",
+            run_evaluator=lambda: MinimaxEvaluator(gradient, window), spent=spent,
+        )  # fmt: skip
     return _result(
         minimum,
         "search",
         problem,
-        lambda z: np.asarray(box.theta(jnp.asarray(z))),
-        extra_gradient_solves=len(window),  # the window's solve
-        compilations=_TRACES[0] - traces,
+        lambda z: np.asarray(space.theta(jnp.asarray(z))),
+        extra_gradient_solves=window.solves,
+        compilations=gradient_traces() - traces,
         replayed=0 if study is None else study.replayed,
     )
+
+
+def _search_methods(problem: DesignProblem, local, minimax, global_phase):
+    """`search`'s local method (default `default_local`) and global phase, checked
+    against the problem."""
+    if problem.objective.scatter is not None:
+        raise ParameterError(
+            "search does not take a scatter objective yet; use optimise for robust designs"
+        )
+    if local is not None and minimax is not None and bool(minimax) != local.minimax:
+        raise ParameterError(
+            f"search: minimax = {minimax} contradicts local = {type(local).__name__}"
+        )
+    local = default_local(problem, minimax) if local is None else local
+    local, global_phase = _checked_methods(local, global_phase, len(problem.tune), "search")
+    if local.minimax and minimax_metric(problem) is None:
+        raise ParameterError(
+            "search: minimax needs an objective that is one peak over time "
+            "(peak_anchoring_force or peak_displacement, positive weight, no scatter)"
+        )
+    return local, global_phase
 
 
 def _open_study_store(
@@ -871,33 +657,20 @@ def _open_study_store(
         *([] if global_phase.spacing == SPACING else [global_phase.spacing]),
     )  # fmt: skip
     runs = global_phase.starts + int(use_design) + (0 if hopping is None else hopping.hops)
-    n_samples = global_phase.points
-    study = StudyStore(
+    study = open_study(
         path,
+        label="search",
+        problem=problem,
         identity=identity,
-        total=n_samples + runs * len(local.levels) * local.maxiter,
+        total=global_phase.points + runs * len(local.levels) * local.maxiter,
         plan={"workers": int(workers)},
-        tune=problem.tune,
-        limits=[(name, kind) for name, kind, _ in problem.metric_constraints],
-        description={
-            "study": "search",
-            "tune": list(problem.tune),
-            "local": type(local).__name__,
-            "seed": seed,
-            "created": time.strftime("%Y-%m-%d %H:%M:%S"),
-        },
+        description={"local": type(local).__name__, "seed": seed},
+        progress=progress,
     )
-    if progress is not False:
-        if study.stored_count:
-            print(
-                f"search: resuming from {path}: {study.stored_count} evaluations stored "
-                f"(read back, not solved), {study.prior_seconds:.1f} s of the budget spent",
-                file=sys.stderr,
-            )
-        if study.plan["workers"] != workers:
-            print(
-                f"search: {study.plan['workers']} local runs at once, as in the run that "
-                f"made {path} (not {workers}): basin hopping proceeds the same way",
-                file=sys.stderr,
-            )
+    if progress is not False and study.plan["workers"] != workers:
+        print(
+            f"search: {study.plan['workers']} local runs at once, as in the run that "
+            f"made {path} (not {workers}): basin hopping proceeds the same way",
+            file=sys.stderr,
+        )
     return study

@@ -37,6 +37,7 @@ import json
 import os
 import socket
 import sqlite3
+import sys
 import threading
 import time
 from pathlib import Path
@@ -46,14 +47,18 @@ import jax
 import numpy as np
 
 from ._params import ParameterError
+from ._problem import DesignProblem, best_feasible_note, feasible, largest_violation
+from ._status import Status, status_codes, status_messages
 
 __all__ = [
     "CampaignProgress",
     "StudyStore",
     "SweepStore",
     "campaign_progress",
+    "evaluation_row",
     "fingerprint",
     "lowest_row",
+    "open_study",
     "read_sweep_store",
     "store_failures",
 ]
@@ -156,10 +161,20 @@ class _Store:
                 f"version reads format {STORE_FORMAT}: give a new store path"
             )
 
-    def _create(self, identity: str, total: int, description: dict) -> None:
+    def _transaction(self, write) -> Any:
+        """`write(db)` in one transaction: all of its rows or none."""
         db = self.db
         db.execute("BEGIN IMMEDIATE")
         try:
+            out = write(db)
+            db.execute("COMMIT")
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+        return out
+
+    def _create(self, identity: str, total: int, description: dict) -> None:
+        def write(db):
             db.execute("CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT)")
             db.execute(
                 "CREATE TABLE runs (run INTEGER PRIMARY KEY AUTOINCREMENT, started REAL, "
@@ -176,16 +191,20 @@ class _Store:
                 "description": json.dumps(description),
             }
             db.executemany("INSERT INTO meta VALUES (?, ?)", list(meta.items()))
-            db.execute("COMMIT")
-        except BaseException:
-            db.execute("ROLLBACK")
-            raise
+
+        self._transaction(write)
 
     def _create_tables(self) -> None:
         raise NotImplementedError
 
     def close(self) -> None:
         self.db.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 class SweepStore(_Store):
@@ -240,22 +259,18 @@ class SweepStore(_Store):
             f"INSERT INTO points ({', '.join(map(_quote, names))}) "
             f"VALUES ({', '.join('?' * len(names))})"
         )
-        db = self.db
-        db.execute("BEGIN IMMEDIATE")
-        try:
+
+        def write(db) -> bool:
             if db.execute("SELECT 1 FROM chunks WHERE chunk = ?", (chunk,)).fetchone():
-                db.execute("ROLLBACK")
                 return False
             db.executemany(insert, rows)
             db.execute(
                 "INSERT INTO chunks VALUES (?, ?, ?, ?, ?)",
                 (chunk, len(points), seconds, time.time(), self.run),
             )
-            db.execute("COMMIT")
-        except BaseException:
-            db.execute("ROLLBACK")
-            raise
-        return True
+            return True
+
+        return self._transaction(write)
 
     def read(self, chunks) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """The rows of the committed `chunks`: `(points, {column: values})`, in the order
@@ -382,9 +397,10 @@ class StudyStore(_Store):
         self.lock = threading.Lock()
         rows = self.db.execute("SELECT key, outputs FROM evaluations WHERE key IS NOT NULL")
         self._outputs: dict[str, bytes] = dict(rows.fetchall())
-        self.prior_seconds = float(
-            self.db.execute("SELECT COALESCE(MAX(seconds), 0) FROM evaluations").fetchone()[0]
-        )
+        self.evaluation_count, prior = self.db.execute(
+            "SELECT COUNT(*), COALESCE(MAX(seconds), 0) FROM evaluations"
+        ).fetchone()
+        self.prior_seconds = float(prior)
         self.replayed = 0
 
     def _create_tables(self) -> None:
@@ -397,11 +413,6 @@ class StudyStore(_Store):
         self.db.execute(
             "CREATE TABLE checkpoints (step INTEGER PRIMARY KEY, run INTEGER, state BLOB)"
         )
-
-    @property
-    def stored_count(self) -> int:
-        """How many evaluations the store holds the outputs of (to replay on a resume)."""
-        return len(self._outputs)
 
     def stored(self, key: str) -> dict[str, np.ndarray] | None:
         """The outputs of the evaluation named `key`, if it is in the store."""
@@ -455,7 +466,7 @@ class StudyStore(_Store):
                     *np.asarray(row["theta"], dtype=float).reshape(-1).tolist(),
                     float(row["objective"]),
                     *violations.tolist(),
-                    float(np.max(violations)) if violations.size else None,
+                    float(largest_violation(violations)) if violations.size else None,
                     int(bool(row["feasible"])),
                     row["status"],
                     int(row["status_code"]),
@@ -469,20 +480,71 @@ class StudyStore(_Store):
         )
         return insert, values, blobs
 
-    def _transaction(self, write) -> None:
-        db = self.db
-        db.execute("BEGIN IMMEDIATE")
-        try:
-            write(db)
-            db.execute("COMMIT")
-        except BaseException:
-            db.execute("ROLLBACK")
-            raise
-
     def checkpoints(self) -> list[dict[str, np.ndarray]]:
         """Every committed step's state, in step order."""
         rows = self.db.execute("SELECT state FROM checkpoints ORDER BY step").fetchall()
         return [unpack(blob) for (blob,) in rows]
+
+
+def evaluation_row(
+    seconds: float,
+    phase: str,
+    theta,
+    objective,
+    violations,
+    status_code,
+    *,
+    start: int | None = None,
+    key: str | None = None,
+    outputs: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """One evaluation as a row of a study's store (`StudyStore.commit`): its feasibility
+    (`feasible`) and status message follow from the status code."""
+    code = int(status_code)
+    return {
+        "seconds": seconds, "phase": phase, "start": start, "theta": theta,
+        "objective": objective, "violations": violations,
+        "feasible": bool(feasible(code == _OK, objective, violations)),
+        "status": status_messages(np.asarray([code]))[0], "status_code": code,
+        "key": key, "outputs": outputs,
+    }  # fmt: skip
+
+
+_OK = int(status_codes(Status.ok))
+
+
+def open_study(
+    path,
+    *,
+    label: str,
+    problem: DesignProblem,
+    identity: str,
+    total: int,
+    plan: dict,
+    description: dict,
+    progress: bool | None,
+) -> StudyStore:
+    """The store at `path` of the study `label` (`"search"`, `"optimise"`) of `problem`:
+    created, or checked to be this study's (`identity`), with one line on stderr when it
+    resumes one (unless `progress` is False)."""
+    study = StudyStore(
+        path,
+        identity=identity,
+        total=total,
+        plan=plan,
+        tune=problem.tune,
+        limits=[(name, kind) for name, kind, _ in problem.metric_constraints],
+        description={"study": label, "tune": list(problem.tune)}
+        | description
+        | {"created": time.strftime("%Y-%m-%d %H:%M:%S")},
+    )
+    if progress is not False and study.evaluation_count:
+        print(
+            f"{label}: resuming from {path}: {study.evaluation_count} evaluations stored "
+            f"(read back, not solved), {study.prior_seconds:.1f} s of the budget spent",
+            file=sys.stderr,
+        )
+    return study
 
 
 def _describe(kind: str | None, description: dict) -> str:
@@ -525,9 +587,7 @@ class CampaignProgress(NamedTuple):
         """One line: done/total, rate, time left (a study: its best so far)."""
         runs = f"{self.runs} run{'s' * (self.runs != 1)}"
         if self.kind == "study":
-            best = f"{self.best:.7g}" if np.isfinite(self.best) else "none feasible yet"
-            text = f"study: {self.done} evaluations, {runs}"
-            text += f", best feasible objective {best}"
+            text = f"study: {self.done} evaluations, {runs}, {best_feasible_note(self.best)}"
             if np.isfinite(self.rate):
                 text += f", {self.rate:.1f}/s in the latest run"
             return text

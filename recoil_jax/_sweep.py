@@ -45,6 +45,7 @@ from ._status import Status, status_codes, status_item, status_messages
 from ._store import SweepStore, fingerprint, lowest_row, read_sweep_store, store_failures
 
 __all__ = [
+    "CHUNK_SIZE",
     "StoredSweep",
     "SweepResult",
     "batch_params",
@@ -347,6 +348,9 @@ def _has(params: RecoilParams, name: str) -> bool:
 #: Sweeps of up to this many designs run in one chunk of this size (per structure, the
 #: same compiled program); only the real designs are solved.
 SHARED_CHUNK = 1024
+
+#: The most designs per compiled call of a sweep, unless the caller says.
+CHUNK_SIZE = 16384
 
 #: Designs in flight per part. On XLA:CPU a loop step's cost per lane grows once the
 #: lanes' working set leaves the core's cache: measured at 16,384 designs (2 cores), 128
@@ -666,7 +670,7 @@ def sweep(
     smoothing: Smoothing = Smoothing(),
     options: SolverOptions | None = None,
     wrt: Sequence[str] | None = None,
-    chunk_size: int = 16384,
+    chunk_size: int = CHUNK_SIZE,
     lanes: int = DEFAULT_LANES,
     progress: bool | None = None,
     sort_by_gap: bool = True,

@@ -1,0 +1,381 @@
+"""Evaluators: the one place where a point of the search space becomes solves.
+
+An optimiser moves in normalised coordinates `z ∈ [0, 1]^P` (`SearchSpace`); these
+objects turn `z` into what it needs, and nothing else in the layer solves a design:
+
+- `BatchEvaluator`: `z (n, P)` → designs → one `sweep` → objective and violations (the
+  global phase of `search`, the tuning benchmark's batched methods).
+- `GradientEvaluator`: `z (P,)` → one sensitivity solve → a `LocalEvaluation` (the
+  smoothed objective at a continuation level, or a minimax's pieces at save times).
+- `StoredEvaluator`: either of them through a study's store: an evaluation already
+  stored is read back bit for bit, any other is solved and committed.
+- `MinimaxWindow` and `MinimaxEvaluator`: the minimax over time of one peak: the save
+  times, found once from the first design, and one local run's pieces (the signal on
+  the window's grid and at its previous point's local maxima).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._cache import structure_jit
+from ._gradients import MetricSeries, series_name
+from ._local import LocalEvaluation
+from ._metrics import METRICS
+from ._params import end_time, params_to_values
+from ._problem import DesignProblem, evaluate_design, metric_violations
+from ._space import SearchSpace
+from ._status import Status, status_codes
+from ._store import StudyStore, evaluation_row, fingerprint
+from ._sweep import CHUNK_SIZE, sweep
+
+__all__ = [
+    "SERIES_POINTS",
+    "BatchEvaluation",
+    "BatchEvaluator",
+    "GradientEvaluator",
+    "MinimaxEvaluator",
+    "MinimaxWindow",
+    "StoredEvaluator",
+    "gradient_traces",
+    "minimax_metric",
+]
+
+#: Save times of the minimax's series: the signal's maximum is levelled on this grid.
+SERIES_POINTS = 1024
+
+_OK = int(status_codes(Status.ok))
+
+
+class BatchEvaluation(NamedTuple):
+    """What `BatchEvaluator` gives for `n` points: `theta (n, P)` (the tuned values),
+    `objective (n,)` (exact: true peaks), `violations (n, C)` (normalised, `<= 0` where
+    held), `status_code (n,)` (integer `Status` codes)."""
+
+    theta: np.ndarray
+    objective: np.ndarray
+    violations: np.ndarray
+    status_code: np.ndarray
+
+    @property
+    def ok(self) -> np.ndarray:
+        """`(n,)`: whether each solve succeeded."""
+        return self.status_code == _OK
+
+
+class BatchEvaluator:
+    """`z (n, P)` → the designs of `problem` at `space.theta(z)` (the untuned values the
+    base design's) → one `sweep` → a `BatchEvaluation`; or any designs by flat name
+    through the same sweep (`evaluate`).
+
+    - `client`: a `dask.distributed.Client`: the sweep's chunks run on the cluster;
+    - `chunk_size`, `progress`: the sweep's (default its own chunks, no progress line).
+    """
+
+    def __init__(
+        self,
+        problem: DesignProblem,
+        space: SearchSpace | None = None,
+        client=None,
+        *,
+        chunk_size: int = CHUNK_SIZE,
+        progress: bool | None = False,
+    ):
+        self.problem, self.client = problem, client
+        self.space = SearchSpace.of(problem) if space is None else space
+        self.chunk_size, self.progress = chunk_size, progress
+        self._base = params_to_values(problem.params)
+
+    def designs(self, z: np.ndarray) -> dict[str, np.ndarray]:
+        """Every parameter of each design by flat name, `(n,)` each."""
+        theta = np.asarray(jax.vmap(self.space.theta)(jnp.asarray(z)))
+        designs = {k: np.full(len(z), float(v)) for k, v in self._base.items()}
+        return designs | {name: theta[:, j] for j, name in enumerate(self.problem.tune)}
+
+    def __call__(self, z: np.ndarray) -> BatchEvaluation:
+        return self.evaluate(self.designs(z))
+
+    def evaluate(self, designs: dict[str, np.ndarray]) -> BatchEvaluation:
+        """The designs given by flat name (`(n,)` columns, the tuned ones among them;
+        names not given take the paper's values), swept with `problem`'s smoothing and
+        options."""
+        problem = self.problem
+        result = sweep(
+            designs,
+            smoothing=problem.smoothing,
+            options=problem.options,
+            progress=self.progress,
+            client=self.client,
+            chunk_size=self.chunk_size,
+        )
+        codes = status_codes(result.status)
+        n = len(codes)
+        objective = np.asarray(problem.objective(result.peaks), dtype=float)
+        violations = np.asarray(metric_violations(problem, result.peaks), dtype=float)
+        theta = np.stack([np.asarray(designs[name], dtype=float) for name in problem.tune], 1)
+        return BatchEvaluation(theta, objective, violations.reshape(n, -1), codes)
+
+
+class GradientEvaluator:
+    """`z (P,)` at continuation `level` → one sensitivity solve of `problem` →
+    `outputs`: the smoothed objective `f` (or, with `series_ts`, the minimax's pieces),
+    the violations `g`, their Jacobians `df` and `dg`, the exact objective `exact` and the
+    status `code`, as NumPy arrays by name (a study's store keeps them by these names).
+    Calling it gives the same as a `LocalEvaluation`."""
+
+    def __init__(self, problem: DesignProblem, space: SearchSpace | None = None):
+        self.problem = problem
+        self.space = SearchSpace.of(problem) if space is None else space
+
+    def outputs(self, z, level, series_ts=None) -> dict[str, np.ndarray]:
+        solve = _gradient_program(
+            self.problem, self.space, jnp.asarray(z), jnp.asarray(level, dtype=float), series_ts
+        )
+        names = ("f", "g", "df", "dg", "exact", "code")
+        return dict(zip(names, map(np.asarray, solve), strict=True))
+
+    def __call__(self, z, level, series_ts=None) -> LocalEvaluation:
+        return local_evaluation(self.outputs(z, level, series_ts))
+
+
+def local_evaluation(out: dict[str, np.ndarray]) -> LocalEvaluation:
+    """A gradient solve's named outputs as the local phase's `LocalEvaluation`."""
+    ok = int(out["code"]) == _OK
+    return LocalEvaluation(out["f"], out["g"], out["df"], out["dg"], float(out["exact"]), ok)
+
+
+class StoredEvaluator:
+    """The evaluators through a study's `store`: each evaluation is named by a
+    `fingerprint` of what was evaluated; one already stored is read back bit for bit,
+    any other solved and committed with `spent()` (the seconds of the study's budget)."""
+
+    def __init__(
+        self,
+        store: StudyStore,
+        spent: Callable[[], float],
+        batch: BatchEvaluator,
+        gradient: GradientEvaluator,
+    ):
+        self.store, self.spent, self._batch, self._gradient = store, spent, batch, gradient
+
+    def batch(self, z: np.ndarray) -> BatchEvaluation:
+        """`BatchEvaluator`'s evaluation, the stored points read back."""
+        keys = [fingerprint("sample", row) for row in z]
+        stored = [self.store.stored(key) for key in keys]
+        todo = np.asarray([i for i, out in enumerate(stored) if out is None], dtype=int)
+        n, constraints = len(z), len(self._batch.problem.metric_constraints)
+        out = BatchEvaluation(
+            np.zeros((n, len(self._batch.problem.tune))),
+            np.zeros(n),
+            np.zeros((n, constraints)),
+            np.zeros(n, dtype=np.int32),
+        )
+        for i, row in enumerate(stored):
+            if row is not None:
+                out.objective[i], out.violations[i], out.status_code[i] = (
+                    row["objective"], row["violations"], row["code"]
+                )  # fmt: skip
+        if todo.size:
+            solved = self._batch(z[todo])
+            out.theta[todo], out.objective[todo] = solved.theta, solved.objective
+            out.violations[todo], out.status_code[todo] = solved.violations, solved.status_code
+            self.store.commit(
+                [
+                    self._row(
+                        "sample", solved.theta[j], keys[i],
+                        {"objective": out.objective[i], "violations": out.violations[i],
+                         "code": out.status_code[i]},
+                    )
+                    for j, i in enumerate(todo.tolist())
+                ]
+            )  # fmt: skip
+        return out
+
+    def gradient(self, z, level, series_ts=None) -> LocalEvaluation:
+        """`GradientEvaluator`'s evaluation, read back if stored."""
+        z = np.asarray(z, dtype=float)
+        times = () if series_ts is None else np.asarray(series_ts)
+        key = fingerprint("gradient", z, np.asarray(level, dtype=float), times)
+        out = self.store.stored(key)
+        if out is None:
+            out = self._gradient.outputs(z, level, series_ts)
+            theta = np.asarray(self._gradient.space.theta(jnp.asarray(z)))
+            self.store.commit([self._row("local", theta, key, out)])
+        return local_evaluation(out)
+
+    def _row(self, phase: str, theta, key: str, out: dict) -> dict:
+        """The store's row of one evaluation (the exact objective is `exact` in a
+        gradient solve's outputs, `objective` in a sample's)."""
+        objective = out["exact"] if "exact" in out else out["objective"]
+        violations = out["g"] if "g" in out else out["violations"]
+        return evaluation_row(
+            self.spent(), phase, theta, objective, violations, out["code"], key=key, outputs=out
+        )
+
+
+class MinimaxWindow:
+    """The save times of a minimax over time (`SERIES_POINTS` of them): from 0 to where
+    the first design's peaks were certain, plus a quarter (a later design's maximum
+    outside them still counts, through its located peak). Found by one gradient solve
+    at the first design that asks (`times`), then shared by every local run."""
+
+    def __init__(self, problem: DesignProblem, peak_times: int):
+        self.problem, self.peak_times = problem, peak_times
+        self._times: np.ndarray | None = None
+        self._lock = threading.Lock()  # the local runs ask from their threads
+
+    @property
+    def solves(self) -> int:
+        """The gradient solves spent finding the window (0 or 1)."""
+        return int(self._times is not None)
+
+    def times(self, z, solve: Callable[..., LocalEvaluation]) -> np.ndarray:
+        """The window's save times `(SERIES_POINTS,)`, found at `z` with `solve(z,
+        level, series_ts)` if not yet."""
+        with self._lock:
+            if self._times is None:
+                problem = self.problem
+                t1 = float(np.max(np.asarray(end_time(problem.params, problem.options))))
+                whole = np.linspace(0.0, t1, SERIES_POINTS)
+                padded = np.concatenate([whole, np.full(self.peak_times, t1)])
+                f = np.asarray(solve(z, 1.0, jnp.asarray(padded))[0])[1:]
+                f = f[:SERIES_POINTS]
+                written = np.nonzero(np.isfinite(f))[0]
+                end = whole[written[-1]] if written.size else t1
+                self._times = np.linspace(0.0, min(t1, 1.25 * end), SERIES_POINTS)
+            return self._times
+
+
+class MinimaxEvaluator:
+    """One local run's `value_and_jacobian(z, level)`: at a level above 0 the smoothed
+    objective (`solve(z, level)`); at level 0 the minimax's pieces: the signal on the
+    `window`'s grid and at the `peak_times` highest local maxima of this run's previous
+    good point (each refined to its parabola's vertex)."""
+
+    def __init__(self, solve: Callable[..., LocalEvaluation], window: MinimaxWindow):
+        self.solve, self.window = solve, window
+        self.previous_maxima: np.ndarray | None = None  # at this run's last good solve
+
+    def __call__(self, z, level) -> LocalEvaluation:
+        if level > 0:
+            return self.solve(z, level)
+        peak_times = self.window.peak_times
+        grid = self.window.times(z, self.solve)
+        extra = self.previous_maxima
+        times = np.concatenate([grid, np.full(peak_times, grid[-1]) if extra is None else extra])
+        # Saved in time order; returned in this order, so that each value keeps its
+        # place (one constraint of SLSQP's each) from one point to the next.
+        order = np.argsort(times, kind="stable")
+        f, g, df, dg, exact, ok = self.solve(z, level, jnp.asarray(times[order]))
+        f, df = np.array(f), np.array(df)
+        f[1 + order], df[1 + order] = f[1:].copy(), df[1:].copy()
+        if bool(ok) and peak_times:
+            self.previous_maxima = _local_maxima(times, f[1:], peak_times, grid[-1])
+        # Save times after the solve's end (its peaks certain) are no constraint.
+        after = ~np.isfinite(f)
+        if np.any(np.isfinite(f)):
+            f[after], df[after] = np.nanmin(f), 0.0
+        return LocalEvaluation(f, g, df, dg, exact, ok)
+
+
+def minimax_metric(problem: DesignProblem) -> str | None:
+    """The metric when `problem`'s objective is a positive multiple of one maximum over
+    time (a metric with a `SmoothMax`), with no scatter: `search` then treats it as a
+    minimax over time. Else None."""
+    objective = problem.objective
+    if objective.scatter is not None or len(objective.weights) != 1:
+        return None
+    ((name, weight),) = objective.weights.items()
+    return name if weight > 0 and METRICS[name].smoothable else None
+
+
+_TRACES = [0]  # how many times the gradient program was traced (compiled)
+
+
+def gradient_traces() -> int:
+    """How many times the gradient program has been traced (compiled) in this process."""
+    return _TRACES[0]
+
+
+class _GradientSolve(NamedTuple):
+    """`_gradient_program`'s outputs, in the order of `GradientEvaluator.outputs`' names."""
+
+    f: Any
+    g: Any
+    df: Any
+    dg: Any
+    objective: Any
+    status_code: Any
+
+
+@structure_jit
+def _gradient_program(problem: DesignProblem, box: SearchSpace, z, temperature, series_ts=None):
+    """The smooth objective, the violations, their Jacobians, the exact objective and
+    the status code at `z`: one sensitivity solve, reverse mode through the custom JVP
+    (the Jacobian of all outputs from the one solve). One compilation per problem
+    structure: re-running a study, or another seed, reuses it.
+
+    With `series_ts` (`(n,)` save times), the objective comes as a minimax instead:
+    `(1 + n,)` values, its peak then the weighted signal at each save time (NaN after
+    the solve's end), with their Jacobian `(1 + n, P)` (forward mode: P columns)."""
+    _TRACES[0] += 1
+    if series_ts is not None:
+        name = minimax_metric(problem)
+        assert name is not None
+        weight = problem.objective.weights[name]
+
+        def minimax_outputs(z):
+            evaluation = evaluate_design(
+                problem, box.theta(z), series=MetricSeries((name,), series_ts)
+            )
+            metrics = evaluation.metrics
+            peaks = weight * jnp.concatenate([metrics[name][None], metrics[series_name(name)]])
+            values = jnp.concatenate([peaks, evaluation.violations])
+            return values, (values, evaluation)
+
+        jacobian, (values, evaluation) = jax.jacfwd(minimax_outputs, has_aux=True)(z)
+        n = series_ts.shape[0] + 1
+        f, df = values[:n], jacobian[:n]
+    else:
+
+        def outputs(z):
+            evaluation = evaluate_design(problem, box.theta(z), temperature_scale=temperature)
+            values = jnp.concatenate([evaluation.smooth_objective[None], evaluation.violations])
+            return values, (values, evaluation)
+
+        jacobian, (values, evaluation) = jax.jacrev(outputs, has_aux=True)(z)
+        n = 1
+        f, df = values[0], jacobian[0]
+    (code,) = jax.tree.leaves(evaluation.status)
+    return _GradientSolve(f, values[n:], df, jacobian[n:], evaluation.objective, code)
+
+
+def _local_maxima(ts: np.ndarray, values: np.ndarray, count: int, fill: float) -> np.ndarray:
+    """The times `(count,)` of the `count` highest interior local maxima of a sampled
+    signal (`ts` in any order, NaN values ignored), each refined to the vertex of the
+    parabola through it and its neighbours; `fill` where there are fewer."""
+    keep = np.isfinite(values)
+    t, first = np.unique(ts[keep], return_index=True)  # sorted, each time once
+    v = values[keep][first]
+    out = np.full(count, fill)
+    if t.size < 3:
+        return out
+    interior = np.nonzero((v[1:-1] >= v[:-2]) & (v[1:-1] > v[2:]))[0] + 1
+    # The highest `count`, in time order (a slot keeps its peak while they persist).
+    interior = np.sort(interior[np.argsort(-v[interior], kind="stable")][:count])
+    t0, t1, t2 = t[interior - 1], t[interior], t[interior + 1]
+    v0, v1, v2 = v[interior - 1], v[interior], v[interior + 1]
+    # Vertex of the parabola through three points (unequal spacing).
+    num = (t1 - t0) ** 2 * (v1 - v2) - (t1 - t2) ** 2 * (v1 - v0)
+    den = (t1 - t0) * (v1 - v2) - (t1 - t2) * (v1 - v0)
+    safe = np.abs(den) > 0
+    vertex = t1 - 0.5 * num / np.where(safe, den, 1.0)
+    vertex = np.where(safe & (vertex > t0) & (vertex < t2), vertex, t1)
+    out[: vertex.size] = vertex
+    return out
