@@ -50,6 +50,7 @@ from ._metrics import (
 )
 from ._model import Forces as Forces
 from ._optimise import (
+    Stopping as Stopping,
     default_optimiser as default_optimiser,
     optimise as optimise,
 )
@@ -77,6 +78,7 @@ from ._params import (
     values_of as values_of,
     with_values as with_values,
 )
+from ._parts import AugmentedLagrangian as AugmentedLagrangian
 from ._problem import (
     FEASIBILITY_TOLERANCE as FEASIBILITY_TOLERANCE,
     Agreement as Agreement,
@@ -91,7 +93,10 @@ from ._problem import (
     metric_violations as metric_violations,
 )
 from ._reference import reference_peaks as reference_peaks
-from ._result import OptimiseResult as OptimiseResult
+from ._result import (
+    OptimiseResult as OptimiseResult,
+    RunRecord as RunRecord,
+)
 from ._search import (
     BasinHopping as BasinHopping,
     SobolStarts as SobolStarts,

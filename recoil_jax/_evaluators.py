@@ -18,8 +18,9 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -137,8 +138,7 @@ class GradientEvaluator:
         solve = _gradient_program(
             self.problem, self.space, jnp.asarray(z), jnp.asarray(level, dtype=float), series_ts
         )
-        names = ("f", "g", "df", "dg", "exact", "code")
-        return dict(zip(names, map(np.asarray, solve), strict=True))
+        return {name: np.asarray(solve[name]) for name in GRADIENT_OUTPUTS}
 
     def __call__(self, z, level, series_ts=None) -> LocalEvaluation:
         return local_evaluation(self.outputs(z, level, series_ts))
@@ -295,36 +295,19 @@ def minimax_metric(problem: DesignProblem) -> str | None:
     return name if weight > 0 and METRICS[name].smoothable else None
 
 
-_TRACES = [0]  # how many times the gradient program was traced (compiled)
+#: A gradient solve's outputs by name (a study's store keeps them by these names).
+GRADIENT_OUTPUTS = ("f", "g", "df", "dg", "exact", "code")
 
 
-def gradient_traces() -> int:
-    """How many times the gradient program has been traced (compiled) in this process."""
-    return _TRACES[0]
-
-
-class _GradientSolve(NamedTuple):
-    """`_gradient_program`'s outputs, in the order of `GradientEvaluator.outputs`' names."""
-
-    f: Any
-    g: Any
-    df: Any
-    dg: Any
-    objective: Any
-    status_code: Any
-
-
-@structure_jit
-def _gradient_program(problem: DesignProblem, box: SearchSpace, z, temperature, series_ts=None):
+def _gradient_solve(problem: DesignProblem, box: SearchSpace, z, temperature, series_ts=None):
     """The smooth objective, the violations, their Jacobians, the exact objective and
-    the status code at `z`: one sensitivity solve, reverse mode through the custom JVP
-    (the Jacobian of all outputs from the one solve). One compilation per problem
-    structure: re-running a study, or another seed, reuses it.
+    the status code at `z` (`GRADIENT_OUTPUTS`): one sensitivity solve, reverse mode
+    through the custom JVP (the Jacobian of all outputs from the one solve). One
+    compilation per problem structure: re-running a study, or another seed, reuses it.
 
     With `series_ts` (`(n,)` save times), the objective comes as a minimax instead:
     `(1 + n,)` values, its peak then the weighted signal at each save time (NaN after
     the solve's end), with their Jacobian `(1 + n, P)` (forward mode: P columns)."""
-    _TRACES[0] += 1
     if series_ts is not None:
         name = minimax_metric(problem)
         assert name is not None
@@ -353,7 +336,18 @@ def _gradient_program(problem: DesignProblem, box: SearchSpace, z, temperature, 
         n = 1
         f, df = values[0], jacobian[0]
     (code,) = jax.tree.leaves(evaluation.status)
-    return _GradientSolve(f, values[n:], df, jacobian[n:], evaluation.objective, code)
+    solved = (f, values[n:], df, jacobian[n:], evaluation.objective, code)
+    return dict(zip(GRADIENT_OUTPUTS, solved, strict=True))
+
+
+# Its traces counted as `optimise`'s step is (`eqx.debug.get_num_traces`).
+_counted_solve = eqx.debug.assert_max_traces(_gradient_solve, max_traces=None)
+_gradient_program = structure_jit(_counted_solve)
+
+
+def gradient_traces() -> int:
+    """How many times the gradient program has been traced (compiled) in this process."""
+    return eqx.debug.get_num_traces(_counted_solve)
 
 
 def _local_maxima(ts: np.ndarray, values: np.ndarray, count: int, fill: float) -> np.ndarray:

@@ -22,7 +22,9 @@ import equinox as eqx
 import numpy as np
 
 from ._params import ParameterError
+from ._parts import AugmentedLagrangian, cosine_decayed
 from ._problem import feasible, largest_violation
+from ._result import RunRecord
 
 __all__ = [
     "SLSQP",
@@ -150,6 +152,8 @@ class LocalRun:
         )
         self.iterations = 0
         self.failures = 0
+        # Every evaluation of this run, and the best feasible one.
+        self.evaluations, self.best_feasible, self.best_z = 0, np.inf, None
         # Where the last completed level ended, and its objective: what a run that is cut
         # short (out of time, failed solves) reports.
         self.z: np.ndarray | None = None
@@ -173,6 +177,11 @@ class LocalRun:
             if self._since >= method.stall_solves and self.stall_z is not None:
                 raise Stalled
 
+    def _count(self, x, exact, violation, ok) -> None:
+        self.evaluations += 1
+        if feasible(ok, exact, [violation]) and exact < self.best_feasible:
+            self.best_feasible, self.best_z = float(exact), np.array(x)
+
     def evaluate(self, x: np.ndarray, level: float) -> tuple:
         key = (x.tobytes(), level)
         if key not in self._cache:
@@ -183,6 +192,7 @@ class LocalRun:
             f, g, df, dg = (np.asarray(a, dtype=float) for a in (f, g, df, dg))
             violation = float(largest_violation(g))
             self._record(x, exact, violation, ok)
+            self._count(x, exact, violation, ok)
             self._watch(x, exact, violation, ok, level)
             finite = all(np.all(np.isfinite(a)) for a in (f, g, df, dg))
             if bool(ok) and finite:
@@ -244,9 +254,9 @@ def run_local(
     record,
     out_of_time,
     clock: Callable[[], float],
-) -> dict:
-    """One local run of `method` from `z0`, in normalised coordinates (`search` turns
-    it into one of `OptimiseResult.runs`)."""
+) -> RunRecord:
+    """One local run of `method` from `z0`, in normalised coordinates: its `RunRecord`
+    (phase `"start"`; `search` maps its points to parameter values)."""
     began = clock()
     local = LocalRun(method, value_and_jacobian, z0.size, record, out_of_time)
     message, stopped = "", False
@@ -262,15 +272,19 @@ def run_local(
         message = (
             f"stalled: no gain of {method.stall_rtol:g} in {method.stall_solves} gradient solves"
         )
-    return {
-        "z0": z0,
-        "z": z0 if local.z is None else local.z,
-        "objective": local.final,
-        "iterations": local.iterations,
-        "message": message,
-        "converged": not stopped and message.startswith(CONVERGED),
-        "seconds": (began, clock()),
-    }
+    return RunRecord(
+        phase="start",
+        theta0=z0,
+        theta=z0 if local.z is None else local.z,
+        objective=float(local.final),
+        best_objective=float(local.best_feasible),
+        best_theta=np.full(z0.shape, np.nan) if local.best_z is None else local.best_z,
+        evaluations=local.evaluations,
+        iterations=local.iterations,
+        converged=not stopped and message.startswith(CONVERGED),
+        message=message,
+        seconds=(began, clock()),
+    )
 
 
 class SLSQP(LocalMethod):
@@ -473,11 +487,7 @@ class OptaxLocal(LocalMethod):
                 f"OptaxLocal: need learning_rate > 0 and 0 < final_fraction <= 1 (got "
                 f"{self.learning_rate}, {self.final_fraction})"
             )
-        if not (self.penalty > 0 and self.penalty_growth >= 1 and self.update_every >= 1):
-            raise ParameterError(
-                f"OptaxLocal: need penalty > 0, penalty_growth >= 1, update_every >= 1 (got "
-                f"{self.penalty}, {self.penalty_growth}, {self.update_every})"
-            )
+        _ = self.lagrangian  # checks its settings
         _check_smoothed_schedule(self)
         try:  # one update of a 2-vector: the name is an optimiser that takes a gradient
             probe = self._transformation()
@@ -489,24 +499,22 @@ class OptaxLocal(LocalMethod):
                 f"'lion'): {type(error).__name__}: {error}"
             ) from None
 
-    def _transformation(self):
-        import optax
-
-        step = optax.cosine_decay_schedule(
-            self.learning_rate, self.maxiter, alpha=self.final_fraction
+    @property
+    def lagrangian(self) -> AugmentedLagrangian:
+        """The augmented Lagrangian of the limits, from this method's settings."""
+        return AugmentedLagrangian(
+            self.penalty, self.penalty_growth, self.max_penalty, self.update_every
         )
-        transformation = getattr(optax, self.optimiser)(step)
-        if not isinstance(transformation, optax.GradientTransformation):
-            raise TypeError(f"optax.{self.optimiser}(learning_rate) is not an optimiser")
-        return transformation
+
+    def _transformation(self):
+        return cosine_decayed(self.optimiser, self.learning_rate, self.maxiter, self.final_fraction)
 
     def run(self, local: LocalRun, z0: np.ndarray) -> tuple[np.ndarray, str]:
         z, message = np.asarray(z0, dtype=float), ""
         for level in self.schedule:
             scale = local.start_level(z, level)
-            optimiser = self._transformation()
-            state = optimiser.init(z)
-            multipliers, penalty = None, self.penalty
+            optimiser, lagrangian = self._transformation(), self.lagrangian
+            state, limits = optimiser.init(z), None
             # The last point whose solve succeeded, and a factor on the steps that halves
             # at each failed one: the run steps back from where the model fails.
             last, shrink = None, 1.0
@@ -518,18 +526,12 @@ class OptaxLocal(LocalMethod):
                     (z, g, df, dg), shrink = last, shrink / 2
                 else:
                     last = (z, g, df, dg)
-                if multipliers is None:
-                    multipliers = np.zeros_like(g)
-                # The gradient of f/scale + Σ(max(λ + ρ(g + margin), 0)² - λ²) / 2ρ.
-                active = np.maximum(multipliers + penalty * (g + self.margin), 0.0)
-                gradient = df / scale + active @ dg
+                limits = lagrangian.init(g) if limits is None else limits
+                gradient = df / scale + lagrangian.weights(limits, g, self.margin) @ dg
                 updates, state = optimiser.update(gradient, state, z)
                 moved = np.clip(z + shrink * np.asarray(updates), 0.0, 1.0)
                 local.iterations += 1
-                if (k + 1) % self.update_every == 0:
-                    multipliers = active
-                    if np.any(g > 0):
-                        penalty = min(penalty * self.penalty_growth, self.max_penalty)
+                limits = lagrangian.update(limits, g, k, self.margin)
                 if np.max(np.abs(moved - z)) <= self.xtol:
                     z, message = moved, f"converged: no step above xtol = {self.xtol:g}"
                     break

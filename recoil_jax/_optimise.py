@@ -4,16 +4,16 @@ reparametrisation, metric limits by an augmented Lagrangian.
 - Bounds hold through a smooth reparametrisation, `θ = space.theta(sigmoid(u))` in the
   problem's `SearchSpace` (linear, or log where the bounds span three decades), so no
   clipping ever zeroes a gradient.
-- Limits on metrics go through an augmented Lagrangian (PHR): the multipliers are updated
-  every `update_every` steps, and the penalty grows while a limit is violated.
+- Limits on metrics go through an `AugmentedLagrangian` (PHR): the multipliers are
+  updated every `update_every` steps, and the penalty grows while a limit is violated.
 - Every start (and every scenario of a front) runs in one vmapped step, compiled once
-  per run; the host loop keeps the history, applies the stopping rules and selects the
-  best feasible design.
+  per run; the host loop (`_Runs`) keeps the history, applies the `Stopping` rules and
+  selects the best feasible design.
 """
 
 from __future__ import annotations
 
-import dataclasses
+import contextlib
 import os
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -26,6 +26,7 @@ import numpy as np
 import optax
 
 from ._params import ParameterError, RecoilParams, values_of
+from ._parts import AugmentedLagrangian, LagrangianState, cosine_decayed
 from ._problem import (
     DesignProblem,
     best_feasible_note,
@@ -35,12 +36,47 @@ from ._problem import (
     largest_violation,
 )
 from ._progress import Progress
-from ._result import OptimiseResult
+from ._result import OptimiseResult, RunRecord
 from ._space import SearchSpace
 from ._status import Status, status_codes
-from ._store import evaluation_row, fingerprint, open_study
+from ._store import StudyStore, evaluation_row, fingerprint, open_study
 
-__all__ = ["default_optimiser", "optimise"]
+__all__ = ["Stopping", "default_optimiser", "optimise"]
+
+_OK = int(status_codes(Status.ok))
+
+
+class Stopping(eqx.Module):
+    """When a run of `optimise` stops: once, over the last `patience` steps (after
+    `min_steps`), its exact objective has moved by at most `ftol` (relative) and no limit
+    was violated by more than `vtol` (relative); or at once when its solve fails."""
+
+    patience: int = 20
+    ftol: float = 1e-4
+    vtol: float = 1e-3
+    min_steps: int = 40
+
+    def __check_init__(self):
+        if not (self.patience >= 1 and self.min_steps >= 0 and self.ftol >= 0 and self.vtol >= 0):
+            raise ParameterError(
+                f"Stopping: need patience >= 1, min_steps >= 0, ftol >= 0, vtol >= 0 (got "
+                f"{self.patience}, {self.min_steps}, {self.ftol}, {self.vtol})"
+            )
+
+    def stationary(self, records) -> np.ndarray:
+        """Per run: whether the last `patience` records are stationary (see above)."""
+        if len(records) < self.patience:
+            return np.zeros(records[-1].objective.shape, dtype=bool)
+        window = np.stack([r.objective for r in records[-self.patience :]])
+        spread = np.max(window, axis=0) - np.min(window, axis=0)
+        flat = spread <= self.ftol * np.abs(window[-1])
+        violations = np.stack([r.violations for r in records[-self.patience :]])
+        worst = np.max(largest_violation(violations), axis=0)
+        return flat & (worst <= self.vtol)
+
+    def stops(self, records, step: int, failed: np.ndarray) -> np.ndarray:
+        """Per run: whether it stops after step `step` (from 0)."""
+        return failed | ((step + 1 >= self.min_steps) & self.stationary(records))
 
 
 def _to_theta(space: SearchSpace, u):
@@ -56,8 +92,7 @@ def _to_u(space: SearchSpace, theta) -> np.ndarray:
 class _State(eqx.Module):
     u: jax.Array  # (P,) unconstrained coordinates
     opt_state: optax.OptState
-    multipliers: jax.Array  # (C,) augmented-Lagrangian multipliers
-    penalty: jax.Array  # () penalty parameter
+    limits: LagrangianState  # (C,) multipliers and () penalty
     scale: jax.Array  # () |objective| at the start: normalises the objective
     step: jax.Array  # () int
 
@@ -71,46 +106,37 @@ class _StepRecord(eqx.Module):
     violations: jax.Array
 
 
-@dataclasses.dataclass(frozen=True)
-class _Settings:
-    steps: int
-    anneal: float
-    update_every: int
-    penalty_growth: float
-    max_penalty: float
-
-
 def _make_step(
-    problem: DesignProblem, optimiser: optax.GradientTransformation, settings: _Settings
+    problem: DesignProblem,
+    optimiser: optax.GradientTransformation,
+    lagrangian: AugmentedLagrangian,
+    steps: int,
+    anneal: float,
 ):
     """The vmapped, jitted step of every run, and the function whose traces count the
     compilations (`eqx.debug.get_num_traces`)."""
     space = SearchSpace.of(problem)
-    steps = settings.steps
-    ok = int(status_codes(Status.ok))
 
     def loss(u, state: _State, params, limits):
         theta = _to_theta(space, u)
         # Anneal the smooth-max temperatures geometrically to `anneal` of their start.
         progress = state.step / max(steps - 1, 1)
-        evaluation = evaluate_design(problem, theta, params, settings.anneal**progress, limits)
+        evaluation = evaluate_design(problem, theta, params, anneal**progress, limits)
         smooth, violations = evaluation.smooth_objective, evaluation.violations
         scale = jnp.where(state.step == 0, jax.lax.stop_gradient(jnp.abs(smooth)), state.scale)
         scale = jnp.where(scale > 0, scale, 1.0)
-        lam, rho = state.multipliers, state.penalty
-        augmented = jnp.sum(jnp.maximum(lam + rho * violations, 0.0) ** 2 - lam**2) / (2.0 * rho)
         (code,) = jax.tree.leaves(evaluation.status)
         record = _StepRecord(
             theta, evaluation.metrics, code, smooth, evaluation.objective, violations
         )
-        return smooth / scale + augmented, (record, scale)
+        return smooth / scale + lagrangian.value(state.limits, violations), (record, scale)
 
     @eqx.debug.assert_max_traces(max_traces=1)
     def one(state: _State, params, limits, active):
         (value, (record, scale)), grad = jax.value_and_grad(loss, has_aux=True)(
             state.u, state, params, limits
         )
-        solved = (record.status == ok) & jnp.isfinite(value) & jnp.all(jnp.isfinite(grad))
+        solved = (record.status == _OK) & jnp.isfinite(value) & jnp.all(jnp.isfinite(grad))
         move = active & solved
         updates, opt_state = optimiser.update(grad, state.opt_state, state.u)
 
@@ -119,22 +145,8 @@ def _make_step(
 
         u = where_moving(optax.apply_updates(state.u, updates), state.u)
         opt_state = jax.tree.map(where_moving, opt_state, state.opt_state)
-        # Augmented Lagrangian (PHR): first-order multiplier update every `update_every`
-        # steps; the penalty grows while any limit is still violated.
-        at_update = move & ((state.step + 1) % settings.update_every == 0)
-        multipliers = jnp.where(
-            at_update,
-            jnp.maximum(state.multipliers + state.penalty * record.violations, 0.0),
-            state.multipliers,
-        )
-        violated = jnp.any(record.violations > 0)
-        penalty = jnp.where(
-            at_update & violated,
-            jnp.minimum(state.penalty * settings.penalty_growth, settings.max_penalty),
-            state.penalty,
-        )
-        new = _State(u, opt_state, multipliers, penalty, scale, state.step + move)
-        return new, record
+        limits = lagrangian.update(state.limits, record.violations, state.step, moved=move)
+        return _State(u, opt_state, limits, scale, state.step + move), record
 
     return eqx.filter_jit(jax.vmap(one)), one
 
@@ -153,19 +165,6 @@ def _start_points(problem: DesignProblem, params, scenarios: int, starts: int, s
         points.append(np.clip(base[s], lower, upper)[None])
         points.append(lower + (upper - lower) * fractions)
     return np.concatenate(points)[: scenarios * starts]
-
-
-def _stationary(records, patience: int, ftol: float, vtol: float) -> np.ndarray:
-    """Per run: over the last `patience` steps the exact objective moved by at most
-    `ftol` (relative) and no metric limit was violated by more than `vtol` (relative)."""
-    if len(records) < patience:
-        return np.zeros(records[-1].objective.shape, dtype=bool)
-    window = np.stack([r.objective for r in records[-patience:]])
-    spread = np.max(window, axis=0) - np.min(window, axis=0)
-    flat = spread <= ftol * np.abs(window[-1])
-    violations = np.stack([r.violations for r in records[-patience:]])
-    worst = np.max(largest_violation(violations), axis=0)
-    return flat & (worst <= vtol)
 
 
 def _scenarios(
@@ -266,14 +265,8 @@ def optimise(
     scenario_limits: Mapping[str, Sequence[float]] | None = None,
     seed: int = 0,
     anneal: float = 0.05,
-    update_every: int = 20,
-    penalty: float = 10.0,
-    penalty_growth: float = 2.0,
-    max_penalty: float = 1e4,
-    patience: int = 20,
-    ftol: float = 1e-4,
-    vtol: float = 1e-3,
-    min_steps: int = 40,
+    lagrangian: AugmentedLagrangian | None = None,
+    stopping: Stopping | None = None,
     progress: bool | None = None,
     callback: Callable[[int, dict], None] | None = None,
     store: str | os.PathLike | None = None,
@@ -294,11 +287,10 @@ def optimise(
     - `scenario_limits`: metric name → one limit per scenario (an ε-constraint front).
     - `anneal`: the smooth-max temperatures fall geometrically to this fraction of the
       objective's over the `steps` (a continuation: smooth early, close to the peak late).
-    - `update_every`, `penalty`, `penalty_growth`, `max_penalty`: the augmented
-      Lagrangian's multiplier period and penalty schedule.
-    - `patience`, `ftol`, `vtol`, `min_steps`: a run stops once, over the last `patience`
-      steps (after `min_steps`), its objective has moved by at most `ftol` (relative) and
-      its limits have held within `vtol` (relative); a run whose solve fails stops too.
+    - `lagrangian`: how the metric limits are held (default `AugmentedLagrangian()`:
+      its multiplier period and penalty schedule).
+    - `stopping`: when a run stops (default `Stopping()`: stationary over 20 steps
+      after 40, or a failed solve).
     - `progress`: a progress line on stderr (default: when stderr is a terminal).
     - `callback(step, record)`: called after each step with the host-side record.
     - `store`: the path of an SQLite file that keeps every step as it is taken: each
@@ -316,159 +308,212 @@ def optimise(
     """
     if starts < 1 or steps < 1:
         raise ParameterError(f"starts and steps must be >= 1 (got {starts}, {steps})")
-    if optimiser is None:
-        optimiser = default_optimiser(0.1, steps)
+    lagrangian = AugmentedLagrangian() if lagrangian is None else lagrangian
+    stopping = Stopping() if stopping is None else stopping
+    optimiser = default_optimiser(0.1, steps) if optimiser is None else optimiser
     params, limits = _scenarios(problem, scenarios, scenario_limits)
-    n_scenarios = limits.shape[0]
-    runs = n_scenarios * starts
-    run_params = jax.tree.map(lambda x: jnp.repeat(jnp.asarray(x), starts, axis=0), params)
-    run_limits = jnp.asarray(np.repeat(limits, starts, axis=0))
-
     space = SearchSpace.of(problem)
-    u0 = jnp.asarray(_to_u(space, _start_points(problem, params, n_scenarios, starts, seed)))
-    state = _State(
-        u=u0,
-        opt_state=jax.vmap(optimiser.init)(u0),
-        multipliers=jnp.zeros((runs, limits.shape[1])),
-        penalty=jnp.full((runs,), float(penalty)),
-        scale=jnp.ones((runs,)),
-        step=jnp.zeros((runs,), dtype=int),
-    )
-    step_fn, traced = _make_step(
-        problem, optimiser, _Settings(steps, anneal, update_every, penalty_growth, max_penalty)
-    )
-    samples = 1 if problem.objective.scatter is None else len(problem.objective.scatter[1])
-
-    active = np.ones(runs, dtype=bool)
-    converged_step = np.full(runs, -1)
-    records: list[_StepRecord] = []
-    stepped_masks: list[np.ndarray] = []  # which runs took each step
-    step_seconds: list[float] = []  # when each step ended, the earlier runs' included
-    best_so_far = np.inf
-    ok = int(status_codes(Status.ok))
+    u0 = jnp.asarray(_to_u(space, _start_points(problem, params, limits.shape[0], starts, seed)))
+    state = _initial_state(optimiser, lagrangian, u0, limits.shape[1])
+    step_fn, traced = _make_step(problem, optimiser, lagrangian, steps, anneal)
+    runs = _Runs(len(u0), steps)
     study = None
     if store is not None:
         identity = _identity(
-            problem, optimiser, u0, starts, steps, params, limits, seed, anneal, update_every,
-            penalty, penalty_growth, max_penalty, patience, ftol, vtol, min_steps,
+            problem, optimiser, u0, starts, steps, params, limits, seed, anneal,
+            lagrangian.update_every, lagrangian.penalty, lagrangian.penalty_growth,
+            lagrangian.max_penalty, stopping.patience, stopping.ftol, stopping.vtol,
+            stopping.min_steps,
         )  # fmt: skip
         study = open_study(
-            store, label="optimise", problem=problem, identity=identity, total=runs * steps,
-            plan={}, description={"runs": runs}, progress=progress,
+            store, label="optimise", problem=problem, identity=identity, total=len(u0) * steps,
+            plan={}, description={"runs": len(u0)}, progress=progress,
         )  # fmt: skip
-        checkpoints = study.checkpoints()
-        for saved in checkpoints:
-            stepped_masks.append(active.copy())
-            state, record, active, converged_step, best_so_far, seconds = _restore(state, saved)
-            records.append(record)
-            step_seconds.append(seconds)
-    bar = Progress("optimise", steps, "steps", progress, already=len(records))
-    began = time.perf_counter()
-    prior = 0.0 if study is None else study.prior_seconds
-    try:
-        for k in range(len(records), steps if active.any() else 0):
-            state, record = step_fn(state, run_params, run_limits, jnp.asarray(active))
-            record = jax.tree.map(np.asarray, record)
-            records.append(record)
-            failed = record.status != ok
-            stop = active & (
-                failed | ((k + 1 >= min_steps) & _stationary(records, patience, ftol, vtol))
-            )
-            converged_step = np.where(stop & ~failed, k, converged_step)
-            stepped = active.copy()
-            active &= ~stop
-            stepped_masks.append(stepped)
-            step_seconds.append(prior + time.perf_counter() - began)
-            if callback is not None:
-                callback(k, {"objective": record.objective, "active": active.copy()})
-            held = feasible(~failed, record.objective, record.violations)
-            best_so_far = min(best_so_far, float(np.min(np.where(held, record.objective, np.inf))))
-            if study is not None:
-                study.checkpoint(
-                    k,
-                    _saved(state, record, active, converged_step, best_so_far, step_seconds[-1]),
-                    _step_rows(record, stepped, step_seconds[-1]),
-                )
-            bar.update(
-                k + 1,
-                f"{int(active.sum())}/{runs} runs active, {best_feasible_note(best_so_far)}",
-                final=not active.any(),
-            )
-            if not active.any():
-                break
-    finally:
-        if study is not None:
-            study.close()
+    with contextlib.nullcontext() if study is None else study:
+        state = runs.resume(study, state)
+        bar = Progress("optimise", steps, "steps", progress, already=len(runs.records))
+        run_params = jax.tree.map(lambda x: jnp.repeat(jnp.asarray(x), starts, axis=0), params)
+        run_limits = jnp.asarray(np.repeat(limits, starts, axis=0))
 
-    history = {
-        "theta": np.stack([r.theta for r in records]),
-        "objective": np.stack([r.objective for r in records]),
-        "smooth_objective": np.stack([r.smooth_objective for r in records]),
-        "violations": np.stack([r.violations for r in records]),
-        "status": np.stack([r.status for r in records]),
-    } | {name: np.stack([r.metrics[name] for r in records]) for name in records[0].metrics}
-    held = feasible(history["status"] == ok, history["objective"], history["violations"])
-    best, run_best_objective, run_best_theta = _select_best(history, held, n_scenarios, starts)
-    took = np.stack(stepped_masks)  # (N, R): which runs took each step
-    seconds = np.asarray(step_seconds)
-    theta0 = np.asarray(_to_theta(space, u0))
-    runs_taken = took.sum(axis=0)
-    out = []
-    for r in range(runs):
-        failed = bool(np.any(took[:, r] & (history["status"][:, r] != ok)))
+        def step(state):
+            return step_fn(state, run_params, run_limits, jnp.asarray(runs.active))
+
+        runs.take_steps(step, state, stopping, study, bar, callback)
+    return OptimiseResult(
+        **runs.result(problem, space, u0, starts, params, limits, bar.elapsed),
+        compilations=eqx.debug.get_num_traces(traced),
+    )
+
+
+def _initial_state(optimiser, lagrangian: AugmentedLagrangian, u0, constraints: int) -> _State:
+    """Every run's state before its first step (leading axis: the runs)."""
+    runs = len(u0)
+    return _State(
+        u=u0,
+        opt_state=jax.vmap(optimiser.init)(u0),
+        limits=LagrangianState(
+            jnp.zeros((runs, constraints)), jnp.full((runs,), float(lagrangian.penalty))
+        ),
+        scale=jnp.ones((runs,)),
+        step=jnp.zeros((runs,), dtype=int),
+    )
+
+
+class _Runs:
+    """The host's view of `optimise`'s vmapped runs, step by step: which are `active`,
+    the step each converged at (-1: not), every step's record, which runs took it and
+    when it ended (seconds of the budget, earlier runs' included), the best feasible
+    objective so far; saved to a study's store after each step and restored from it."""
+
+    def __init__(self, count: int, steps: int):
+        self.steps = steps
+        self.active = np.ones(count, dtype=bool)
+        self.converged_step = np.full(count, -1)
+        self.records: list[_StepRecord] = []
+        self.took: list[np.ndarray] = []  # which runs took each step
+        self.seconds: list[float] = []  # when each step ended
+        self.best = np.inf
+
+    def resume(self, study: StudyStore | None, state: _State) -> _State:
+        """The state after the steps stored in `study` (read back), or `state`."""
+        for saved in [] if study is None else study.checkpoints():
+            self.took.append(self.active.copy())
+            treedef = jax.tree.structure(state)
+            leaves = [jnp.asarray(saved[f"state:{i}"]) for i in range(treedef.num_leaves)]
+            state = jax.tree.unflatten(treedef, leaves)
+            metrics = {k.split(":", 1)[1]: v for k, v in saved.items() if k.startswith("metric:")}
+            arrays: Any = saved  # host arrays in the record's fields, as after a step
+            self.records.append(
+                _StepRecord(
+                    arrays["theta"], metrics, arrays["status"], arrays["smooth_objective"],
+                    arrays["objective"], arrays["violations"],
+                )
+            )  # fmt: skip
+            self.active = saved["active"].copy()
+            self.converged_step = saved["converged_step"].copy()
+            self.best = float(saved["best_so_far"])
+            self.seconds.append(float(saved.get("seconds", 0.0)))  # 0 in early stores
+        return state
+
+    def take_steps(self, step, state: _State, stopping: Stopping, study, bar, callback) -> None:
+        """Step every active run until none is or the steps are spent."""
+        began, prior = time.perf_counter(), 0.0 if study is None else study.prior_seconds
+        for k in range(len(self.records), self.steps if self.active.any() else 0):
+            state, record = step(state)
+            record = jax.tree.map(np.asarray, record)
+            self.records.append(record)
+            failed = record.status != _OK
+            stop = self.active & stopping.stops(self.records, k, failed)
+            self.converged_step = np.where(stop & ~failed, k, self.converged_step)
+            self.took.append(self.active.copy())
+            self.active &= ~stop
+            self.seconds.append(prior + time.perf_counter() - began)
+            if callback is not None:
+                callback(k, {"objective": record.objective, "active": self.active.copy()})
+            held = feasible(~failed, record.objective, record.violations)
+            self.best = min(self.best, float(np.min(np.where(held, record.objective, np.inf))))
+            if study is not None:
+                study.checkpoint(k, self._saved(state, record), self._rows(record))
+            note = f"{int(self.active.sum())}/{len(self.active)} runs active, "
+            note += best_feasible_note(self.best)
+            bar.update(k + 1, note, final=not self.active.any())
+            if not self.active.any():
+                break
+
+    def _saved(self, state: _State, record: _StepRecord) -> dict:
+        """What a step's checkpoint holds, by name (`resume` reads it back)."""
+        saved = {f"state:{i}": leaf for i, leaf in enumerate(jax.tree.leaves(state))}
+        saved |= {
+            "theta": record.theta, "status": record.status,
+            "smooth_objective": record.smooth_objective, "objective": record.objective,
+            "violations": record.violations, "active": self.active,
+            "converged_step": self.converged_step, "best_so_far": self.best,
+            "seconds": self.seconds[-1],
+        }  # fmt: skip
+        return saved | {f"metric:{name}": value for name, value in record.metrics.items()}
+
+    def _rows(self, record: _StepRecord) -> list[dict]:
+        """A step's evaluations as store rows, one per run that took the step."""
+        return [
+            evaluation_row(
+                self.seconds[-1], "step", record.theta[r], record.objective[r],
+                record.violations[r], record.status[r], start=r,
+            )
+            for r in np.nonzero(self.took[-1])[0].tolist()
+        ]  # fmt: skip
+
+    def history(self) -> dict[str, np.ndarray]:
+        """Per step, `(steps, runs, ...)` arrays by name: `theta`, `objective`,
+        `smooth_objective`, `violations`, `status`, and each metric."""
+        records = self.records
+        names = ("theta", "objective", "smooth_objective", "violations")
+        history = {name: np.stack([getattr(r, name) for r in records]) for name in names}
+        history["status"] = np.stack([r.status for r in records])
+        return history | {
+            name: np.stack([r.metrics[name] for r in records]) for name in records[0].metrics
+        }
+
+    def result(self, problem, space, u0, starts: int, params, limits, seconds: float) -> dict:
+        """The `OptimiseResult`'s fields, by name (all but `compilations`)."""
+        history = self.history()
+        held = feasible(history["status"] == _OK, history["objective"], history["violations"])
+        scenarios = limits.shape[0]
+        best, run_best_objective, run_best_theta = _select_best(history, held, scenarios, starts)
+        took = np.stack(self.took)  # (N, R): which runs took each step
+        step_seconds = np.asarray(self.seconds)
+        theta0 = np.asarray(_to_theta(space, u0))
+        runs = tuple(
+            self._record(r, starts, history, theta0, run_best_objective, run_best_theta, took)
+            for r in range(len(theta0))
+        )
+        # Every evaluation, step by step: the vmapped step solves every run, a stopped one
+        # at where it stopped ("stopped"), so its last move is judged like the others.
+        steps_of, runs_of = np.indices(took.shape).reshape(2, -1)
+        samples = 1 if problem.objective.scatter is None else len(problem.objective.scatter[1])
+        return dict(
+            method="optax", problem=problem, best_theta=best["theta"],
+            best_objective=best["objective"], closest_theta=best["closest_theta"],
+            closest_violation=best["closest_violation"], runs=runs,
+            trace={
+                "seconds": step_seconds[steps_of],
+                "scenario": runs_of // starts,
+                "objective": history["objective"][steps_of, runs_of],
+                "feasible": held[steps_of, runs_of],
+                "gradient": np.ones(len(steps_of), dtype=bool),
+                "phase": np.where(took[steps_of, runs_of], "step", "stopped"),
+            },
+            solves=0, gradient_solves=len(self.records) * len(theta0) * samples, seconds=seconds,
+            scenario_params=params, scenario_limits=limits, history=history,
+        )  # fmt: skip
+
+    def _record(self, r, starts, history, theta0, run_best_objective, run_best_theta, took):
+        """Run `r`'s `RunRecord`."""
+        taken = int(took[:, r].sum())
+        failed = bool(np.any(took[:, r] & (history["status"][:, r] != _OK)))
         found = np.isfinite(run_best_objective[r])
         message = (
-            "converged" if converged_step[r] >= 0
+            "converged" if self.converged_step[r] >= 0
             else "a solve failed: this start ended there" if failed
-            else f"step limit ({steps}) reached"
+            else f"step limit ({self.steps}) reached"
         )  # fmt: skip
-        out.append(
-            {
-                "scenario": r // starts,
-                "region": r % starts,  # each start its own region
-                "phase": "start",
-                "theta0": theta0[r],
-                # Where it ended: a stopped run stays at the point its last step
-                # moved to, evaluated at every later step of the others.
-                "theta": history["theta"][-1, r],
-                "objective": float(history["objective"][-1, r]),
-                "best_objective": float(run_best_objective[r]),
-                "best_theta": run_best_theta[r] if found else np.full(len(problem.tune), np.nan),
-                "evaluations": len(records),
-                "iterations": int(runs_taken[r]),
-                "converged": bool(converged_step[r] >= 0),
-                "message": message,
-                "seconds": (0.0, float(seconds[runs_taken[r] - 1])),
-                "no_impact": bool(history["peak_contact_force"][-1, r] == 0.0),
-            }
+        return RunRecord(
+            phase="start",
+            theta0=theta0[r],
+            # Where it ended: a stopped run stays at the point its last step moved to,
+            # evaluated at every later step of the others.
+            theta=history["theta"][-1, r],
+            objective=float(history["objective"][-1, r]),
+            best_objective=float(run_best_objective[r]),
+            best_theta=run_best_theta[r] if found else np.full(theta0.shape[1], np.nan),
+            evaluations=len(self.records),
+            iterations=taken,
+            converged=bool(self.converged_step[r] >= 0),
+            message=message,
+            seconds=(0.0, float(self.seconds[taken - 1])),
+            scenario=r // starts,
+            region=r % starts,  # each start its own region
+            no_impact=bool(history["peak_contact_force"][-1, r] == 0.0),
         )
-    # Every evaluation, step by step: the vmapped step solves every run, a stopped one
-    # at where it stopped ("stopped"), so its last move is judged like the others.
-    steps_of, runs_of = np.indices(took.shape).reshape(2, -1)
-    return OptimiseResult(
-        method="optax",
-        problem=problem,
-        best_theta=best["theta"],
-        best_objective=best["objective"],
-        closest_theta=best["closest_theta"],
-        closest_violation=best["closest_violation"],
-        runs=tuple(out),
-        trace={
-            "seconds": seconds[steps_of],
-            "scenario": runs_of // starts,
-            "objective": history["objective"][steps_of, runs_of],
-            "feasible": held[steps_of, runs_of],
-            "gradient": np.ones(len(steps_of), dtype=bool),
-            "phase": np.where(took[steps_of, runs_of], "step", "stopped"),
-        },
-        solves=0,
-        gradient_solves=len(records) * runs * samples,
-        seconds=bar.elapsed,
-        compilations=eqx.debug.get_num_traces(traced),
-        scenario_params=params,
-        scenario_limits=limits,
-        history=history,
-    )
 
 
 def _identity(problem, optimiser: optax.GradientTransformation, u0, *settings) -> str:
@@ -488,62 +533,6 @@ def _identity(problem, optimiser: optax.GradientTransformation, u0, *settings) -
     return fingerprint("optimise", __version__, problem, np.asarray(u0), probe, settings)
 
 
-def _saved(
-    state: _State, record: _StepRecord, active, converged_step, best, seconds: float
-) -> dict:
-    """What a step's checkpoint holds, by name (`_restore` reads it back)."""
-    saved = {f"state:{i}": leaf for i, leaf in enumerate(jax.tree.leaves(state))}
-    saved |= {
-        "theta": record.theta,
-        "status": record.status,
-        "smooth_objective": record.smooth_objective,
-        "objective": record.objective,
-        "violations": record.violations,
-        "active": active,
-        "converged_step": converged_step,
-        "best_so_far": best,
-        "seconds": seconds,
-    }
-    return saved | {f"metric:{name}": value for name, value in record.metrics.items()}
-
-
-def _restore(state: _State, saved: dict[str, np.ndarray]):
-    """The state after a stored step (`state` gives the structure), its record, which
-    runs were active, their converged steps, the best feasible objective so far and when
-    the step ended (0 in a store written before that was kept)."""
-    treedef = jax.tree.structure(state)
-    leaves = [jnp.asarray(saved[f"state:{i}"]) for i in range(treedef.num_leaves)]
-    metrics = {k.split(":", 1)[1]: v for k, v in saved.items() if k.startswith("metric:")}
-    arrays: Any = saved  # host arrays in the record's fields, as after a step
-    record = _StepRecord(
-        arrays["theta"],
-        metrics,
-        arrays["status"],
-        arrays["smooth_objective"],
-        arrays["objective"],
-        arrays["violations"],
-    )
-    return (
-        jax.tree.unflatten(treedef, leaves),
-        record,
-        saved["active"].copy(),
-        saved["converged_step"].copy(),
-        float(saved["best_so_far"]),
-        float(saved.get("seconds", 0.0)),
-    )
-
-
-def _step_rows(record: _StepRecord, stepped, seconds: float) -> list[dict]:
-    """A step's evaluations as store rows, one per run that took the step."""
-    return [
-        evaluation_row(
-            seconds, "step", record.theta[r], record.objective[r], record.violations[r],
-            record.status[r], start=r,
-        )
-        for r in np.nonzero(stepped)[0].tolist()
-    ]  # fmt: skip
-
-
 def default_optimiser(learning_rate: float, steps: int) -> optax.GradientTransformation:
     """Adam on the sigmoid coordinates, its step cosine-decayed to 1 % over `steps`."""
-    return optax.adam(optax.cosine_decay_schedule(learning_rate, steps, alpha=0.01))
+    return cosine_decayed("adam", learning_rate, steps, 0.01)

@@ -14,7 +14,50 @@ import numpy as np
 from ._params import ParameterError, RecoilParams, params_to_values, with_values
 from ._problem import Agreement, DesignProblem
 
-__all__ = ["OptimiseResult"]
+__all__ = ["OptimiseResult", "RunRecord"]
+
+
+@dataclasses.dataclass(frozen=True)
+class RunRecord:
+    """One local run of an optimiser, whatever the method (`OptimiseResult.runs`).
+
+    - `phase`: `"start"` (from the given design, a sample or a Latin start) or `"hop"`
+      (basin hopping);
+    - `theta0`, `theta`: where it began and ended (`(P,)`);
+    - `objective`: what the method minimised, at its end (the smoothed objective at a
+      smoothed level; NaN if the run ended before a level did);
+    - `best_objective`, `best_theta`: the best feasible point it evaluated (inf and NaN
+      if none);
+    - `evaluations` (0 for a run the time budget stopped before its first),
+      `iterations`, `converged` (its own test ended it, not a limit, a failure or the
+      budget), `message`, `seconds` (its start and end);
+    - `scenario`; `region` (starts that began in one region of the box share it; None
+      for basin hopping's runs and runs that evaluated nothing);
+    - `no_impact` (`optimise`): whether it ended with no impact at all (on the plateau
+      where the gap gradient is exactly zero); None where not known.
+
+    Fields also read by name, `run["phase"]`, as the dicts of earlier versions were.
+    """
+
+    phase: str
+    theta0: np.ndarray
+    theta: np.ndarray
+    objective: float
+    best_objective: float
+    best_theta: np.ndarray
+    evaluations: int
+    iterations: int
+    converged: bool
+    message: str
+    seconds: tuple[float, float]
+    scenario: int = 0
+    region: int | None = None
+    no_impact: bool | None = None
+
+    def __getitem__(self, name: str) -> Any:
+        if name not in self.__dataclass_fields__:
+            raise KeyError(name)
+        return getattr(self, name)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,15 +75,8 @@ class OptimiseResult:
       whose largest normalised violation is least (of the successful solves; NaN if
       none), and that violation: where nothing is feasible, which limit is missed and by
       how much.
-    - `runs`: every local run, in order, a dict by name: `scenario`, `region` (starts
-      that began in one region of the box share it; None for basin hopping's runs),
-      `phase` (`"start"` or `"hop"`), `theta0`, `theta` (where it ended),
-      `objective` (what the method minimised, at its end: the smoothed objective at a
-      smoothed level; NaN if the run ended before a level did), `best_objective`
-      and `best_theta` (the best feasible point it evaluated: inf and NaN if none),
-      `evaluations` (0 for a run the time budget stopped before its first),
-      `iterations`, `converged` (its own test ended it, not a limit, a failure or the
-      budget), `message`, `seconds` (its start and end).
+    - `runs`: every local run, in order, a `RunRecord` each (the same record for every
+      method).
     - `trace`: every evaluation in order, arrays by name: `seconds` since the start,
       `scenario`, `objective` (exact), `feasible`, `gradient` (whether it was a
       gradient solve), `phase` (`"sample"` and `"local"` for `search`; `"step"` for
@@ -63,7 +99,7 @@ class OptimiseResult:
     best_objective: np.ndarray
     closest_theta: np.ndarray
     closest_violation: np.ndarray
-    runs: tuple[dict, ...]
+    runs: tuple[RunRecord, ...]
     trace: dict[str, np.ndarray]
     solves: int
     gradient_solves: int
@@ -117,8 +153,8 @@ class OptimiseResult:
             raise ParameterError("no solve succeeded: there is no closest design")
         return with_values(self._base(scenario), self.tune, self.closest_theta[scenario])
 
-    def _runs_of(self, scenario: int) -> list[dict]:
-        return [run for run in self.runs if run["scenario"] == scenario]
+    def _runs_of(self, scenario: int) -> list[RunRecord]:
+        return [run for run in self.runs if run.scenario == scenario]
 
     def agreement(self, scenario: int = 0, rtol: float = 1e-3) -> Agreement:
         """How firmly the best design of `scenario` was found (`Agreement`): of the
@@ -133,11 +169,11 @@ class OptimiseResult:
         regions: dict[Any, bool] = {}
         starts = 0
         for run in self._runs_of(scenario):
-            if run["phase"] != "start" or run["evaluations"] == 0:
+            if run.phase != "start" or run.evaluations == 0:
                 continue
             starts += 1
-            reached = bool(run["best_objective"] <= limit)  # NaN limit: none feasible
-            regions[run["region"]] = regions.get(run["region"], False) or reached
+            reached = bool(run.best_objective <= limit)  # NaN limit: none feasible
+            regions[run.region] = regions.get(run.region, False) or reached
         return Agreement(sum(regions.values()), len(regions), starts, rtol)
 
     def clusters(self, scenario: int = 0, rtol: float = 1e-3) -> list[dict]:
@@ -147,12 +183,12 @@ class OptimiseResult:
         and (`optimise`) how many ended with no impact at all (`no_impact`: on the
         plateau where the gap gradient is exactly zero). Runs that found nothing
         feasible are groups of one with `objective` None."""
-        indices = [i for i, run in enumerate(self.runs) if run["scenario"] == scenario]
-        order = sorted(indices, key=lambda i: self.runs[i]["best_objective"])
+        indices = [i for i, run in enumerate(self.runs) if run.scenario == scenario]
+        order = sorted(indices, key=lambda i: self.runs[i].best_objective)
         groups: list[dict] = []
         for i in order:
             run = self.runs[i]
-            value = run["best_objective"]
+            value = run.best_objective
             finite = bool(np.isfinite(value))
             for group in groups if finite else []:
                 if group["objective"] is not None and abs(value - group["objective"]) <= rtol * abs(
@@ -165,20 +201,20 @@ class OptimiseResult:
                     "count": 0,
                     "runs": [],
                     "design": (
-                        dict(zip(self.tune, map(float, run["best_theta"]), strict=True))
+                        dict(zip(self.tune, map(float, run.best_theta), strict=True))
                         if finite
                         else None
                     ),
                     "converged": 0,
                 }
-                if "no_impact" in run:
+                if run.no_impact is not None:
                     group["no_impact"] = 0
                 groups.append(group)
             group["count"] += 1
             group["runs"].append(i)
-            group["converged"] += int(run["converged"])
+            group["converged"] += int(run.converged)
             if "no_impact" in group:
-                group["no_impact"] += int(run["no_impact"])
+                group["no_impact"] += int(bool(run.no_impact))
         return groups
 
     def best_so_far(self, scenario: int = 0) -> np.ndarray:

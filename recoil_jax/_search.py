@@ -22,6 +22,7 @@ solve. Measured against the optax Adam loop of `optimise` in `optimise/README.md
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import sys
 import threading
@@ -61,7 +62,7 @@ from ._problem import (
     largest_violation,
 )
 from ._progress import Progress
-from ._result import OptimiseResult
+from ._result import OptimiseResult, RunRecord
 from ._space import SearchSpace
 from ._store import StudyStore, fingerprint, open_study
 from ._sweep import default_workers
@@ -104,9 +105,9 @@ class BasinHopping(eqx.Module):
                 f"BasinHopping: need hops >= 0 and 0 < step <= 1 (got {self.hops}, {self.step})"
             )
 
-    def run(self, record, local_run, pool, workers: int, seed: int, out_of_time) -> list[dict]:
+    def run(self, record, local_run, pool, workers: int, seed: int, out_of_time) -> list[RunRecord]:
         rng = np.random.default_rng([seed, 1])
-        runs: list[dict] = []
+        runs: list[RunRecord] = []
         done = 0
         while done < self.hops and not out_of_time():
             centre = record.best_z if record.best_z is not None else record.closest_z
@@ -116,7 +117,7 @@ class BasinHopping(eqx.Module):
             moves = rng.uniform(-self.step, self.step, (count, np.size(centre)))
             starts = [np.clip(centre + move, 0.0, 1.0) for move in moves]
             for run in pool.map(local_run, starts):
-                runs.append(run | {"phase": "hop"})
+                runs.append(dataclasses.replace(run, phase="hop"))
             done += count
         return runs
 
@@ -179,8 +180,8 @@ class SobolStarts(eqx.Module):
 class _Minimum(NamedTuple):
     """What `_minimise` found, in normalised coordinates: the best feasible point
     (`best_z`, NaN if none), the least violating one, every evaluation (`trace`), the
-    global phase (`samples`) and each local run (`run_local`'s dicts with `phase`,
-    `evaluations`, `best_feasible`, `best_z`)."""
+    global phase (`samples`) and each local run (`RunRecord`s in normalised
+    coordinates)."""
 
     best_z: np.ndarray
     best_objective: float
@@ -188,7 +189,7 @@ class _Minimum(NamedTuple):
     closest_violation: float
     trace: dict[str, np.ndarray]
     samples: dict[str, np.ndarray]
-    runs: list[dict]
+    runs: list[RunRecord]
     solves: int
     gradient_solves: int
     seconds: float
@@ -259,27 +260,22 @@ class _Recorder:
 
 
 class _LocalRunner:
-    """Runs one local run of `method` from a start (`__call__(z0)`, a dict as
-    `run_local`'s with `phase`, `evaluations`, `best_feasible` and `best_z`), each with
-    its own evaluator from `evaluator()`, recording every evaluation."""
+    """Runs one local run of `method` from a start (`__call__(z0)`: its `RunRecord`, in
+    normalised coordinates), each with its own evaluator from `evaluator()`, recording
+    every evaluation."""
 
     def __init__(self, method: LocalMethod, evaluator, record: _Recorder, out_of_time):
         self.method, self.evaluator, self.record = method, evaluator, record
         self.out_of_time = out_of_time
 
-    def __call__(self, z0: np.ndarray) -> dict:
-        seen = {"evaluations": 0, "best_feasible": np.inf, "best_z": None}  # this run's
+    def _record_local(self, z, objective, violation, ok) -> None:
+        self.record.add(z, objective, violation, ok, True, "local")
 
-        def record_run(z, objective, violation, ok):
-            self.record.add(z, objective, violation, ok, True, "local")
-            seen["evaluations"] += 1
-            if feasible(ok, objective, [violation]) and objective < seen["best_feasible"]:
-                seen["best_feasible"], seen["best_z"] = float(objective), np.array(z)
-
-        run = run_local(
-            self.method, self.evaluator(), z0, record_run, self.out_of_time, self.record.clock
-        )
-        return run | {"phase": "start"} | seen
+    def __call__(self, z0: np.ndarray) -> RunRecord:
+        return run_local(
+            self.method, self.evaluator(), z0, self._record_local, self.out_of_time,
+            self.record.clock,
+        )  # fmt: skip
 
     def warm_up(self, dimension: int, evaluate) -> None:
         """One gradient solve at the centre of the box with `evaluate`, recorded like
@@ -424,19 +420,21 @@ def _minimise(
     return record.minimum(sampled, done, global_phase.points, global_phase.spacing)
 
 
-def _regions(runs: list[dict], spacing: float) -> list[int | None]:
+def _regions(runs: list[RunRecord], spacing: float) -> list[int | None]:
     """The start region of each run: a start that evaluated a point joins the first
     region whose first start is within `spacing` (max-norm) of its own, or begins a
     new one; basin hopping's runs and those that evaluated nothing have none."""
     firsts: list[np.ndarray] = []
     regions: list[int | None] = []
     for run in runs:
-        if run["phase"] != "start" or run["evaluations"] == 0:
+        if run.phase != "start" or run.evaluations == 0:
             regions.append(None)
             continue
-        near = [k for k, first in enumerate(firsts) if np.max(np.abs(run["z0"] - first)) <= spacing]
+        near = [
+            k for k, first in enumerate(firsts) if np.max(np.abs(run.theta0 - first)) <= spacing
+        ]
         if not near:
-            firsts.append(run["z0"])
+            firsts.append(run.theta0)
         regions.append(near[0] if near else len(firsts) - 1)
     return regions
 
@@ -458,26 +456,13 @@ def _result(
         z = np.asarray(z, dtype=float)
         return np.asarray(theta(z)) if np.all(np.isfinite(z)) else np.full(z.shape, np.nan)
 
-    runs = []
-    for run, region in zip(minimum.runs, _regions(minimum.runs, minimum.spacing), strict=True):
-        best_z = run["z0"] * np.nan if run["best_z"] is None else run["best_z"]
-        runs.append(
-            {
-                "scenario": 0,
-                "region": region,
-                "phase": run["phase"],
-                "theta0": to_theta(run["z0"]),
-                "theta": to_theta(run["z"]),
-                "objective": float(run["objective"]),
-                "best_objective": float(run["best_feasible"]),
-                "best_theta": to_theta(best_z),
-                "evaluations": run["evaluations"],
-                "iterations": run["iterations"],
-                "converged": run["converged"],
-                "message": run["message"],
-                "seconds": run["seconds"],
-            }
+    runs = [
+        dataclasses.replace(
+            run, region=region, theta0=to_theta(run.theta0), theta=to_theta(run.theta),
+            best_theta=to_theta(run.best_theta),
         )
+        for run, region in zip(minimum.runs, _regions(minimum.runs, minimum.spacing), strict=True)
+    ]  # fmt: skip
     trace = minimum.trace | {"scenario": np.zeros(len(minimum.trace["seconds"]), dtype=int)}
     limits = [] if problem is None else [limit for _, _, limit in problem.metric_constraints]
     return OptimiseResult(

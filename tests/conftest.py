@@ -117,15 +117,9 @@ def _release_compiled_code_when_mappings_run_high():
         jax.clear_caches()
 
 
-RUN_FIELDS = {
-    "scenario", "region", "phase", "theta0", "theta", "objective", "best_objective",
-    "best_theta", "evaluations", "iterations", "converged", "message", "seconds",
-}  # fmt: skip
-
-
 def assert_complete_result(result, method: str, dimension: int):
     """Every optimiser returns one `OptimiseResult`, built complete: per scenario its
-    best and closest points; every run with the same named fields; a trace whose best
+    best and closest points; every run the same `RunRecord`; a trace whose best
     feasible evaluation is the reported best (an independent read of the same
     evaluations)."""
     import numpy as np
@@ -138,11 +132,11 @@ def assert_complete_result(result, method: str, dimension: int):
     assert result.best_objective.shape == result.closest_violation.shape == (scenarios,)
     assert result.scenario_limits.shape[0] == scenarios and result.runs
     for run in result.runs:
-        assert RUN_FIELDS <= set(run), RUN_FIELDS - set(run)
+        assert type(run) is rj.RunRecord
         for name in ("theta0", "theta", "best_theta"):
-            assert np.shape(run[name]) == (dimension,), name
-        if result.feasible[run["scenario"]]:
-            assert run["best_objective"] >= result.best_objective[run["scenario"]]
+            assert np.shape(getattr(run, name)) == (dimension,), name
+        if result.feasible[run.scenario]:
+            assert run.best_objective >= result.best_objective[run.scenario]
     trace = result.trace
     assert {"seconds", "scenario", "objective", "feasible", "gradient", "phase"} <= set(trace)
     assert len({len(column) for column in trace.values()}) == 1

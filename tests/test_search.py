@@ -94,7 +94,7 @@ def test_a_local_run_steps_back_from_failed_solves(method):
     )  # fmt: skip
     (run,) = result.runs
     assert result.best_theta[0, 0] == pytest.approx(0.7, abs=0.01)
-    assert run["message"].startswith("solves failed") and not run["converged"]
+    assert run.message.startswith("solves failed") and not run.converged
 
 
 def test_minimise_finds_the_global_minimum_of_a_multimodal_function():
@@ -141,11 +141,11 @@ def test_minimise_counts_the_starts_that_reach_the_best_basin():
     once = run((0.1, 0.35, 0.5, 0.88))
     # The wide basin's tail adds exp(-9) = 1.2e-4 at the narrow one.
     assert once.best_objective[0] == pytest.approx(-2.0 - np.exp(-9.0), abs=1e-6)
-    assert [run["best_objective"] < -1.5 for run in once.runs] == [False, False, False, True]
+    assert [run.best_objective < -1.5 for run in once.runs] == [False, False, False, True]
     # 0.35 and 0.5 began in one region (within 0.25): 4 starts, 3 regions.
     assert once.agreement() == rj.Agreement(reached=1, regions=3, starts=4)
     hopped = run((0.1, 0.35, 0.5, 0.88), hopping=rj.BasinHopping(hops=4, step=0.01))
-    assert sum(run["phase"] == "hop" for run in hopped.runs) == 4
+    assert sum(run.phase == "hop" for run in hopped.runs) == 4
     assert hopped.agreement() == rj.Agreement(reached=1, regions=3, starts=4)
     assert hopped.agreement(rtol=0.01) == rj.Agreement(1, 3, 4, rtol=0.01)
     assert run((0.85, 0.95)).agreement() == rj.Agreement(reached=1, regions=1, starts=2)
@@ -180,7 +180,7 @@ def test_each_local_run_gets_its_own_evaluation_function():
         hopping=rj.BasinHopping(hops=2), run_evaluator=run_evaluator,
     )  # fmt: skip
     assert len(made) == len(result.runs) == 5  # 3 starts, 2 hops
-    assert [run["evaluations"] for run in result.runs] == [m["calls"] for m in made]
+    assert [run.evaluations for run in result.runs] == [m["calls"] for m in made]
     assert all(m["calls"] > 0 for m in made)
 
 
@@ -316,9 +316,9 @@ def test_minimise_ends_a_noisy_minimax(method, ending):
         progress=False,
     )
     (run,) = result.runs
-    assert run["message"].startswith(ending), run["message"]
+    assert run.message.startswith(ending), run.message
     assert result.gradient_solves < 200
-    assert abs(run["theta"][0] - 0.5) < 0.01 and run["objective"] < 0.0902
+    assert abs(run.theta[0] - 0.5) < 0.01 and run.objective < 0.0902
 
 
 @pytest.mark.parametrize(
@@ -373,8 +373,8 @@ def test_a_new_local_method_plugs_in_without_touching_the_library():
     )
     assert result.feasible[0]
     np.testing.assert_allclose(result.best_theta[0], [0.3, 1.0], atol=1e-6)
-    assert [run["iterations"] for run in result.runs] == [60, 60]
-    assert not any(run["converged"] for run in result.runs)  # an iteration limit
+    assert [run.iterations for run in result.runs] == [60, 60]
+    assert not any(run.converged for run in result.runs)  # an iteration limit
     # Each iteration and the end point, and the warm-up at the centre of the box.
     assert result.gradient_solves == 2 * 61 + 1
     assert result.trace["phase"].tolist().count("local") == 2 * 61 + 1
@@ -422,7 +422,7 @@ def test_search_matches_a_dense_grid_with_one_compilation():
     )
     assert again.compilations == 0
     assert grid_best * (1 - 2e-3) <= again.best_objective[0] <= grid_best * (1 + 1e-5)
-    assert [run["iterations"] for run in again.runs] == [40, 40]
+    assert [run.iterations for run in again.runs] == [40, 40]
 
 
 @pytest.mark.slow
@@ -656,7 +656,7 @@ def test_basin_hopping_finds_a_narrow_basin_beside_the_best_one_found():
     for result in runs:
         assert result.best_objective[0] < -0.4
         assert abs(result.best_theta[0, 0] - 0.36) < 0.002
-        assert sum(run.get("phase") == "hop" for run in result.runs) == 16
+        assert sum(run.phase == "hop" for run in result.runs) == 16
     np.testing.assert_array_equal(runs[0].best_theta[0], runs[1].best_theta[0])
     with pytest.raises(rj.ParameterError, match="0 < step <= 1"):
         rj.BasinHopping(step=0.0)

@@ -407,7 +407,7 @@ def test_interrupted_search_resumes_to_the_same_design(tmp_path, monkeypatch, ca
 
 def test_interrupted_optimise_resumes_to_the_same_bits(tmp_path):
     problem = _gap_problem()
-    settings = dict(starts=3, steps=16, min_steps=6, progress=False)
+    settings = dict(starts=3, steps=16, stopping=rj.Stopping(min_steps=6), progress=False)
     plain = rj.optimise(problem, **settings)
     store = tmp_path / "adam.sqlite"
 
@@ -430,8 +430,8 @@ def test_interrupted_optimise_resumes_to_the_same_bits(tmp_path):
     # evaluated again where it stopped); the store's best is the result's.
     took = plain.trace["phase"] == "step"
     assert _study_rows(store)["rows"][0] == took.sum()
-    assert sum(run["iterations"] for run in plain.runs) == took.sum()
-    assert sum(run["evaluations"] for run in plain.runs) == len(took)
+    assert sum(run.iterations for run in plain.runs) == took.sum()
+    assert sum(run.evaluations for run in plain.runs) == len(took)
     assert np.array_equal(resumed.trace["objective"], plain.trace["objective"])
     assert rj.campaign_progress(store).best == float(plain.best_objective[0])
 

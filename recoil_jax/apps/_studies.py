@@ -399,12 +399,16 @@ def optimise_kwargs(study: Study, progress: bool | None) -> dict:
         optimiser=rj.default_optimiser(float(o.get("learning_rate", 0.1)), steps),
         progress=progress,
     )
-    for key in ("anneal", "penalty"):
-        if key in o:
-            kwargs[key] = float(o[key])
-    for key in ("patience", "update_every"):
-        if key in o:
-            kwargs[key] = int(o[key])
+    if "anneal" in o:
+        kwargs["anneal"] = float(o["anneal"])
+    if "penalty" in o or "update_every" in o:
+        defaults = rj.AugmentedLagrangian()
+        kwargs["lagrangian"] = rj.AugmentedLagrangian(
+            penalty=float(o.get("penalty", defaults.penalty)),
+            update_every=int(o.get("update_every", defaults.update_every)),
+        )
+    if "patience" in o:
+        kwargs["stopping"] = rj.Stopping(patience=int(o["patience"]))
     return kwargs
 
 
@@ -430,13 +434,11 @@ def _search_summary(result: rj.OptimiseResult, local: rj.LocalMethod) -> dict:
         "feasible_samples": int(feasible.sum()),
         "local_runs": [
             {
-                "phase": run["phase"],
+                "phase": run.phase,
                 # None: a run the time budget stopped before its first evaluation.
-                "objective_at_end": (
-                    float(run["objective"]) if np.isfinite(run["objective"]) else None
-                ),
-                "iterations": run["iterations"],
-                "message": run["message"],
+                "objective_at_end": (float(run.objective) if np.isfinite(run.objective) else None),
+                "iterations": run.iterations,
+                "message": run.message,
             }
             for run in result.runs
         ],
@@ -668,7 +670,7 @@ def run_study(
             "steps": len(result.history["objective"]) if result.history else 0,
             "compilations": result.compilations,
             "seconds": round(result.seconds, 2),
-            "converged_runs": sum(run["converged"] for run in result.runs),
+            "converged_runs": sum(run.converged for run in result.runs),
             "agreement": result.agreement()._asdict(),
             "where_starts_ended": result.clusters(),
         }
