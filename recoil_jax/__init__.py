@@ -14,11 +14,10 @@ import jax as _jax
 # (Set before the submodules import, hence E402 below.)
 _jax.config.update("jax_enable_x64", True)
 
+# The lower-level interfaces (extension parts, batches, codes): `recoil_jax.extend`.
+from . import extend as extend
 from ._cache import (
     enable_compilation_cache as enable_compilation_cache,
-    live_programs as live_programs,
-    set_max_programs as set_max_programs,
-    structure_jit as structure_jit,
     use_avx2_codegen as use_avx2_codegen,
 )
 from ._design import differentiable_peaks as differentiable_peaks
@@ -34,21 +33,14 @@ from ._gradients import (
 from ._local import (
     SLSQP as SLSQP,
     EpigraphMinimax as EpigraphMinimax,
-    LocalEvaluation as LocalEvaluation,
-    LocalMethod as LocalMethod,
-    LocalRun as LocalRun,
     OptaxLocal as OptaxLocal,
     TrustRegionLP as TrustRegionLP,
 )
 from ._metrics import (
     METRICS as METRICS,
-    PEAK_FIELDS as PEAK_FIELDS,
-    Metric as Metric,
     PeakGradients as PeakGradients,
     Peaks as Peaks,
-    gradient_key as gradient_key,
 )
-from ._model import Forces as Forces
 from ._optimise import (
     Stopping as Stopping,
     default_optimiser as default_optimiser,
@@ -66,13 +58,11 @@ from ._params import (
     Contact as Contact,
     ForceTable as ForceTable,
     Load as Load,
-    Parameter as Parameter,
     ParameterError as ParameterError,
     RecoilParams as RecoilParams,
     Recuperator as Recuperator,
     Smoothing as Smoothing,
     SolverOptions as SolverOptions,
-    end_time as end_time,
     params_from_values as params_from_values,
     params_to_values as params_to_values,
     values_of as values_of,
@@ -83,24 +73,18 @@ from ._problem import (
     FEASIBILITY_TOLERANCE as FEASIBILITY_TOLERANCE,
     Agreement as Agreement,
     Constraint as Constraint,
-    DesignEvaluation as DesignEvaluation,
     DesignProblem as DesignProblem,
     Objective as Objective,
     closest_miss as closest_miss,
     constraint_report as constraint_report,
-    evaluate_design as evaluate_design,
     feasible as feasible,
     metric_violations as metric_violations,
 )
 from ._reference import reference_peaks as reference_peaks
-from ._result import (
-    OptimiseResult as OptimiseResult,
-    RunRecord as RunRecord,
-)
+from ._result import OptimiseResult as OptimiseResult
 from ._search import (
     BasinHopping as BasinHopping,
     SobolStarts as SobolStarts,
-    default_local as default_local,
     minimise as minimise,
     search as search,
 )
@@ -110,30 +94,19 @@ from ._solve import (
     peaks as peaks,
     simulate as simulate,
 )
-from ._space import (
-    SearchSpace as SearchSpace,
-    log_coordinates as log_coordinates,
-)
 from ._status import (
     SolveError as SolveError,
     Status as Status,
     failure_message as failure_message,
-    status_codes as status_codes,
-    status_messages as status_messages,
-    status_table as status_table,
 )
 from ._store import (
     CampaignProgress as CampaignProgress,
     campaign_progress as campaign_progress,
 )
 from ._sweep import (
-    StoredSweep as StoredSweep,
     SweepResult as SweepResult,
-    batch_params as batch_params,
-    default_workers as default_workers,
     grid as grid,
     load_sweep as load_sweep,
-    shard_batch as shard_batch,
     sweep as sweep,
     sweep_grid as sweep_grid,
     sweep_to_store as sweep_to_store,
@@ -141,3 +114,27 @@ from ._sweep import (
 )
 
 __version__ = importlib.metadata.version("recoil-jax")
+
+__all__ = [  # noqa: RUF022 (grouped by topic, as the docs)
+    # Designs and parameters
+    "PARAMETERS", "Absorber", "Barrel", "Buffer", "Contact", "ForceTable", "Load",
+    "ParameterError", "RecoilParams", "Recuperator", "Smoothing", "SolverOptions",
+    "params_from_values", "params_to_values", "values_of", "with_values", "with_table",
+    "case_params", "paper_cases",
+    # Solving
+    "History", "Peaks", "METRICS", "SolveError", "Status", "failure_message",
+    "peak_metrics", "peaks", "simulate", "reference_peaks", "enable_compilation_cache",
+    "use_avx2_codegen",
+    # Gradients
+    "DESIGN_PARAMETERS", "GRADIENT_OPTIONS", "MetricSeries", "PeakGradients", "SmoothMax",
+    "differentiable_peaks", "parameter_scale", "peak_gradients", "peak_jacobian",
+    # Sweeps and campaigns
+    "SweepResult", "grid", "load_sweep", "sweep", "sweep_grid", "sweep_to_store",
+    "CampaignProgress", "campaign_progress",
+    # Design problems and optimisers
+    "FEASIBILITY_TOLERANCE", "Agreement", "Constraint", "DesignProblem", "Objective",
+    "OptimiseResult", "closest_miss", "constraint_report", "feasible", "metric_violations",
+    "search", "minimise", "SobolStarts", "BasinHopping", "SLSQP", "EpigraphMinimax",
+    "TrustRegionLP", "OptaxLocal", "optimise", "default_optimiser", "AugmentedLagrangian",
+    "Stopping",
+]  # fmt: skip

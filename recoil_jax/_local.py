@@ -15,8 +15,9 @@ through `local_run.evaluate(z, level)` and needs nothing else from the library.
 
 from __future__ import annotations
 
+import abc
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, final
 
 import equinox as eqx
 import numpy as np
@@ -76,7 +77,8 @@ CONVERGED = ("converged", "stalled", "Optimization terminated successfully")
 
 
 class LocalMethod(eqx.Module):
-    """A local method of `minimise`: its settings, and `run`.
+    """A local method of `minimise` (abstract): its settings, and `run`, which each
+    method writes. The methods here are final: a new one subclasses `LocalMethod`.
 
     - `levels`: the continuation levels it evaluates at, in order (factors of the
       objective's temperatures; 0: the minimax, where `f` is a vector).
@@ -93,6 +95,10 @@ class LocalMethod(eqx.Module):
       time are the peak's own, by the envelope theorem), also for a peak narrower than
       the grid.
     - `max_failures`: failed trial solves a run steps back from before it ends.
+
+    Every field stays on this class, the minimax's included, and a method changes only
+    their defaults: a study's store is named by a fingerprint of its method's fields, so
+    moving one would keep every store written before from resuming.
     """
 
     maxiter: int = 100
@@ -120,10 +126,11 @@ class LocalMethod(eqx.Module):
         """Whether the method solves a minimax (a last level 0)."""
         return self.levels[-1] == 0
 
+    @abc.abstractmethod
     def run(self, local: LocalRun, z0: np.ndarray) -> tuple[np.ndarray, str]:
-        """Minimise from `z0`; returns the end point and a message (starting with
-        `"converged"` when the method's own test ended it: `CONVERGED`)."""
-        raise NotImplementedError
+        """Minimise from `z0`, evaluating through `local.evaluate(z, level)`; returns the
+        end point and a message (starting with `"converged"` when the method's own test
+        ended it: `CONVERGED`)."""
 
 
 class LocalRun:
@@ -287,6 +294,7 @@ def run_local(
     )
 
 
+@final
 class SLSQP(LocalMethod):
     """SLSQP with exact gradients on the smoothed objective, one run per continuation
     level in turn (factors of the objective's temperatures); every level but the last
@@ -313,6 +321,7 @@ class SLSQP(LocalMethod):
         return z, message
 
 
+@final
 class EpigraphMinimax(LocalMethod):
     """A smoothed level at `basin_level` first finds the basin (SLSQP, at most
     `basin_maxiter` iterations, `basin_ftol`), then SLSQP on the epigraph of the minimax:
@@ -372,6 +381,7 @@ class EpigraphMinimax(LocalMethod):
         return np.clip(result.x[:d], 0.0, 1.0), str(result.message)
 
 
+@final
 class TrustRegionLP(LocalMethod):
     """Trust-region linear programming on a minimax (Madsen's method): from `z`, each
     iteration solves `min_d max_k f_k + ∇f_k·d`, the limits linearised, `|d| <= radius`
@@ -449,6 +459,7 @@ class TrustRegionLP(LocalMethod):
         return z, "iteration limit reached"
 
 
+@final
 class OptaxLocal(LocalMethod):
     """An optax optimiser as a local method: `optax.<optimiser>` (by name: `"adam"`,
     `"sgd"`, `"lion"`...) with its step cosine-decayed from `learning_rate` to

@@ -45,9 +45,9 @@ def reference_cases():
 
 def batch_params(designs):
     """A list of flat-name dicts as one `RecoilParams` with a leading batch axis."""
-    import recoil_jax as rj
+    import recoil_jax.extend as rjx
 
-    return rj.batch_params(designs)[0]
+    return rjx.batch_params(designs)[0]
 
 
 def batch_peaks(designs, smoothing=None, options=None):
@@ -125,6 +125,7 @@ def assert_complete_result(result, method: str, dimension: int):
     import numpy as np
 
     import recoil_jax as rj
+    import recoil_jax.extend as rjx
 
     assert type(result) is rj.OptimiseResult and result.method == method
     scenarios = result.scenarios
@@ -132,7 +133,7 @@ def assert_complete_result(result, method: str, dimension: int):
     assert result.best_objective.shape == result.closest_violation.shape == (scenarios,)
     assert result.scenario_limits.shape[0] == scenarios and result.runs
     for run in result.runs:
-        assert type(run) is rj.RunRecord
+        assert type(run) is rjx.RunRecord
         for name in ("theta0", "theta", "best_theta"):
             assert np.shape(getattr(run, name)) == (dimension,), name
         if result.feasible[run.scenario]:

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 from recoil_jax._model import RECOIL_TERM, initial_state, model_args, tracked_metrics, vector_field
 from recoil_jax._stepping import integrate_peaks
 from recoil_jax.apps._anchor import anchor_field, anchor_peaks
@@ -45,7 +46,7 @@ def test_the_compiled_scalar_loop_solves_the_library_model():
         ]
     )
     states[::7, 1] = rng.uniform(-1e-4, 1e-4, len(states[::7]))  # inside the damping band
-    params, _ = rj.batch_params(designs)
+    params, _ = rjx.batch_params(designs)
     smoothing = rj.Smoothing()
     ours = jax.vmap(lambda p, y: jnp.stack(vector_field(0.0, y, model_args(p, smoothing))))(
         params, jnp.asarray(states)

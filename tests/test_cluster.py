@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 from recoil_jax.apps import main
 from recoil_jax.apps._bench import bench_designs
 
@@ -41,9 +42,9 @@ def client():
 
 
 def _assert_same(a: rj.SweepResult, b: rj.SweepResult):
-    for field in rj.PEAK_FIELDS:
+    for field in rjx.PEAK_FIELDS:
         assert np.array_equal(a.peaks[field], b.peaks[field], equal_nan=True), field
-    assert np.array_equal(rj.status_codes(a.status), rj.status_codes(b.status))
+    assert np.array_equal(rjx.status_codes(a.status), rjx.status_codes(b.status))
 
 
 def _chunks(store) -> tuple[int, int, int]:

@@ -3,6 +3,7 @@ page resolves its objects, every link and notebook is found, and the generated p
 (command-line reference, studies, notebooks) come from the sources."""
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -31,3 +32,14 @@ def test_documentation_site_builds_strictly(tmp_path):
     # The notebooks carry their figures.
     notebook = (site / "notebooks" / "05_throttling_design" / "index.html").read_text()
     assert "image/png" in notebook or "data:image/png" in notebook
+
+
+def test_every_public_name_has_its_api_entry():
+    # The top level and `recoil_jax.extend`, each name once, where `mkdocs` renders it.
+    import recoil_jax as rj
+
+    text = "".join(p.read_text() for p in (ROOT / "docs" / "api").glob("*.md"))
+    top = set(re.findall(r":::\s*recoil_jax\.(\w+)\s", text)) - {"extend"}
+    extended = set(re.findall(r":::\s*recoil_jax\.extend\.(\w+)", text))
+    assert top == set(rj.__all__), top ^ set(rj.__all__)
+    assert extended == set(rj.extend.__all__), extended ^ set(rj.extend.__all__)

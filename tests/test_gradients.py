@@ -9,6 +9,7 @@ import pytest
 from conftest import all_ok, batch_params
 
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 
 METRICS = tuple(rj.METRICS)
 DESIGN = ("gap", "m", "k_r", "c_r")
@@ -261,7 +262,7 @@ def test_the_sensitivity_system_is_traced_once(hardware):
 
     params, wrt = rj.RecoilParams(), ("gap", "m")
     if hardware:
-        params = jax.tree.map(lambda x: x[0], rj.batch_params(hardware_designs(1))[0])
+        params = jax.tree.map(lambda x: x[0], rjx.batch_params(hardware_designs(1))[0])
         wrt = ("gap", "orifice_2", "recuperator_force")
     _gradients._sensitivity_term.cache_clear()
     _gradients._sensitivity_vf = counted

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 from recoil_jax._model import (
     forces,
     initial_state,
@@ -123,7 +124,7 @@ def compare_with_reference(count_per_class, seed, classes=CLASSES, stored=None):
                     for name in ("peak_displacement", "peak_anchoring_force"):
                         assert again[name] == pytest.approx(ref[name], rel=1e-9), design
             for mode, run in runs.items():
-                message = rj.status_messages(run.status)[i]
+                message = rjx.status_messages(run.status)[i]
                 if ref["status"] == "bottomed_out":
                     assert message == rj.Status[rj.Status.bottomed_out], (design, message)
                     failures[message] = failures.get(message, 0) + 1
@@ -265,7 +266,7 @@ def test_one_round_of_a_burst_is_the_single_shot():
     one = rj.peaks(
         rj.params_from_values(m=1500.0, gap=0.062, shots=1, fire_interval=0.3), options=options
     )
-    for name in rj.PEAK_FIELDS:
+    for name in rjx.PEAK_FIELDS:
         if name != "num_steps":  # the stop on certain peaks may come a step apart
             assert float(getattr(one, name)) == float(getattr(single, name)), name
 
@@ -290,7 +291,7 @@ def test_rounds_far_apart_repeat_the_single_shot_peaks(load, smoothing):
             float(getattr(single, name)), rel=rel
         ), name
     # ... and the burst did run through the second round (its end is 10 s after it).
-    assert float(rj.end_time(rj.params_from_values(burst_values), rj.SolverOptions())) == 50.0
+    assert float(rjx.end_time(rj.params_from_values(burst_values), rj.SolverOptions())) == 50.0
     assert float(burst.peak_displacement_time) > 40.0
 
 

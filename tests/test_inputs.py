@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 from recoil_jax.apps import main
 from recoil_jax.apps._cli import describe
 from recoil_jax.apps._inputs import design_warnings
@@ -100,7 +101,7 @@ def test_a_load_that_does_not_fit_is_refused_by_the_library_too():
     # A generous step limit admits the table (checked, not solved, here).
     table = rj.ForceTable(t=np.linspace(0, 0.01, 70_000), F=np.ones(70_000))
     params = rj.with_table(rj.params_from_values(shots=1), table)
-    rj.end_time(params, rj.SolverOptions(max_steps=200_000))
+    rjx.end_time(params, rj.SolverOptions(max_steps=200_000))
 
 
 def test_a_table_saved_by_a_spreadsheet_is_read_and_described(capsys, files, monkeypatch):

@@ -12,6 +12,7 @@ import pytest
 from conftest import assert_complete_result
 
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_BEST = rj.RecoilParams(absorber=rj.Absorber(m=1500.0, gap=0.062))
@@ -166,7 +167,7 @@ def test_scatter_objective_is_the_worst_case():
         tune=("gap",),
         objective=rj.Objective({"peak_anchoring_force": 1.0}, scatter=("v0", offsets)),
     )
-    evaluation = jax.jit(lambda th: rj.evaluate_design(problem, th))(jnp.array([0.062]))
+    evaluation = jax.jit(lambda th: rjx.evaluate_design(problem, th))(jnp.array([0.062]))
     status, worst = evaluation.status, evaluation.objective
     assert bool(status == rj.Status.ok)
     v0 = float(PAPER_BEST.barrel.v0)

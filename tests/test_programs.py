@@ -1,4 +1,4 @@
-"""The compiled programs a process keeps are bounded (`rj.set_max_programs`): the least
+"""The compiled programs a process keeps are bounded (`rjx.set_max_programs`): the least
 recently used is dropped, and its memory (the memory regions XLA maps for it, of which
 Linux allows a process about 65,000) is freed."""
 
@@ -15,20 +15,21 @@ import pytest
 
 import recoil_jax as rj
 import recoil_jax._cache as cache
+import recoil_jax.extend as rjx
 
 
 @pytest.fixture
 def limit():
     """Set the limit for one test; the suite's own limit comes back after it."""
-    previous = rj.set_max_programs(32)
-    yield rj.set_max_programs
-    rj.set_max_programs(previous)
+    previous = rjx.set_max_programs(32)
+    yield rjx.set_max_programs
+    rjx.set_max_programs(previous)
 
 
 def test_least_recently_used_programs_are_dropped(limit):
     traces = []
 
-    @rj.structure_jit
+    @rjx.structure_jit
     def total(x, power):
         traces.append((x.shape, power))  # runs once per compilation (trace)
         return jnp.sum(x**power)
@@ -36,12 +37,12 @@ def test_least_recently_used_programs_are_dropped(limit):
     limit(3)
     for n in (1, 2, 3):
         assert float(total(jnp.ones(n), 2)) == n
-    assert len(traces) == 3 and rj.live_programs() <= 3
+    assert len(traces) == 3 and rjx.live_programs() <= 3
     total(jnp.ones(1), 2)  # used again: no new program, and now the most recent
     assert len(traces) == 3
     dropped = [weakref.ref(p) for k, p in cache._programs.items() if k[0] is total.__wrapped__]
     total(jnp.ones(4), 2)  # a fourth structure: shape 2, the least recently used, goes
-    assert len(traces) == 4 and rj.live_programs() == 3
+    assert len(traces) == 4 and rjx.live_programs() == 3
     total(jnp.ones(1), 2)
     total(jnp.ones(3), 2)
     assert len(traces) == 4  # kept
@@ -93,7 +94,7 @@ def test_many_structures_stay_below_a_bound_of_memory_mappings():
             values = {f"orifice_{i}": 4e-4 for i in range(knots)}
             return rj.params_from_values(values | {"piston_area": 0.01, "orifice_length": 0.2})
 
-        rj.set_max_programs(2)
+        rjx.set_max_programs(2)
         gc.collect()
         base = mappings()
         rj.peaks(design(2))
@@ -104,7 +105,7 @@ def test_many_structures_stay_below_a_bound_of_memory_mappings():
         ]
         gc.collect()
         print(json.dumps(
-            {"one": one, "grown": mappings() - base, "live": rj.live_programs(), "finite": finite}
+            {"one": one, "grown": mappings() - base, "live": rjx.live_programs(), "finite": finite}
         ))
         """
     )
@@ -124,12 +125,12 @@ def test_five_hundred_structures_in_one_process_stay_below_a_bound():
         """
         traces = []
 
-        @rj.structure_jit
+        @rjx.structure_jit
         def power_sum(x, power):
             traces.append(power)
             return jnp.sum(jnp.sin(x) ** power) + power
 
-        rj.set_max_programs(8)
+        rjx.set_max_programs(8)
         for power in range(8):
             power_sum(jnp.ones(3), power)
         gc.collect()
@@ -140,7 +141,7 @@ def test_five_hundred_structures_in_one_process_stay_below_a_bound():
         ]
         gc.collect()
         print(json.dumps({"grown": mappings() - base, "traces": len(traces),
-                          "live": rj.live_programs(), "wrong": wrong}))
+                          "live": rjx.live_programs(), "wrong": wrong}))
         """
     )
     assert figures["wrong"] == [] and figures["traces"] == 500 and figures["live"] <= 8

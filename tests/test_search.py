@@ -10,6 +10,7 @@ from conftest import assert_complete_result, compiled_programs
 from scipy.optimize import brentq
 
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 from recoil_jax._evaluators import minimax_metric
 
 PAPER_LIMIT = 8910.4  # E0 / L of the throttling problem (extensions note)
@@ -346,7 +347,7 @@ def test_minimise_rejects_bad_arguments(kwargs, match):
         rj.minimise(batch, local, 1, **kwargs)
 
 
-class _ProjectedGradient(rj.LocalMethod):
+class _ProjectedGradient(rjx.LocalMethod):
     """A local method written outside the library: projected gradient descent with a
     fixed step, on the objective at level 1 (no limits)."""
 

@@ -10,6 +10,7 @@ import pytest
 from conftest import all_ok, batch_params, batch_peaks, compiled_programs
 
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 from recoil_jax._dense import hermite_max
 from recoil_jax._model import (
     RECOIL_TERM,
@@ -102,7 +103,7 @@ def test_failed_solve_is_reported_not_truncated():
     options = rj.SolverOptions(max_steps=50)
     result = rj.peaks(params, options=options, throw=False)
     assert bool(result.status == rj.Status.max_steps)
-    assert rj.Status[result.status] == rj.status_messages(rj.Status.max_steps)[0]
+    assert rj.Status[result.status] == rjx.status_messages(rj.Status.max_steps)[0]
     with pytest.raises(rj.SolveError, match="max_steps reached before t1"):
         rj.peaks(params, options=options)
     with pytest.raises(rj.SolveError, match="max_steps"):
@@ -121,7 +122,7 @@ def test_failed_solve_is_reported_not_truncated():
     batch = batch_peaks(
         [dict(m=500.0, gap=0.0), dict(m=500.0, gap=0.15)], options=rj.SolverOptions(max_steps=100)
     )
-    assert rj.status_messages(batch.status) == [
+    assert rjx.status_messages(batch.status) == [
         rj.Status[rj.Status.max_steps],
         rj.Status[rj.Status.ok],
     ]
@@ -159,7 +160,7 @@ def test_failures_raise_inside_a_users_jit_and_vmap():
             )
         )
     )(jnp.asarray([0.15, 0.0]))
-    assert rj.status_messages(quiet) == ["ok", rj.Status[rj.Status.max_steps]]
+    assert rjx.status_messages(quiet) == ["ok", rj.Status[rj.Status.max_steps]]
 
 
 @pytest.mark.slow
@@ -189,7 +190,7 @@ def test_batched_equals_loop():
     batch = batch_peaks(designs, options=options)
     for i, design in enumerate(designs):
         single = rj.peaks(rj.params_from_values(design), options=options)
-        for field in rj.PEAK_FIELDS:
+        for field in rjx.PEAK_FIELDS:
             if field.startswith("num_"):
                 continue
             rel = 1e-6 if field.endswith("time") else 1e-8  # a flat maximum's time: looser
@@ -336,7 +337,7 @@ def test_testing_the_bounds_every_few_iterations_changes_no_peak_or_failure(monk
         "k_r": rng.uniform(5e3, 5e4, 40),
         "c_r": rng.uniform(0, 1e4, 40),
     }
-    params = rj.batch_params(designs)[0]
+    params = rjx.batch_params(designs)[0]
     t1 = jnp.full(40, 10.0)
     options = rj.SolverOptions(max_steps=90)  # some designs need more
 

@@ -19,6 +19,7 @@ import pytest
 
 import recoil_jax as rj
 import recoil_jax._sweep as sweep_module
+import recoil_jax.extend as rjx
 from recoil_jax._store import StudyStore
 from recoil_jax.apps import main
 from recoil_jax.apps._bench import bench_designs
@@ -29,9 +30,9 @@ PLAN = dict(chunk_size=512, workers=2)
 
 def _assert_same(a: rj.SweepResult, b: rj.SweepResult):
     assert len(a) == len(b)
-    for field in rj.PEAK_FIELDS:
+    for field in rjx.PEAK_FIELDS:
         assert np.array_equal(a.peaks[field], b.peaks[field], equal_nan=True), field
-    assert np.array_equal(rj.status_codes(a.status), rj.status_codes(b.status))
+    assert np.array_equal(rjx.status_codes(a.status), rjx.status_codes(b.status))
 
 
 def _rows(path) -> dict:
@@ -88,7 +89,7 @@ def test_interrupted_sweep_resumes_to_the_same_bits(uninterrupted, tmp_path, mon
     force = np.array([r["peak_anchoring_force_N"] for r in rows], dtype=float)
     assert np.array_equal(force, plain.peaks["peak_anchoring_force"], equal_nan=True)
     assert np.array_equal([r["gap"] for r in rows], designs["gap"])
-    assert {r["status"] for r in rows} <= {"ok", *rj.status_table().values()}
+    assert {r["status"] for r in rows} <= {"ok", *rjx.status_table().values()}
 
     # Done: a third run solves nothing and gives the same results.
     monkeypatch.setattr(sweep_module, "_run_chunk", stop_after_two)  # would raise if called

@@ -11,6 +11,7 @@ import pytest
 from conftest import compiled_programs
 
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 
 
 def test_grid_sweep_matches_single_solves_and_reference(reference_cases):
@@ -187,8 +188,8 @@ def test_padding_is_never_solved_and_small_sweeps_share_one_program():
     from recoil_jax._solve import peaks_batch
 
     designs = [{"m": 1000.0, "gap": g, "c_r": 500.0} for g in np.linspace(0.01, 0.1, 8)]
-    params, _ = rj.batch_params(designs)
-    t1 = np.asarray(rj.end_time(params, rj.SolverOptions()))
+    params, _ = rjx.batch_params(designs)
+    t1 = np.asarray(rjx.end_time(params, rj.SolverOptions()))
     out = peaks_batch(params, t1, rj.Smoothing(), rj.SolverOptions(), 4, np.asarray(3))
     steps = np.asarray(out.num_steps)
     assert np.all(steps[:3] > 0) and np.all(steps[3:] == 0)

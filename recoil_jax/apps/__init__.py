@@ -1,9 +1,10 @@
 """Applications built on the recoil-jax engine: the `recoil-jax` command line, the
 optimisation studies, the benchmarks and the figures.
 
-They use the engine only through its public API (`import recoil_jax`); the engine never
-imports them. Each is loaded on first use, so that `recoil-jax simulate` does not pay for
-matplotlib or scipy.
+They use the engine only through its public API (`import recoil_jax` and its lower-level
+interfaces, `recoil_jax.extend`); the engine never imports them. The one exception is
+named in `READS_INTERNALS`, with its reason. Each is loaded on first use, so that
+`recoil-jax simulate` does not pay for matplotlib or scipy.
 """
 
 import importlib
@@ -27,7 +28,13 @@ if TYPE_CHECKING:  # what the lazy loader below provides, for type checkers
         run_study as run_study,
     )
 
+#: Applications that read the engine's private modules, and why: the benchmark's compiled
+#: scalar loop takes the loop's step-size rule and the model's contact width from where
+#: the engine keeps them, so that it cannot drift from them.
+READS_INTERNALS = {"_anchor.py"}
+
 __all__ = [
+    "READS_INTERNALS",
     "explorer",
     "load_study",
     "main",

@@ -23,6 +23,7 @@ import time
 import numpy as np
 
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 
 __all__ = ["ANCHOR_PARAMETERS", "anchor_field", "anchor_peaks", "cores"]
 
@@ -167,7 +168,7 @@ def _rows(columns: dict[str, np.ndarray], smoothing: rj.Smoothing):
     """Each design's parameter row (`ANCHOR_PARAMETERS`, then the two widths) and `v0`."""
     from recoil_jax._model import contact_width
 
-    params, _ = rj.batch_params(columns)
+    params, _ = rjx.batch_params(columns)
     values = np.stack([np.asarray(v) for v in rj.values_of(params, ANCHOR_PARAMETERS)], axis=-1)
     widths = np.asarray(contact_width(params, smoothing))
     damping = np.full(len(values), float(smoothing.damping_width))

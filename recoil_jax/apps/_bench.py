@@ -15,6 +15,7 @@ import jax
 import numpy as np
 
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 
 __all__ = [
     "CLI_COMMANDS",
@@ -308,9 +309,9 @@ def run_bench(
     # The plain vmap of the stepping loop, on the 1024-design batch, for comparison.
     designs = _take(columns, np.linspace(0, len(columns["m"]) - 1, 1024).astype(int))
     designs = _take(designs, np.argsort(designs["gap"], kind="stable"))
-    params = rj.batch_params(designs)[0]
+    params = rjx.batch_params(designs)[0]
     if 1024 % jax.local_device_count() == 0:
-        params = rj.shard_batch(params)
+        params = rjx.shard_batch(params)
     solve = eqx.filter_jit(jax.vmap(rj.peak_metrics, in_axes=(0, None, None)))
     _timed(solve, params, smoothing, options)
     vmap_per_s = 1024 / _timed(solve, params, smoothing, options)[1]
@@ -371,7 +372,7 @@ def run_bench(
         "compiled_scalar_loop": anchored,
         "plain_vmap_sims_per_s": vmap_per_s,
         "one_worker_sims_per_s": one_worker_per_s,
-        "workers": rj.default_workers(jax.local_devices()),
+        "workers": rjx.default_workers(jax.local_devices()),
         "jacobians_per_s": jacobians_per_s,
         "hardware_sims_per_s": hardware_per_s,
         "hardware_batch_size": largest,

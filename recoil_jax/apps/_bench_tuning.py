@@ -32,6 +32,7 @@ from scipy.optimize import differential_evolution, minimize
 from scipy.stats import qmc
 
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 
 from ._cluster import dask_client
 from ._studies import load_study, search_kwargs
@@ -70,7 +71,7 @@ class _Evaluator:
 
     def __init__(self, problem: rj.DesignProblem, budget: float, client=None):
         self.problem, self.budget, self.client = problem, budget, client
-        self.space = rj.SearchSpace.of(problem)  # the coordinates `rj.search` moves in
+        self.space = rjx.SearchSpace.of(problem)  # the coordinates `rj.search` moves in
         self.base = rj.params_to_values(problem.params)
         self.start = time.perf_counter()
         self.times: list[float] = []

@@ -8,6 +8,7 @@ import json
 import sys
 
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 
 from ._inputs import check_figure_path, design_warnings, names, parse_assignments, warn
 
@@ -36,7 +37,7 @@ def _simulate(args) -> int:
     table = rj.ForceTable.from_csv(args.force_table) if args.force_table else None
     if table is not None:
         params = rj.with_table(params, table)
-    t1 = float(rj.end_time(params, options))  # refuses a load that does not fit
+    t1 = float(rjx.end_time(params, options))  # refuses a load that does not fit
     warn(design_warnings(values, table))
     smoothing = rj.Smoothing.exact() if args.hard else rj.Smoothing()
     # Checked here, not inside the program: a program that can raise holds a host
@@ -45,7 +46,7 @@ def _simulate(args) -> int:
 
     peaks = exported_peaks(params, smoothing, options)
     if not bool(np.all(peaks.status == rj.Status.ok)):
-        print(f"recoil-jax: solver failed: {rj.status_messages(peaks.status)[0]}", file=sys.stderr)
+        print(f"recoil-jax: solver failed: {rjx.status_messages(peaks.status)[0]}", file=sys.stderr)
         return 1
     result = peaks.to_dict()
     used = used_parameters(params, table, args.force_table)

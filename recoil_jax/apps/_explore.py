@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 
 from ._inputs import parse_assignments
 
@@ -47,7 +48,7 @@ _SIDEBAR = 330
 _POINTS = 800
 
 
-@rj.structure_jit
+@rjx.structure_jit
 def _compute(params, ts, wrt):
     """The history at `ts`, the peaks and the peak anchoring force's gradient with
     respect to `wrt`: one program per model structure."""
@@ -278,7 +279,7 @@ class Explorer:
         }
         if not bool(np.all(peaks.status == rj.Status.ok)):
             # No peaks, limits or gradient of a solve that did not finish.
-            note = html.escape(rj.status_messages(peaks.status)[0])
+            note = html.escape(rjx.status_messages(peaks.status)[0])
             self.message.object = f'<div class="error" style="color:#b00020">solver: {note}</div>'
             # The reason is in the message above: said once.
             self.peaks_pane.object = '<div class="failed">no peaks: the solve failed</div>'

@@ -15,6 +15,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 
 #: One look for every figure the command line writes (reproduce, sweep, optimise,
 #: benchmarks): light grid, no top and right frame, legible sizes. Applied per figure
@@ -329,7 +330,7 @@ def plot_convergence(result, path, title: str = "") -> Path:
     """Convergence of an `OptimiseResult`: per run, the best feasible objective so far
     and the worst normalised constraint violation, against the step."""
     history = result.history
-    ok = history["status"] == int(rj.status_codes(rj.Status.ok))
+    ok = history["status"] == int(rjx.status_codes(rj.Status.ok))
     held = rj.feasible(ok, history["objective"], history["violations"])
     objective = np.where(held, history["objective"], np.inf)
     best_so_far = np.minimum.accumulate(objective, axis=0)

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 
 from ._figures import plot_series
 
@@ -34,7 +35,7 @@ def comparison_rows(log=None) -> list[dict]:
         ours = rj.peaks(rj.case_params(case)).to_dict()
         if log:
             log(f"  {case['case']}: peak F_AN {ours['peak_anchoring_force_N']:.1f} N")
-        quantities = [key for key in rj.PEAK_FIELDS.values() if key in case["reference"]]
+        quantities = [key for key in rjx.PEAK_FIELDS.values() if key in case["reference"]]
         for quantity in quantities:
             paper = case["paper"].get(quantity)
             reference = case["reference"].get(quantity)

@@ -59,6 +59,7 @@ import jax
 import numpy as np
 
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 
 from ._cluster import dask_client
 from ._inputs import read_text
@@ -260,7 +261,7 @@ def load_study(path) -> Study:
     for name in tune:
         if name not in design:
             lo, hi = bounds[name]
-            log = bool(rj.log_coordinates(np.asarray([lo]), np.asarray([hi]))[0])
+            log = bool(rjx.log_coordinates(np.asarray([lo]), np.asarray([hi]))[0])
             design[name] = float(np.sqrt(lo * hi)) if log else 0.5 * (lo + hi)
     for side, end in (("lower", 0), ("upper", 1)):
         # The box's corners must be designs too, not only the midpoint a design takes.
@@ -349,14 +350,14 @@ def load_study(path) -> Study:
     return study
 
 
-def local_method(study: Study) -> rj.LocalMethod:
+def local_method(study: Study) -> rjx.LocalMethod:
     """The local method of a `search` study: `local` by name (`LOCAL_METHODS`), else
-    `rj.default_local` (which `minimax` chooses), with the study's `maxiter`."""
+    `rjx.default_local` (which `minimax` chooses), with the study's `maxiter`."""
     o = study.optimiser
     if "local" in o:
         method = LOCAL_METHODS[o["local"]]()
     else:
-        method = rj.default_local(study.problem, o.get("minimax"))
+        method = rjx.default_local(study.problem, o.get("minimax"))
     if "maxiter" in o:
         method = dataclasses.replace(method, maxiter=int(o["maxiter"]))
     return method
@@ -422,7 +423,7 @@ def agreement_line(report: dict) -> str | None:
     return rj.Agreement(**agreement).line()
 
 
-def _search_summary(result: rj.OptimiseResult, local: rj.LocalMethod) -> dict:
+def _search_summary(result: rj.OptimiseResult, local: rjx.LocalMethod) -> dict:
     """What `result.json` says of a `search` run."""
     samples = result.samples
     assert samples is not None  # search's global phase

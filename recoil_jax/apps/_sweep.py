@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 
 from ._cluster import dask_client
 from ._inputs import design_warnings, known, read_text, split_assignment, unknown_name, warn
@@ -109,7 +110,7 @@ def write_results(result: rj.SweepResult, out: Path, meta: dict) -> list[Path]:
         record.pop("gradients", None)
         for metric, by_param in (result.gradients or {}).items():
             row |= {
-                rj.gradient_key(metric, name): float(v[i]) if result.ok[i] else None
+                rjx.gradient_key(metric, name): float(v[i]) if result.ok[i] else None
                 for name, v in by_param.items()
             }
         rows.append(row | record)
@@ -118,8 +119,8 @@ def write_results(result: rj.SweepResult, out: Path, meta: dict) -> list[Path]:
         writer.writeheader()
         writer.writerows(rows)
     arrays: dict[str, Any] = {f"param_{k}": v for k, v in result.values.items()}
-    arrays |= {rj.PEAK_FIELDS[field]: v for field, v in result.peaks.items()}
-    arrays["status"] = rj.status_codes(result.status)
+    arrays |= {rjx.PEAK_FIELDS[field]: v for field, v in result.peaks.items()}
+    arrays["status"] = rjx.status_codes(result.status)
     for name, by_param in (result.gradients or {}).items():
         for parameter, v in by_param.items():
             arrays[f"grad_{rj.METRICS[name].key}__{parameter}"] = v
@@ -128,7 +129,7 @@ def write_results(result: rj.SweepResult, out: Path, meta: dict) -> list[Path]:
         "grid_shape": result.grid_shape,
         "n": len(result),
         "failed": len(result.failures()),
-        "status_codes": rj.status_table(),
+        "status_codes": rjx.status_table(),
     }
     arrays["metadata"] = np.asarray(json.dumps(metadata))
     np.savez(out / "sweep.npz", **arrays)
@@ -360,7 +361,7 @@ def _sweep_to_store(args, axes, fixed, designs, wrt, options, table) -> int:
         names = [k for k in (tuple(axes) or ("m", "gap")) if best.get(k) is not None]
         design = ", ".join(f"{k}={best[k]:g}" for k in names)
         print(
-            f"lowest peak anchoring force: {best[rj.PEAK_FIELDS['peak_anchoring_force']]:.2f} N"
+            f"lowest peak anchoring force: {best[rjx.PEAK_FIELDS['peak_anchoring_force']]:.2f} N"
             f" at {design}"
         )
     return 0

@@ -1,0 +1,87 @@
+"""The engine's lower-level interfaces, for building on it (as `jax.extend` is JAX's):
+what a new local method, global phase or evaluator is written against, and the batching,
+compiled-program and status-code helpers the applications use. `import recoil_jax` does
+not need them; `docs/developers.md` shows how to plug a part in.
+
+**Optimisers' parts**
+
+- `LocalMethod` (abstract; subclass it and write `run`), `LocalRun` (one run's state:
+  `evaluate`, `start_level`, `slsqp`, `level_done`), `LocalEvaluation` (what an
+  evaluator gives a local run), `run_local` (one run, recorded), `RunRecord` (one run's
+  outcome, the same for every method), `default_local` (what `search` picks).
+- `BatchEvaluator` / `BatchEvaluation` (points of the box through one sweep),
+  `GradientEvaluator` (one sensitivity solve), `StoredEvaluator` (either, through a
+  study's store), `MinimaxWindow` and `MinimaxEvaluator` (a peak over time as a
+  minimax), `minimax_metric`.
+- `SearchSpace` and `log_coordinates` (the normalised box), `evaluate_design` and
+  `DesignEvaluation` (one design as a differentiable function of its tuned values).
+
+**Programs, batches, codes and names**
+
+- `structure_jit`, `live_programs`, `set_max_programs`: programs per structure of the
+  arguments, in a bounded cache (`docs/campaigns.md`).
+- `batch_params`, `shard_batch`, `default_workers`: designs as a batched pytree, split
+  over devices, and the sweep's default worker count.
+- `status_codes`, `status_messages`, `status_table`: a `Status` item's integer codes and
+  messages, and every code with its message.
+- `PEAK_FIELDS`, `gradient_key`, `Metric`, `Parameter`: the keys of the files and the
+  registries' entries; `end_time`: a design's end time (refusing a load that does not
+  fit); `Forces`: the model's forces; `StoredSweep`: a sweep read back from its store.
+"""
+
+from ._cache import live_programs, set_max_programs, structure_jit
+from ._evaluators import (
+    BatchEvaluation,
+    BatchEvaluator,
+    GradientEvaluator,
+    MinimaxEvaluator,
+    MinimaxWindow,
+    StoredEvaluator,
+    minimax_metric,
+)
+from ._local import LocalEvaluation, LocalMethod, LocalRun, run_local
+from ._metrics import PEAK_FIELDS, Metric, gradient_key
+from ._model import Forces
+from ._params import Parameter, end_time
+from ._problem import DesignEvaluation, evaluate_design
+from ._result import RunRecord
+from ._search import default_local
+from ._space import SearchSpace, log_coordinates
+from ._status import status_codes, status_messages, status_table
+from ._sweep import StoredSweep, batch_params, default_workers, shard_batch
+
+__all__ = [
+    "PEAK_FIELDS",
+    "BatchEvaluation",
+    "BatchEvaluator",
+    "DesignEvaluation",
+    "Forces",
+    "GradientEvaluator",
+    "LocalEvaluation",
+    "LocalMethod",
+    "LocalRun",
+    "Metric",
+    "MinimaxEvaluator",
+    "MinimaxWindow",
+    "Parameter",
+    "RunRecord",
+    "SearchSpace",
+    "StoredEvaluator",
+    "StoredSweep",
+    "batch_params",
+    "default_local",
+    "default_workers",
+    "end_time",
+    "evaluate_design",
+    "gradient_key",
+    "live_programs",
+    "log_coordinates",
+    "minimax_metric",
+    "run_local",
+    "set_max_programs",
+    "shard_batch",
+    "status_codes",
+    "status_messages",
+    "status_table",
+    "structure_jit",
+]
