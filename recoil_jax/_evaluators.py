@@ -153,16 +153,15 @@ def local_evaluation(out: dict[str, np.ndarray]) -> LocalEvaluation:
 class StoredEvaluator:
     """The evaluators through a study's `store`: each evaluation is named by a
     `fingerprint` of what was evaluated; one already stored is read back bit for bit,
-    any other solved and committed with `spent()` (the seconds of the study's budget)."""
+    any other solved and committed with the seconds of the study's budget so far
+    (`StudyStore.spent`). The one place where "replay or solve" is decided."""
 
-    def __init__(
-        self,
-        store: StudyStore,
-        spent: Callable[[], float],
-        batch: BatchEvaluator,
-        gradient: GradientEvaluator,
-    ):
-        self.store, self.spent, self._batch, self._gradient = store, spent, batch, gradient
+    def __init__(self, store: StudyStore, batch: BatchEvaluator, gradient: GradientEvaluator):
+        self.store, self._batch, self._gradient = store, batch, gradient
+
+    def evaluators(self) -> tuple[Callable[..., BatchEvaluation], Callable[..., LocalEvaluation]]:
+        """The batch and gradient evaluators, through the store."""
+        return self.batch, self.gradient
 
     def batch(self, z: np.ndarray) -> BatchEvaluation:
         """`BatchEvaluator`'s evaluation, the stored points read back."""
@@ -215,7 +214,14 @@ class StoredEvaluator:
         objective = out["exact"] if "exact" in out else out["objective"]
         violations = out["g"] if "g" in out else out["violations"]
         return evaluation_row(
-            self.spent(), phase, theta, objective, violations, out["code"], key=key, outputs=out
+            self.store.spent(),
+            phase,
+            theta,
+            objective,
+            violations,
+            out["code"],
+            key=key,
+            outputs=out,
         )
 
 

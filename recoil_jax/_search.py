@@ -21,6 +21,7 @@ solve. Measured against the optax Adam loop of `optimise` in `optimise/README.md
 
 from __future__ import annotations
 
+import abc
 import contextlib
 import dataclasses
 import os
@@ -29,7 +30,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple, final
 
 import equinox as eqx
 import jax
@@ -69,6 +70,7 @@ from ._sweep import default_workers
 
 __all__ = [
     "BasinHopping",
+    "GlobalPhase",
     "SobolStarts",
     "default_local",
     "minimise",
@@ -122,8 +124,36 @@ class BasinHopping(eqx.Module):
         return runs
 
 
-class SobolStarts(eqx.Module):
-    """The global phase of `minimise` and `search`: a scrambled Sobol sample of
+class GlobalPhase(eqx.Module):
+    """The global phase of `minimise` and `search` (abstract): the points of the unit box
+    evaluated in one batch, then the starts of the local runs chosen from them.
+
+    - `sample(dimension, seed)`: `(points, dimension)` points of `[0, 1]^dimension`;
+    - `choose(sampled)`: the start points (at most `starts`) from the evaluated samples
+      (`z`, `objective`, `violation` (largest), `ok`);
+    - `points`, and the fields `starts` and `spacing` every phase has: how many points
+      and starts (the progress line's budget), and the distance (max-norm) within which
+      starts count as one region in `OptimiseResult.agreement`.
+    """
+
+    if TYPE_CHECKING:  # every phase's fields (not declared here: they keep their order)
+        starts: int
+        spacing: float
+
+    @property
+    @abc.abstractmethod
+    def points(self) -> int: ...
+
+    @abc.abstractmethod
+    def sample(self, dimension: int, seed: int) -> np.ndarray: ...
+
+    @abc.abstractmethod
+    def choose(self, sampled: dict[str, np.ndarray]) -> list[np.ndarray]: ...
+
+
+@final
+class SobolStarts(GlobalPhase):
+    """The default global phase of `minimise` and `search`: a scrambled Sobol sample of
     `samples` points of the box (rounded up to a power of 2; 0: none), solved in one
     batch, then `starts` local runs from the best distinct ones, ranked feasible first
     by objective, then the others by violation: alternately the best not within
@@ -200,8 +230,9 @@ class _Recorder:
     """Every evaluation, in order, with the best feasible point and the least violating
     one so far (`add` is called from the local runs' threads)."""
 
-    def __init__(self, bar: Progress):
+    def __init__(self, bar: Progress, budget_clock: Callable[[], float] | None = None):
         self.bar, self.start = bar, time.perf_counter()
+        self._budget_clock = budget_clock
         self.lock = threading.Lock()
         self.gradient_solves = 0
         self.rows: dict[str, list] = {
@@ -212,7 +243,10 @@ class _Recorder:
         self.count = 0
 
     def clock(self) -> float:
-        """Seconds since this run began."""
+        """Seconds of the time budget: since this run began, or `budget_clock()` (a
+        resumed study's, the earlier runs' included). The trace's and runs' seconds."""
+        if self._budget_clock is not None:
+            return self._budget_clock()
         return time.perf_counter() - self.start
 
     def add(self, z, objective, violation, ok, gradient: bool, phase: str):
@@ -254,7 +288,7 @@ class _Recorder:
             runs=runs,
             solves=solves,
             gradient_solves=self.gradient_solves,
-            seconds=self.clock(),
+            seconds=time.perf_counter() - self.start,
             spacing=spacing,
         )
 
@@ -285,7 +319,7 @@ class _LocalRunner:
         self.record.add(centre, exact, largest_violation(np.asarray(g)[None]), ok, True, "local")
 
 
-def _sample(global_phase: SobolStarts, evaluate_batch, dimension: int, seed: int, record):
+def _sample(global_phase: GlobalPhase, evaluate_batch, dimension: int, seed: int, record):
     """The global phase's samples, evaluated in one batch and recorded: `z (N, P)`,
     `objective`, `violation` (largest), `ok`."""
     z = global_phase.sample(dimension, seed)
@@ -313,8 +347,10 @@ def _checked_methods(local, global_phase, dimension: int, caller: str):
     global_phase = SobolStarts() if global_phase is None else global_phase
     if not isinstance(local, LocalMethod):
         raise ParameterError(f"{caller}: local must be a LocalMethod, got {local!r}")
-    if not isinstance(global_phase, SobolStarts):
-        raise ParameterError(f"{caller}: global_phase must be a SobolStarts, got {global_phase!r}")
+    if not isinstance(global_phase, GlobalPhase):
+        raise ParameterError(
+            f"{caller}: global_phase must be a GlobalPhase (e.g. SobolStarts), got {global_phase!r}"
+        )
     if dimension < 1:
         raise ParameterError(f"{caller}: need dimension >= 1 (got {dimension})")
     return local, global_phase
@@ -326,7 +362,7 @@ def minimise(
     dimension: int,
     *,
     local: LocalMethod | None = None,
-    global_phase: SobolStarts | None = None,
+    global_phase: GlobalPhase | None = None,
     initial: Sequence[np.ndarray] = (),
     hopping: BasinHopping | None = None,
     seed: int = 0,
@@ -369,8 +405,9 @@ def minimise(
       `value_and_jacobian`, with state of its own (`search`'s minimax adds the signal's
       local maxima at the run's previous point). Default: `value_and_jacobian` for
       every run.
-    - `spent()`: the seconds of the `max_seconds` budget spent so far (default: since
-      this call; a resumed study adds the earlier runs').
+    - `spent()`: the seconds of the `max_seconds` budget spent so far, and the clock of
+      the trace's and the runs' seconds (default: since this call; a resumed study's
+      counts the earlier runs').
 
     **Returns:** `OptimiseResult` (`method` `"minimise"`, one scenario, `θ = z`).
     """
@@ -392,11 +429,10 @@ def _minimise(
     initial = [np.clip(np.asarray(z, dtype=float), 0.0, 1.0) for z in initial]
     runs = global_phase.starts + len(initial) + (0 if hopping is None else hopping.hops)
     budget = global_phase.points + len(initial) + runs * len(local.levels) * local.maxiter
-    record = _Recorder(Progress(label, budget, "solves", progress))
+    record = _Recorder(Progress(label, budget, "solves", progress), spent)
 
     def out_of_time() -> bool:
-        used = spent() if spent is not None else record.clock()
-        return max_seconds is not None and used > max_seconds
+        return max_seconds is not None and record.clock() > max_seconds
 
     evaluator = run_evaluator if run_evaluator is not None else lambda: value_and_jacobian
     runner = _LocalRunner(local, evaluator, record, out_of_time)
@@ -417,7 +453,7 @@ def _minimise(
             warm_up.result()
         if hopping is not None:
             done += hopping.run(record, runner, pool, max(1, workers), seed, out_of_time)
-    return record.minimum(sampled, done, global_phase.points, global_phase.spacing)
+    return record.minimum(sampled, done, len(sampled["z"]), global_phase.spacing)
 
 
 def _regions(runs: list[RunRecord], spacing: float) -> list[int | None]:
@@ -444,7 +480,6 @@ def _result(
     method: str,
     problem: DesignProblem | None,
     theta: Callable[[np.ndarray], np.ndarray],
-    *,
     extra_gradient_solves: int = 0,
     compilations: int = 0,
     replayed: int = 0,
@@ -511,7 +546,7 @@ def search(
     *,
     local: LocalMethod | None = None,
     minimax: bool | None = None,
-    global_phase: SobolStarts | None = None,
+    global_phase: GlobalPhase | None = None,
     use_design: bool = True,
     hopping: BasinHopping | None = None,
     seed: int = 0,
@@ -522,9 +557,11 @@ def search(
     client: Any = None,
 ) -> OptimiseResult:
     """Minimise `problem.objective` subject to `problem.constraints` by global search
-    plus gradient polish (`minimise`): the global phase's Sobol designs over the bounds
-    through the batched sweep, then a local method with exact gradients (forward
-    sensitivities, error controlled) from its best distinct ones.
+    plus gradient polish: `minimise` on the problem's evaluators (`recoil_jax.extend`):
+    the global phase's designs through one batched sweep (`BatchEvaluator`), then a local
+    method with exact gradients (`GradientEvaluator`: forward sensitivities, error
+    controlled) from its best distinct ones, in the problem's `SearchSpace` (log
+    coordinates where the bounds span three decades).
 
     **Arguments:**
 
@@ -532,59 +569,37 @@ def search(
       smooth maxima's at continuation level 1.
     - `local`: the local method (default `default_local(problem, minimax)`): `SLSQP`
       (the smoothed objective through a continuation of temperatures),
-      `EpigraphMinimax` or `TrustRegionLP` (the minimax below), or your own
-      `LocalMethod`.
+      `EpigraphMinimax` or `TrustRegionLP` (a minimax over time of one peak:
+      `MinimaxEvaluator`), or your own `LocalMethod`.
     - `minimax`: which default to take, when `local` is not given.
     - `global_phase`, `hopping`, `seed`, `max_seconds`, `progress`: as `minimise`
       (default `SobolStarts()`: 1024 designs, 8 starts).
-    - `workers`: local runs at the same time (default `default_workers`: one per core
-      on CPU, where one solve keeps about one core busy).
+    - `workers`: local runs at the same time (default one per core on CPU).
     - `use_design`: start one local run at the problem's base design (clipped to the
       bounds) besides the sampled ones.
-    - `store`: the path of an SQLite file that keeps every evaluation as it is made
-      (`docs/campaigns.md`). Running the same search with the same store resumes a
-      stopped one: stored evaluations are read back bit for bit, not solved, so a
-      seeded search retraces its path and ends at the same best design. A store made by
-      another search is refused with `ParameterError`. `max_seconds` counts the time of
-      the earlier runs; `workers` is the store's (it sets how basin hopping proceeds).
-    - `client`: a `dask.distributed.Client`: the global phase's sweep runs its chunks
-      on the cluster (`sweep`'s `client`).
+    - `store`: an SQLite file that keeps every evaluation as it is made
+      (`docs/campaigns.md`, `StoredEvaluator`): the same search with the same store
+      resumes a stopped one, stored evaluations read back bit for bit, and ends at the
+      same best design; another search's store is refused. `max_seconds` counts the
+      earlier runs' time; `workers` is the store's (it sets how basin hopping proceeds).
+    - `client`: a `dask.distributed.Client` for the global phase's sweep.
 
-    A minimax (level 0 of `EpigraphMinimax` and `TrustRegionLP`) needs an objective that
-    is one peak over time (`minimax_metric`, e.g. the peak anchoring force): the local
-    phase levels the signal at `SERIES_POINTS` times over the run (the run's length
-    found at the first gradient solve) and at its located peak, each a smooth piece
-    `F(t_k)` with its exact gradient from the one sensitivity solve, and for
-    `EpigraphMinimax` at the `peak_times` highest local maxima of the signal at the
-    run's previous point.
-
-    Parameters whose bounds are positive and at least a factor 1000 apart are searched
-    in log coordinates (`SearchSpace`).
-
-    **Returns:** `OptimiseResult` (`method` `"search"`, one scenario). Its objectives are
-    exact (true peaks).
+    **Returns:** `OptimiseResult` (`method` `"search"`, one scenario; exact objectives).
 
     **Raises:** `ParameterError` for bad arguments, before compiling.
     """
     local, global_phase = _search_methods(problem, local, minimax, global_phase)
     space = SearchSpace.of(problem)
     workers = default_workers(jax.local_devices()) if workers is None else workers
-    batch, gradient = BatchEvaluator(problem, space, client), GradientEvaluator(problem, space)
     study = None
     if store is not None:
         study = _open_study_store(
             store, problem, local, hopping, global_phase, use_design, seed, workers, progress
         )
         workers = int(study.plan["workers"])
-    began = time.perf_counter()
-
-    def spent() -> float:
-        """Seconds of the time budget spent, the earlier runs' included."""
-        return (study.prior_seconds if study else 0.0) + time.perf_counter() - began
-
+    batch, gradient = BatchEvaluator(problem, space, client), GradientEvaluator(problem, space)
     if study is not None:
-        stored = StoredEvaluator(study, spent, batch, gradient)
-        batch, gradient = stored.batch, stored.gradient
+        batch, gradient = StoredEvaluator(study, batch, gradient).evaluators()
     window = MinimaxWindow(problem, local.peak_times)
     initial = [space.z(np.asarray(values_of(problem.params, problem.tune)))] if use_design else []
     traces = gradient_traces()
@@ -593,17 +608,13 @@ def search(
             batch, MinimaxEvaluator(gradient, window), len(problem.tune), local=local,
             global_phase=global_phase, initial=initial, hopping=hopping, seed=seed,
             max_seconds=max_seconds, workers=workers, progress=progress, label="search",
-            run_evaluator=lambda: MinimaxEvaluator(gradient, window), spent=spent,
+            run_evaluator=lambda: MinimaxEvaluator(gradient, window),
+            spent=None if study is None else study.spent,
         )  # fmt: skip
-    return _result(
-        minimum,
-        "search",
-        problem,
-        lambda z: np.asarray(space.theta(jnp.asarray(z))),
-        extra_gradient_solves=window.solves,
-        compilations=gradient_traces() - traces,
-        replayed=0 if study is None else study.replayed,
-    )
+    theta = lambda z: np.asarray(space.theta(jnp.asarray(z)))  # noqa: E731
+    replayed = 0 if study is None else study.replayed
+    compilations = gradient_traces() - traces
+    return _result(minimum, "search", problem, theta, window.solves, compilations, replayed)
 
 
 def _search_methods(problem: DesignProblem, local, minimax, global_phase):
@@ -634,13 +645,16 @@ def _open_study_store(
     its plan's `workers` replaces `workers`."""
     from . import __version__
 
-    identity = fingerprint(
-        "search", __version__, problem, local, hopping, global_phase.samples,
-        global_phase.starts, use_design, seed,
+    if isinstance(global_phase, SobolStarts):  # as before it was a class of its own:
         # (the spacing only when it is not the default: stores made before it was a
         # setting keep resuming)
-        *([] if global_phase.spacing == SPACING else [global_phase.spacing]),
-    )  # fmt: skip
+        spacing = [] if global_phase.spacing == SPACING else [global_phase.spacing]
+        phase = [global_phase.samples, global_phase.starts]
+    else:
+        phase, spacing = [global_phase], []
+    identity = fingerprint(
+        "search", __version__, problem, local, hopping, *phase, use_design, seed, *spacing
+    )
     runs = global_phase.starts + int(use_design) + (0 if hopping is None else hopping.hops)
     study = open_study(
         path,

@@ -402,6 +402,11 @@ class StudyStore(_Store):
         ).fetchone()
         self.prior_seconds = float(prior)
         self.replayed = 0
+        self._opened = time.perf_counter()
+
+    def spent(self) -> float:
+        """Seconds of the study's time budget spent: the earlier runs' and this one's."""
+        return self.prior_seconds + time.perf_counter() - self._opened
 
     def _create_tables(self) -> None:
         data = ", ".join(f"{_quote(name)} REAL" for name in self.columns)

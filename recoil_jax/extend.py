@@ -8,7 +8,8 @@ not need them; `docs/developers.md` shows how to plug a part in.
 - `LocalMethod` (abstract; subclass it and write `run`), `LocalRun` (one run's state:
   `evaluate`, `start_level`, `slsqp`, `level_done`), `LocalEvaluation` (what an
   evaluator gives a local run), `run_local` (one run, recorded), `RunRecord` (one run's
-  outcome, the same for every method), `default_local` (what `search` picks).
+  outcome, the same for every method), `default_local` (what `search` picks);
+  `GlobalPhase` (abstract; `SobolStarts` is one): the samples, and the starts chosen.
 - `BatchEvaluator` / `BatchEvaluation` (points of the box through one sweep),
   `GradientEvaluator` (one sensitivity solve), `StoredEvaluator` (either, through a
   study's store), `MinimaxWindow` and `MinimaxEvaluator` (a peak over time as a
@@ -45,7 +46,7 @@ from ._model import Forces
 from ._params import Parameter, end_time
 from ._problem import DesignEvaluation, evaluate_design
 from ._result import RunRecord
-from ._search import default_local
+from ._search import GlobalPhase, default_local
 from ._space import SearchSpace, log_coordinates
 from ._status import status_codes, status_messages, status_table
 from ._sweep import StoredSweep, batch_params, default_workers, shard_batch
@@ -56,6 +57,7 @@ __all__ = [
     "BatchEvaluator",
     "DesignEvaluation",
     "Forces",
+    "GlobalPhase",
     "GradientEvaluator",
     "LocalEvaluation",
     "LocalMethod",

@@ -327,7 +327,7 @@ def test_minimise_ends_a_noisy_minimax(method, ending):
     [
         (dict(global_phase=lambda: rj.SobolStarts(samples=-1)), "samples >= 0"),
         (dict(global_phase=lambda: rj.SobolStarts(spacing=0.0)), "0 < spacing <= 1"),
-        (dict(global_phase=8), "global_phase must be a SobolStarts"),
+        (dict(global_phase=8), "global_phase must be a GlobalPhase"),
         (dict(local=lambda: rj.SLSQP(maxiter=0)), "maxiter = 0: valid >= 1"),
         (dict(local=lambda: rj.SLSQP(schedule=(1.0, -1.0))), "levels must be factors >= 0"),
         (dict(local=lambda: rj.SLSQP(schedule=(1.0, 0.0))), "0 is the minimax"),
@@ -379,6 +379,44 @@ def test_a_new_local_method_plugs_in_without_touching_the_library():
     # Each iteration and the end point, and the warm-up at the centre of the box.
     assert result.gradient_solves == 2 * 61 + 1
     assert result.trace["phase"].tolist().count("local") == 2 * 61 + 1
+
+
+class _LatinStarts(rjx.GlobalPhase):
+    """A global phase written outside the library: a Latin hypercube of `samples`
+    points, then the `starts` best that held every limit."""
+
+    samples: int = 16
+    starts: int = 2
+    spacing: float = 0.25
+
+    @property
+    def points(self):
+        return self.samples
+
+    def sample(self, dimension, seed):
+        rng = np.random.default_rng(seed)
+        cells = np.stack([rng.permutation(self.samples) for _ in range(dimension)], axis=1)
+        return (cells + rng.random(cells.shape)) / self.samples
+
+    def choose(self, sampled):
+        held = sampled["ok"] & (sampled["violation"] <= 0)
+        order = np.argsort(np.where(held, sampled["objective"], np.inf), kind="stable")
+        return [sampled["z"][i] for i in order[: self.starts]]
+
+
+def test_a_new_global_phase_plugs_in_without_touching_the_library():
+    # min (z0 - 1)^2 + (z1 - 1)^2 subject to z0 + z1 <= 1: (1/2, 1/2), f = 1/2.
+    batch, local = _analytic(
+        lambda z: (z[0] - 1) ** 2 + (z[1] - 1) ** 2,
+        lambda z: 2 * (z - 1),
+        constraints=(lambda z: z[0] + z[1] - 1.0,),
+        constraint_grads=(lambda z: np.ones(2),),
+    )
+    result = rj.minimise(batch, local, 2, global_phase=_LatinStarts(), progress=False, seed=3)
+    assert result.solves == 16 and len(result.samples["z"]) == 16
+    assert [run.phase for run in result.runs] == ["start", "start"]
+    np.testing.assert_allclose(result.best_theta[0], [0.5, 0.5], atol=1e-4)
+    assert_complete_result(result, "minimise", 2)
 
 
 def _gap_problem(limit=0.15):
@@ -713,3 +751,26 @@ def test_bad_bounds_name_the_file_and_the_bound(tmp_path, bound, message):
     study.write_text(f"[tune]\ngap = {bound}\n[objective]\npeak_anchoring_force = 1.0\n")
     with pytest.raises(rj.ParameterError, match=r"bad\.toml: " + message):
         load_study(study)
+
+
+def test_search_is_minimise_on_the_problems_evaluators():
+    # `search` composes the parts in `recoil_jax.extend`: the same parts, with an
+    # evaluator of one's own in the middle (here one that counts its batches), passed to
+    # `minimise`, give the same best design to the bit.
+    problem = _gap_problem()
+    settings = dict(local=rj.SLSQP(maxiter=20), global_phase=rj.SobolStarts(16, 1), seed=1)
+    settings |= dict(workers=1, progress=False)
+    searched = rj.search(problem, use_design=False, **settings)
+    space = rjx.SearchSpace.of(problem)
+    batches = []
+    plain = rjx.BatchEvaluator(problem, space)
+
+    def counted(z):
+        batches.append(len(z))
+        return plain(z)
+
+    composed = rj.minimise(counted, rjx.GradientEvaluator(problem, space), 1, **settings)
+    assert batches == [16]
+    assert composed.best_objective[0] == searched.best_objective[0]
+    assert np.asarray(space.theta(composed.best_theta[0]))[0] == searched.best_theta[0, 0]
+    assert composed.gradient_solves == searched.gradient_solves
