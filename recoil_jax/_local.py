@@ -70,6 +70,8 @@ class Stalled(Exception):
     """A minimax run stopped improving (`LocalMethod.stall_solves`)."""
 
 
+_LAGRANGIAN = AugmentedLagrangian()
+
 #: How a local method's message starts when its own test of convergence ended the run
 #: (`OptimiseResult.runs`' `converged`); a stall of a minimax counts. Anything else (an
 #: iteration limit, a failed line search or LP, the time budget, failed solves) does not.
@@ -482,10 +484,12 @@ class OptaxLocal(LocalMethod):
     final_fraction: float = 1e-3
     schedule: tuple[float, ...] = (1.0,)
     maxiter: int = 300
-    penalty: float = 10.0
-    penalty_growth: float = 2.0
-    max_penalty: float = 1e4
-    update_every: int = 20
+    # The augmented Lagrangian's settings (`lagrangian`), its defaults; flat here, as
+    # stores name a search by its method's fields.
+    penalty: float = _LAGRANGIAN.penalty
+    penalty_growth: float = _LAGRANGIAN.penalty_growth
+    max_penalty: float = _LAGRANGIAN.max_penalty
+    update_every: int = _LAGRANGIAN.update_every
     xtol: float = 1e-9
 
     @property

@@ -319,16 +319,8 @@ def optimise(
     runs = _Runs(len(u0), steps)
     study = None
     if store is not None:
-        identity = _identity(
-            problem, optimiser, u0, starts, steps, params, limits, seed, anneal,
-            lagrangian.update_every, lagrangian.penalty, lagrangian.penalty_growth,
-            lagrangian.max_penalty, stopping.patience, stopping.ftol, stopping.vtol,
-            stopping.min_steps,
-        )  # fmt: skip
-        study = open_study(
-            store, label="optimise", problem=problem, identity=identity, total=len(u0) * steps,
-            plan={}, description={"runs": len(u0)}, progress=progress,
-        )  # fmt: skip
+        settings = (starts, steps, params, limits, seed, anneal, lagrangian, stopping)
+        study = _open_store(store, problem, optimiser, u0, settings, progress)
     with contextlib.nullcontext() if study is None else study:
         state = runs.resume(study, state)
         bar = Progress("optimise", steps, "steps", progress, already=len(runs.records))
@@ -514,6 +506,22 @@ class _Runs:
             region=r % starts,  # each start its own region
             no_impact=bool(history["peak_contact_force"][-1, r] == 0.0),
         )
+
+
+def _open_store(path, problem, optimiser, u0, settings: tuple, progress) -> StudyStore:
+    """The store at `path` of this optimisation (created, or checked to be its own)."""
+    starts, steps, params, limits, seed, anneal, lagrangian, stopping = settings
+    # The settings flat, in the order stores were named by before they were objects.
+    identity = _identity(
+        problem, optimiser, u0, starts, steps, params, limits, seed, anneal,
+        lagrangian.update_every, lagrangian.penalty, lagrangian.penalty_growth,
+        lagrangian.max_penalty, stopping.patience, stopping.ftol, stopping.vtol,
+        stopping.min_steps,
+    )  # fmt: skip
+    return open_study(
+        path, label="optimise", problem=problem, identity=identity, total=len(u0) * steps,
+        plan={}, description={"runs": len(u0)}, progress=progress,
+    )  # fmt: skip
 
 
 def _identity(problem, optimiser: optax.GradientTransformation, u0, *settings) -> str:

@@ -70,9 +70,9 @@ class _Evaluator:
     every evaluation recorded (time, exact objective, feasibility)."""
 
     def __init__(self, problem: rj.DesignProblem, budget: float, client=None):
-        self.problem, self.budget, self.client = problem, budget, client
+        self.problem, self.budget = problem, budget
         self.space = rjx.SearchSpace.of(problem)  # the coordinates `rj.search` moves in
-        self.base = rj.params_to_values(problem.params)
+        self.evaluator = rjx.BatchEvaluator(problem, self.space, client)
         self.start = time.perf_counter()
         self.times: list[float] = []
         self.values: list[float] = []
@@ -81,10 +81,7 @@ class _Evaluator:
     def theta(self, z: np.ndarray) -> np.ndarray:
         return np.asarray(self.space.theta(np.clip(np.asarray(z, float), 0.0, 1.0)))
 
-    def _score(self, metrics: dict, ok: np.ndarray) -> np.ndarray:
-        problem = self.problem
-        objective = np.asarray(problem.objective(metrics), dtype=float)
-        violations = rj.metric_violations(problem, metrics)
+    def _score(self, objective: np.ndarray, violations: np.ndarray, ok: np.ndarray):
         excess = np.sum(np.maximum(violations, 0.0), axis=-1)
         ok = ok & np.isfinite(objective)
         now = time.perf_counter() - self.start
@@ -96,25 +93,20 @@ class _Evaluator:
         return np.where(ok, objective * (1.0 + PENALTY * excess), 1e12)
 
     def batch(self, z: np.ndarray) -> np.ndarray:
-        """Penalised objectives of `z (n, P)`, through `rj.sweep`."""
-        theta = self.theta(z)
-        designs = {k: np.full(len(z), float(v)) for k, v in self.base.items()}
-        designs |= {name: theta[:, j] for j, name in enumerate(self.problem.tune)}
-        result = rj.sweep(
-            designs,
-            smoothing=self.problem.smoothing,
-            options=self.problem.options,
-            progress=False,
-            client=self.client,
-        )
-        return self._score(result.peaks, result.ok)
+        """Penalised objectives of `z (n, P)`, through the batched sweep (the evaluator
+        of `rj.search`'s global phase)."""
+        evaluation = self.evaluator(np.clip(np.asarray(z, float), 0.0, 1.0))
+        return self._score(evaluation.objective, evaluation.violations, evaluation.ok)
 
     def single(self, z: np.ndarray) -> float:
         """The penalised objective of one design `z (P,)`, through `rj.peaks`."""
         params = rj.with_values(self.problem.params, self.problem.tune, self.theta(z))
         peaks = rj.peaks(params, self.problem.smoothing, self.problem.options, throw=False)
         metrics = {name: np.atleast_1d(float(getattr(peaks, name))) for name in rj.METRICS}
-        return float(self._score(metrics, np.atleast_1d(bool(peaks.status == rj.Status.ok)))[0])
+        objective = np.asarray(self.problem.objective(metrics), dtype=float)
+        violations = rj.metric_violations(self.problem, metrics)
+        ok = np.atleast_1d(bool(peaks.status == rj.Status.ok))
+        return float(self._score(objective, violations, ok)[0])
 
     def trace(self) -> dict[str, np.ndarray]:
         return {
@@ -236,6 +228,31 @@ def run_tuning_bench(
     (a cold run then drops this process's compiled programs, not the workers')."""
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
     problems = dict(DEFAULT_PROBLEMS if problems is None else problems)
+    seeds = _checked_bench(methods, seeds)
+    report: dict = {"problems": {}, "seeds": seeds}
+    for name, budget in problems.items():
+        study = load_study(name)
+        budget = float(budget) * budget_scale
+        runs, cold = _run_methods(study, budget, seeds, methods, client, log)
+        every = [r["best"] for m in methods for r in [*runs[m], *cold[m]]]
+        bests = [b for b in every if b is not None]
+        best_known = min(bests) if bests else None
+        target = None if best_known is None else best_known * (1.0 + TOLERANCE)
+        if out is not None:
+            _plot(study.name, {m: r[0] for m, r in runs.items()}, target, Path(out))
+        entry = {
+            "dimension": len(study.problem.tune),
+            "best_known": best_known,
+            "target": target,
+            "budget_s": budget,
+            "methods": {m: _method_report(runs[m], cold[m], target) for m in methods},
+        }
+        report["problems"][study.name] = entry | {"speedup": speedup(entry)}
+    return report
+
+
+def _checked_bench(methods, seeds) -> list[int]:
+    """The seeds as integers, the methods and seeds checked (cmaes installed if asked)."""
     unknown = set(methods) - set(METHODS)
     if unknown:
         raise rj.ParameterError(f"unknown method(s) {sorted(unknown)}; known: {list(METHODS)}")
@@ -244,60 +261,49 @@ def run_tuning_bench(
         raise rj.ParameterError(f"seeds = {seeds}: valid one or more integers >= 0")
     if "cma_es" in methods:
         import cmaes  # noqa: F401 (the `apps` extra: missing, say so before anything runs)
-    report: dict = {"problems": {}, "seeds": seeds}
-    for name, budget in problems.items():
-        study = load_study(name)
-        budget = float(budget) * budget_scale
-        # runs[method][i]: the warm run from seeds[i]; cold[method][i] its cold one.
-        runs: dict[str, list] = {m: [] for m in methods}
-        cold: dict[str, list] = {m: [] for m in methods}
-        for seed in seeds:
-            for method in methods:
-                # Twice: cold (JAX's compiled code dropped first, so each method pays for
-                # its own compilation), then warm (the same run again, its programs
-                # compiled: a design session's second study, a re-run notebook cell).
-                for label, into in (("cold", cold), ("warm", runs)):
-                    log(f"{name}: {method} ({label}, seed {seed}), budget {budget:g} s ...")
-                    if label == "cold":
-                        jax.clear_caches()
-                    if method == "recoil-jax":
-                        run = _run_ours(study, budget, seed, client)
-                    else:
-                        run = _run_derivative_free(method, study, budget, seed, client)
-                    into[method].append(run)
-                    log(f"  best {run['best']}, {run['wall_s']} s")
-        every = [r["best"] for m in methods for r in [*runs[m], *cold[m]]]
-        bests = [b for b in every if b is not None]
-        best_known = min(bests) if bests else None
-        target = None if best_known is None else best_known * (1.0 + TOLERANCE)
-        methods_report = {}
+    return seeds
+
+
+def _run_methods(study, budget: float, seeds, methods, client, log):
+    """Every method from every seed, cold then warm: `runs[method][i]` the warm run
+    from `seeds[i]`, `cold[method][i]` its cold one."""
+    runs: dict[str, list] = {m: [] for m in methods}
+    cold: dict[str, list] = {m: [] for m in methods}
+    for seed in seeds:
         for method in methods:
-            first, first_cold = runs[method][0], cold[method][0]
-            methods_report[method] = {k: v for k, v in first.items() if k != "trace"} | {
-                "to_target_s": _seconds_to(first["trace"], target),
-                "cold": {
-                    "best": first_cold["best"],
-                    "to_target_s": _seconds_to(first_cold["trace"], target),
-                    "solves": first_cold["solves"],
-                    "gradient_solves": first_cold["gradient_solves"],
-                },
-                "over_seeds": over_seeds(
-                    [_seconds_to(r["trace"], target) for r in runs[method]],
-                    [_seconds_to(r["trace"], target) for r in cold[method]],
-                    [r["best"] for r in runs[method]],
-                ),
-            }
-        if out is not None:
-            _plot(study.name, {m: r[0] for m, r in runs.items()}, target, Path(out))
-        entry = {
-            "dimension": len(study.problem.tune),
-            "best_known": best_known,
-            "target": target,
-            "budget_s": budget,
-            "methods": methods_report,
-        }
-        report["problems"][study.name] = entry | {"speedup": speedup(entry)}
-    return report
+            # Twice: cold (JAX's compiled code dropped first, so each method pays for
+            # its own compilation), then warm (the same run again, its programs
+            # compiled: a design session's second study, a re-run notebook cell).
+            for label, into in (("cold", cold), ("warm", runs)):
+                log(f"{study.name}: {method} ({label}, seed {seed}), budget {budget:g} s ...")
+                if label == "cold":
+                    jax.clear_caches()
+                if method == "recoil-jax":
+                    run = _run_ours(study, budget, seed, client)
+                else:
+                    run = _run_derivative_free(method, study, budget, seed, client)
+                into[method].append(run)
+                log(f"  best {run['best']}, {run['wall_s']} s")
+    return runs, cold
+
+
+def _method_report(runs: list[dict], cold: list[dict], target) -> dict:
+    """One method's entry: its first seed's warm run, cold run, and all seeds'."""
+    first, first_cold = runs[0], cold[0]
+    return {k: v for k, v in first.items() if k != "trace"} | {
+        "to_target_s": _seconds_to(first["trace"], target),
+        "cold": {
+            "best": first_cold["best"],
+            "to_target_s": _seconds_to(first_cold["trace"], target),
+            "solves": first_cold["solves"],
+            "gradient_solves": first_cold["gradient_solves"],
+        },
+        "over_seeds": over_seeds(
+            [_seconds_to(r["trace"], target) for r in runs],
+            [_seconds_to(r["trace"], target) for r in cold],
+            [r["best"] for r in runs],
+        ),
+    }
 
 
 def over_seeds(warm: list, cold: list, bests: list) -> dict:

@@ -207,9 +207,43 @@ def _front_values(path, front: dict, constrained: list[str]) -> list[float]:
 
 
 def load_study(path) -> Study:
-    """Parse and validate a study file or shipped study name (errors name the file and
-    the key)."""
+    """Parse and validate a study file or shipped study name, section by section (errors
+    name the file and the key); the optimiser's parts are built here too, so that a bad
+    setting is refused before anything runs."""
     path = resolve_study(path)
+    config = _read_config(path)
+    tune, bounds = _parse_tune(path, config["tune"])
+    objective = _parse_objective(path, config["objective"])
+    constraints = _parse_constraints(path, config.get("constraints", {}))
+    params, has_start = _parse_design(path, dict(config.get("design", {})), tune, bounds)
+    problem = rj.DesignProblem(
+        params=params, objective=objective, tune=tuple(tune), bounds=bounds,
+        constraints=constraints,
+    )  # fmt: skip
+    optimiser = _parse_optimiser(path, dict(config.get("optimiser", {})))
+    fronts = _parse_fronts(path, config.get("front", []), problem)
+    if optimiser["method"] == "search" and (fronts or objective.scatter is not None):
+        raise _error(
+            path, 'method = "search" takes neither [[front]] nor a scatter; use "adam" for those'
+        )
+    study = Study(
+        name=path.stem,
+        description=config.get("description", ""),
+        problem=problem,
+        optimiser=optimiser,
+        fronts=fronts,
+        check=_parse_check(path, dict(config.get("check", {}))),
+        has_start=has_start,
+    )
+    try:
+        (search_kwargs if optimiser["method"] == "search" else optimise_kwargs)(study, False)
+    except rj.ParameterError as error:
+        raise _error(path, f"[optimiser] {error}") from None
+    return study
+
+
+def _read_config(path: Path) -> dict:
+    """The study file's TOML, its sections checked (known, and the required ones there)."""
     try:
         config = tomllib.loads(read_text(path, "study file"))
     except tomllib.TOMLDecodeError as error:
@@ -224,39 +258,63 @@ def load_study(path) -> Study:
     for section in ("tune", "objective"):
         if section not in config:
             raise _error(path, f"missing [{section}]")
-    design = dict(config.get("design", {}))
+    return config
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _parse_tune(path, section: dict) -> tuple[list[str], dict[str, tuple[float, float]]]:
+    """`[tune]`: the tuned parameters, in order, and their bounds."""
     tune, bounds = [], {}
-    for name, bound in config["tune"].items():
+    for name, bound in section.items():
         if name not in rj.PARAMETERS:
             raise _error(path, f"[tune] unknown parameter {name!r}")
-        if not (
-            isinstance(bound, list)
-            and len(bound) == 2
-            and all(isinstance(b, int | float) and not isinstance(b, bool) for b in bound)
-        ):
+        if not (isinstance(bound, list) and len(bound) == 2 and all(map(_is_number, bound))):
             raise _error(path, f"[tune] {name} = [lo, hi] (numbers) expected, got {bound!r}")
         if not bound[0] < bound[1]:
             raise _error(path, f"[tune] {name} = {bound!r}: need lo < hi")
         tune.append(name)
         bounds[name] = (float(bound[0]), float(bound[1]))
-    objective_config = dict(config["objective"])
-    temperatures = objective_config.pop("temperatures", {})
-    scatter = objective_config.pop("scatter", None)
+    return tune, bounds
+
+
+def _parse_objective(path, section: dict) -> rj.Objective:
+    """`[objective]` with its optional `temperatures` and `scatter` tables."""
+    weights = dict(section)
+    temperatures = weights.pop("temperatures", {})
+    scatter = weights.pop("scatter", None)
     if scatter is not None:
         if len(scatter) != 1:
             raise _error(path, "[objective.scatter] takes one parameter = [offsets]")
         ((scatter_name, offsets),) = scatter.items()
         scatter = (scatter_name, tuple(float(o) for o in offsets))
-    objective = rj.Objective(
-        weights={k: float(v) for k, v in objective_config.items()},
+    for table, values in (("objective", weights), ("objective.temperatures", temperatures)):
+        for name, value in values.items():
+            if not _is_number(value):
+                raise _error(path, f"[{table}] {name} = {value!r}: valid a number")
+    return rj.Objective(
+        weights={k: float(v) for k, v in weights.items()},
         temperatures={k: float(v) for k, v in temperatures.items()},
         scatter=scatter,
     )
+
+
+def _parse_constraints(path, section: dict) -> tuple[rj.Constraint, ...]:
+    """`[constraints]`: `name = {max = .., min = ..}` for metrics and parameters."""
     constraints = []
-    for name, limits in config.get("constraints", {}).items():
+    for name, limits in section.items():
         if not isinstance(limits, dict) or set(limits) - {"max", "min"}:
             raise _error(path, f"[constraints] {name} = {{max = .., min = ..}} expected")
         constraints.append(rj.Constraint(name, upper=limits.get("max"), lower=limits.get("min")))
+    return tuple(constraints)
+
+
+def _parse_design(path, design: dict, tune: list[str], bounds: dict) -> tuple[Any, bool]:
+    """`[design]` as the base design, and whether it is a start (it gives a tuned
+    parameter). A tuned parameter it does not give takes the middle of its bounds
+    (geometric in log coordinates); the box's corners must be designs too."""
     has_start = any(name in design for name in tune)
     for name in tune:
         if name not in design:
@@ -264,20 +322,16 @@ def load_study(path) -> Study:
             log = bool(rjx.log_coordinates(np.asarray([lo]), np.asarray([hi]))[0])
             design[name] = float(np.sqrt(lo * hi)) if log else 0.5 * (lo + hi)
     for side, end in (("lower", 0), ("upper", 1)):
-        # The box's corners must be designs too, not only the midpoint a design takes.
         try:
             rj.params_from_values(design | {name: bounds[name][end] for name in tune})
         except rj.ParameterError as error:
             raise _error(path, f"[tune] at the {side} bounds: {error}") from None
-    params = rj.params_from_values(design)
-    problem = rj.DesignProblem(
-        params=params,
-        objective=objective,
-        tune=tuple(tune),
-        bounds=bounds,
-        constraints=tuple(constraints),
-    )
-    optimiser = dict(config.get("optimiser", {}))
+    return rj.params_from_values(design), has_start
+
+
+def _parse_optimiser(path, optimiser: dict) -> dict:
+    """`[optimiser]`: its method (default `"adam"`) and the settings that apply to it,
+    each a value of the right kind."""
     if set(optimiser) - _OPTIMISER_KEYS:
         raise _error(
             path,
@@ -297,16 +351,8 @@ def load_study(path) -> Study:
             f"to method = {method!r}; it takes {', '.join(sorted(allowed))}",
         )
     for key, value in optimiser.items():
-        if key in ("method", "local", "minimax"):
-            continue
-        if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
-            raise _error(path, f"[optimiser] {key} = {value!r}: valid a finite number")
-        if key in _INTEGER_KEYS and (not isinstance(value, int) or value < _INTEGER_KEYS[key]):
-            raise _error(
-                path, f"[optimiser] {key} = {value!r}: valid an integer >= {_INTEGER_KEYS[key]}"
-            )
-        if key in _POSITIVE_KEYS and not value > 0:
-            raise _error(path, f"[optimiser] {key} = {value!r}: valid a number > 0")
+        if key not in ("method", "local", "minimax"):
+            _check_setting(path, key, value)
     if not isinstance(optimiser.get("minimax", False), bool):
         raise _error(path, f"[optimiser] minimax = {optimiser['minimax']!r}: valid true or false")
     if "local" in optimiser:
@@ -318,36 +364,38 @@ def load_study(path) -> Study:
             )
         if "minimax" in optimiser:
             raise _error(path, "[optimiser] give local or minimax, not both")
-    fronts = config.get("front", [])
+    return optimiser
+
+
+def _check_setting(path, key: str, value) -> None:
+    """A numeric `[optimiser]` setting: finite; a count an integer at least its least
+    value; a positive setting positive."""
+    if not _is_number(value) or not np.isfinite(value):
+        raise _error(path, f"[optimiser] {key} = {value!r}: valid a finite number")
+    if key in _INTEGER_KEYS and (not isinstance(value, int) or value < _INTEGER_KEYS[key]):
+        raise _error(
+            path, f"[optimiser] {key} = {value!r}: valid an integer >= {_INTEGER_KEYS[key]}"
+        )
+    if key in _POSITIVE_KEYS and not value > 0:
+        raise _error(path, f"[optimiser] {key} = {value!r}: valid a number > 0")
+
+
+def _parse_fronts(path, fronts, problem: rj.DesignProblem) -> list[dict]:
+    """`[[front]]`: each a parameter or a constrained metric to vary, and its values."""
     fronts = [fronts] if isinstance(fronts, dict) else list(fronts)
     constrained = [name for name, _, _ in problem.metric_constraints]
     for front in fronts:
         front["values"] = _front_values(path, front, constrained)
-        if front["vary"] in tune:
+        if front["vary"] in problem.tune:
             raise _error(path, f"[[front]] vary = {front['vary']!r} is tuned; fix it to vary it")
-    if method == "search" and (fronts or scatter is not None):
-        raise _error(
-            path, 'method = "search" takes neither [[front]] nor a scatter; use "adam" for those'
-        )
-    check = dict(config.get("check", {}))
+    return fronts
+
+
+def _parse_check(path, check: dict) -> dict:
+    """`[check]`: which checks of the best design to run."""
     if set(check) - _CHECK_KEYS:
         raise _error(path, f"[check] unknown key(s) {', '.join(sorted(set(check) - _CHECK_KEYS))}")
-    study = Study(
-        name=path.stem,
-        description=config.get("description", ""),
-        problem=problem,
-        optimiser=optimiser,
-        fronts=fronts,
-        check=check,
-        has_start=has_start,
-    )
-    # Build the optimiser's parts now, so that a bad setting names the file and the
-    # section here, before anything runs.
-    try:
-        (search_kwargs if method == "search" else optimise_kwargs)(study, progress=False)
-    except rj.ParameterError as error:
-        raise _error(path, f"[optimiser] {error}") from None
-    return study
+    return check
 
 
 def local_method(study: Study) -> rjx.LocalMethod:
@@ -371,20 +419,22 @@ def search_kwargs(study: Study, progress: bool | None) -> dict:
     )
     if "seed" in o:
         kwargs["seed"] = int(o["seed"])
-    if "samples" in o or "starts" in o:
-        defaults = rj.SobolStarts()
-        kwargs["global_phase"] = rj.SobolStarts(
-            samples=int(o.get("samples", defaults.samples)),
-            starts=int(o.get("starts", defaults.starts)),
-        )
+    if (global_phase := _part(rj.SobolStarts, o, samples="samples", starts="starts")) is not None:
+        kwargs["global_phase"] = global_phase
     if "max_seconds" in o:
         kwargs["max_seconds"] = float(o["max_seconds"])
-    if "hops" in o or "hop_step" in o:
-        defaults = rj.BasinHopping()
-        kwargs["hopping"] = rj.BasinHopping(
-            hops=int(o.get("hops", defaults.hops)), step=float(o.get("hop_step", defaults.step))
-        )
+    if (hopping := _part(rj.BasinHopping, o, hops="hops", step="hop_step")) is not None:
+        kwargs["hopping"] = hopping
     return kwargs
+
+
+def _part(cls, o: dict, **keys: str):
+    """`cls()` with the `[optimiser]` settings `keys` (field = key) the study gives, each
+    of its default's type; None when it gives none of them."""
+    given = {field: o[key] for field, key in keys.items() if key in o}
+    defaults = cls()
+    kinds = {field: type(getattr(defaults, field)) for field in given}
+    return cls(**{f: kinds[f](value) for f, value in given.items()}) if given else None
 
 
 def optimise_kwargs(study: Study, progress: bool | None) -> dict:
@@ -402,14 +452,11 @@ def optimise_kwargs(study: Study, progress: bool | None) -> dict:
     )
     if "anneal" in o:
         kwargs["anneal"] = float(o["anneal"])
-    if "penalty" in o or "update_every" in o:
-        defaults = rj.AugmentedLagrangian()
-        kwargs["lagrangian"] = rj.AugmentedLagrangian(
-            penalty=float(o.get("penalty", defaults.penalty)),
-            update_every=int(o.get("update_every", defaults.update_every)),
-        )
-    if "patience" in o:
-        kwargs["stopping"] = rj.Stopping(patience=int(o["patience"]))
+    lagrangian = _part(rj.AugmentedLagrangian, o, penalty="penalty", update_every="update_every")
+    if lagrangian is not None:
+        kwargs["lagrangian"] = lagrangian
+    if (stopping := _part(rj.Stopping, o, patience="patience")) is not None:
+        kwargs["stopping"] = stopping
     return kwargs
 
 
@@ -506,25 +553,15 @@ def _best_summary(study: Study, result: rj.OptimiseResult, scenario: int) -> dic
     return summary
 
 
-def _feasible_objective(problem, sweep_result) -> tuple[np.ndarray, np.ndarray]:
-    """The objective (with peaks) of each swept design, inf where it is not feasible
-    (`rj.feasible`); and the feasibility mask."""
-    objective = np.asarray(problem.objective(sweep_result.peaks), dtype=float)
-    violations = rj.metric_violations(problem, sweep_result.peaks)
-    feasible = rj.feasible(sweep_result.ok, objective, violations)
-    return np.where(feasible, objective, np.inf), feasible
-
-
-def _sweep(problem, designs, progress: bool | None = False):
-    # Chunks of 1024, the size `rj.sweep` gives up to 1024 designs (the search's samples):
-    # every check runs the program the search compiled.
-    return rj.sweep(
-        designs,
-        smoothing=problem.smoothing,
-        options=problem.options,
-        progress=progress,
-        chunk_size=1024,
-    )
+def _feasible_objective(problem, designs: dict, progress) -> tuple[np.ndarray, np.ndarray]:
+    """The objective (with peaks) of each design (flat name → `(n,)`), inf where it is
+    not feasible (`rj.feasible`); and the feasibility mask. Chunks of 1024, the size
+    `rj.sweep` gives up to 1024 designs (the search's samples): every check runs the
+    program the search compiled."""
+    evaluator = rjx.BatchEvaluator(problem, chunk_size=1024, progress=progress)
+    evaluation = evaluator.evaluate(designs)
+    feasible = rj.feasible(evaluation.ok, evaluation.objective, evaluation.violations)
+    return np.where(feasible, evaluation.objective, np.inf), feasible
 
 
 def _grid_check(study: Study, result, axes: dict, progress: bool) -> tuple[dict, int]:
@@ -538,8 +575,7 @@ def _grid_check(study: Study, result, axes: dict, progress: bool) -> tuple[dict,
         grid_axes[name] = np.linspace(float(lo), float(hi), int(count))
     fixed = {k: v for k, v in design.items() if k not in grid_axes}
     columns, _ = rj.grid(grid_axes, fixed)
-    sweep_result = _sweep(problem, columns, progress)
-    objective, feasible = _feasible_objective(problem, sweep_result)
+    objective, feasible = _feasible_objective(problem, columns, progress)
     i = int(np.argmin(objective))
     spacing = {n: float(a[1] - a[0]) if len(a) > 1 else 0.0 for n, a in grid_axes.items()}
     return {
@@ -547,7 +583,7 @@ def _grid_check(study: Study, result, axes: dict, progress: bool) -> tuple[dict,
         "points": int(objective.size),
         "feasible_points": int(feasible.sum()),
         "grid_best_objective": float(objective[i]),
-        "grid_best_design": {n: float(sweep_result.values[n][i]) for n in grid_axes},
+        "grid_best_design": {n: float(columns[n][i]) for n in grid_axes},
         "grid_spacing": spacing,
     }, int(objective.size)
 
@@ -564,8 +600,8 @@ def _local_check(study: Study, result, fraction: float, progress: bool) -> tuple
             value = float(np.clip(design[name] + x, lower[j], upper[j]))
             points.append({**design, name: value})
             labels.append(name)
-    sweep_result = _sweep(problem, points, progress)
-    objective, _ = _feasible_objective(problem, sweep_result)
+    columns = {name: np.asarray([p[name] for p in points]) for name in points[0]}
+    objective, _ = _feasible_objective(problem, columns, progress)
     return {
         "fraction_of_bounds": fraction,
         "points": len(points),
@@ -627,65 +663,23 @@ def run_study(
     the least violating design found, with each limit it misses and by how much
     (`message` says it in one line); the checks are skipped.
     """
-    from ._figures import plot_convergence, plot_search_convergence
-
-    study = load_study(path)
-    if (workers is not None or scheduler is not None) and study.optimiser["method"] != "search":
-        raise rj.ParameterError(
-            f"{study.name}: --workers and --scheduler spread the global phase of "
-            'method = "search"; this study uses method = "adam", which has none'
-        )
-    if seed is not None:
-        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-            raise rj.ParameterError(f"seed = {seed!r} is invalid: valid an integer >= 0")
-        study.optimiser["seed"] = seed
+    study = _prepared(path, seed, workers, scheduler)
     out = Path(out) if out is not None else Path("results") / study.name
     out.mkdir(parents=True, exist_ok=True)
-    problem = study.problem
     kwargs = optimise_kwargs(study, progress)
     started = time.perf_counter()
     phase = _Phases(study.name, progress)
     if progress is not False:
         print(f"study {study.name}: {study.description}", file=sys.stderr)
-
     report: dict[str, Any] = {"study": study.name, "description": study.description}
     if study.optimiser["method"] == "search":
-        search = search_kwargs(study, progress)
-        with (
-            phase("optimiser", f"global search, then {type(search['local']).__name__}"),
-            dask_client(workers, scheduler) as client,
-        ):
-            result = rj.search(problem, store=store, client=client, **search)
-        simulations = {"optimiser": result.solves, "optimiser_gradients": result.gradient_solves}
-        seed_used = int(study.optimiser.get("seed", 0))
-        report["optimiser"] = _search_summary(result, search["local"]) | {"seed": seed_used}
-        plot_search_convergence(result, out / "convergence.png", title=study.name)
+        result, simulations, report["optimiser"] = _run_search(
+            study, out, phase, progress, store, workers, scheduler
+        )
     else:
-        with phase("optimiser", f"optax from {kwargs['starts']} starts"):
-            result = rj.optimise(problem, store=store, **kwargs)
-        simulations = {"optimiser": int(result.simulations)}
-        report["optimiser"] = {
-            "method": "adam",
-            "seed": kwargs["seed"],
-            "starts": kwargs["starts"],
-            "steps": len(result.history["objective"]) if result.history else 0,
-            "compilations": result.compilations,
-            "seconds": round(result.seconds, 2),
-            "converged_runs": sum(run.converged for run in result.runs),
-            "agreement": result.agreement()._asdict(),
-            "where_starts_ended": result.clusters(),
-        }
-        plot_convergence(result, out / "convergence.png", title=study.name)
-    feasible = bool(result.feasible[0])
-    closest = result.closest_params(0) if np.isfinite(result.closest_violation[0]) else None
-    report["feasible"] = feasible
-    if feasible:
-        report |= _best_summary(study, result, 0)
-    else:
-        with phase("closest", "no design met every limit: the closest design's peaks"):
-            report |= _infeasible_summary(study, closest)
-    report["tuned"] = list(problem.tune)
-    if feasible:
+        result, simulations, report["optimiser"] = _run_adam(study, out, phase, kwargs, store)
+    report |= _outcome(study, result, phase)
+    if report["feasible"]:
         _checks(study, result, report, simulations, kwargs, out, phase)
     fronts = []
     for front in study.fronts:
@@ -702,6 +696,76 @@ def run_study(
     report["seconds_by_part"] = phase.seconds
     (out / "result.json").write_text(json.dumps(report, indent=2) + "\n")
     return report
+
+
+def _prepared(path, seed: int | None, workers, scheduler) -> Study:
+    """The study to run: loaded, its seed replaced by `seed`, the cluster options
+    checked against its method."""
+    study = load_study(path)
+    if (workers is not None or scheduler is not None) and study.optimiser["method"] != "search":
+        raise rj.ParameterError(
+            f"{study.name}: --workers and --scheduler spread the global phase of "
+            'method = "search"; this study uses method = "adam", which has none'
+        )
+    if seed is not None:
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+            raise rj.ParameterError(f"seed = {seed!r} is invalid: valid an integer >= 0")
+        study.optimiser["seed"] = seed
+    return study
+
+
+def _run_search(study: Study, out: Path, phase, progress, store, workers, scheduler):
+    """The `search` of a study: its result, simulations and `result.json`'s summary;
+    the convergence figure."""
+    from ._figures import plot_search_convergence
+
+    search = search_kwargs(study, progress)
+    with (
+        phase("optimiser", f"global search, then {type(search['local']).__name__}"),
+        dask_client(workers, scheduler) as client,
+    ):
+        result = rj.search(study.problem, store=store, client=client, **search)
+    simulations = {"optimiser": result.solves, "optimiser_gradients": result.gradient_solves}
+    summary = _search_summary(result, search["local"])
+    summary["seed"] = int(study.optimiser.get("seed", 0))
+    plot_search_convergence(result, out / "convergence.png", title=study.name)
+    return result, simulations, summary
+
+
+def _run_adam(study: Study, out: Path, phase, kwargs: dict, store):
+    """The `optimise` of a study: its result, simulations and `result.json`'s summary;
+    the convergence figure."""
+    from ._figures import plot_convergence
+
+    with phase("optimiser", f"optax from {kwargs['starts']} starts"):
+        result = rj.optimise(study.problem, store=store, **kwargs)
+    summary = {
+        "method": "adam",
+        "seed": kwargs["seed"],
+        "starts": kwargs["starts"],
+        "steps": len(result.history["objective"]) if result.history else 0,
+        "compilations": result.compilations,
+        "seconds": round(result.seconds, 2),
+        "converged_runs": sum(run.converged for run in result.runs),
+        "agreement": result.agreement()._asdict(),
+        "where_starts_ended": result.clusters(),
+    }
+    plot_convergence(result, out / "convergence.png", title=study.name)
+    return result, {"optimiser": int(result.simulations)}, summary
+
+
+def _outcome(study: Study, result: rj.OptimiseResult, phase) -> dict:
+    """`result.json`'s `feasible`, the best design's summary (or the closest one's,
+    when none was feasible) and the tuned parameters."""
+    feasible = bool(result.feasible[0])
+    report: dict[str, Any] = {"feasible": feasible}
+    if feasible:
+        report |= _best_summary(study, result, 0)
+    else:
+        closest = result.closest_params(0) if np.isfinite(result.closest_violation[0]) else None
+        with phase("closest", "no design met every limit: the closest design's peaks"):
+            report |= _infeasible_summary(study, closest)
+    return report | {"tuned": list(study.problem.tune)}
 
 
 def _infeasible_summary(study: Study, closest) -> dict:
