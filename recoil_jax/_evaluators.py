@@ -1,7 +1,10 @@
-"""Evaluators: the one place where a point of the search space becomes solves.
+"""The search space and its evaluators: the one place where a point of the search space
+becomes solves.
 
-An optimiser moves in normalised coordinates `z ∈ [0, 1]^P` (`SearchSpace`); these
-objects turn `z` into what it needs, and nothing else in the layer solves a design:
+An optimiser moves in normalised coordinates `z ∈ [0, 1]^P` (`SearchSpace`: the tuned
+parameters' box, linear per parameter or logarithmic where the bounds span three decades
+or more); these objects turn `z` into what it needs, and nothing else in the layer
+solves a design:
 
 - `BatchEvaluator`: `z (n, P)` → designs → one `sweep` → objective and violations (the
   global phase of `search`, the tuning benchmark's batched methods).
@@ -31,7 +34,6 @@ from ._local import LocalEvaluation
 from ._metrics import METRICS
 from ._params import end_time, params_to_values
 from ._problem import DesignProblem, evaluate_design, metric_violations
-from ._space import SearchSpace
 from ._status import Status, status_codes
 from ._store import StudyStore, evaluation_row, fingerprint
 from ._sweep import CHUNK_SIZE, sweep
@@ -43,8 +45,10 @@ __all__ = [
     "GradientEvaluator",
     "MinimaxEvaluator",
     "MinimaxWindow",
+    "SearchSpace",
     "StoredEvaluator",
     "gradient_traces",
+    "log_coordinates",
     "minimax_metric",
 ]
 
@@ -52,6 +56,51 @@ __all__ = [
 SERIES_POINTS = 1024
 
 _OK = int(status_codes(Status.ok))
+
+
+def log_coordinates(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """Which parameters move in log coordinates: bounds positive and at least a factor
+    1000 (three decades) apart."""
+    lower, upper = np.asarray(lower, float), np.asarray(upper, float)
+    return (lower > 0) & (upper >= 1000 * np.where(lower > 0, lower, 1.0))
+
+
+class SearchSpace(eqx.Module):
+    """`θ(z)`: the tuned values (SI units, shape `(P,)`) of normalised coordinates
+    `z ∈ [0, 1]^P`, linear between the bounds or logarithmic (`log_coordinates`).
+
+    `search` moves in `z`; `optimise` in `u` with `z = sigmoid(u)` (no bound is ever
+    clipped, so no gradient is zeroed); the tuning benchmark gives every method `z`.
+    """
+
+    lower: jax.Array
+    upper: jax.Array
+    log: jax.Array
+
+    @classmethod
+    def of(cls, problem: DesignProblem) -> SearchSpace:
+        """The space of `problem`'s tuned parameters within `problem.box()`."""
+        lower, upper = problem.box()
+        log = log_coordinates(lower, upper)
+        return cls(jnp.asarray(lower), jnp.asarray(upper), jnp.asarray(log))
+
+    def theta(self, z):
+        """`z (..., P)` → `θ (..., P)` (JAX; differentiable)."""
+        lo = jnp.where(self.log, jnp.log(jnp.where(self.log, self.lower, 1.0)), self.lower)
+        hi = jnp.where(self.log, jnp.log(jnp.where(self.log, self.upper, 1.0)), self.upper)
+        x = lo + (hi - lo) * z
+        return jnp.where(self.log, jnp.exp(jnp.where(self.log, x, 0.0)), x)
+
+    def z(self, theta) -> np.ndarray:
+        """`θ (..., P)` → `z (..., P)` (NumPy), θ clipped to the bounds first."""
+        lower, upper, log = (np.asarray(a) for a in (self.lower, self.upper, self.log))
+        theta = np.clip(np.asarray(theta, float), lower, upper)
+        safe = np.where(log, 1.0, upper - lower)
+        linear = (theta - lower) / safe
+        logged = np.log(np.where(log, theta, 1.0) / np.where(log, lower, 1.0)) / np.log(
+            np.where(log, upper / np.where(log, lower, 1.0), np.e)
+        )
+        return np.clip(np.where(log, logged, linear), 0.0, 1.0)
 
 
 class BatchEvaluation(NamedTuple):
@@ -115,7 +164,7 @@ class BatchEvaluator:
             client=self.client,
             chunk_size=self.chunk_size,
         )
-        codes = status_codes(result.status)
+        codes = result.codes
         n = len(codes)
         objective = np.asarray(problem.objective(result.peaks), dtype=float)
         violations = np.asarray(metric_violations(problem, result.peaks), dtype=float)

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from ._evaluators import SearchSpace
 from ._params import ParameterError, RecoilParams, values_of
 from ._parts import AugmentedLagrangian, LagrangianState, cosine_decayed
 from ._problem import (
@@ -37,7 +38,6 @@ from ._problem import (
 )
 from ._progress import Progress
 from ._result import OptimiseResult, RunRecord
-from ._space import SearchSpace
 from ._status import Status, status_codes
 from ._store import StudyStore, evaluation_row, fingerprint, open_study
 

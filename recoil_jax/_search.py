@@ -43,6 +43,7 @@ from ._evaluators import (
     GradientEvaluator,
     MinimaxEvaluator,
     MinimaxWindow,
+    SearchSpace,
     StoredEvaluator,
     gradient_traces,
     minimax_metric,
@@ -64,7 +65,6 @@ from ._problem import (
 )
 from ._progress import Progress
 from ._result import OptimiseResult, RunRecord
-from ._space import SearchSpace
 from ._store import StudyStore, fingerprint, open_study
 from ._sweep import default_workers
 

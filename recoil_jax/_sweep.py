@@ -100,6 +100,11 @@ class SweepResult:
     def ok(self) -> np.ndarray:
         return np.asarray(self.status == Status.ok)
 
+    @property
+    def codes(self) -> np.ndarray:
+        """`(n,)`: each point's integer `Status` code."""
+        return status_codes(self.status)
+
     def messages(self) -> list[str]:
         return status_messages(self.status)
 

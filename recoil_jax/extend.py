@@ -37,7 +37,9 @@ from ._evaluators import (
     GradientEvaluator,
     MinimaxEvaluator,
     MinimaxWindow,
+    SearchSpace,
     StoredEvaluator,
+    log_coordinates,
     minimax_metric,
 )
 from ._local import LocalEvaluation, LocalMethod, LocalRun, run_local
@@ -47,7 +49,6 @@ from ._params import Parameter, end_time
 from ._problem import DesignEvaluation, evaluate_design
 from ._result import RunRecord
 from ._search import GlobalPhase, default_local
-from ._space import SearchSpace, log_coordinates
 from ._status import status_codes, status_messages, status_table
 from ._sweep import StoredSweep, batch_params, default_workers, shard_batch
 
