@@ -10,10 +10,12 @@ fields of `Peaks` and `PeakGradients`, which are checked against it when built.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from typing import Any, Literal
 
 import equinox as eqx
 import jax
+import numpy as np
 
 from ._params import ParameterError
 from ._status import Status
@@ -26,6 +28,7 @@ __all__ = [
     "Peaks",
     "gradient_key",
     "metric",
+    "worst_case",
 ]
 
 
@@ -117,6 +120,17 @@ METRICS: dict[str, Metric] = {
         ),
     )
 }
+
+
+def worst_case(values: Mapping[str, Any], xp: Any = np) -> dict[str, Any]:
+    """The worst case of each quantity over a scatter of designs (`values`: name →
+    values, the scatter along every axis): a metric's own extreme (the least stroke, the
+    greatest peak); any other quantity (a smooth maximum) its greatest. `xp`: `numpy` or
+    `jax.numpy`."""
+    return {
+        name: xp.min(v) if name in METRICS and METRICS[name].extreme == "min" else xp.max(v)
+        for name, v in values.items()
+    }
 
 
 def metric(name: str) -> Metric:

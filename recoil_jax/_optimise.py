@@ -37,7 +37,7 @@ from ._problem import (
     largest_violation,
 )
 from ._progress import Progress
-from ._result import OptimiseResult, RunRecord
+from ._result import Found, OptimiseResult, RunRecord, build_result
 from ._status import Status, status_codes
 from ._store import StudyStore, evaluation_row, fingerprint, open_study
 
@@ -316,7 +316,7 @@ def optimise(
     u0 = jnp.asarray(_to_u(space, _start_points(problem, params, limits.shape[0], starts, seed)))
     state = _initial_state(optimiser, lagrangian, u0, limits.shape[1])
     step_fn, traced = _make_step(problem, optimiser, lagrangian, steps, anneal)
-    runs = _Runs(len(u0), steps)
+    runs = _Runs(len(u0), steps, problem)
     study = None
     if store is not None:
         settings = (starts, steps, params, limits, seed, anneal, lagrangian, stopping)
@@ -326,15 +326,12 @@ def optimise(
         bar = Progress("optimise", steps, "steps", progress, already=len(runs.records))
         run_params = jax.tree.map(lambda x: jnp.repeat(jnp.asarray(x), starts, axis=0), params)
         run_limits = jnp.asarray(np.repeat(limits, starts, axis=0))
-
-        def step(state):
-            return step_fn(state, run_params, run_limits, jnp.asarray(runs.active))
-
-        runs.take_steps(step, state, stopping, study, bar, callback)
-    return OptimiseResult(
-        **runs.result(problem, space, u0, starts, params, limits, bar.elapsed),
-        compilations=eqx.debug.get_num_traces(traced),
-    )
+        runs.take_steps(step_fn, (run_params, run_limits), state, stopping, study, bar, callback)
+    return build_result(
+        "optax", problem, runs.found(space, u0, starts, limits.shape[0], bar.elapsed),
+        compilations=eqx.debug.get_num_traces(traced), scenario_params=params,
+        scenario_limits=limits,
+    )  # fmt: skip
 
 
 def _initial_state(optimiser, lagrangian: AugmentedLagrangian, u0, constraints: int) -> _State:
@@ -357,8 +354,10 @@ class _Runs:
     when it ended (seconds of the budget, earlier runs' included), the best feasible
     objective so far; saved to a study's store after each step and restored from it."""
 
-    def __init__(self, count: int, steps: int):
+    def __init__(self, count: int, steps: int, problem: DesignProblem):
         self.steps = steps
+        scatter = problem.objective.scatter
+        self.samples = 1 if scatter is None else len(scatter[1])  # solves in a run's step
         self.active = np.ones(count, dtype=bool)
         self.converged_step = np.full(count, -1)
         self.records: list[_StepRecord] = []
@@ -387,11 +386,12 @@ class _Runs:
             self.seconds.append(float(saved.get("seconds", 0.0)))  # 0 in early stores
         return state
 
-    def take_steps(self, step, state: _State, stopping: Stopping, study, bar, callback) -> None:
-        """Step every active run until none is or the steps are spent."""
+    def take_steps(self, step, inputs, state: _State, stopping, study, bar, callback) -> None:
+        """Step every active run (`step(state, *inputs, active)`) until none is or the
+        steps are spent."""
         began, prior = time.perf_counter(), 0.0 if study is None else study.prior_seconds
         for k in range(len(self.records), self.steps if self.active.any() else 0):
-            state, record = step(state)
+            state, record = step(state, *inputs, jnp.asarray(self.active))
             record = jax.tree.map(np.asarray, record)
             self.records.append(record)
             failed = record.status != _OK
@@ -445,11 +445,10 @@ class _Runs:
             name: np.stack([r.metrics[name] for r in records]) for name in records[0].metrics
         }
 
-    def result(self, problem, space, u0, starts: int, params, limits, seconds: float) -> dict:
-        """The `OptimiseResult`'s fields, by name (all but `compilations`)."""
+    def found(self, space, u0, starts: int, scenarios: int, seconds: float) -> Found:
+        """What the runs found (for `build_result`)."""
         history = self.history()
         held = feasible(history["status"] == _OK, history["objective"], history["violations"])
-        scenarios = limits.shape[0]
         best, run_best_objective, run_best_theta = _select_best(history, held, scenarios, starts)
         took = np.stack(self.took)  # (N, R): which runs took each step
         step_seconds = np.asarray(self.seconds)
@@ -461,11 +460,10 @@ class _Runs:
         # Every evaluation, step by step: the vmapped step solves every run, a stopped one
         # at where it stopped ("stopped"), so its last move is judged like the others.
         steps_of, runs_of = np.indices(took.shape).reshape(2, -1)
-        samples = 1 if problem.objective.scatter is None else len(problem.objective.scatter[1])
-        return dict(
-            method="optax", problem=problem, best_theta=best["theta"],
-            best_objective=best["objective"], closest_theta=best["closest_theta"],
-            closest_violation=best["closest_violation"], runs=runs,
+        return Found(
+            best_theta=best["theta"], best_objective=best["objective"],
+            closest_theta=best["closest_theta"], closest_violation=best["closest_violation"],
+            runs=list(runs),
             trace={
                 "seconds": step_seconds[steps_of],
                 "scenario": runs_of // starts,
@@ -474,8 +472,8 @@ class _Runs:
                 "gradient": np.ones(len(steps_of), dtype=bool),
                 "phase": np.where(took[steps_of, runs_of], "step", "stopped"),
             },
-            solves=0, gradient_solves=len(self.records) * len(theta0) * samples, seconds=seconds,
-            scenario_params=params, scenario_limits=limits, history=history,
+            solves=0, gradient_solves=len(self.records) * len(theta0) * self.samples,
+            seconds=seconds, history=history,
         )  # fmt: skip
 
     def _record(self, r, starts, history, theta0, run_best_objective, run_best_theta, took):

@@ -23,7 +23,7 @@ import numpy as np
 
 from ._design import design_metrics
 from ._gradients import GRADIENT_OPTIONS, MetricSeries, SmoothMax, check_wrt, smooth_name
-from ._metrics import METRICS, metric
+from ._metrics import METRICS, metric, worst_case
 from ._params import (
     PARAMETERS,
     ParameterError,
@@ -336,8 +336,7 @@ def evaluate_design(
         # Worst case over the scatter: of the objective, and of each limited metric.
         smooth_values = objective(per_sample, smooth=True)
         exact_values = objective(per_sample)
-        metrics = {k: jnp.max(v) for k, v in per_sample.items()}
-        metrics["min_stroke"] = jnp.min(per_sample["min_stroke"])
+        metrics = worst_case(per_sample, xp=jnp)
         status = jax.tree.map(jnp.max, statuses)
         return DesignEvaluation(
             metrics=metrics,

@@ -6,7 +6,7 @@ evaluation in order."""
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import numpy as np
@@ -14,7 +14,7 @@ import numpy as np
 from ._params import ParameterError, RecoilParams, params_to_values, with_values
 from ._problem import Agreement, DesignProblem
 
-__all__ = ["OptimiseResult", "RunRecord"]
+__all__ = ["Found", "OptimiseResult", "RunRecord", "build_result"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -230,3 +230,82 @@ class OptimiseResult:
         hits = np.nonzero(self.best_so_far(scenario) <= target)[0]
         seconds = self.trace["seconds"][self.trace["scenario"] == scenario]
         return float(seconds[hits[0]]) if hits.size else None
+
+
+class Found(NamedTuple):
+    """What an optimiser found, before `build_result` (leading axis `S`: scenarios), its
+    points in the optimiser's own coordinates: the best feasible points (`best_theta (S,
+    P)`, NaN where none) and their objectives (NaN where none), the least violating
+    points and their largest violations, every local run, every evaluation (`trace`),
+    the solves and the seconds; the global phase's samples (`search`) or every step
+    (`optimise`)."""
+
+    best_theta: np.ndarray
+    best_objective: np.ndarray
+    closest_theta: np.ndarray
+    closest_violation: np.ndarray
+    runs: list[RunRecord]
+    trace: dict[str, np.ndarray]
+    solves: int
+    gradient_solves: int
+    seconds: float
+    samples: dict[str, np.ndarray] | None = None
+    history: dict[str, np.ndarray] | None = None
+
+
+def build_result(
+    method: str,
+    problem: DesignProblem | None,
+    found: Found,
+    *,
+    compilations: int,
+    replayed: int = 0,
+    to_theta=None,
+    scenario_params: RecoilParams | None = None,
+    scenario_limits: np.ndarray | None = None,
+) -> OptimiseResult:
+    """The one builder of an `OptimiseResult`, whatever the method: `found`'s points
+    mapped to parameter values by `to_theta` (a point `(P,)` at a time; NaN stays NaN;
+    None: they are values already), one scenario's trace given its `scenario` column,
+    and the scenarios' base designs and limits (default: `problem`'s, one scenario)."""
+
+    def mapped(z) -> np.ndarray:
+        z = np.asarray(z, dtype=float)
+        if to_theta is None:
+            return z
+        return np.asarray(to_theta(z)) if np.all(np.isfinite(z)) else np.full(z.shape, np.nan)
+
+    runs = tuple(
+        dataclasses.replace(
+            run, theta0=mapped(run.theta0), theta=mapped(run.theta),
+            best_theta=mapped(run.best_theta),
+        )
+        for run in found.runs
+    )  # fmt: skip
+    trace = found.trace
+    if "scenario" not in trace:
+        trace = trace | {"scenario": np.zeros(len(trace["seconds"]), dtype=int)}
+    if scenario_params is None and problem is not None:
+        scenario_params = jax.tree.map(lambda x: np.asarray(x)[None], problem.params)
+    if scenario_limits is None:
+        limits = [] if problem is None else [limit for _, _, limit in problem.metric_constraints]
+        scenario_limits = np.asarray([limits], dtype=float).reshape(1, len(limits))
+    return OptimiseResult(
+        method=method,
+        problem=problem,
+        best_theta=np.stack([mapped(z) for z in found.best_theta]),
+        best_objective=np.asarray(found.best_objective),
+        closest_theta=np.stack([mapped(z) for z in found.closest_theta]),
+        closest_violation=np.asarray(found.closest_violation),
+        runs=runs,
+        trace=trace,
+        solves=found.solves,
+        gradient_solves=found.gradient_solves,
+        seconds=found.seconds,
+        compilations=compilations,
+        scenario_params=scenario_params,
+        scenario_limits=scenario_limits,
+        samples=found.samples,
+        history=found.history,
+        replayed=replayed,
+    )

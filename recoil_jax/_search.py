@@ -64,7 +64,7 @@ from ._problem import (
     largest_violation,
 )
 from ._progress import Progress
-from ._result import OptimiseResult, RunRecord
+from ._result import Found, OptimiseResult, RunRecord, build_result
 from ._store import StudyStore, fingerprint, open_study
 from ._sweep import default_workers
 
@@ -485,40 +485,24 @@ def _result(
     replayed: int = 0,
 ) -> OptimiseResult:
     """The `OptimiseResult` of a `_minimise` run, its points mapped to parameter values by
-    `theta` (NaN stays NaN)."""
-
-    def to_theta(z) -> np.ndarray:
-        z = np.asarray(z, dtype=float)
-        return np.asarray(theta(z)) if np.all(np.isfinite(z)) else np.full(z.shape, np.nan)
-
-    runs = [
-        dataclasses.replace(
-            run, region=region, theta0=to_theta(run.theta0), theta=to_theta(run.theta),
-            best_theta=to_theta(run.best_theta),
-        )
-        for run, region in zip(minimum.runs, _regions(minimum.runs, minimum.spacing), strict=True)
-    ]  # fmt: skip
-    trace = minimum.trace | {"scenario": np.zeros(len(minimum.trace["seconds"]), dtype=int)}
-    limits = [] if problem is None else [limit for _, _, limit in problem.metric_constraints]
-    return OptimiseResult(
-        method=method,
-        problem=problem,
-        best_theta=to_theta(minimum.best_z)[None],
+    `theta`, each start given its region."""
+    regions = _regions(minimum.runs, minimum.spacing)
+    found = Found(
+        best_theta=minimum.best_z[None],
         best_objective=np.array([minimum.best_objective]),
-        closest_theta=to_theta(minimum.closest_z)[None],
+        closest_theta=minimum.closest_z[None],
         closest_violation=np.array([minimum.closest_violation]),
-        runs=tuple(runs),
-        trace=trace,
+        runs=[
+            dataclasses.replace(run, region=r) for run, r in zip(minimum.runs, regions, strict=True)
+        ],
+        trace=minimum.trace,
         solves=minimum.solves,
         gradient_solves=minimum.gradient_solves + extra_gradient_solves,
         seconds=minimum.seconds,
-        compilations=compilations,
-        scenario_params=(
-            None if problem is None else jax.tree.map(lambda x: np.asarray(x)[None], problem.params)
-        ),
-        scenario_limits=np.asarray([limits], dtype=float).reshape(1, len(limits)),
         samples=minimum.samples,
-        replayed=replayed,
+    )
+    return build_result(
+        method, problem, found, compilations=compilations, replayed=replayed, to_theta=theta
     )
 
 

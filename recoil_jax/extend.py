@@ -27,7 +27,8 @@ not need them; `docs/developers.md` shows how to plug a part in.
   messages, and every code with its message.
 - `PEAK_FIELDS`, `gradient_key`, `Metric`, `Parameter`: the keys of the files and the
   registries' entries; `end_time`: a design's end time (refusing a load that does not
-  fit); `Forces`: the model's forces; `StoredSweep`: a sweep read back from its store.
+  fit); `Forces`: the model's forces; `StoredSweep`: a sweep read back from its store;
+  `worst_case`: each metric's worst over a scatter of designs.
 """
 
 from ._cache import live_programs, set_max_programs, structure_jit
@@ -43,7 +44,7 @@ from ._evaluators import (
     minimax_metric,
 )
 from ._local import LocalEvaluation, LocalMethod, LocalRun, run_local
-from ._metrics import PEAK_FIELDS, Metric, gradient_key
+from ._metrics import PEAK_FIELDS, Metric, gradient_key, worst_case
 from ._model import Forces
 from ._params import Parameter, end_time
 from ._problem import DesignEvaluation, evaluate_design
@@ -87,4 +88,5 @@ __all__ = [
     "status_messages",
     "status_table",
     "structure_jit",
+    "worst_case",
 ]

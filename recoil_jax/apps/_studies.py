@@ -522,10 +522,8 @@ def _scattered(problem: rj.DesignProblem, params, offsets) -> list[rj.Peaks]:
 def _worst_case(problem: rj.DesignProblem, runs: list[rj.Peaks]) -> tuple[dict, float]:
     """Worst-case metrics (each metric's own extreme) by JSON key, and the worst
     objective, over the scattered solves `runs`."""
-    worst = {}
-    for name, m in rj.METRICS.items():
-        values = [float(getattr(r, name)) for r in runs]
-        worst[m.key] = max(values) if m.extreme == "max" else min(values)
+    values = {name: [float(getattr(r, name)) for r in runs] for name in rj.METRICS}
+    worst = {rj.METRICS[name].key: float(v) for name, v in rjx.worst_case(values).items()}
     return worst, max(float(problem.objective(r.metrics())) for r in runs)
 
 
