@@ -774,3 +774,22 @@ def test_search_is_minimise_on_the_problems_evaluators():
     assert composed.best_objective[0] == searched.best_objective[0]
     assert np.asarray(space.theta(composed.best_theta[0]))[0] == searched.best_theta[0, 0]
     assert composed.gradient_solves == searched.gradient_solves
+
+
+@pytest.mark.parametrize(
+    "objective, message",
+    [
+        ('peak_anchoring_force = "heavy"', r"\[objective\] peak_anchoring_force = .heavy.: valid"),
+        (
+            "peak_anchoring_force = 1.0\n[objective.temperatures]\npeak_anchoring_force = true",
+            r"\[objective.temperatures\] peak_anchoring_force = True: valid a number",
+        ),
+    ],
+)
+def test_an_objective_weight_that_is_not_a_number_names_the_file(tmp_path, objective, message):
+    study = tmp_path / "bad.toml"
+    study.write_text(f"[tune]\ngap = [0.0, 0.1]\n[objective]\n{objective}\n")
+    from recoil_jax.apps._studies import load_study
+
+    with pytest.raises(rj.ParameterError, match=r"bad\.toml: " + message):
+        load_study(study)
