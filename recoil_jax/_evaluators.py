@@ -3,8 +3,8 @@ becomes solves.
 
 An optimiser moves in normalised coordinates `z ∈ [0, 1]^P` (`SearchSpace`: the tuned
 parameters' box, linear per parameter or logarithmic where the bounds span three decades
-or more); these objects turn `z` into what it needs, and nothing else in the layer
-solves a design:
+or more); these objects turn `z` into what it needs, and every solve of `search` (and
+of the tuning benchmark's batched methods and the studies' checks) goes through them:
 
 - `BatchEvaluator`: `z (n, P)` → designs → one `sweep` → objective and violations (the
   global phase of `search`, the tuning benchmark's batched methods).
@@ -34,7 +34,7 @@ from ._local import LocalEvaluation
 from ._metrics import METRICS
 from ._params import end_time, params_to_values
 from ._problem import DesignProblem, evaluate_design, metric_violations
-from ._status import Status, status_codes
+from ._status import OK_CODE
 from ._store import StudyStore, evaluation_row, fingerprint
 from ._sweep import CHUNK_SIZE, sweep
 
@@ -54,8 +54,6 @@ __all__ = [
 
 #: Save times of the minimax's series: the signal's maximum is levelled on this grid.
 SERIES_POINTS = 1024
-
-_OK = int(status_codes(Status.ok))
 
 
 def log_coordinates(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
@@ -116,7 +114,7 @@ class BatchEvaluation(NamedTuple):
     @property
     def ok(self) -> np.ndarray:
         """`(n,)`: whether each solve succeeded."""
-        return self.status_code == _OK
+        return self.status_code == OK_CODE
 
 
 class BatchEvaluator:
@@ -142,9 +140,13 @@ class BatchEvaluator:
         self.chunk_size, self.progress = chunk_size, progress
         self._base = params_to_values(problem.params)
 
+    def theta(self, z: np.ndarray) -> np.ndarray:
+        """`(n, P)`: the tuned values of the points `z (n, P)`."""
+        return np.asarray(jax.vmap(self.space.theta)(jnp.asarray(z)))
+
     def designs(self, z: np.ndarray) -> dict[str, np.ndarray]:
         """Every parameter of each design by flat name, `(n,)` each."""
-        theta = np.asarray(jax.vmap(self.space.theta)(jnp.asarray(z)))
+        theta = self.theta(z)
         designs = {k: np.full(len(z), float(v)) for k, v in self._base.items()}
         return designs | {name: theta[:, j] for j, name in enumerate(self.problem.tune)}
 
@@ -195,7 +197,7 @@ class GradientEvaluator:
 
 def local_evaluation(out: dict[str, np.ndarray]) -> LocalEvaluation:
     """A gradient solve's named outputs as the local phase's `LocalEvaluation`."""
-    ok = int(out["code"]) == _OK
+    ok = int(out["code"]) == OK_CODE
     return LocalEvaluation(out["f"], out["g"], out["df"], out["dg"], float(out["exact"]), ok)
 
 
@@ -219,7 +221,7 @@ class StoredEvaluator:
         todo = np.asarray([i for i, out in enumerate(stored) if out is None], dtype=int)
         n, constraints = len(z), len(self._batch.problem.metric_constraints)
         out = BatchEvaluation(
-            np.zeros((n, len(self._batch.problem.tune))),
+            self._batch.theta(z),
             np.zeros(n),
             np.zeros((n, constraints)),
             np.zeros(n, dtype=np.int32),
@@ -231,7 +233,7 @@ class StoredEvaluator:
                 )  # fmt: skip
         if todo.size:
             solved = self._batch(z[todo])
-            out.theta[todo], out.objective[todo] = solved.theta, solved.objective
+            out.objective[todo] = solved.objective
             out.violations[todo], out.status_code[todo] = solved.violations, solved.status_code
             self.store.commit(
                 [

@@ -38,12 +38,10 @@ from ._problem import (
 )
 from ._progress import Progress
 from ._result import Found, OptimiseResult, RunRecord, build_result
-from ._status import Status, status_codes
+from ._status import OK_CODE
 from ._store import StudyStore, evaluation_row, fingerprint, open_study
 
 __all__ = ["Stopping", "default_optimiser", "optimise"]
-
-_OK = int(status_codes(Status.ok))
 
 
 class Stopping(eqx.Module):
@@ -136,7 +134,7 @@ def _make_step(
         (value, (record, scale)), grad = jax.value_and_grad(loss, has_aux=True)(
             state.u, state, params, limits
         )
-        solved = (record.status == _OK) & jnp.isfinite(value) & jnp.all(jnp.isfinite(grad))
+        solved = (record.status == OK_CODE) & jnp.isfinite(value) & jnp.all(jnp.isfinite(grad))
         move = active & solved
         updates, opt_state = optimiser.update(grad, state.opt_state, state.u)
 
@@ -228,7 +226,7 @@ def _select_best(history: dict[str, np.ndarray], held: np.ndarray, scenarios: in
     """The best feasible point of each run (inf where none), and of each scenario (NaN
     where none); and the least violating point of each scenario. `held (N, R)`: which
     evaluations held every limit."""
-    ok = history["status"] == int(status_codes(Status.ok))
+    ok = history["status"] == OK_CODE
     runs = scenarios * starts
     values = np.where(held, history["objective"], np.inf)  # (N, R)
     run_best_step = np.argmin(values, axis=0)
@@ -389,17 +387,19 @@ class _Runs:
     def take_steps(self, step, inputs, state: _State, stopping, study, bar, callback) -> None:
         """Step every active run (`step(state, *inputs, active)`) until none is or the
         steps are spent."""
-        began, prior = time.perf_counter(), 0.0 if study is None else study.prior_seconds
+        began = time.perf_counter()
+        # Seconds of the budget: a study's own clock (the earlier runs' included).
+        clock = (lambda: time.perf_counter() - began) if study is None else study.spent
         for k in range(len(self.records), self.steps if self.active.any() else 0):
             state, record = step(state, *inputs, jnp.asarray(self.active))
             record = jax.tree.map(np.asarray, record)
             self.records.append(record)
-            failed = record.status != _OK
+            failed = record.status != OK_CODE
             stop = self.active & stopping.stops(self.records, k, failed)
             self.converged_step = np.where(stop & ~failed, k, self.converged_step)
             self.took.append(self.active.copy())
             self.active &= ~stop
-            self.seconds.append(prior + time.perf_counter() - began)
+            self.seconds.append(clock())
             if callback is not None:
                 callback(k, {"objective": record.objective, "active": self.active.copy()})
             held = feasible(~failed, record.objective, record.violations)
@@ -448,7 +448,7 @@ class _Runs:
     def found(self, space, u0, starts: int, scenarios: int, seconds: float) -> Found:
         """What the runs found (for `build_result`)."""
         history = self.history()
-        held = feasible(history["status"] == _OK, history["objective"], history["violations"])
+        held = feasible(history["status"] == OK_CODE, history["objective"], history["violations"])
         best, run_best_objective, run_best_theta = _select_best(history, held, scenarios, starts)
         took = np.stack(self.took)  # (N, R): which runs took each step
         step_seconds = np.asarray(self.seconds)
@@ -479,7 +479,7 @@ class _Runs:
     def _record(self, r, starts, history, theta0, run_best_objective, run_best_theta, took):
         """Run `r`'s `RunRecord`."""
         taken = int(took[:, r].sum())
-        failed = bool(np.any(took[:, r] & (history["status"][:, r] != _OK)))
+        failed = bool(np.any(took[:, r] & (history["status"][:, r] != OK_CODE)))
         found = np.isfinite(run_best_objective[r])
         message = (
             "converged" if self.converged_step[r] >= 0

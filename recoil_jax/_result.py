@@ -36,7 +36,8 @@ class RunRecord:
     - `no_impact` (`optimise`): whether it ended with no impact at all (on the plateau
       where the gap gradient is exactly zero); None where not known.
 
-    Fields also read by name, `run["phase"]`, as the dicts of earlier versions were.
+    Fields also read by subscript, `run["phase"]` (as the dicts of earlier versions
+    were read); it is not a mapping otherwise.
     """
 
     phase: str
@@ -77,11 +78,12 @@ class OptimiseResult:
       how much.
     - `runs`: every local run, in order, a `RunRecord` each (the same record for every
       method).
-    - `trace`: every evaluation in order, arrays by name: `seconds` since the start,
-      `scenario`, `objective` (exact), `feasible`, `gradient` (whether it was a
-      gradient solve), `phase` (`"sample"` and `"local"` for `search`; `"step"` for
-      `optimise`, or `"stopped"` for a stopped run evaluated again where it stopped, as
-      every step solves every run).
+    - `trace`: every evaluation in order, arrays by name: `seconds` of the time budget
+      (since the start; on a resumed store the earlier runs' included), `scenario`,
+      `objective` (exact), `feasible`, `gradient` (whether it was a gradient solve),
+      `phase` (`"sample"` and `"local"` for `search`; `"step"` for `optimise`, or
+      `"stopped"` for a stopped run evaluated again where it stopped, as every step
+      solves every run).
     - `solves`, `gradient_solves`: plain solves and solves with sensitivities
       (`simulations`: both); `seconds`; `compilations` of the gradient program;
       `replayed`: evaluations read back from a study's store instead of solved.

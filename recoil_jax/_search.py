@@ -254,6 +254,8 @@ class _Recorder:
         violations and whether their solves succeeded."""
         z = np.atleast_2d(np.asarray(z, dtype=float))
         objective, violation = np.atleast_1d(objective), np.atleast_1d(violation)
+        if not objective.size:  # a global phase that sampled nothing
+            return
         held = feasible(np.atleast_1d(ok), objective, violation[:, None])
         with self.lock:
             now = self.clock()
@@ -357,7 +359,7 @@ def _checked_methods(local, global_phase, dimension: int, caller: str):
 
 
 def minimise(
-    evaluate_batch: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]],
+    evaluate_batch: Callable[[np.ndarray], Any],
     value_and_jacobian: Callable[[np.ndarray, float], Any],
     dimension: int,
     *,
@@ -378,9 +380,9 @@ def minimise(
 
     **Arguments:**
 
-    - `evaluate_batch(z)`: `z (n, P)` → `(objective (n,), violations (n, C), ok (n,))`:
-      the exact objective, the normalised constraint values (`<= 0` when held) and whether
-      the evaluation succeeded.
+    - `evaluate_batch(z)`: `z (n, P)` → a `BatchEvaluation`, or `(objective (n,),
+      violations (n, C), ok (n,))`: the exact objective, the normalised constraint values
+      (`<= 0` when held) and whether the evaluation succeeded.
     - `value_and_jacobian(z, level)`: `z (P,)` → a `LocalEvaluation` (or the same
       6-tuple; with `run_evaluator`, only the warm-up's): the smoothed objective the
       local method minimises at continuation `level` (one of `local.levels`), its
@@ -575,17 +577,16 @@ def search(
     local, global_phase = _search_methods(problem, local, minimax, global_phase)
     space = SearchSpace.of(problem)
     workers = default_workers(jax.local_devices()) if workers is None else workers
+    batch, gradient = BatchEvaluator(problem, space, client), GradientEvaluator(problem, space)
+    window = MinimaxWindow(problem, local.peak_times)
+    initial = [space.z(np.asarray(values_of(problem.params, problem.tune)))] if use_design else []
     study = None
     if store is not None:
         study = _open_study_store(
             store, problem, local, hopping, global_phase, use_design, seed, workers, progress
         )
         workers = int(study.plan["workers"])
-    batch, gradient = BatchEvaluator(problem, space, client), GradientEvaluator(problem, space)
-    if study is not None:
         batch, gradient = StoredEvaluator(study, batch, gradient).evaluators()
-    window = MinimaxWindow(problem, local.peak_times)
-    initial = [space.z(np.asarray(values_of(problem.params, problem.tune)))] if use_design else []
     traces = gradient_traces()
     with contextlib.nullcontext() if study is None else study:
         minimum = _minimise(

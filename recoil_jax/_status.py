@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 __all__ = [
+    "OK_CODE",
     "SolveError",
     "Status",
     "failure_message",
@@ -62,6 +63,10 @@ def status_codes(status: Any) -> np.ndarray:
     """The integer codes of a (possibly batched) `Status` item, on the host."""
     (codes,) = jax.tree.leaves(status)
     return np.asarray(codes)
+
+
+#: The integer code of `Status.ok`: a solve that succeeded.
+OK_CODE = int(status_codes(Status.ok))
 
 
 def status_messages(status: Any) -> list[str]:

@@ -48,7 +48,7 @@ import numpy as np
 
 from ._params import ParameterError
 from ._problem import DesignProblem, best_feasible_note, feasible, largest_violation
-from ._status import Status, status_codes, status_messages
+from ._status import OK_CODE, status_messages
 
 __all__ = [
     "CampaignProgress",
@@ -509,13 +509,10 @@ def evaluation_row(
     return {
         "seconds": seconds, "phase": phase, "start": start, "theta": theta,
         "objective": objective, "violations": violations,
-        "feasible": bool(feasible(code == _OK, objective, violations)),
+        "feasible": bool(feasible(code == OK_CODE, objective, violations)),
         "status": status_messages(np.asarray([code]))[0], "status_code": code,
         "key": key, "outputs": outputs,
     }  # fmt: skip
-
-
-_OK = int(status_codes(Status.ok))
 
 
 def open_study(

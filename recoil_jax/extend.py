@@ -23,8 +23,8 @@ not need them; `docs/developers.md` shows how to plug a part in.
   arguments, in a bounded cache (`docs/campaigns.md`).
 - `batch_params`, `shard_batch`, `default_workers`: designs as a batched pytree, split
   over devices, and the sweep's default worker count.
-- `status_codes`, `status_messages`, `status_table`: a `Status` item's integer codes and
-  messages, and every code with its message.
+- `status_codes`, `status_messages`, `status_table`, `OK_CODE`: a `Status` item's
+  integer codes and messages, every code with its message, and the code of success.
 - `PEAK_FIELDS`, `gradient_key`, `Metric`, `Parameter`: the keys of the files and the
   registries' entries; `end_time`: a design's end time (refusing a load that does not
   fit); `Forces`: the model's forces; `StoredSweep`: a sweep read back from its store;
@@ -50,10 +50,11 @@ from ._params import Parameter, end_time
 from ._problem import DesignEvaluation, evaluate_design
 from ._result import RunRecord
 from ._search import GlobalPhase, default_local
-from ._status import status_codes, status_messages, status_table
+from ._status import OK_CODE, status_codes, status_messages, status_table
 from ._sweep import StoredSweep, batch_params, default_workers, shard_batch
 
 __all__ = [
+    "OK_CODE",
     "PEAK_FIELDS",
     "BatchEvaluation",
     "BatchEvaluator",

@@ -330,7 +330,7 @@ def plot_convergence(result, path, title: str = "") -> Path:
     """Convergence of an `OptimiseResult`: per run, the best feasible objective so far
     and the worst normalised constraint violation, against the step."""
     history = result.history
-    ok = history["status"] == int(rjx.status_codes(rj.Status.ok))
+    ok = history["status"] == rjx.OK_CODE
     held = rj.feasible(ok, history["objective"], history["violations"])
     objective = np.where(held, history["objective"], np.inf)
     best_so_far = np.minimum.accumulate(objective, axis=0)
