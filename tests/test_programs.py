@@ -64,6 +64,7 @@ import gc, json
 import jax.numpy as jnp
 import numpy as np
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 
 
 def mappings():
