@@ -16,6 +16,8 @@ through `local_run.evaluate(z, level)` and needs nothing else from the library.
 from __future__ import annotations
 
 import abc
+import dataclasses
+import functools
 from collections.abc import Callable
 from typing import Any, NamedTuple, final
 
@@ -33,9 +35,11 @@ __all__ = [
     "LocalEvaluation",
     "LocalMethod",
     "LocalRun",
+    "MinimaxMethod",
     "OptaxLocal",
     "TrustRegionLP",
     "run_local",
+    "store_form",
 ]
 
 
@@ -67,7 +71,7 @@ class OutOfTime(Exception):
 
 
 class Stalled(Exception):
-    """A minimax run stopped improving (`LocalMethod.stall_solves`)."""
+    """A minimax run stopped improving (`MinimaxMethod.stall_solves`)."""
 
 
 _LAGRANGIAN = AugmentedLagrangian()
@@ -80,36 +84,23 @@ CONVERGED = ("converged", "stalled", "Optimization terminated successfully")
 
 class LocalMethod(eqx.Module):
     """A local method of `minimise` (abstract): its settings, and `run`, which each
-    method writes. The methods here are final: a new one subclasses `LocalMethod`.
+    method writes. The methods here are final: a new one subclasses `LocalMethod`,
+    declares its own `maxiter` (iterations per level) and writes `run`.
 
     - `levels`: the continuation levels it evaluates at, in order (factors of the
       objective's temperatures; 0: the minimax, where `f` is a vector).
-    - `maxiter`: iterations per level; `ftol`: the tolerance at the last level.
+    - `ftol`: the tolerance at the last level.
     - `margin`: every normalised limit is aimed at `-margin`, inside the feasibility
       tolerance (`FEASIBILITY_TOLERANCE`), so the limits hold on a re-solve.
-    - `stall_rtol`, `stall_solves`: at level 0, a run ends once its best feasible
-      objective has not improved by `stall_rtol` in `stall_solves` gradient solves
-      (None: never).
-    - `peak_times`: how many of the signal's local maxima at the run's previous point
-      `search` adds to the minimax's pieces (each refined to the vertex of the parabola
-      through its samples): near the optimum they sit on the peaks, so each competing
-      maximum is its own smooth piece (at a maximum, the value and gradient at a fixed
-      time are the peak's own, by the envelope theorem), also for a peak narrower than
-      the grid.
     - `max_failures`: failed trial solves a run steps back from before it ends.
 
-    Every field stays on this class, the minimax's included, and a method changes only
-    their defaults: a study's store is named by a fingerprint of its method's fields, so
-    moving one would keep every store written before from resuming.
+    A method that solves a minimax over time subclasses `MinimaxMethod`.
     """
 
-    maxiter: int = 100
+    maxiter: eqx.AbstractVar[int]
     ftol: float = 1e-10
     margin: float = 1e-5
-    stall_rtol: float = 1e-6
-    stall_solves: int | None = None
     max_failures: int = 20
-    peak_times: int = 0
 
     def __check_init__(self):
         if not self.maxiter >= 1:
@@ -133,6 +124,21 @@ class LocalMethod(eqx.Module):
         """Minimise from `z0`, evaluating through `local.evaluate(z, level)`; returns the
         end point and a message (starting with `"converged"` when the method's own test
         ended it: `CONVERGED`)."""
+
+
+class MinimaxMethod(LocalMethod):
+    """A local method whose last level is the minimax (abstract), with the stall watch
+    every minimax has: at level 0, a run ends once its best feasible objective has not
+    improved by `stall_rtol` in `stall_solves` gradient solves (None: never). A method
+    may also declare `peak_times`: how many of the signal's local maxima at the run's
+    previous point `search` adds to the minimax's pieces (each refined to the vertex of
+    the parabola through its samples): near the optimum they sit on the peaks, so each
+    competing maximum is its own smooth piece (at a maximum, the value and gradient at a
+    fixed time are the peak's own, by the envelope theorem), also for a peak narrower
+    than the grid. None are added where it does not."""
+
+    stall_rtol: float = 1e-6
+    stall_solves: int | None = 20
 
 
 class LocalRun:
@@ -176,7 +182,7 @@ class LocalRun:
         """End a minimax that has stalled: SLSQP's own test on the change of `s` rarely
         fires, since the signal's values carry the solver's tolerance."""
         method = self.method
-        if level != 0 or method.stall_solves is None:
+        if level != 0 or not isinstance(method, MinimaxMethod) or method.stall_solves is None:
             return
         gain = exact < self.stall_best * (1.0 - method.stall_rtol)
         if feasible(ok, exact, [violation]) and gain:
@@ -276,7 +282,8 @@ def run_local(
         message, stopped = f"solves failed ({local.failures}): this start ended there", True
     except OutOfTime:
         message, stopped = "the time budget ran out", True
-    except Stalled:
+    except Stalled:  # (only a MinimaxMethod's run stalls)
+        assert isinstance(method, MinimaxMethod)
         local.z, local.final = local.stall_z, local.stall_best
         message = (
             f"stalled: no gain of {method.stall_rtol:g} in {method.stall_solves} gradient solves"
@@ -302,6 +309,7 @@ class SLSQP(LocalMethod):
     level in turn (factors of the objective's temperatures); every level but the last
     stops at `level_ftol` (a level's optimum only starts the next)."""
 
+    maxiter: int = 100
     schedule: tuple[float, ...] = (1.0,)
     level_ftol: float = 1e-6
 
@@ -324,7 +332,7 @@ class SLSQP(LocalMethod):
 
 
 @final
-class EpigraphMinimax(LocalMethod):
+class EpigraphMinimax(MinimaxMethod):
     """A smoothed level at `basin_level` first finds the basin (SLSQP, at most
     `basin_maxiter` iterations, `basin_ftol`), then SLSQP on the epigraph of the minimax:
     `min s` over `(z, s)` subject to every piece `f_k(z) <= s` and the limits. Each local
@@ -335,7 +343,7 @@ class EpigraphMinimax(LocalMethod):
     basin_level: float = 1.0
     basin_maxiter: int = 8
     basin_ftol: float = 1e-4
-    stall_solves: int | None = 20
+    maxiter: int = 100
     peak_times: int = 64
 
     @property
@@ -384,7 +392,7 @@ class EpigraphMinimax(LocalMethod):
 
 
 @final
-class TrustRegionLP(LocalMethod):
+class TrustRegionLP(MinimaxMethod):
     """Trust-region linear programming on a minimax (Madsen's method): from `z`, each
     iteration solves `min_d max_k f_k + ∇f_k·d`, the limits linearised, `|d| <= radius`
     (max-norm, normalised coordinates) and the unit box, as an LP (HiGHS), then accepts
@@ -400,7 +408,7 @@ class TrustRegionLP(LocalMethod):
     accept: float = 0.01
     min_radius: float = 1e-9
     limit_penalty: float = 100.0
-    stall_solves: int | None = 20
+    maxiter: int = 100
 
     @property
     def levels(self) -> tuple[float, ...]:
@@ -553,6 +561,33 @@ class OptaxLocal(LocalMethod):
                 z = moved
             local.level_done(z, level)
         return z, message
+
+
+#: The settings every method carried when stores were first named (the minimax's among
+#: them): a study's store names its search by a fingerprint of its local method laid out
+#: as then (`store_form`), so that every store written before still resumes.
+_STORE_FIELDS = (
+    "maxiter", "ftol", "margin", "stall_rtol", "stall_solves", "max_failures", "peak_times",
+)  # fmt: skip
+#: Their values in a method that has no such setting (what every method had then).
+_STORE_DEFAULTS = {"stall_rtol": 1e-6, "stall_solves": None, "peak_times": 0}
+
+
+def store_form(method: LocalMethod) -> Any:
+    """`method` as a study's store names it: one of the library's methods laid out as
+    `_STORE_FIELDS`, then its own settings in order; a method of one's own as it is."""
+    if type(method) not in (SLSQP, EpigraphMinimax, TrustRegionLP, OptaxLocal):
+        return method
+    own = tuple(f.name for f in dataclasses.fields(method) if f.name not in _STORE_FIELDS)
+    names = _STORE_FIELDS + own
+    values = (getattr(method, n, _STORE_DEFAULTS.get(n)) for n in names)
+    return _layout(type(method).__name__, names)(*values)
+
+
+@functools.cache
+def _layout(name: str, names: tuple[str, ...]) -> type:
+    """A module named `name` with the fields `names`, in order (a pytree's layout)."""
+    return type(name, (eqx.Module,), {"__annotations__": dict.fromkeys(names, Any)})
 
 
 def _check_smoothed_schedule(method) -> None:

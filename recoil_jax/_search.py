@@ -54,6 +54,7 @@ from ._local import (
     LocalMethod,
     TrustRegionLP,
     run_local,
+    store_form,
 )
 from ._params import ParameterError, values_of
 from ._problem import (
@@ -578,7 +579,7 @@ def search(
     space = SearchSpace.of(problem)
     workers = default_workers(jax.local_devices()) if workers is None else workers
     batch, gradient = BatchEvaluator(problem, space, client), GradientEvaluator(problem, space)
-    window = MinimaxWindow(problem, local.peak_times)
+    window = MinimaxWindow(problem, getattr(local, "peak_times", 0))
     initial = [space.z(np.asarray(values_of(problem.params, problem.tune)))] if use_design else []
     study = None
     if store is not None:
@@ -638,8 +639,9 @@ def _open_study_store(
     else:
         phase, spacing = [global_phase], []
     identity = fingerprint(
-        "search", __version__, problem, local, hopping, *phase, use_design, seed, *spacing
-    )
+        "search", __version__, problem, store_form(local), hopping, *phase, use_design, seed,
+        *spacing,
+    )  # fmt: skip
     runs = global_phase.starts + int(use_design) + (0 if hopping is None else hopping.hops)
     study = open_study(
         path,

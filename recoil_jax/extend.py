@@ -5,7 +5,9 @@ not need them; `docs/developers.md` shows how to plug a part in.
 
 **Optimisers' parts**
 
-- `LocalMethod` (abstract; subclass it and write `run`), `LocalRun` (one run's state:
+- `LocalMethod` (abstract; subclass it, declare `maxiter` and write `run`),
+  `MinimaxMethod` (abstract: a method whose last level is the minimax, with its stall
+  watch and local maxima), `LocalRun` (one run's state:
   `evaluate`, `start_level`, `slsqp`, `level_done`), `LocalEvaluation` (what an
   evaluator gives a local run), `run_local` (one run, recorded), `RunRecord` (one run's
   outcome, the same for every method), `default_local` (what `search` picks);
@@ -43,7 +45,7 @@ from ._evaluators import (
     log_coordinates,
     minimax_metric,
 )
-from ._local import LocalEvaluation, LocalMethod, LocalRun, run_local
+from ._local import LocalEvaluation, LocalMethod, LocalRun, MinimaxMethod, run_local
 from ._metrics import PEAK_FIELDS, Metric, gradient_key, worst_case
 from ._model import Forces
 from ._params import Parameter, end_time
@@ -67,6 +69,7 @@ __all__ = [
     "LocalRun",
     "Metric",
     "MinimaxEvaluator",
+    "MinimaxMethod",
     "MinimaxWindow",
     "Parameter",
     "RunRecord",

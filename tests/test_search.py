@@ -351,6 +351,7 @@ class _ProjectedGradient(rjx.LocalMethod):
     """A local method written outside the library: projected gradient descent with a
     fixed step, on the objective at level 1 (no limits)."""
 
+    maxiter: int = 100
     step: float = 0.2
 
     def run(self, local, z0):

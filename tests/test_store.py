@@ -568,3 +568,50 @@ def test_kill_9_of_a_study_at_random_moments_resumes_to_the_same_design(tmp_path
     plain = run_study(study, tmp_path / "plain", progress=False)
     assert resumed["best"] == plain["best"] and resumed["objective"] == plain["objective"]
     assert _study_rows(store)["runs"] == 4 and _study_rows(store)["integrity"] == "ok"
+
+
+#: Stores' names of the library's local methods as 5fbba6d wrote them, when every method
+#: carried the minimax's settings too (`fingerprint` of the method).
+NAMES_BEFORE = {
+    "SLSQP()": ("d9e99039d12ad515991be2474bed32f135859149a9401a75f05d10ab0f45c93b"),
+    "SLSQP(schedule=(1.0, 1/3, 1/9, 1/30), maxiter=7)": (
+        "39076a511ceda4ad31d984eafb1b92c4eaaa3a36d259a49c491368cbe8248b03"
+    ),
+    "EpigraphMinimax()": ("0f35a65f27e8abbb1f57d2c9c9257ac8c2a2629f5f626c86aa42c14376ab2e88"),
+    "EpigraphMinimax(maxiter=9, peak_times=32)": (
+        "10df5daa10b7d7e6ef6a5c4a2bbd7cd88e745955259cf1331bdb401b747b9cd8"
+    ),
+    "TrustRegionLP()": ("8939b241d1df7c96b02bca7815a2cd87584bd165b70a5f4c0545e6dd7b8f32a1"),
+    "TrustRegionLP(radius=0.05, stall_solves=None)": (
+        "14cbc35613820c7f584e25baca583df9f19951e501d5b3cb58d71a3af44e7745"
+    ),
+    "OptaxLocal()": ("0834f01fb1e808b3e779ff0e6e183d4576e4bc2d5ca6f216d3225e467fb3a9ff"),
+    "OptaxLocal(maxiter=45, update_every=10)": (
+        "8473f087682590935cff910faeb7f5b66d2e03a315362a453d9e2c9b471cebc1"
+    ),
+}
+
+
+def test_a_store_names_a_local_method_as_before_its_settings_moved():
+    # The minimax's settings live on the minimax methods now; a store still names a
+    # search by the layout it had, so every store written before resumes.
+    from recoil_jax._local import store_form
+    from recoil_jax._store import fingerprint
+
+    methods = {
+        "SLSQP()": rj.SLSQP(),
+        "SLSQP(schedule=(1.0, 1/3, 1/9, 1/30), maxiter=7)": rj.SLSQP(
+            schedule=(1.0, 1 / 3, 1 / 9, 1 / 30), maxiter=7
+        ),
+        "EpigraphMinimax()": rj.EpigraphMinimax(),
+        "EpigraphMinimax(maxiter=9, peak_times=32)": rj.EpigraphMinimax(maxiter=9, peak_times=32),
+        "TrustRegionLP()": rj.TrustRegionLP(),
+        "TrustRegionLP(radius=0.05, stall_solves=None)": rj.TrustRegionLP(
+            radius=0.05, stall_solves=None
+        ),
+        "OptaxLocal()": rj.OptaxLocal(),
+        "OptaxLocal(maxiter=45, update_every=10)": rj.OptaxLocal(maxiter=45, update_every=10),
+    }
+    assert {name: fingerprint(store_form(m)) for name, m in methods.items()} == NAMES_BEFORE
+    # Another setting is another name.
+    assert fingerprint(store_form(rj.SLSQP(maxiter=8))) != NAMES_BEFORE["SLSQP()"]
