@@ -28,7 +28,8 @@ not need them; `docs/developers.md` shows how to plug a part in.
 - `status_codes`, `status_messages`, `status_table`, `OK_CODE`: a `Status` item's
   integer codes and messages, every code with its message, and the code of success.
 - `PEAK_FIELDS`, `gradient_key`, `Metric`, `Parameter`: the keys of the files and the
-  registries' entries; `end_time`: a design's end time (refusing a load that does not
+  registries' entries; `T1_LIMITS`: the end time's valid and documented range;
+  `end_time`: a design's end time (refusing a load that does not
   fit); `Forces`: the model's forces; `StoredSweep`: a sweep read back from its store;
   `worst_case`: each metric's worst over a scatter of designs.
 """
@@ -48,7 +49,7 @@ from ._evaluators import (
 from ._local import LocalEvaluation, LocalMethod, LocalRun, MinimaxMethod, run_local
 from ._metrics import PEAK_FIELDS, Metric, gradient_key, worst_case
 from ._model import Forces
-from ._params import Parameter, end_time
+from ._params import T1_LIMITS, Parameter, end_time
 from ._problem import DesignEvaluation, evaluate_design
 from ._result import RunRecord
 from ._search import GlobalPhase, default_local
@@ -58,6 +59,7 @@ from ._sweep import StoredSweep, batch_params, default_workers, shard_batch
 __all__ = [
     "OK_CODE",
     "PEAK_FIELDS",
+    "T1_LIMITS",
     "BatchEvaluation",
     "BatchEvaluator",
     "DesignEvaluation",

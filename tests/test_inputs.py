@@ -155,6 +155,18 @@ def test_values_outside_the_documented_range_are_warned_about():
     # A sweep: how many of its values lie outside.
     (sweep,) = design_warnings({"m": np.array([0.0, 100.0, 6000.0, 7000.0])})
     assert sweep.startswith("m: 2 of 3 values (e.g. m=6000) are outside the documented")
+    # The end time's documented range warns as the parameters' do (#45).
+    (short,) = design_warnings({"t1": 0.05})
+    assert short.startswith("t1=0.05 is outside the documented range 0.1 to 60 s")
+    (long,) = design_warnings({"t1": np.array([1.0, 1e6])})
+    assert long.startswith("t1: 1 of 2 values (e.g. t1=1e+06) are outside the documented")
+    assert design_warnings({"t1": None}) == design_warnings({"t1": 2.0}) == []
+
+
+def test_simulate_warns_of_an_end_time_outside_its_documented_range(capsys):
+    assert main(["simulate", "m=0", "t1=0.05", "--json"]) == 0
+    err = capsys.readouterr().err
+    assert "t1=0.05 is outside the documented range 0.1 to 60 s" in err
 
 
 def test_a_zero_recuperator_force_is_no_recuperator(capsys):

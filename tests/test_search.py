@@ -794,3 +794,16 @@ def test_an_objective_weight_that_is_not_a_number_names_the_file(tmp_path, objec
 
     with pytest.raises(rj.ParameterError, match=r"bad\.toml: " + message):
         load_study(study)
+
+
+def test_an_unknown_name_in_the_design_is_the_designs_fault(tmp_path):
+    # Not "[tune] at the lower bounds" (#45).
+    study = tmp_path / "bad.toml"
+    study.write_text(
+        "[design]\nmass = 1500.0\n[tune]\ngap = [0.0, 0.1]\n[objective]\n"
+        "peak_anchoring_force = 1.0\n"
+    )
+    from recoil_jax.apps._studies import load_study
+
+    with pytest.raises(rj.ParameterError, match=r"bad\.toml: \[design\] unknown parameter 'mass'"):
+        load_study(study)

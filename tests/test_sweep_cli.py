@@ -94,6 +94,13 @@ def test_points_file_errors(tmp_path, capsys):
     path.write_text("m,mass\n100,1\n")
     assert main(["sweep", "--points", str(path)]) == 2
     assert "unknown parameter 'mass'" in capsys.readouterr().err
+    # A name both on the command line and as a column is refused, not resolved (#45).
+    path = tmp_path / "p.csv"
+    path.write_text("m,gap\n500,0.02\n")
+    assert main(["sweep", "--points", str(path), "gap=0.05"]) == 2
+    err = capsys.readouterr().err
+    assert f"gap is given both on the command line (gap=0.05) and as a column of {path}" in err
+    assert err.count("\n") == 1 and "Traceback" not in err
 
 
 def test_one_swept_parameter_draws_both_peaks_and_points_say_why_not(tmp_path, capsys):

@@ -38,7 +38,7 @@ def _simulate(args) -> int:
     if table is not None:
         params = rj.with_table(params, table)
     t1 = float(rjx.end_time(params, options))  # refuses a load that does not fit
-    warn(design_warnings(values, table))
+    warn(design_warnings(values | {"t1": options.t1}, table))
     smoothing = rj.Smoothing.exact() if args.hard else rj.Smoothing()
     # Checked here, not inside the program: a program that can raise holds a host
     # callback, and JAX does not keep those in the compilation cache.

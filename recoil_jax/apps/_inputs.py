@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 
 __all__ = [
     "SETTINGS",
@@ -116,9 +117,10 @@ def design_warnings(values: Mapping[str, object], table: rj.ForceTable | None = 
     no_recuperator = bool(recuperator) and _all_zero(values.get("recuperator_force", 0.0))
     unused = (set(knots) if no_buffer else set()) | (recuperator if no_recuperator else set())
     for name, value in values.items():
-        if name not in rj.PARAMETERS or name in unused:
+        ranged = name in rj.PARAMETERS or name == "t1"  # every documented range, t1's too
+        if not ranged or name in unused or value is None:
             continue
-        p = rj.PARAMETERS[name]
+        p = rjx.T1_LIMITS if name == "t1" else rj.PARAMETERS[name]
         array = np.asarray(value, dtype=float).reshape(-1)
         if name == "m":  # m = 0 is the simplified model, not a mass
             array = array[array != 0]

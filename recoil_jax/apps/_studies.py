@@ -315,6 +315,11 @@ def _parse_design(path, design: dict, tune: list[str], bounds: dict) -> tuple[An
     """`[design]` as the base design, and whether it is a start (it gives a tuned
     parameter). A tuned parameter it does not give takes the middle of its bounds
     (geometric in log coordinates); the box's corners must be designs too."""
+    for name in design:
+        if name not in rj.PARAMETERS:
+            raise _error(
+                path, f"[design] unknown parameter {name!r}; known: {', '.join(rj.PARAMETERS)}"
+            )
     has_start = any(name in design for name in tune)
     for name in tune:
         if name not in design:

@@ -263,7 +263,15 @@ def run_sweep(args) -> int:
             raise rj.ParameterError(
                 "with --points, other parameters can only be fixed (name=value), not swept"
             )
-        designs = [fixed | design for design in read_points(args.points)]
+        points = read_points(args.points)
+        both = sorted(set(fixed) & set().union(*points))
+        if both:
+            name = both[0]
+            raise rj.ParameterError(
+                f"{name} is given both on the command line ({name}={given[name]}) and as a "
+                f"column of {args.points}: give it in one place"
+            )
+        designs = [fixed | design for design in points]
         wrt = None
         columns = {n: [d.get(n, np.nan) for d in designs] for n in set().union(*designs)}
     else:
