@@ -32,6 +32,7 @@ import numpy as np
 
 __all__ = [
     "MAX_KNOTS",
+    "MAX_STEPS",
     "MIN_KNOTS",
     "PARAMETERS",
     "T1_LIMITS",
@@ -618,7 +619,9 @@ class ForceTable(eqx.Module):
             raise ParameterError(f"force table {path} not found") from None
         except (OSError, UnicodeDecodeError):  # a folder, a binary file
             raise ParameterError(f"force table {path} is not a readable text file") from None
-        if not rows or set(rows[0]) != {"t_s", "F_N"}:
+        if not rows:
+            raise ParameterError(f"{path}: no rows of t_s,F_N values (a header alone, or empty)")
+        if set(rows[0]) != {"t_s", "F_N"}:
             raise ParameterError(f"{path}: expected a CSV with the header t_s,F_N")
         try:
             t = [float(r["t_s"]) for r in rows]
@@ -821,6 +824,11 @@ class Smoothing(_Validated):
 T1_LIMITS = Limits(unit="s", lower=0.0, lower_open=True, documented=(0.1, 60.0), meaning="end time")
 
 
+#: The most solver steps a solve may be given (`SolverOptions.max_steps`): a step count
+#: is a 32-bit integer on some devices.
+MAX_STEPS = 2**31 - 1
+
+
 class SolverOptions(_Validated):
     """Time span and adaptive-step settings (Tsit5 with a PID controller).
 
@@ -854,10 +862,10 @@ class SolverOptions(_Validated):
 
     def __check_init__(self):
         super().__check_init__()
-        if not isinstance(self.max_steps, int) or self.max_steps < 1:
+        if not isinstance(self.max_steps, int) or not 1 <= self.max_steps <= MAX_STEPS:
             raise ParameterError(
                 f"SolverOptions.max_steps = {self.max_steps!r} is invalid: valid max_steps is "
-                "an integer >= 1"
+                f"an integer from 1 to {MAX_STEPS:,}"
             )
         if self.autodiff not in ("forward", "reverse"):
             raise ParameterError(

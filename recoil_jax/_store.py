@@ -609,6 +609,8 @@ def campaign_progress(path) -> CampaignProgress:
     path = Path(path)
     if not path.is_file():
         raise ParameterError(f"store {path}: no such file")
+    if path.stat().st_size == 0:  # refused before SQLite would write a new database into it
+        raise ParameterError(f"store {path} is empty: not a recoil-jax store")
     db = _connect(path)
     best = float("nan")
     try:

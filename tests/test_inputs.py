@@ -74,7 +74,7 @@ def _refused(capsys, argv, fragment, status=2):
         (["sweep", "m=100,200", "m=300,400"], "m is given twice"),
         (["simulate", "orifice_32=1e-3"], "the orifice has at most 32 knots"),
         (["sweep", "orifice_40=1e-3,2e-3"], "the orifice has at most 32 knots"),
-        (["simulate", "--max-steps", "0"], "valid max_steps is an integer >= 1"),
+        (["simulate", "--max-steps", "0"], "valid max_steps is an integer from 1 to 2,147,483,647"),
         # Loads that cannot fit: refused before compiling, not after minutes.
         (["simulate", "--force-table", "long.csv"], "70,000 breakpoints"),
         (["simulate", "pulse_time=5"], "the pulse of the last round lasts until 50 s"),
@@ -213,3 +213,31 @@ def test_simulate_solves_in_process_without_flatbuffers(monkeypatch, tmp_path):
     peaks = exported_peaks(params, rj.Smoothing(), rj.SolverOptions())
     assert peaks.to_dict() == rj.peaks(params).to_dict()
     assert not (tmp_path / "exported").exists()
+
+
+def test_inputs_beyond_what_a_run_can_hold_are_one_line(tmp_path, capsys):
+    """#45: a number beyond float64 is named as typed (not as `inf`); a step limit beyond
+    a step counter, a header-only force table and an empty store file each get one line,
+    exit 2, before any solve; the empty file is not written to."""
+
+    def refused(argv) -> str:
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "Traceback" not in err, err
+        return err
+
+    assert "m = '1e309' is not a number: beyond the largest float64" in refused(
+        ["simulate", "m=1e309"]
+    )
+    assert "m='1e309,2': expected a number" in refused(["sweep", "m=1e309,2", "gap=0.05"])
+    assert "beyond the largest float64" in refused(["sweep", "m=1:1e400:3", "gap=0.05"])
+    assert "valid max_steps is an integer from 1 to 2,147,483,647" in refused(
+        ["simulate", "--max-steps", "99999999999999999999"]
+    )
+    table = tmp_path / "header_only.csv"
+    table.write_text("t_s,F_N\n")
+    assert "no rows of t_s,F_N values" in refused(["simulate", "--force-table", str(table)])
+    empty = tmp_path / "empty.sqlite"
+    empty.touch()
+    assert "is empty: not a recoil-jax store" in refused(["progress", str(empty)])
+    assert empty.stat().st_size == 0

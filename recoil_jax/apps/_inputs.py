@@ -8,6 +8,7 @@ solved or compiled.
 
 from __future__ import annotations
 
+import math
 import sys
 from collections.abc import Mapping
 from pathlib import Path
@@ -23,6 +24,7 @@ __all__ = [
     "design_warnings",
     "known",
     "names",
+    "number",
     "parse_assignments",
     "read_text",
     "split_assignment",
@@ -69,10 +71,19 @@ def parse_assignments(items: list[str]) -> dict[str, float]:
         name, text = split_assignment(item, texts)
         texts[name] = text
         try:
-            values[name] = float(text)
-        except ValueError:
-            raise rj.ParameterError(f"{name} = {text!r} is not a number") from None
+            values[name] = number(text)
+        except ValueError as error:
+            raise rj.ParameterError(f"{name} = {text!r} is not a number{error}") from None
     return values
+
+
+def number(text: str) -> float:
+    """A number as typed; `ValueError` for none, and for one beyond the largest float64
+    (which `float` would read as inf), its message then saying so."""
+    value = float(text)
+    if math.isinf(value) and "inf" not in text.lower():
+        raise ValueError(": beyond the largest float64 (about 1.8e308)")
+    return value
 
 
 def read_text(path, what: str) -> str:

@@ -15,7 +15,15 @@ import recoil_jax as rj
 import recoil_jax.extend as rjx
 
 from ._cluster import dask_client
-from ._inputs import design_warnings, known, read_text, split_assignment, unknown_name, warn
+from ._inputs import (
+    design_warnings,
+    known,
+    number,
+    read_text,
+    split_assignment,
+    unknown_name,
+    warn,
+)
 
 __all__ = ["parse_axis", "read_points", "run_sweep", "write_figures", "write_results"]
 
@@ -27,11 +35,12 @@ def parse_axis(name: str, text: str) -> np.ndarray:
             start, stop, count = text.split(":")
             if int(count) < 1:
                 raise ValueError
-            return np.linspace(float(start), float(stop), int(count))
-        return np.array([float(v) for v in text.split(",")])
-    except ValueError:
+            return np.linspace(number(start), number(stop), int(count))
+        return np.array([number(v) for v in text.split(",")])
+    except ValueError as error:
         raise rj.ParameterError(
             f"{name}={text!r}: expected a number, a list a,b,c or a range start:stop:count"
+            f"{error if str(error).startswith(':') else ''}"
         ) from None
 
 
