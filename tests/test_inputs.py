@@ -241,3 +241,30 @@ def test_inputs_beyond_what_a_run_can_hold_are_one_line(tmp_path, capsys):
     empty.touch()
     assert "is empty: not a recoil-jax store" in refused(["progress", str(empty)])
     assert empty.stat().st_size == 0
+
+
+def test_an_output_folder_that_cannot_be_written_is_refused_before_any_solve(tmp_path, capsys):
+    """#45: `--out` an existing file, through a file, or in a place that cannot be made:
+    one line, exit 2, for every command that writes a folder, before anything runs."""
+    a_file = tmp_path / "results.txt"
+    a_file.write_text("not a folder")
+    commands = (
+        ["sweep", "m=100,200", "gap=0.05", "--out"],
+        ["optimise", "paper_gap", "--out"],
+        ["reproduce", "--out"],
+    )
+    places = {
+        str(a_file): "is a file, not a folder",
+        str(a_file / "sub"): "a part of the path is a file",
+        "/proc/recoil-jax-out": "cannot be made",
+    }
+    for command in commands:
+        for place, message in places.items():
+            assert main([*command, place]) == 2, (command, place)
+            err = capsys.readouterr().err
+            assert message in err and err.count("\n") == 1 and "Traceback" not in err, err
+    # A missing folder is simply made.
+    new = tmp_path / "new" / "deeper"
+    from recoil_jax.apps._inputs import output_folder
+
+    assert output_folder(new) == new and new.is_dir()

@@ -10,7 +10,14 @@ import sys
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-from ._inputs import check_figure_path, design_warnings, names, parse_assignments, warn
+from ._inputs import (
+    check_figure_path,
+    design_warnings,
+    names,
+    output_folder,
+    parse_assignments,
+    warn,
+)
 
 __all__ = ["INFEASIBLE", "build_parser", "describe", "main"]
 
@@ -150,7 +157,7 @@ def describe(values: dict) -> str:
 def _reproduce(args) -> int:
     from ._reproduce import format_table, reproduce
 
-    print(format_table(reproduce(args.out)))
+    print(format_table(reproduce(output_folder(args.out))))
     return 0
 
 

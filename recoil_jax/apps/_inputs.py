@@ -9,6 +9,7 @@ solved or compiled.
 from __future__ import annotations
 
 import math
+import os
 import sys
 from collections.abc import Mapping
 from pathlib import Path
@@ -25,6 +26,7 @@ __all__ = [
     "known",
     "names",
     "number",
+    "output_folder",
     "parse_assignments",
     "read_text",
     "split_assignment",
@@ -101,6 +103,25 @@ def read_text(path, what: str) -> str:
         raise rj.ParameterError(f"{what} {path} is not a text file (UTF-8)") from None
     except OSError as error:
         raise rj.ParameterError(f"{what} {path} cannot be read: {error.strerror}") from None
+
+
+def output_folder(path) -> Path:
+    """`path` as a folder to write into, made if missing (before any solve): a path that
+    is a file, passes through one, or cannot be made or written is one line."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise rj.ParameterError(f"--out {path} is a file, not a folder: give a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise rj.ParameterError(
+            f"--out {path}: a part of the path is a file, not a folder"
+        ) from None
+    except OSError as error:
+        raise rj.ParameterError(f"--out {path} cannot be made: {error.strerror}") from None
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise rj.ParameterError(f"--out {path} cannot be written (permission denied)")
+    return path
 
 
 def check_figure_path(path) -> Path:

@@ -62,7 +62,7 @@ import recoil_jax as rj
 import recoil_jax.extend as rjx
 
 from ._cluster import dask_client
-from ._inputs import read_text
+from ._inputs import output_folder, read_text
 
 __all__ = [
     "LOCAL_METHODS",
@@ -667,8 +667,7 @@ def run_study(
     (`message` says it in one line); the checks are skipped.
     """
     study = _prepared(path, seed, workers, scheduler)
-    out = Path(out) if out is not None else Path("results") / study.name
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(out if out is not None else Path("results") / study.name)
     kwargs = optimise_kwargs(study, progress)
     started = time.perf_counter()
     phase = _Phases(study.name, progress)

@@ -19,6 +19,7 @@ from ._inputs import (
     design_warnings,
     known,
     number,
+    output_folder,
     read_text,
     split_assignment,
     unknown_name,
@@ -296,6 +297,8 @@ def run_sweep(args) -> int:
     options = rj.GRADIENT_OPTIONS if wrt else rj.SolverOptions()
     options = dataclasses.replace(options, max_steps=args.max_steps)
     progress = not args.json
+    if args.out:
+        output_folder(args.out)  # once the input is known good, before any solve
     if args.store and not args.out and not args.json:
         # Nothing asks for the results here: they stream to the store, not into memory.
         return _sweep_to_store(args, axes, fixed, designs, wrt, options, table)
