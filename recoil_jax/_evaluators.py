@@ -210,10 +210,6 @@ class StoredEvaluator:
     def __init__(self, store: StudyStore, batch: BatchEvaluator, gradient: GradientEvaluator):
         self.store, self._batch, self._gradient = store, batch, gradient
 
-    def evaluators(self) -> tuple[Callable[..., BatchEvaluation], Callable[..., LocalEvaluation]]:
-        """The batch and gradient evaluators, through the store."""
-        return self.batch, self.gradient
-
     def batch(self, z: np.ndarray) -> BatchEvaluation:
         """`BatchEvaluator`'s evaluation, the stored points read back."""
         keys = [fingerprint("sample", row) for row in z]
@@ -238,7 +234,7 @@ class StoredEvaluator:
             self.store.commit(
                 [
                     self._row(
-                        "sample", solved.theta[j], keys[i],
+                        "sample", solved.theta[j], keys[i], out.objective[i], out.violations[i],
                         {"objective": out.objective[i], "violations": out.violations[i],
                          "code": out.status_code[i]},
                     )
@@ -256,14 +252,11 @@ class StoredEvaluator:
         if out is None:
             out = self._gradient.outputs(z, level, series_ts)
             theta = np.asarray(self._gradient.space.theta(jnp.asarray(z)))
-            self.store.commit([self._row("local", theta, key, out)])
+            self.store.commit([self._row("local", theta, key, out["exact"], out["g"], out)])
         return local_evaluation(out)
 
-    def _row(self, phase: str, theta, key: str, out: dict) -> dict:
-        """The store's row of one evaluation (the exact objective is `exact` in a
-        gradient solve's outputs, `objective` in a sample's)."""
-        objective = out["exact"] if "exact" in out else out["objective"]
-        violations = out["g"] if "g" in out else out["violations"]
+    def _row(self, phase: str, theta, key: str, objective, violations, out: dict) -> dict:
+        """The store's row of one evaluation, its outputs kept for the resume."""
         return evaluation_row(
             self.store.spent(),
             phase,

@@ -178,23 +178,23 @@ class LocalRun:
         # The minimax's best feasible point, and gradient solves since it.
         self.stall_best, self.stall_z, self._since = np.inf, None, 0
 
-    def _watch(self, x, exact, violation, ok, level):
+    def _watch(self, x, exact, held: bool, level):
         """End a minimax that has stalled: SLSQP's own test on the change of `s` rarely
         fires, since the signal's values carry the solver's tolerance."""
         method = self.method
         if level != 0 or not isinstance(method, MinimaxMethod) or method.stall_solves is None:
             return
         gain = exact < self.stall_best * (1.0 - method.stall_rtol)
-        if feasible(ok, exact, [violation]) and gain:
+        if held and gain:
             self.stall_best, self.stall_z, self._since = float(exact), np.array(x), 0
         else:
             self._since += 1
             if self._since >= method.stall_solves and self.stall_z is not None:
                 raise Stalled
 
-    def _count(self, x, exact, violation, ok) -> None:
+    def _count(self, x, exact, held: bool) -> None:
         self.evaluations += 1
-        if feasible(ok, exact, [violation]) and exact < self.best_feasible:
+        if held and exact < self.best_feasible:
             self.best_feasible, self.best_z = float(exact), np.array(x)
 
     def evaluate(self, x: np.ndarray, level: float) -> tuple:
@@ -207,8 +207,9 @@ class LocalRun:
             f, g, df, dg = (np.asarray(a, dtype=float) for a in (f, g, df, dg))
             violation = float(largest_violation(g))
             self._record(x, exact, violation, ok)
-            self._count(x, exact, violation, ok)
-            self._watch(x, exact, violation, ok, level)
+            held = bool(feasible(ok, exact, [violation]))  # the one feasibility test
+            self._count(x, exact, held)
+            self._watch(x, exact, held, level)
             finite = all(np.all(np.isfinite(a)) for a in (f, g, df, dg))
             if bool(ok) and finite:
                 self._cache[key] = (f if f.ndim else float(f), g, df, dg)

@@ -365,9 +365,9 @@ class _Runs:
 
     def resume(self, study: StudyStore | None, state: _State) -> _State:
         """The state after the steps stored in `study` (read back), or `state`."""
+        treedef = jax.tree.structure(state)
         for saved in [] if study is None else study.checkpoints():
             self.took.append(self.active.copy())
-            treedef = jax.tree.structure(state)
             leaves = [jnp.asarray(saved[f"state:{i}"]) for i in range(treedef.num_leaves)]
             state = jax.tree.unflatten(treedef, leaves)
             metrics = {k.split(":", 1)[1]: v for k, v in saved.items() if k.startswith("metric:")}

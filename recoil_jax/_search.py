@@ -587,7 +587,8 @@ def search(
             store, problem, local, hopping, global_phase, use_design, seed, workers, progress
         )
         workers = int(study.plan["workers"])
-        batch, gradient = StoredEvaluator(study, batch, gradient).evaluators()
+        stored = StoredEvaluator(study, batch, gradient)
+        batch, gradient = stored.batch, stored.gradient
     traces = gradient_traces()
     with contextlib.nullcontext() if study is None else study:
         minimum = _minimise(
