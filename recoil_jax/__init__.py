@@ -20,6 +20,11 @@ from ._cache import (
     enable_compilation_cache as enable_compilation_cache,
     use_avx2_codegen as use_avx2_codegen,
 )
+from ._calibrate import (
+    Calibration as Calibration,
+    CalibrationResult as CalibrationResult,
+    calibrate as calibrate,
+)
 from ._design import differentiable_peaks as differentiable_peaks
 from ._gradients import (
     DESIGN_PARAMETERS as DESIGN_PARAMETERS,
@@ -112,6 +117,7 @@ from ._sweep import (
     sweep_to_store as sweep_to_store,
     with_table as with_table,
 )
+from ._traces import read_trace as read_trace
 
 __version__ = importlib.metadata.version("recoil-jax")
 
@@ -137,4 +143,6 @@ __all__ = [  # noqa: RUF022 (grouped by topic, as the docs)
     "search", "minimise", "SobolStarts", "BasinHopping", "SLSQP", "EpigraphMinimax",
     "TrustRegionLP", "OptaxLocal", "optimise", "default_optimiser", "AugmentedLagrangian",
     "Stopping",
+    # Calibration
+    "Calibration", "CalibrationResult", "calibrate", "read_trace",
 ]  # fmt: skip

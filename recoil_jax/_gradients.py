@@ -28,6 +28,8 @@ import jax.numpy as jnp
 from ._cache import structure_jit
 from ._metrics import METRICS, PeakGradients, Peaks
 from ._model import (
+    contact_width,
+    forces,
     future_metric_bounds,
     initial_state,
     load_jump,
@@ -55,9 +57,13 @@ from ._status import raise_on_failure
 from ._stepping import Events, PeakLoop, PeakRun
 
 __all__ = [
+    "ABSORBER_SIGNALS",
     "DESIGN_PARAMETERS",
     "GRADIENT_OPTIONS",
+    "SIGNALS",
+    "SIGNAL_ALIASES",
     "MetricSeries",
+    "SignalSensitivities",
     "SmoothMax",
     "check_wrt",
     "parameter_scale",
@@ -67,6 +73,8 @@ __all__ = [
     "sensitivity_loop",
     "sensitivity_solve",
     "series_name",
+    "signal_sensitivities",
+    "signal_values",
     "smooth_name",
 ]
 
@@ -457,15 +465,17 @@ def sensitivity_solve(
     return _sensitivity_post(args, run, wrt, series)
 
 
-def sensitivity_loop(params, options, wrt, smooth_max=None) -> PeakLoop:
+def sensitivity_loop(params, options, wrt, smooth_max=None, stop_early: bool = True) -> PeakLoop:
     """The stepping loop of the state with its sensitivities to `wrt` (and the smooth
     maxima of `smooth_max`) for the structure of `params`: the one place that wires the
-    sensitivity system into a solve (as `model_loop` for the model alone)."""
+    sensitivity system into a solve (as `model_loop` for the model alone). `stop_early`:
+    stop once the peaks are certain (a calibration's signals run to `t1`)."""
+    bounds = _sensitivity_bounds if smooth_max is None else _smooth_sensitivity_bounds
     return PeakLoop(
         _sensitivity_term(wrt),
         _sensitivity_metrics,
         with_default_tolerances(params, options),
-        _sensitivity_bounds if smooth_max is None else _smooth_sensitivity_bounds,
+        bounds if stop_early else None,
         _events(params, wrt),
         model_ceilings,
         **model_samples(params),
@@ -565,3 +575,77 @@ def peak_jacobian(
     check_wrt(params, wrt)
     options = with_default_tolerances(params, options)  # one program for any tolerances
     return _peak_jacobian_jit(params, smoothing, options, wrt, throw)
+
+
+#: The model's measurable signals by name (the paper's symbols), with their unit and
+#: what they are; `History` calls two of them by longer names (`SIGNAL_ALIASES`).
+SIGNALS: dict[str, tuple[str, str]] = {
+    "x_M": ("m", "barrel displacement"),
+    "v_M": ("m/s", "barrel velocity"),
+    "x_m": ("m", "absorber displacement"),
+    "v_m": ("m/s", "absorber velocity"),
+    "F_AN": ("N", "anchoring force"),
+    "F_ct": ("N", "contact force"),
+}
+#: `History`'s field names of the signals that have a shorter symbol.
+SIGNAL_ALIASES = {"anchoring_force": "F_AN", "contact_force": "F_ct"}
+#: The signals only the absorber model has.
+ABSORBER_SIGNALS = ("x_m", "v_m", "F_ct")
+
+
+def signal_values(t, y, params: RecoilParams, smoothing: Smoothing, names: tuple[str, ...]):
+    """The signals `names` (of `SIGNALS`) at time `t` and state `y` (4,), shape
+    `(len(names),)`."""
+    f = forces(y, params, smoothing, contact_width(params, smoothing), t=t)
+    values = {
+        "x_M": y[0],
+        "v_M": y[1],
+        "x_m": y[2],
+        "v_m": y[3],
+        "F_AN": f.anchoring,
+        "F_ct": f.contact,
+    }
+    return jnp.stack([values[name] for name in names])
+
+
+class SignalSensitivities(NamedTuple):
+    """The signals of one solve at its save times, with their derivatives: `values (S,
+    n)`, `gradients (S, n, k)` (with respect to the `k` parameters `wrt`, SI units),
+    `rates (S, n)` (with respect to time) and the solve's `status`."""
+
+    values: Any
+    gradients: Any
+    rates: Any
+    status: Any
+
+
+def signal_sensitivities(
+    params, smoothing, options, wrt: tuple[str, ...], ts, t1, names: tuple[str, ...]
+) -> SignalSensitivities:
+    """The signals `names` at the save times `ts` (sorted, within `[0, t1]`) and their
+    derivatives with respect to the parameters `wrt` and to time: one solve of the state
+    with its forward sensitivities (error-controlled) run to `t1`, the same envelope
+    formula as the peaks' at fixed times. Unjitted; `wrt` and `names` are static."""
+    z0, args = _sensitivity_setup(params, smoothing, wrt, None, t1)
+    run = sensitivity_loop(params, options, wrt, stop_early=False).integrate(
+        z0, args, t1, save_ts=ts
+    )
+    theta = values_of(params, wrt)
+    scales = jnp.asarray([parameter_scale(name) for name in wrt])
+
+    def at(t, state):
+        y, columns = state[:_N_STATE], state[_N_STATE:].reshape(-1, _N_STATE)
+
+        def signal(t_, y_, theta_):
+            return signal_values(t_, y_, with_values(params, wrt, theta_), smoothing, names)
+
+        values = signal(t, y, theta)
+        gradients = jax.vmap(
+            lambda s, d: jax.jvp(lambda y_, th: signal(t, y_, th), (y, theta), (s, d))[1]
+        )(columns, _directions(wrt))
+        f = vector_field(t, y, model_args(params, smoothing))
+        rate = jax.jvp(lambda t_, y_: signal(t_, y_, theta), (t, y), (jnp.ones_like(t), f))[1]
+        return values, gradients.T / scales, rate
+
+    values, gradients, rates = jax.vmap(at)(ts, run.saved)
+    return SignalSensitivities(values.T, jnp.moveaxis(gradients, 0, 1), rates.T, run.status)

@@ -58,6 +58,7 @@ __all__ = [
     "parameter",
     "params_from_values",
     "params_to_values",
+    "read_text",
     "values_of",
     "with_default_tolerances",
     "with_values",
@@ -577,6 +578,23 @@ class Contact(_Validated):
     lambda_c: Any = _registered("lambda_c")
 
     LIMITS: ClassVar[Mapping[str, Limits]] = _group_limits("contact")
+
+
+def read_text(path, what: str) -> str:
+    """The text of the file `path` (`what` it should be, for messages): a missing file, a
+    folder or a file that is not text is a `ParameterError`; a byte-order mark (as
+    spreadsheets write) is dropped."""
+    path = Path(path)
+    try:
+        return path.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise ParameterError(f"{what} {path} not found") from None
+    except IsADirectoryError:
+        raise ParameterError(f"{what} {path} is a folder, not a file") from None
+    except UnicodeDecodeError:
+        raise ParameterError(f"{what} {path} is not a text file (UTF-8)") from None
+    except OSError as error:
+        raise ParameterError(f"{what} {path} cannot be read: {error.strerror}") from None
 
 
 class ForceTable(eqx.Module):

@@ -31,10 +31,21 @@ not need them; `docs/developers.md` shows how to plug a part in.
   registries' entries; `T1_LIMITS`: the end time's valid and documented range;
   `end_time`: a design's end time (refusing a load that does not
   fit); `Forces`: the model's forces; `StoredSweep`: a sweep read back from its store;
-  `worst_case`: each metric's worst over a scatter of designs.
+  `worst_case`: each metric's worst over a scatter of designs; `read_text`: a text
+  file, or one line saying why not.
+
+**Calibration's parts**
+
+- `Experiment` (a trace and what is known of its firing), `Trace`, `SIGNALS` (the
+  measurable signals, with units), `T_SHIFT` (the trigger delay's range), `LOSSES`;
+  `Fitted` (one fitted value with its uncertainty); `validate` (score a fit on a trace
+  it did not see); `fit_many` (many data sets of the same experiments, fitted as one
+  batch); `signal_sensitivities` (the signals at chosen times with their exact
+  derivatives).
 """
 
 from ._cache import live_programs, set_max_programs, structure_jit
+from ._calibrate import LOSSES, Fitted, fit_many, validate
 from ._evaluators import (
     BatchEvaluation,
     BatchEvaluator,
@@ -46,23 +57,30 @@ from ._evaluators import (
     log_coordinates,
     minimax_metric,
 )
+from ._gradients import SIGNALS, signal_sensitivities
 from ._local import LocalEvaluation, LocalMethod, LocalRun, MinimaxMethod, run_local
 from ._metrics import PEAK_FIELDS, Metric, gradient_key, worst_case
 from ._model import Forces
-from ._params import T1_LIMITS, Parameter, end_time
+from ._params import T1_LIMITS, Parameter, end_time, read_text
 from ._problem import DesignEvaluation, evaluate_design
 from ._result import RunRecord
 from ._search import GlobalPhase, default_local
 from ._status import OK_CODE, status_codes, status_messages, status_table
 from ._sweep import StoredSweep, batch_params, default_workers, shard_batch
+from ._traces import T_SHIFT, Experiment, Trace
 
 __all__ = [
+    "LOSSES",
     "OK_CODE",
     "PEAK_FIELDS",
+    "SIGNALS",
     "T1_LIMITS",
+    "T_SHIFT",
     "BatchEvaluation",
     "BatchEvaluator",
     "DesignEvaluation",
+    "Experiment",
+    "Fitted",
     "Forces",
     "GlobalPhase",
     "GradientEvaluator",
@@ -78,21 +96,26 @@ __all__ = [
     "SearchSpace",
     "StoredEvaluator",
     "StoredSweep",
+    "Trace",
     "batch_params",
     "default_local",
     "default_workers",
     "end_time",
     "evaluate_design",
+    "fit_many",
     "gradient_key",
     "live_programs",
     "log_coordinates",
     "minimax_metric",
+    "read_text",
     "run_local",
     "set_max_programs",
     "shard_batch",
+    "signal_sensitivities",
     "status_codes",
     "status_messages",
     "status_table",
     "structure_jit",
+    "validate",
     "worst_case",
 ]

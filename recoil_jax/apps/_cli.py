@@ -208,6 +208,12 @@ def _optimise(args) -> int:
     return 0
 
 
+def _calibrate(args) -> int:
+    from ._calibration import run_calibration
+
+    return run_calibration(args)
+
+
 def _explore(args) -> int:
     from ._explore import main_explore
 
@@ -460,6 +466,37 @@ def build_parser() -> argparse.ArgumentParser:
         help="run every batch of plain solves on the running Dask cluster at ADDRESS",
     )
     tuning.set_defaults(func=_bench_tuning)
+    calibrate = sub.add_parser(
+        "calibrate",
+        parents=[common],
+        help="fit the model to measured firing traces",
+        description="Fit parameters to measured traces: a calibration file (TOML: "
+        "[design], [fit], [[experiment]]), or one trace (CSV: t and signal columns) with "
+        "--fit. Writes result.json (values, standard errors, 95%% intervals, "
+        "correlation, identifiability, chi2, AIC, BIC), fit.png and correlation.png. "
+        "Exit 0 fitted, 1 a solve failed, 2 bad input, 4 the fit did not converge.",
+    )
+    calibrate.add_argument("source", help="a calibration file (.toml) or a trace (.csv)")
+    calibrate.add_argument("assignments", nargs="*", metavar="name=value",
+                           help="known values, with a trace (e.g. v0=0.69)")  # fmt: skip
+    calibrate.add_argument(
+        "--fit",
+        metavar="NAMES",
+        help="with a trace: the parameters to fit, comma-separated (bounds: each one's "
+        "documented range; t_shift: the trigger delay, -0.01 to 0.01 s)",
+    )
+    calibrate.add_argument("--out", default="results/calibrate", help="output folder")
+    calibrate.add_argument(
+        "--starts", type=int, metavar="N", help="fit from N starts (the given, then Sobol)"
+    )
+    calibrate.add_argument(
+        "--validate",
+        action="append",
+        metavar="TRACE",
+        help="a trace to score the fit on, not fitted (repeatable)",
+    )
+    calibrate.add_argument("--json", action="store_true", help="print result.json")
+    calibrate.set_defaults(func=_calibrate)
     explore = sub.add_parser(
         "explore",
         parents=[common],
@@ -494,7 +531,7 @@ def main(argv: list[str] | None = None) -> int:
     # name=value items may come after the flags (`simulate m=500 --hard t1=2`).
     args, extra = parser.parse_known_args(argv)
     if extra:
-        if args.command not in ("simulate", "sweep", "explore") or any(
+        if args.command not in ("simulate", "sweep", "explore", "calibrate") or any(
             item.startswith("-") for item in extra
         ):
             parser.error(f"unrecognized arguments: {' '.join(extra)}")

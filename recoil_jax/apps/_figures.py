@@ -46,8 +46,11 @@ LEGEND_LINES = 7
 
 __all__ = [
     "LEGEND_LINES",
+    "calibration_figures",
     "objective_label",
+    "plot_calibration_fit",
     "plot_convergence",
+    "plot_correlation",
     "plot_heatmap",
     "plot_history",
     "plot_search_convergence",
@@ -409,3 +412,73 @@ def _save(fig, path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+@_styled
+def plot_calibration_fit(result: rj.CalibrationResult, path) -> Path:
+    """Measured against fitted for each experiment (columns) and signal (rows), each
+    with its residual panel below (in the signal's unit)."""
+    signals = list(dict.fromkeys(s for m in result.measured for s in m))
+    experiments = len(result.times)
+    fig, axes = plt.subplots(
+        2 * len(signals),
+        experiments,
+        figsize=(4.8 * experiments + 1, 3.4 * len(signals)),
+        squeeze=False,
+        gridspec_kw={"height_ratios": [3, 1] * len(signals)},
+        sharex="col",
+        layout="constrained",
+    )
+    for e, (t, measured, model) in enumerate(
+        zip(result.times, result.measured, result.model, strict=True)
+    ):
+        name = result.experiments[e]["name"]
+        for s, signal in enumerate(signals):
+            top, bottom = axes[2 * s, e], axes[2 * s + 1, e]
+            unit = rjx.SIGNALS[signal][0]
+            if signal not in measured:
+                top.set_visible(False)
+                bottom.set_visible(False)
+                continue
+            top.plot(t, measured[signal], ".", ms=2, color="0.55", label="measured")
+            top.plot(t, model[signal], color="C0", lw=1.4, label="fitted")
+            top.set_ylabel(f"{signal} ({unit})")
+            top.set_title(f"{name}: {rjx.SIGNALS[signal][1]}")
+            top.legend(loc="upper right")
+            residual = measured[signal] - model[signal]
+            bottom.plot(t, residual, ".", ms=2, color="C3")
+            bottom.axhline(0.0, color="k", lw=0.8)
+            bottom.set_ylabel(f"residual ({unit})")
+        axes[-1, e].set_xlabel("t (s)")
+    fitted = ", ".join(f"{k} = {v:.4g}" for k, v in result.values.items())
+    fig.suptitle(f"calibration (reduced chi2 {result.reduced_chi2:.3g})\n{fitted}", fontsize=10)
+    return _save(fig, path)
+
+
+@_styled
+def plot_correlation(result: rj.CalibrationResult, path) -> Path:
+    """The fitted values' correlation matrix (blank where a value is not determined)."""
+    names = list(result.fitted)
+    n = len(names)
+    fig, ax = plt.subplots(figsize=(1.1 * n + 2.5, 1.0 * n + 1.8), layout="constrained")
+    image = ax.imshow(result.correlation, vmin=-1, vmax=1, cmap="RdBu_r")
+    ax.set_xticks(range(n), names, rotation=45, ha="right")
+    ax.set_yticks(range(n), names)
+    ax.grid(False)
+    for i in range(n):
+        for j in range(n):
+            c = result.correlation[i, j]
+            if np.isfinite(c):
+                ax.text(j, i, f"{c:+.2f}", ha="center", va="center", fontsize=8)
+    fig.colorbar(image, ax=ax, label="correlation")
+    ax.set_title("correlation of the fitted values")
+    return _save(fig, path)
+
+
+def calibration_figures(result: rj.CalibrationResult, out) -> list[Path]:
+    """The calibration's figures in the folder `out`: `fit.png`, `correlation.png`."""
+    out = Path(out)
+    return [
+        plot_calibration_fit(result, out / "fit.png"),
+        plot_correlation(result, out / "correlation.png"),
+    ]

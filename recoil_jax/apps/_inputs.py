@@ -34,6 +34,9 @@ __all__ = [
     "warn",
 ]
 
+#: A text file's contents, or one line saying why not (the library's reader).
+read_text = rjx.read_text
+
 #: Names `name=value` items may use besides the parameters (`rj.PARAMETERS`).
 SETTINGS = ("t1",)
 
@@ -86,23 +89,6 @@ def number(text: str) -> float:
     if math.isinf(value) and "inf" not in text.lower():
         raise ValueError(": beyond the largest float64 (about 1.8e308)")
     return value
-
-
-def read_text(path, what: str) -> str:
-    """The text of the file `path` (`what` it should be, for messages): a missing file, a
-    folder or a file that is not text is a `ParameterError`; a byte-order mark (as
-    spreadsheets write) is dropped."""
-    path = Path(path)
-    try:
-        return path.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise rj.ParameterError(f"{what} {path} not found") from None
-    except IsADirectoryError:
-        raise rj.ParameterError(f"{what} {path} is a folder, not a file") from None
-    except UnicodeDecodeError:
-        raise rj.ParameterError(f"{what} {path} is not a text file (UTF-8)") from None
-    except OSError as error:
-        raise rj.ParameterError(f"{what} {path} cannot be read: {error.strerror}") from None
 
 
 def output_folder(path) -> Path:

@@ -1,0 +1,971 @@
+"""Calibration: fitting the model's parameters to measured firing traces (`calibrate`).
+
+The fit is weighted least squares over every experiment, signal and sample,
+`Σ ρ(((model − measured) / σ)²)`, solved by optimistix's Levenberg–Marquardt. Its
+Jacobian is the library's forward sensitivities of the signals at the sample times (the
+same error-controlled solve as the peaks' gradients; no finite differences), given to
+optimistix through a `jax.custom_jvp`, so that one solve per step gives the residuals
+and their Jacobian. Every experiment is one lane of one batched solve, and every start
+(`starts`) or noise draw one lane of one batched fit: one compiled program.
+
+The parameters move in the search space's coordinates (`SearchSpace`: linear between
+the bounds, or logarithmic over three decades and more) through lmfit's bounded
+transform `z = (sin u + 1) / 2`, so that no step leaves the bounds. Uncertainty is the
+Gauss–Newton covariance at the optimum scaled by the reduced χ² (lmfit's default), with
+a direction the data cannot confine within the bounds reported by name instead of an
+interval (`docs/calibration.md`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Mapping, Sequence
+from typing import Any, Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import scipy.stats
+
+from ._cache import structure_jit
+from ._evaluators import SearchSpace, log_coordinates
+from ._gradients import (
+    ABSORBER_SIGNALS,
+    GRADIENT_OPTIONS,
+    SIGNALS,
+    signal_sensitivities,
+)
+from ._params import (
+    PARAMETERS,
+    ParameterError,
+    RecoilParams,
+    Smoothing,
+    SolverOptions,
+    check_value,
+    end_time,
+    params_from_values,
+    params_to_values,
+    with_default_tolerances,
+    with_values,
+)
+from ._progress import Progress
+from ._status import OK_CODE
+from ._sweep import batch_params
+from ._traces import T_SHIFT, Experiment, known_values
+
+__all__ = [
+    "LOSSES",
+    "Calibration",
+    "CalibrationResult",
+    "Fitted",
+    "calibrate",
+    "fit_many",
+]
+
+#: The robust losses: `linear` (plain least squares), `soft_l1` and `huber` (scipy's),
+#: each applied to the residual in units of `f_scale` noise deviations.
+LOSSES = ("linear", "soft_l1", "huber")
+
+#: The residual given to the fit where an experiment's solve failed (in noise
+#: deviations): large and finite, so that the step is refused rather than NaN.
+_FAILED_RESIDUAL = 1e6
+
+#: Levenberg–Marquardt stops once a step changes `u` and the cost by less than this.
+_LM_TOLERANCE = 1e-9
+
+
+def _fit_limits(name: str):
+    return T_SHIFT if name == "t_shift" else PARAMETERS[name]
+
+
+@dataclasses.dataclass(frozen=True)
+class Calibration:
+    """A calibration problem: experiments that share the fitted hardware parameters.
+
+    - `experiments`: the `Experiment`s fitted together (at least one).
+    - `fit`: the parameters to estimate, flat name → `(lower, upper)` bounds (SI units);
+      any real design parameter, or `t_shift` (the traces' trigger delay).
+    - `start`: a starting value by name (default: the design's value, or for `t_shift`
+      its known value, moved into the bounds).
+    - `design`: known values shared by every experiment (each experiment's own win).
+    - `loss`: `"linear"`, `"soft_l1"` or `"huber"` (robust against outliers), turning at
+      `f_scale` noise deviations.
+    - `smoothing`, `options`: as for any solve (default `GRADIENT_OPTIONS`, rtol 1e-7).
+    - `validation`: experiments scored with the fitted values but not fitted.
+
+    **Raises:** `ParameterError` (at construction, before anything compiles) for an empty
+    experiment list, an unknown or integer parameter, bounds reversed or outside the valid
+    range, a start outside its bounds, a signal the design does not have, a trace that
+    ends after the solve's end time `t1`, or experiments of different structure.
+    """
+
+    experiments: Sequence[Experiment]
+    fit: Mapping[str, tuple[float, float]]
+    start: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    design: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    loss: Literal["linear", "soft_l1", "huber"] = "linear"
+    f_scale: float = 3.0
+    smoothing: Smoothing = Smoothing()  # noqa: RUF009 (immutable)
+    options: SolverOptions = GRADIENT_OPTIONS
+    validation: Sequence[Experiment] = ()
+
+    def __post_init__(self):
+        object.__setattr__(self, "experiments", tuple(self.experiments))
+        object.__setattr__(self, "validation", tuple(self.validation))
+        if not self.experiments:
+            raise ParameterError("calibration: no experiment to fit (give at least one trace)")
+        if not self.fit:
+            raise ParameterError("calibration: no parameter to fit ([fit] is empty)")
+        if self.loss not in LOSSES:
+            raise ParameterError(
+                f"calibration: loss = {self.loss!r} is invalid: valid {', '.join(LOSSES)}"
+            )
+        if not (math.isfinite(self.f_scale) and self.f_scale > 0):
+            raise ParameterError(f"calibration: f_scale = {self.f_scale!r}: valid > 0")
+        for name, bounds in self.fit.items():
+            _check_fitted(name, bounds, self.start.get(name))
+        for name in self.start:
+            if name not in self.fit:
+                raise ParameterError(f"calibration: a start for {name}, which is not fitted")
+        if not [n for n in self.fit if n != "t_shift"]:
+            raise ParameterError("calibration: fit at least one model parameter besides t_shift")
+        for experiment in (*self.experiments, *self.validation):
+            for name in experiment.per_experiment:
+                if name not in self.fit:
+                    raise ParameterError(
+                        f"{experiment.label}: per_experiment names {name}, which [fit] does not"
+                    )
+        layout = _Layout.of(self)  # checks the designs and signals
+        _prepare(self, self.experiments, layout)  # and the time spans
+
+    def experiment_design(self, experiment: Experiment) -> dict[str, float]:
+        """The known values of one experiment: the shared ones, then its own."""
+        return {**self.design, **experiment.design}
+
+
+def _check_fitted(name: str, bounds, start) -> None:
+    if name != "t_shift":
+        if name not in PARAMETERS:
+            raise PARAMETERS.unknown(name, also=("t_shift",))
+        if PARAMETERS[name].integer:
+            raise ParameterError(f"cannot fit {name}: it is an integer count")
+    limits = _fit_limits(name)
+    try:
+        lower, upper = (float(b) for b in bounds)
+    except (TypeError, ValueError):
+        raise ParameterError(
+            f"fit.{name} = {bounds!r}: give bounds as [lower, upper] ({limits.unit})"
+        ) from None
+    check_value("fit", name, lower, limits)
+    check_value("fit", name, upper, limits)
+    if not lower < upper:
+        raise ParameterError(
+            f"fit.{name} = [{lower:g}, {upper:g}]: the lower bound must be below the upper"
+        )
+    if start is not None:
+        check_value("start", name, start, limits)
+        if not lower <= float(start) <= upper:
+            raise ParameterError(
+                f"start.{name} = {float(start):g} is outside its bounds [{lower:g}, {upper:g}]"
+            )
+
+
+@dataclasses.dataclass(frozen=True)
+class _Layout:
+    """Where each fitted value goes: `labels` (P,) of the fitted values (`name` shared,
+    `name[i]` experiment i's own), their bounds; `wrt` the model parameters fitted
+    anywhere (then `t_shift`: the K columns of each experiment); `index (E, K)` the
+    fitted value each column takes (−1: its known value, `known (E, K)`)."""
+
+    labels: tuple[str, ...]
+    parameters: tuple[str, ...]
+    lower: np.ndarray
+    upper: np.ndarray
+    start: np.ndarray
+    wrt: tuple[str, ...]
+    signals: tuple[str, ...]
+    index: np.ndarray
+    known: np.ndarray
+
+    @classmethod
+    def of(cls, calibration: Calibration, experiments=None) -> _Layout:
+        experiments = calibration.experiments if experiments is None else experiments
+        labels, parameters, owners = [], [], []
+        for name in calibration.fit:
+            own = [i for i, e in enumerate(calibration.experiments, 1) if name in e.per_experiment]
+            if len(own) < len(calibration.experiments):
+                labels.append(name)
+                parameters.append(name)
+                owners.append(None)
+            for i in own:
+                labels.append(f"{name}[{i}]")
+                parameters.append(name)
+                owners.append(i)
+        wrt = tuple(n for n in calibration.fit if n != "t_shift")
+        columns = (*wrt, "t_shift")
+        signals = tuple(s for s in SIGNALS if any(s in e.trace.signals for e in experiments))
+        index = np.full((len(experiments), len(columns)), -1)
+        known = np.zeros((len(experiments), len(columns)))
+        for e, experiment in enumerate(experiments):
+            number = next(
+                (i for i, x in enumerate(calibration.experiments, 1) if x is experiment), None
+            )
+            design = _design_of(calibration, experiment)
+            for k, name in enumerate(columns):
+                known[e, k] = (
+                    calibration.experiment_design(experiment).get("t_shift", 0.0)
+                    if name == "t_shift"
+                    else design[name]
+                )
+                for p, (param, owner) in enumerate(zip(parameters, owners, strict=True)):
+                    if param == name and (owner is None or owner == number):
+                        if owner == number or index[e, k] < 0:
+                            index[e, k] = p
+        lower = np.asarray([calibration.fit[n][0] for n in parameters], dtype=float)
+        upper = np.asarray([calibration.fit[n][1] for n in parameters], dtype=float)
+        start = np.empty(len(parameters))
+        for p, name in enumerate(parameters):
+            if name in calibration.start:
+                start[p] = float(calibration.start[name])
+            else:
+                column = columns.index(name)
+                used = index[:, column] == p
+                guess = float(np.mean(known[used, column])) if used.any() else 0.0
+                start[p] = guess if lower[p] <= guess <= upper[p] else np.nan
+        return cls(
+            tuple(labels),
+            tuple(parameters),
+            lower,
+            upper,
+            start,
+            wrt,
+            signals,
+            index,
+            known,
+        )
+
+    @property
+    def space(self) -> SearchSpace:
+        return SearchSpace(
+            jnp.asarray(self.lower),
+            jnp.asarray(self.upper),
+            jnp.asarray(log_coordinates(self.lower, self.upper)),
+        )
+
+
+def _design_of(calibration: Calibration, experiment: Experiment) -> dict[str, float]:
+    """Every model parameter's value in an experiment (defaults, then known values)."""
+    known = known_values(calibration.experiment_design(experiment))
+    try:
+        params = params_from_values(known)
+    except ParameterError as error:
+        raise ParameterError(f"{experiment.label}: {error}") from None
+    values = {k: float(np.asarray(v)) for k, v in params_to_values(params).items()}
+    for name in calibration.fit:
+        if name != "t_shift" and name not in values:
+            raise ParameterError(
+                f"{experiment.label}: cannot fit {name}: this design does not have its "
+                f"{PARAMETERS[name].group} (give one of its parameters in [design])"
+            )
+    if params.absorber is None:
+        absent = [s for s in experiment.trace.signals if s in ABSORBER_SIGNALS]
+        if absent:
+            raise ParameterError(
+                f"{experiment.trace.source}: column {absent[0]} is a signal of the absorber, "
+                "but this design has none (m = 0)"
+            )
+    return values
+
+
+class _Data(eqx.Module):
+    """The arrays of a fit: the experiments' designs (batched over E), sample times
+    `(E, n)` (padded with the last time), `t1 (E,)`, the measured values `(E, S, n)` (0
+    where absent), `present (E, S, n)`, the noise `sigma (E, S)` and which of it is
+    given, `sigma_given (E, S)`, `index`, `known (E, K)` (`_Layout`), the bounds' space."""
+
+    params: RecoilParams
+    times: jax.Array
+    t1: jax.Array
+    measured: jax.Array
+    present: jax.Array
+    sigma: jax.Array
+    sigma_given: jax.Array
+    index: jax.Array
+    known: jax.Array
+    space: SearchSpace
+    smoothing: Smoothing
+    options: SolverOptions
+
+
+class _Static(eqx.Module):
+    wrt: tuple[str, ...] = eqx.field(static=True)
+    signals: tuple[str, ...] = eqx.field(static=True)
+    loss: str = eqx.field(static=True)
+    f_scale: float = eqx.field(static=True)
+    max_steps: int = eqx.field(static=True)
+
+
+def _prepare(calibration: Calibration, experiments, layout: _Layout) -> _Data:
+    """The arrays of `experiments` (checked: a trace must end within the solve)."""
+    designs, traces = [], []
+    for experiment in experiments:
+        design = known_values(calibration.experiment_design(experiment))
+        designs.append(design)
+        traces.append(experiment.fitted_trace)
+    names = sorted({"M", *(k for d in designs for k in d)})  # M: at least one column
+    columns = {k: [d.get(k, PARAMETERS[k].default) for d in designs] for k in names}
+    try:
+        params, _ = batch_params(columns)
+    except ParameterError as error:
+        raise ParameterError(
+            f"calibration: the experiments must share one structure (all with or all "
+            f"without an absorber, one number of rounds): {error}"
+        ) from None
+    n = max(len(t.t) for t in traces)
+    E, S = len(experiments), len(layout.signals)
+    times = np.zeros((E, n))
+    measured = np.zeros((E, S, n))
+    present = np.zeros((E, S, n), dtype=bool)
+    sigma = np.ones((E, S))
+    given = np.zeros((E, S), dtype=bool)
+    shift_column = layout.index[:, -1]
+    t1 = np.zeros(E)
+    for e, (experiment, trace) in enumerate(zip(experiments, traces, strict=True)):
+        m = len(trace.t)
+        times[e, :m], times[e, m:] = trace.t, trace.t[-1]
+        for s, name in enumerate(layout.signals):
+            if name in trace.signals:
+                values = trace.signals[name]
+                present[e, s, :m] = np.isfinite(values)
+                measured[e, s, :m] = np.where(np.isfinite(values), values, 0.0)
+                sigma[e, s] = experiment.sigma.get(name) or _noise_guess(trace.t, values)
+                given[e, s] = name in experiment.sigma
+        # The solve runs to the trace's end at the earliest trigger the fit may try.
+        p = shift_column[e]
+        earliest = layout.lower[p] if p >= 0 else layout.known[e, -1]
+        needed = trace.t[-1] - earliest
+        t1_given = calibration.experiment_design(experiment).get("t1")
+        if t1_given is not None:
+            if trace.t[-1] - layout.known[e, -1] > t1_given and p < 0:
+                row = int(np.argmax(trace.t - layout.known[e, -1] > t1_given))
+                raise ParameterError(
+                    f"{trace.source}: the trace runs to {trace.t[-1]:g} s, after the "
+                    f"simulated window t1 = {t1_given:g} s (sample {row + 1}, t = "
+                    f"{trace.t[row]:g} s): give a larger t1 or a window"
+                )
+            needed = max(needed, float(t1_given))
+        t1[e] = max(needed, 1e-6)
+    for e, experiment in enumerate(experiments):
+        options = dataclasses.replace(calibration.options, t1=float(t1[e]))
+        single = params_from_index(params, e)
+        try:
+            end_time(single, options)
+        except ParameterError as error:
+            raise ParameterError(f"{experiment.label}: {error}") from None
+    options = with_default_tolerances(params, calibration.options)
+    return _Data(
+        params,
+        jnp.asarray(times),
+        jnp.asarray(t1),
+        jnp.asarray(measured),
+        jnp.asarray(present),
+        jnp.asarray(sigma),
+        jnp.asarray(given),
+        jnp.asarray(layout.index),
+        jnp.asarray(layout.known),
+        layout.space,
+        calibration.smoothing,
+        dataclasses.replace(options, t1=None),
+    )
+
+
+def params_from_index(params: RecoilParams, i: int) -> RecoilParams:
+    """Design `i` of a batched `RecoilParams`."""
+    return jax.tree.map(lambda leaf: leaf[i], params)
+
+
+def _noise_guess(t, values) -> float:
+    """A first guess of a signal's noise from its samples alone: the spread of its
+    successive differences (MAD, robust to outliers), which on a densely sampled smooth
+    signal is the noise's √2 times; at least 1e-9 of the signal's size."""
+    finite = values[np.isfinite(values)]
+    size = float(np.max(np.abs(finite))) if finite.size else 1.0
+    steps = np.diff(finite)
+    guess = (
+        1.4826 * float(np.median(np.abs(steps - np.median(steps)))) / math.sqrt(2)
+        if (steps.size)
+        else 0.0
+    )
+    return max(guess, 1e-9 * size, 1e-300)
+
+
+def _experiment_signals(theta_e, params, times, t1, data: _Data, static: _Static):
+    """One experiment's signals at its sample times `(S, n)` and their Jacobian `(S, n,
+    K)` with respect to its K columns (`wrt`, then `t_shift`), and its status code."""
+    params = with_values(params, static.wrt, theta_e[:-1])
+    model_times = times - theta_e[-1]
+    before = model_times < 0  # before the firing the gun is at rest
+    solved = signal_sensitivities(
+        params,
+        data.smoothing,
+        dataclasses.replace(data.options, t1=t1),
+        static.wrt,
+        jnp.clip(model_times, 0.0, t1),
+        t1,
+        static.signals,
+    )
+    gradients = jnp.concatenate([solved.gradients, -solved.rates[..., None]], axis=-1)
+    values = jnp.where(before, 0.0, solved.values)
+    gradients = jnp.where(before[:, None], 0.0, gradients)
+    (code,) = jax.tree.leaves(solved.status)
+    return values, gradients, code
+
+
+class _Evaluation(eqx.Module):
+    """The fit's pieces at one point θ: the normalised residuals `(E, S, n)` (0 where
+    no sample), their Jacobian with respect to θ `(E, S, n, P)`, the model's signals
+    `(E, S, n)` and each experiment's status code `(E,)`."""
+
+    residuals: jax.Array
+    jacobian: jax.Array
+    signals: jax.Array
+    codes: jax.Array
+
+
+def _evaluate(theta, data: _Data, static: _Static) -> _Evaluation:
+    P = theta.shape[0]
+    index = data.index
+    columns = jnp.where(index >= 0, theta[jnp.maximum(index, 0)], data.known)
+    values, gradients, codes = jax.vmap(
+        lambda th, p, ts, t1: _experiment_signals(th, p, ts, t1, data, static)
+    )(columns, data.params, data.times, data.t1)
+    ok = (codes == OK_CODE)[:, None, None]
+    select = jax.nn.one_hot(index, P) * (index >= 0)[..., None]  # (E, K, P)
+    jacobian = jnp.einsum("esnk,ekp->esnp", gradients, select) / data.sigma[..., None, None]
+    residuals = (values - data.measured) / data.sigma[..., None]
+    residuals = jnp.where(
+        data.present & ok, residuals, jnp.where(data.present, _FAILED_RESIDUAL, 0)
+    )
+    jacobian = jnp.where((data.present & ok)[..., None], jacobian, 0.0)
+    return _Evaluation(residuals, jacobian, values, codes)
+
+
+def _robust(r, loss: str, f_scale: float):
+    """The residual whose square is the loss `ρ(r²)`: `r` (linear), or scipy's soft-L1
+    and Huber of `r / f_scale`, times `f_scale` (smooth in r; the same near 0)."""
+    if loss == "linear":
+        return r
+    x = r / f_scale
+    if loss == "soft_l1":  # ρ(z) = 2(√(1+z) − 1) = 2z / (√(1+z) + 1)
+        return r * jnp.sqrt(2.0 / (jnp.sqrt(1.0 + x * x) + 1.0))
+    # Huber: ρ(z) = z for z <= 1, else 2√z − 1.
+    big = jnp.abs(x) > 1.0
+    safe = jnp.where(big, jnp.abs(x), 1.0)
+    return jnp.where(big, r * jnp.sqrt((2.0 * safe - 1.0) / (safe * safe)), r)
+
+
+def _theta_of_u(u, space: SearchSpace):
+    """lmfit's bounded transform: `z = (sin u + 1) / 2`, `θ = space.theta(z)`."""
+    return space.theta((jnp.sin(u) + 1.0) / 2.0)
+
+
+def _u_of_z(z):
+    return np.arcsin(np.clip(2.0 * np.asarray(z) - 1.0, -1.0, 1.0))
+
+
+def _lm_function(static: _Static):
+    """`(u, data) → robust residuals (N,)`, whose Jacobian (`custom_jvp`) comes from the
+    same forward-sensitivity solve as the residuals."""
+
+    def value_and_jacobian(u, data):
+        theta, dtheta = jax.jvp(lambda u_: _theta_of_u(u_, data.space), (u,), (jnp.ones_like(u),))
+        evaluation = _evaluate(theta, data, static)
+        r = evaluation.residuals.reshape(-1)
+        J = evaluation.jacobian.reshape(r.shape[0], -1) * dtheta
+        robust, slope = jax.jvp(
+            lambda x: _robust(x, static.loss, static.f_scale), (r,), (jnp.ones_like(r),)
+        )
+        return robust, J * slope[:, None]
+
+    @jax.custom_jvp
+    def residuals(u, data):
+        return value_and_jacobian(u, data)[0]
+
+    @residuals.defjvp
+    def _(primals, tangents):
+        u, data = primals
+        du = tangents[0]
+        r, J = value_and_jacobian(u, data)
+        return r, J @ du
+
+    return residuals
+
+
+def _solve_lm(u0, data: _Data, static: _Static):
+    solver = optx.LevenbergMarquardt(rtol=_LM_TOLERANCE, atol=_LM_TOLERANCE)
+    solution = optx.least_squares(
+        _lm_function(static),
+        solver,
+        u0,
+        args=data,
+        max_steps=static.max_steps,
+        throw=False,
+    )
+    return solution.value, solution.result == optx.RESULTS.successful, solution.stats["num_steps"]
+
+
+def _residual_scale(residuals, present, loss: str):
+    """Each signal's noise in units of the assumed one, from the residuals `(E, S, n)`:
+    the RMS, or with a robust loss the MAD's normal-consistent scale."""
+    if loss == "linear":
+        count = jnp.maximum(present.sum(-1), 1)
+        return jnp.sqrt(jnp.sum(jnp.where(present, residuals**2, 0.0), -1) / count)
+    absolute = jnp.where(present, jnp.abs(residuals), jnp.nan)
+    return 1.4826 * jnp.nanmedian(absolute, axis=-1)
+
+
+class _FitOutcome(eqx.Module):
+    """One lane of a batched fit: the optimum `u`, whether the fit converged, its steps,
+    the noise it settled on `(E, S)` and the cost there."""
+
+    u: jax.Array
+    converged: jax.Array
+    steps: jax.Array
+    sigma: jax.Array
+    cost: jax.Array
+
+
+def _fit_one(u0, measured, data: _Data, static: _Static) -> _FitOutcome:
+    """Two passes: fit with the assumed noise; then (where it is estimated) with the
+    noise the residuals show, from the first optimum."""
+    data = eqx.tree_at(lambda d: d.measured, data, measured)
+    u1, ok1, steps1 = _solve_lm(u0, data, static)
+    first = _evaluate(_theta_of_u(u1, data.space), data, static)
+    scale = _residual_scale(first.residuals, data.present, static.loss)
+    scale = jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0)
+    sigma = jnp.where(data.sigma_given, data.sigma, data.sigma * scale)
+    data = eqx.tree_at(lambda d: d.sigma, data, sigma)
+    u2, ok2, steps2 = _solve_lm(u1, data, static)
+    final = _evaluate(_theta_of_u(u2, data.space), data, static)
+    r = _robust(final.residuals, static.loss, static.f_scale)
+    return _FitOutcome(u2, ok1 & ok2, steps1 + steps2, sigma, jnp.sum(r**2))
+
+
+@structure_jit
+def _fit_program(u0, measured, data: _Data, static: _Static) -> _FitOutcome:
+    """`_fit_one` over a batch: `u0 (B, P)`, `measured (B, E, S, n)`."""
+    return jax.vmap(lambda u, m: _fit_one(u, m, data, static))(u0, measured)
+
+
+@structure_jit
+def _evaluate_program(theta, data: _Data, static: _Static) -> _Evaluation:
+    return _evaluate(theta, data, static)
+
+
+@dataclasses.dataclass(frozen=True)
+class Fitted:
+    """One fitted value: `value` (SI units), and where the data determine it
+    (`identifiable`) its standard error `stderr` and 95 % interval `ci95`; None where
+    they do not."""
+
+    value: float
+    stderr: float | None
+    ci95: tuple[float, float] | None
+    identifiable: bool
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "value": self.value,
+            "stderr": self.stderr,
+            "ci95": None if self.ci95 is None else list(self.ci95),
+            "identifiable": self.identifiable,
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrationResult:
+    """What `calibrate` gives.
+
+    - `fitted`: each fitted value by label (`name`, or `name[i]` for experiment i's own)
+      as `Fitted`; `values`: the values alone.
+    - `correlation (P, P)`: of the fitted values (NaN rows for unidentifiable ones);
+      `covariance (P, P)` (SI units).
+    - `unidentifiable`: the combinations the data cannot confine within the bounds, in
+      words (`"k_c, n_c: 0.71·k_c − 0.70·n_c (box coordinates)"`).
+    - `chi2`, `reduced_chi2`, `aic`, `bic`, `samples` (N), `dof` (N − P); `rms`: per
+      signal, the RMS residual (its unit); `sigma`: per experiment and signal, the noise
+      used (given or estimated).
+    - `converged`: the best start's fit converged; `starts`, `starts_at_best`: how many
+      starts were run and how many reached the best cost (within 1e-6).
+    - `experiments`: per experiment, its name, trace, samples, skipped samples and RMS
+      per signal; `validation`: the same for the validation experiments.
+    - `times`, `measured`, `model`: per experiment (a list), the sample times `(n,)` and
+      the measured and fitted signals by name (for figures).
+    - `codes`: each experiment's status code at the optimum; `seconds`.
+    """
+
+    fitted: dict[str, Fitted]
+    values: dict[str, float]
+    correlation: np.ndarray
+    covariance: np.ndarray
+    unidentifiable: list[str]
+    chi2: float
+    reduced_chi2: float
+    aic: float
+    bic: float
+    samples: int
+    dof: int
+    rms: dict[str, float]
+    sigma: list[dict[str, float]]
+    converged: bool
+    starts: int
+    starts_at_best: int
+    steps: int
+    experiments: list[dict[str, Any]]
+    validation: list[dict[str, Any]]
+    times: list[np.ndarray]
+    measured: list[dict[str, np.ndarray]]
+    model: list[dict[str, np.ndarray]]
+    codes: np.ndarray
+    seconds: float
+
+    @property
+    def solved(self) -> bool:
+        """Every experiment's solve at the optimum succeeded."""
+        return bool(np.all(self.codes == OK_CODE))
+
+    def to_json(self) -> dict[str, Any]:
+        """The report as JSON-ready values (`result.json`)."""
+        names = list(self.fitted)
+        return {
+            "fitted": {k: f.to_json() for k, f in self.fitted.items()},
+            "correlation": {
+                a: {b: _finite(self.correlation[i, j]) for j, b in enumerate(names)}
+                for i, a in enumerate(names)
+            },
+            "unidentifiable": self.unidentifiable,
+            "chi2": self.chi2,
+            "reduced_chi2": self.reduced_chi2,
+            "aic": self.aic,
+            "bic": self.bic,
+            "samples": self.samples,
+            "dof": self.dof,
+            "rms": self.rms,
+            "sigma": self.sigma,
+            "converged": self.converged,
+            "solved": self.solved,
+            "starts": self.starts,
+            "starts_at_best": self.starts_at_best,
+            "steps": self.steps,
+            "experiments": self.experiments,
+            "validation": self.validation,
+            "seconds": self.seconds,
+        }
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if math.isfinite(float(x)) else None
+
+
+def _starts(layout: _Layout, starts: int, seed: int) -> np.ndarray:
+    """`(starts, P)` points in box coordinates: the given start (or the box's middle where
+    the design's value lies outside it), then scrambled Sobol points."""
+    space = layout.space
+    middle = np.full(len(layout.labels), 0.5)
+    given = np.isfinite(layout.start)
+    first = np.where(given, space.z(np.where(given, layout.start, layout.lower)), middle)
+    if starts == 1:
+        return first[None]
+    sobol = scipy.stats.qmc.Sobol(
+        len(layout.labels), scramble=True, rng=np.random.default_rng(seed)
+    )
+    points = sobol.random_base2(max(0, math.ceil(math.log2(starts - 1))))
+    return np.concatenate([first[None], points[: starts - 1]])
+
+
+def calibrate(
+    calibration: Calibration,
+    *,
+    starts: int = 1,
+    seed: int = 0,
+    max_steps: int = 200,
+    progress: bool | None = None,
+) -> CalibrationResult:
+    """Fit the parameters `calibration.fit` to its experiments' traces.
+
+    **Arguments:**
+
+    - `calibration`: the `Calibration` (experiments, parameters and bounds, loss).
+    - `starts`: how many starts (the given start, then Sobol points in the box), fitted
+      as one batch; the best is kept and the count reaching it reported.
+    - `seed`: the Sobol points' scrambling; `max_steps`: Levenberg–Marquardt steps per
+      pass; `progress`: a progress line on stderr (None: on a terminal).
+
+    **Returns:** a `CalibrationResult`: values, standard errors, 95 % intervals,
+    correlation, identifiability, χ², AIC, BIC, RMS per signal, the fitted signals.
+
+    **Raises:** `ParameterError` for `starts < 1` (the calibration checked itself when
+    built). A failed solve or a fit that did not converge is reported
+    (`result.solved`, `result.converged`), not raised.
+    """
+    if not (isinstance(starts, int) and starts >= 1):
+        raise ParameterError(f"starts = {starts!r} is invalid: valid an integer >= 1")
+    clock = time.perf_counter()
+    layout = _Layout.of(calibration)
+    data = _prepare(calibration, calibration.experiments, layout)
+    static = _Static(layout.wrt, layout.signals, calibration.loss, calibration.f_scale, max_steps)
+    bar = Progress("calibrate", 3, "phases", progress)
+    bar.update(0, f"fitting from {starts} start{'s' if starts > 1 else ''}")
+    z0 = _starts(layout, starts, seed)
+    measured = jnp.broadcast_to(data.measured, (starts, *data.measured.shape))
+    outcome = _fit_program(jnp.asarray(_u_of_z(z0)), measured, data, static)
+    cost = np.asarray(outcome.cost)
+    cost = np.where(np.isfinite(cost), cost, np.inf)
+    best = int(np.argmin(cost))
+    at_best = int(np.sum(cost <= cost[best] * (1 + 1e-6) + 1e-12))
+    bar.update(1, "uncertainty")
+    data = eqx.tree_at(lambda d: d.sigma, data, outcome.sigma[best])
+    theta = _theta_of_u(outcome.u[best], data.space)
+    evaluation = _evaluate_program(theta, data, static)
+    result = _report(
+        calibration,
+        layout,
+        data,
+        evaluation,
+        np.asarray(theta),
+        converged=bool(outcome.converged[best]),
+        starts=(starts, at_best),
+        steps=int(outcome.steps[best]),
+    )
+    bar.update(2, "validation")
+    validation = [validate(calibration, result, e, static) for e in calibration.validation]
+    bar.update(3, final=True)
+    return dataclasses.replace(result, validation=validation, seconds=time.perf_counter() - clock)
+
+
+def _report(calibration, layout, data, evaluation, theta, *, converged, starts, steps):
+    r = np.asarray(evaluation.residuals)
+    present = np.asarray(data.present)
+    J = np.asarray(evaluation.jacobian)[present]  # (N, P)
+    codes = np.asarray(evaluation.codes)
+    robust = np.asarray(_robust(jnp.asarray(r[present]), calibration.loss, calibration.f_scale))
+    N, P = J.shape[0], len(theta)
+    dof = max(N - P, 1)
+    chi2 = float(np.sum(robust**2))
+    reduced = chi2 / dof
+    # Box coordinates (each bound range [0, 1]; logarithmic where the space is).
+    space = layout.space
+    z = space.z(theta)
+    dtheta_dz = np.asarray(jax.jvp(space.theta, (jnp.asarray(z),), (jnp.ones(P),))[1])
+    Jz = J * dtheta_dz
+    H = Jz.T @ Jz
+    eigenvalues, vectors = np.linalg.eigh(H)
+    largest = max(float(eigenvalues[-1]), 1e-300)
+    # A direction is unconfined when its 95 % interval is wider than the box (or JᵀJ is
+    # singular to rounding there).
+    flat = [
+        j
+        for j, lam in enumerate(eigenvalues)
+        if lam <= 1e-12 * largest or 1.96 * math.sqrt(reduced / max(lam, 1e-300)) > 0.5
+    ]
+    covariance_z = reduced * np.linalg.pinv(H, rcond=1e-12, hermitian=True)
+    sd_z = np.sqrt(np.maximum(np.diag(covariance_z), 0.0))
+    involved = set()
+    unidentifiable = []
+    for j in flat:
+        v = vectors[:, j]
+        names = [i for i in np.argsort(-np.abs(v)) if abs(v[i]) >= 0.2 * np.max(np.abs(v))]
+        involved.update(names)
+        terms = " ".join(
+            f"{'−' if v[i] < 0 else '+'} {abs(v[i]):.2f}·{layout.labels[i]}" for i in names
+        ).lstrip("+ ")
+        unidentifiable.append(
+            f"{', '.join(layout.labels[i] for i in names)}: {terms} (box coordinates) is not "
+            "determined by the data"
+        )
+    identifiable = np.asarray(
+        [i not in involved and 2 * 1.96 * sd_z[i] < 1.0 for i in range(P)], dtype=bool
+    )
+    covariance = covariance_z * np.outer(dtheta_dz, dtheta_dz)
+    sd = np.sqrt(np.maximum(np.diag(covariance), 0.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        correlation = covariance / np.outer(sd, sd)
+    correlation[~identifiable, :] = np.nan
+    correlation[:, ~identifiable] = np.nan
+    fitted = {}
+    for i, label in enumerate(layout.labels):
+        if identifiable[i]:
+            fitted[label] = Fitted(
+                float(theta[i]),
+                float(sd[i]),
+                (float(theta[i] - 1.96 * sd[i]), float(theta[i] + 1.96 * sd[i])),
+                True,
+            )
+        else:
+            fitted[label] = Fitted(float(theta[i]), None, None, False)
+    sigma = np.asarray(data.sigma)
+    residual_si = r * sigma[..., None]
+    rms = {
+        name: float(np.sqrt(np.mean(residual_si[:, s][present[:, s]] ** 2)))
+        for s, name in enumerate(layout.signals)
+        if present[:, s].any()
+    }
+    log_likelihood_term = N * math.log(max(chi2, 1e-300) / N)
+    experiments, times, measured, model = [], [], [], []
+    signals_model = np.asarray(evaluation.signals)
+    for e, experiment in enumerate(calibration.experiments):
+        summary, t, m, fit = _experiment_summary(
+            experiment, e, layout, present, residual_si, np.asarray(data.measured), signals_model
+        )
+        summary["sigma"] = {
+            name: float(sigma[e, s])
+            for s, name in enumerate(layout.signals)
+            if name in experiment.trace.signals
+        }
+        summary["status"] = int(codes[e])
+        experiments.append(summary)
+        times.append(t)
+        measured.append(m)
+        model.append(fit)
+    return CalibrationResult(
+        fitted=fitted,
+        values={label: float(theta[i]) for i, label in enumerate(layout.labels)},
+        correlation=correlation,
+        covariance=covariance,
+        unidentifiable=unidentifiable,
+        chi2=chi2,
+        reduced_chi2=reduced,
+        aic=log_likelihood_term + 2 * P,
+        bic=log_likelihood_term + math.log(N) * P,
+        samples=N,
+        dof=dof,
+        rms=rms,
+        sigma=[e["sigma"] for e in experiments],
+        converged=converged,
+        starts=starts[0],
+        starts_at_best=starts[1],
+        steps=steps,
+        experiments=experiments,
+        validation=[],
+        times=times,
+        measured=measured,
+        model=model,
+        codes=codes,
+        seconds=0.0,
+    )
+
+
+def _experiment_summary(experiment, e, layout, present, residual_si, measured, model):
+    trace = experiment.fitted_trace
+    n = len(trace.t)
+    signals = [s for s in layout.signals if s in trace.signals]
+    rows = {name: layout.signals.index(name) for name in signals}
+    summary = {
+        "name": experiment.label,
+        "trace": trace.source,
+        "samples": int(sum(present[e, s].sum() for s in rows.values())),
+        "skipped": dict(trace.skipped),
+        "rms": {
+            name: float(np.sqrt(np.mean(residual_si[e, s][present[e, s]] ** 2)))
+            for name, s in rows.items()
+            if present[e, s].any()
+        },
+    }
+    measured_signals = {
+        name: np.where(present[e, s, :n], measured[e, s, :n], np.nan) for name, s in rows.items()
+    }
+    model_signals = {name: model[e, s, :n] for name, s in rows.items()}
+    return summary, trace.t, measured_signals, model_signals
+
+
+def validate(
+    calibration: Calibration, result: CalibrationResult, experiment: Experiment, static=None
+) -> dict[str, Any]:
+    """Score the fitted model on an experiment the fit did not see: its RMS residual per
+    signal and its reduced χ² under the fit's noise (by signal, the first experiment's
+    where it has one)."""
+    validating = dataclasses.replace(
+        calibration,
+        experiments=(experiment,),
+        fit={k: v for k, v in calibration.fit.items()},
+        validation=(),
+    )
+    layout = _Layout.of(validating)
+    shared = np.asarray([result.values.get(label, np.nan) for label in layout.labels])
+    missing = [label for label, v in zip(layout.labels, shared, strict=True) if np.isnan(v)]
+    if missing:  # a per-experiment value of another experiment: use the shared one's mean
+        for i, label in enumerate(layout.labels):
+            if np.isnan(shared[i]):
+                own = [v for k, v in result.values.items() if k.startswith(label + "[")]
+                shared[i] = float(np.mean(own))
+    data = _prepare(validating, validating.experiments, layout)
+    noise = {k: v for e in result.sigma for k, v in e.items()}
+    sigma = np.asarray([[noise.get(name, 1.0) for name in layout.signals]], dtype=float)
+    data = eqx.tree_at(lambda d: d.sigma, data, jnp.asarray(sigma))
+    static = _Static(layout.wrt, layout.signals, calibration.loss, calibration.f_scale, 1)
+    evaluation = _evaluate_program(jnp.asarray(shared), data, static)
+    r = np.asarray(evaluation.residuals)
+    present = np.asarray(data.present)
+    residual_si = r * sigma[..., None]
+    summary, *_ = _experiment_summary(
+        experiment,
+        0,
+        layout,
+        present,
+        residual_si,
+        np.asarray(data.measured),
+        np.asarray(evaluation.signals),
+    )
+    summary["reduced_chi2"] = float(np.sum(r[present] ** 2) / max(int(present.sum()), 1))
+    summary["status"] = int(np.asarray(evaluation.codes)[0])
+    return summary
+
+
+def fit_many(
+    calibration: Calibration, measured: Sequence[Sequence[Mapping[str, np.ndarray]]]
+) -> list[dict[str, float]]:
+    """Fit many data sets of the same experiments at once (one batched program): e.g.
+    noise draws of a synthetic test. `measured[b][e]`: the signals of experiment `e` in
+    data set `b`, on that experiment's sample times. Returns each set's fitted values
+    by label with their standard errors (`"<label>.stderr"`) and a `"converged"` flag."""
+    layout = _Layout.of(calibration)
+    data = _prepare(calibration, calibration.experiments, layout)
+    static = _Static(layout.wrt, layout.signals, calibration.loss, calibration.f_scale, 200)
+    batch = np.zeros((len(measured), *data.measured.shape))
+    for b, sets in enumerate(measured):
+        for e, signals in enumerate(sets):
+            for s, name in enumerate(layout.signals):
+                if name in signals:
+                    values = np.asarray(signals[name], dtype=float)
+                    batch[b, e, s, : values.size] = values
+    z0 = np.tile(_starts(layout, 1, 0), (len(measured), 1))
+    outcome = _fit_program(jnp.asarray(_u_of_z(z0)), jnp.asarray(batch), data, static)
+    rows = []
+    for b in range(len(measured)):
+        data_b = eqx.tree_at(
+            lambda d: (d.measured, d.sigma), data, (jnp.asarray(batch[b]), outcome.sigma[b])
+        )
+        theta = _theta_of_u(outcome.u[b], data.space)
+        evaluation = _evaluate_program(theta, data_b, static)
+        report = _report(
+            calibration,
+            layout,
+            data_b,
+            evaluation,
+            np.asarray(theta),
+            converged=bool(outcome.converged[b]),
+            starts=(1, 1),
+            steps=int(outcome.steps[b]),
+        )
+        row = {label: f.value for label, f in report.fitted.items()}
+        row |= {
+            f"{label}.stderr": (f.stderr if f.stderr is not None else math.nan)
+            for label, f in report.fitted.items()
+        }
+        row["converged"] = report.converged
+        rows.append(row)
+    return rows

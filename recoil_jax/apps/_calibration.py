@@ -1,0 +1,246 @@
+"""`recoil-jax calibrate`: fit the model to measured firing traces, from a calibration
+file (TOML) or one trace with `--fit`; the report, `result.json` and the figures."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import recoil_jax as rj
+import recoil_jax.extend as rjx
+
+from ._inputs import output_folder, parse_assignments, read_text
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib  # pyright: ignore[reportMissingImports]
+
+__all__ = ["NOT_CONVERGED", "load_calibration", "run_calibration"]
+
+#: The exit status when the fit did not converge (0 fitted, 1 a solve failed, 2 bad
+#: input).
+NOT_CONVERGED = 4
+
+#: The keys of a calibration file, and of one `[[experiment]]` besides design values.
+_FILE_KEYS = {"description", "design", "fit", "experiment", "validation", "loss", "f_scale",
+              "starts", "seed"}  # fmt: skip
+_EXPERIMENT_KEYS = {"trace", "sigma", "per_experiment", "window", "name"}
+
+
+def _error(where: str, message: str) -> rj.ParameterError:
+    return rj.ParameterError(f"{where}: {message}")
+
+
+def _number(where: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise _error(where, f"{value!r} is not a number")
+    if not math.isfinite(value):
+        raise _error(where, f"{value!r} is not finite")
+    return float(value)
+
+
+def _bounds(where: str, value: Any) -> tuple[tuple[float, float], float | None]:
+    """`[lo, hi]` or `{bounds = [lo, hi], start = x}`."""
+    start = None
+    if isinstance(value, dict):
+        unknown = set(value) - {"bounds", "start"}
+        if unknown or "bounds" not in value:
+            raise _error(where, "give [lower, upper] or { bounds = [lower, upper], start = x }")
+        if "start" in value:
+            start = _number(f"{where}.start", value["start"])
+        value = value["bounds"]
+    if not isinstance(value, list) or len(value) != 2:
+        raise _error(where, f"{value!r}: give bounds as [lower, upper]")
+    return (_number(where, value[0]), _number(where, value[1])), start
+
+
+def _experiment(where: str, entry: Any, folder: Path) -> rjx.Experiment:
+    if not isinstance(entry, dict):
+        raise _error(where, 'each experiment is a table with a trace = "file.csv"')
+    if "trace" not in entry or not isinstance(entry["trace"], str):
+        raise _error(where, 'names no trace (trace = "file.csv", relative to the file)')
+    trace = rj.read_trace(folder / entry["trace"])
+    design = {}
+    for name, value in entry.items():
+        if name in _EXPERIMENT_KEYS:
+            continue
+        if name not in rj.PARAMETERS and name not in ("t_shift", "t1"):
+            raise rj.PARAMETERS.unknown(name, also=("t_shift", "t1", *_EXPERIMENT_KEYS))
+        design[name] = _number(f"{where}.{name}", value)
+    sigma = entry.get("sigma", {})
+    if not isinstance(sigma, dict):
+        raise _error(f"{where}.sigma", "give { signal = noise, ... }")
+    window = entry.get("window")
+    if window is not None:
+        window = _bounds(f"{where}.window", window)[0]
+    per = entry.get("per_experiment", [])
+    if not isinstance(per, list) or not all(isinstance(n, str) for n in per):
+        raise _error(f"{where}.per_experiment", "give a list of parameter names")
+    return rjx.Experiment(
+        trace,
+        design=design,
+        sigma={k: _number(f"{where}.sigma.{k}", v) for k, v in sigma.items()},
+        per_experiment=tuple(per),
+        window=window,
+        name=str(entry.get("name", "")),
+    )
+
+
+def load_calibration(path) -> tuple[rj.Calibration, dict[str, Any]]:
+    """A calibration file as a `Calibration`, and its settings (`starts`, `seed`,
+    `description`). Every fault is a `ParameterError` naming the file and the key."""
+    path = Path(path)
+    try:
+        config = tomllib.loads(read_text(path, "calibration file"))
+    except tomllib.TOMLDecodeError as error:
+        raise rj.ParameterError(f"{path}: not valid TOML ({error})") from None
+    unknown = set(config) - _FILE_KEYS
+    if unknown:
+        raise _error(str(path), f"unknown key {sorted(unknown)[0]!r}; known: "
+                     f"{', '.join(sorted(_FILE_KEYS))}")  # fmt: skip
+    design = config.get("design", {})
+    for name in design:
+        if name not in rj.PARAMETERS and name != "t1":
+            raise rj.PARAMETERS.unknown(name, also=("t1",))
+    design = {k: _number(f"[design] {k}", v) for k, v in design.items()}
+    fit, start = {}, {}
+    for name, value in config.get("fit", {}).items():
+        fit[name], s = _bounds(f"[fit] {name}", value)
+        if s is not None:
+            start[name] = s
+    experiments = config.get("experiment", [])
+    if not isinstance(experiments, list):
+        raise _error(str(path), "write each experiment as [[experiment]]")
+    folder = path.parent
+    fitted = [_experiment(f"[[experiment]] {i}", e, folder) for i, e in enumerate(experiments, 1)]
+    validation = [
+        _experiment(f"[[validation]] {i}", e, folder)
+        for i, e in enumerate(config.get("validation", []), 1)
+    ]
+    calibration = rj.Calibration(
+        fitted,
+        fit=fit,
+        start=start,
+        design=design,
+        loss=config.get("loss", "linear"),
+        f_scale=_number("f_scale", config.get("f_scale", 3.0)),
+        validation=validation,
+    )
+    settings = {
+        "starts": config.get("starts", 1),
+        "seed": config.get("seed", 0),
+        "description": str(config.get("description", "")),
+    }
+    for key in ("starts", "seed"):
+        value = settings[key]
+        if isinstance(value, bool) or not isinstance(value, int) or value < (key == "starts"):
+            raise _error(str(path), f"{key} = {value!r}: give an integer >= {int(key == 'starts')}")
+    return calibration, settings
+
+
+def _quick(trace_path, fit_names: str | None, assignments, validate) -> rj.Calibration:
+    """One trace with `--fit a,b,c` (bounds: each parameter's documented range)."""
+    if not fit_names:
+        raise rj.ParameterError(
+            f"calibrate {trace_path}: name the parameters to fit with --fit k,c_out,..."
+        )
+    fit = {}
+    for name in (n.strip() for n in fit_names.split(",")):
+        if name == "t_shift":
+            fit[name] = rjx.T_SHIFT.documented
+        elif name in rj.PARAMETERS and rj.PARAMETERS[name].documented is not None:
+            fit[name] = rj.PARAMETERS[name].documented
+        else:
+            raise rj.PARAMETERS.unknown(name, also=("t_shift",))
+    design = parse_assignments(assignments)
+    experiment = rjx.Experiment(rj.read_trace(trace_path), design=design)
+    validation = [rjx.Experiment(rj.read_trace(v), design=design) for v in validate]
+    return rj.Calibration([experiment], fit=fit, validation=validation)
+
+
+def run_calibration(args) -> int:
+    """The `calibrate` command."""
+    source = Path(args.source)
+    if source.suffix.lower() == ".toml":
+        if args.fit:
+            raise rj.ParameterError("--fit is for a trace (.csv); a calibration file has [fit]")
+        calibration, settings = load_calibration(source)
+        if args.validate:
+            extra = [rjx.Experiment(rj.read_trace(v), design={}) for v in args.validate]
+            calibration = rj.Calibration(
+                calibration.experiments, fit=calibration.fit, start=calibration.start,
+                design=calibration.design, loss=calibration.loss,
+                f_scale=calibration.f_scale, validation=(*calibration.validation, *extra),
+            )  # fmt: skip
+    else:
+        calibration = _quick(source, args.fit, args.assignments, args.validate or [])
+        settings = {"starts": 1, "seed": 0, "description": ""}
+    starts = args.starts if args.starts is not None else settings["starts"]
+    out = output_folder(args.out)
+    result = rj.calibrate(calibration, starts=starts, seed=settings["seed"], progress=True)
+    report = {"source": str(source), "description": settings["description"], **result.to_json()}
+    (out / "result.json").write_text(json.dumps(report, indent=2) + "\n")
+    from ._figures import calibration_figures
+
+    report["figures"] = [str(p) for p in calibration_figures(result, out)]
+    (out / "result.json").write_text(json.dumps(report, indent=2) + "\n")
+    if args.json:
+        print(json.dumps(report))
+    else:
+        print(fit_report(result))
+    if not result.solved:
+        print("recoil-jax: solver failed at the fitted values", file=sys.stderr)
+        return 1
+    if not result.converged:
+        print(
+            "recoil-jax: the fit did not converge; the best point reached is in result.json "
+            "(try starts = 16 or tighter bounds)",
+            file=sys.stderr,
+        )
+        return NOT_CONVERGED
+    return 0
+
+
+def fit_report(result: rj.CalibrationResult) -> str:
+    """The fit as text, in the style of lmfit's report."""
+    lines = [
+        f"fit: {'converged' if result.converged else 'NOT converged'} in {result.steps} steps "
+        f"({result.starts_at_best} of {result.starts} starts reached the best), "
+        f"{result.seconds:.1f} s",
+        f"  samples {result.samples}, dof {result.dof}, chi2 {result.chi2:.6g}, "
+        f"reduced chi2 {result.reduced_chi2:.4g}, AIC {result.aic:.6g}, BIC {result.bic:.6g}",
+        "  rms: " + ", ".join(f"{k} {v:.4g}" for k, v in result.rms.items()),
+        "  fitted:",
+    ]
+    for name, f in result.fitted.items():
+        if f.identifiable and f.ci95 is not None and f.stderr is not None:
+            relative = abs(f.stderr / f.value) if f.value else math.inf
+            lines.append(
+                f"    {name:12s} {f.value:.6g} +/- {f.stderr:.3g} ({relative:.2%}), "
+                f"95% [{f.ci95[0]:.6g}, {f.ci95[1]:.6g}]"
+            )
+        else:
+            lines.append(f"    {name:12s} {f.value:.6g}  (not determined by the data)")
+    for text in result.unidentifiable:
+        lines.append(f"  not identifiable: {text}")
+    names = [n for n, f in result.fitted.items() if f.identifiable]
+    pairs = [
+        (a, b, result.correlation[i, j])
+        for i, a in enumerate(result.fitted)
+        for j, b in enumerate(result.fitted)
+        if i < j and a in names and b in names and abs(result.correlation[i, j]) >= 0.5
+    ]
+    if pairs:
+        lines.append(
+            "  correlations >= 0.5: " + ", ".join(f"{a}~{b} {c:+.3f}" for a, b, c in pairs)
+        )
+    for v in result.validation:
+        lines.append(
+            f"  validation {v['name']}: reduced chi2 {v['reduced_chi2']:.4g}, rms "
+            + ", ".join(f"{k} {x:.4g}" for k, x in v["rms"].items())
+        )
+    return "\n".join(lines)

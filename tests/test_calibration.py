@@ -1,0 +1,293 @@
+"""Calibration: fitting measured traces (`rj.calibrate`, `recoil-jax calibrate`).
+
+Synthetic traces come from `rj.simulate` at tight tolerance with seeded Gaussian noise;
+a fit must recover every identifiable parameter within its 95 % interval, report what
+the data cannot determine, and refuse bad input with one line.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+import recoil_jax as rj
+import recoil_jax.extend as rjx
+from recoil_jax.apps._cli import main
+
+TIGHT = rj.SolverOptions(t1=1.0, rtol=1e-10, atol=1e-13)
+NOISE = {"x_M": 2e-4, "F_AN": 300.0}
+TRUTH = {"k": 28000.0, "c_out": 6000.0, "gap": 0.02}
+BOX = {"k": (1e4, 1e5), "c_out": (1e3, 3e4), "gap": (0.0, 0.1)}
+
+
+def synthetic(values, *, shift=0.0, seed=0, n=601, end=0.6, outliers=0):
+    """`(t, {signal: measured})` of the design `values`, fired at `t = shift`."""
+    ts = np.linspace(0.0, end, n)
+    history = rj.simulate(rj.params_from_values(values), rj.Smoothing(), TIGHT,
+                          np.clip(ts - shift, 0.0, None))  # fmt: skip
+    rng = np.random.default_rng(seed)
+    clean = {"x_M": np.asarray(history.x_M), "F_AN": np.asarray(history.anchoring_force)}
+    signals = {}
+    for name, values_ in clean.items():
+        noisy = np.where(ts < shift, 0.0, values_) + NOISE[name] * rng.standard_normal(n)
+        signals[name] = noisy
+    if outliers:
+        picked = rng.choice(n, outliers, replace=False)
+        signals["F_AN"][picked] += 25 * NOISE["F_AN"] * rng.choice([-1.0, 1.0], outliers)
+    return ts, signals
+
+
+def trace(values, **kwargs) -> rjx.Trace:
+    ts, signals = synthetic(values, **kwargs)
+    return rjx.Trace.of(ts, **signals)
+
+
+def within(result, truth, sigmas=3.0):
+    """Each true value within `sigmas` standard errors (and in the 95 % interval where
+    `sigmas` is 1.96)."""
+    for name, value in truth.items():
+        fitted = result.fitted[name]
+        assert fitted.identifiable, name
+        assert abs(fitted.value - value) <= sigmas * fitted.stderr, (name, fitted, value)
+
+
+def test_one_experiment_recovers_its_parameters_and_its_noise():
+    calibration = rj.Calibration([rjx.Experiment(trace(TRUTH))], fit=BOX)
+    result = rj.calibrate(calibration, progress=False)
+    assert result.converged and result.solved
+    within(result, TRUTH)
+    # The noise estimated from the residuals is the one put in (to 10 %).
+    for name, sigma in NOISE.items():
+        assert result.sigma[0][name] == pytest.approx(sigma, rel=0.1)
+    assert result.reduced_chi2 == pytest.approx(1.0, abs=0.1)
+    # The interval is value ± 1.96 stderr, the correlation a correlation.
+    f = result.fitted["k"]
+    assert f.ci95 == pytest.approx((f.value - 1.96 * f.stderr, f.value + 1.96 * f.stderr))
+    assert np.allclose(np.diag(result.correlation), 1.0)
+    assert np.all(np.abs(result.correlation) <= 1.0 + 1e-12)
+    # AIC and BIC follow lmfit's definitions from chi2.
+    N, P = result.samples, 3
+    assert result.aic == pytest.approx(N * math.log(result.chi2 / N) + 2 * P)
+    assert result.bic == pytest.approx(N * math.log(result.chi2 / N) + math.log(N) * P)
+
+
+def test_two_experiments_with_their_own_v0_and_trigger_delay():
+    first = rjx.Experiment(trace(TRUTH | {"v0": 0.69}, seed=1), design={"v0": 0.69})
+    second = rjx.Experiment(
+        trace(TRUTH | {"v0": 0.74}, shift=0.003, seed=2),
+        design={"v0": 0.70},  # a guess: fitted as its own
+        per_experiment=("v0", "t_shift"),
+    )
+    fit = BOX | {"v0": (0.5, 0.9), "t_shift": (-0.01, 0.01)}
+    calibration = rj.Calibration([first, second], fit=fit)
+    result = rj.calibrate(calibration, progress=False)
+    assert set(result.fitted) == {"k", "c_out", "gap", "v0", "v0[2]", "t_shift", "t_shift[2]"}
+    within(result, TRUTH | {"v0": 0.69, "v0[2]": 0.74, "t_shift": 0.0, "t_shift[2]": 0.003})
+
+
+@pytest.mark.parametrize("loss", ["soft_l1", "huber"])
+def test_a_robust_loss_fits_through_outliers(loss):
+    outlying = rjx.Experiment(trace(TRUTH, outliers=30, seed=3))
+    robust = rj.calibrate(rj.Calibration([outlying], fit=BOX, loss=loss), progress=False)
+    within(robust, TRUTH)
+    # Its noise is the inliers' (the outliers inflate a plain fit's).
+    assert robust.sigma[0]["F_AN"] == pytest.approx(NOISE["F_AN"], rel=0.15)
+
+
+def test_what_the_data_cannot_determine_is_named_not_given_an_interval():
+    # A barely-touching absorber: x_M says nothing of the contact's k_c and n_c.
+    barely = rjx.Experiment(trace({"gap": 0.045}, seed=4))
+    fit = {"k": (1e4, 1e5), "k_c": (1e7, 1e10), "n_c": (1.0, 2.0)}
+    result = rj.calibrate(rj.Calibration([barely], fit=fit), progress=False)
+    assert result.fitted["k"].identifiable
+    for name in ("k_c", "n_c"):
+        assert not result.fitted[name].identifiable
+        assert result.fitted[name].ci95 is None and result.fitted[name].stderr is None
+    assert any("k_c" in text and "n_c" in text for text in result.unidentifiable)
+
+
+def test_exact_jacobian_matches_finite_differences():
+    # The signals' derivatives that feed the fit, against central differences.
+    import jax.numpy as jnp
+
+    params = rj.params_from_values(TRUTH)
+    ts = jnp.linspace(0.0, 0.6, 61)
+    wrt = ("k", "c_out", "gap")
+    options = rj.SolverOptions(rtol=1e-10, atol=1e-13)
+    solved = rjx.signal_sensitivities(params, rj.Smoothing(), options, wrt, ts, 0.6,
+                                      ("x_M", "F_AN"))  # fmt: skip
+    for j, name in enumerate(wrt):
+        value = float(TRUTH[name])
+        h = 1e-5 * value
+
+        def at(v, name=name):
+            p = rj.with_values(params, (name,), jnp.asarray([v]))
+            history = rj.simulate(p, rj.Smoothing(), rj.SolverOptions(t1=0.6, rtol=1e-11,
+                                                                       atol=1e-14), ts)  # fmt: skip
+            return np.asarray(history.anchoring_force)
+
+        difference = (at(value + h) - at(value - h)) / (2 * h)
+        exact = np.asarray(solved.gradients[1, :, j])
+        assert np.max(np.abs(exact - difference)) <= 1e-3 * np.max(np.abs(exact)), name
+
+
+def write_trace(path, ts, signals, header=None):
+    names = list(signals)
+    lines = [header or ",".join(["t", *names])]
+    for i, t in enumerate(ts):
+        lines.append(",".join([f"{t:.9g}", *(f"{signals[n][i]:.9g}" for n in names)]))
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_a_spreadsheet_export_with_gaps_is_read(tmp_path):
+    path = tmp_path / "export.csv"
+    path.write_bytes(
+        "\ufeff# exported\r\n t , x_M , anchoring_force \r\n0.0, 0.0, 10\r\n\r\n"
+        "0.001, , 11\r\n0.002, 0.0013, NaN\r\n, 1, 2\r\n0.003, 0.002, 12\r\n".encode()
+    )
+    read = rj.read_trace(path)
+    assert list(read.signals) == ["x_M", "F_AN"]
+    assert read.t.tolist() == [0.0, 0.001, 0.002, 0.003]
+    assert read.skipped == {"x_M": 2, "F_AN": 2}  # the empty values and the time-less row
+    assert read.samples == 6
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("x_M,F_AN\n1,2\n", "one time column t"),
+        ("t,x_M,pressure\n0,0,1\n", "no signal 'pressure'"),
+        ("t,x_M\n0,0\n0.2,1\n0.1,2\n", "not increasing at sample 3"),
+        ("t,x_M\n0,0\n0.1,abc\n", "line 3, column x_M: 'abc' is not a number"),
+        ("t,x_M\n0,\n0.1,nan\n", "no usable sample"),
+        ("t,x_M\n0,0,1\n", "line 2: 3 values for 2 columns"),
+        ("t,x_M,x_M\n0,0,0\n", "x_M given twice"),
+        ("", "empty"),
+    ],
+)
+def test_bad_traces_are_one_line_naming_file_column_and_row(tmp_path, text, message):
+    path = tmp_path / "bad.csv"
+    path.write_text(text)
+    with pytest.raises(rj.ParameterError, match=message) as error:
+        rj.read_trace(path)
+    assert "bad.csv" in str(error.value) and "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"fit": {"stiffness": (1, 2)}}, "stiffness"),
+        ({"fit": {"k": (5e4, 2e4)}}, "lower bound must be below"),
+        ({"fit": {"k": (-1.0, 2e4)}}, "fit.k"),
+        ({"fit": {"shots": (1, 3)}}, "integer count"),
+        ({"start": {"k": 9e5}}, "outside its bounds"),
+        ({"experiments": []}, "no experiment"),
+        ({"fit": {}}, "no parameter to fit"),
+        ({"fit": {"t_shift": (-0.01, 0.01)}}, "besides t_shift"),
+        ({"loss": "cauchy"}, "loss"),
+        ({"design": {"m": 0.0}, "fit": {"k": (1e4, 1e5)}}, "absorber"),
+    ],
+)
+def test_bad_calibrations_are_refused_before_compiling(change, message):
+    ts = np.linspace(0.0, 0.1, 11)
+    experiment = rjx.Experiment(rjx.Trace.of(ts, x_M=ts, F_ct=ts))
+    arguments = {"experiments": [experiment], "fit": {"k": (1e4, 1e5)}} | change
+    with pytest.raises(rj.ParameterError, match=message):
+        rj.Calibration(**arguments)
+
+
+def test_a_trace_past_the_given_window_is_refused():
+    ts = np.linspace(0.0, 2.0, 21)
+    experiment = rjx.Experiment(rjx.Trace.of(ts, x_M=ts), design={"t1": 1.0})
+    with pytest.raises(rj.ParameterError, match=r"after the simulated window t1 = 1 s \(sample"):
+        rj.Calibration([experiment], fit={"k": (1e4, 1e5)})
+
+
+def test_the_command_line_fits_a_calibration_file(tmp_path, capsys):
+    ts, signals = synthetic(TRUTH | {"v0": 0.69}, seed=5)
+    write_trace(tmp_path / "firing_1.csv", ts, {"x_M": signals["x_M"],
+                                                 "anchoring_force": signals["F_AN"]})  # fmt: skip
+    (tmp_path / "cal.toml").write_text(
+        'description = "synthetic"\n[design]\nv0 = 0.69\n[fit]\nk = [1e4, 1e5]\n'
+        "c_out = { bounds = [1e3, 3e4], start = 5000.0 }\ngap = [0.0, 0.1]\n"
+        '[[experiment]]\ntrace = "firing_1.csv"\n'
+    )
+    out = tmp_path / "out"
+    assert main(["calibrate", str(tmp_path / "cal.toml"), "--out", str(out), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report == json.loads((out / "result.json").read_text())
+    for name, value in TRUTH.items():
+        fitted = report["fitted"][name]
+        assert fitted["identifiable"] and fitted["ci95"][0] - 2 * fitted["stderr"] <= value
+        assert value <= fitted["ci95"][1] + 2 * fitted["stderr"]
+    assert set(report["rms"]) == {"x_M", "F_AN"} and report["converged"]
+    assert {"chi2", "reduced_chi2", "aic", "bic", "correlation", "experiments"} <= set(report)
+    assert (out / "fit.png").stat().st_size > 10_000 and (out / "correlation.png").exists()
+    # The quick form, one trace, validated on another.
+    ts2, signals2 = synthetic(TRUTH | {"v0": 0.69}, seed=6)
+    other = write_trace(tmp_path / "firing_2.csv", ts2, signals2)
+    code = main(["calibrate", str(tmp_path / "firing_1.csv"), "--fit", "k,c_out,gap",
+                 "v0=0.69", "--out", str(out), "--validate", str(other)])  # fmt: skip
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "validation firing_2.csv" in text and "k " in text
+    validation = json.loads((out / "result.json").read_text())["validation"][0]
+    assert validation["reduced_chi2"] == pytest.approx(1.0, abs=0.2)
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["missing.csv", "--fit", "k"], "not found"),
+        (["{trace}"], "--fit"),
+        (["{trace}", "--fit", "k,stiffness"], "stiffness"),
+        (["{toml}", "--fit", "k"], "--fit is for a trace"),
+    ],
+)
+def test_bad_command_lines_exit_2(tmp_path, capsys, arguments, message):
+    trace_path = write_trace(tmp_path / "t.csv", [0.0, 0.1], {"x_M": [0.0, 0.01]})
+    toml = tmp_path / "c.toml"
+    toml.write_text('[fit]\nk = [1e4, 1e5]\n[[experiment]]\ntrace = "t.csv"\n')
+    argv = [a.format(trace=trace_path, toml=toml) for a in arguments]
+    assert main(["calibrate", *argv, "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize(
+    ("body", "message"),
+    [
+        ("[fit]\nk = [1e4, 1e5]\n", "no experiment"),
+        ('[fit]\nk = "wide"\n[[experiment]]\ntrace = "t.csv"\n', "[fit] k"),
+        ('[fit]\nk = [1e4, 1e5]\n[[experiment]]\ntrace = "t.csv"\nvv0 = 1\n', "vv0"),
+        ('[fit]\nk = [1e4, 1e5]\n[[experiment]]\nfile = "t.csv"\n', "names no trace"),
+        ('[fit]\nk = [1e4, 1e5]\nstarts = 0\n[[experiment]]\ntrace = "t.csv"\n', "starts"),
+        ("[fit\n", "not valid TOML"),
+        ('colour = 1\n[fit]\nk = [1e4, 1e5]\n[[experiment]]\ntrace = "t.csv"\n', "colour"),
+    ],
+)
+def test_bad_calibration_files_exit_2(tmp_path, capsys, body, message):
+    write_trace(tmp_path / "t.csv", [0.0, 0.1], {"x_M": [0.0, 0.01]})
+    (tmp_path / "c.toml").write_text(body)
+    assert main(["calibrate", str(tmp_path / "c.toml"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+
+
+@pytest.mark.slow
+def test_the_95_percent_intervals_cover_the_truth_95_percent_of_the_time():
+    """Over 100 noise draws of one experiment (fitted as one batch), each interval holds
+    the true value in a fraction consistent with 95 % (binomial: 88 to 99 of 100)."""
+    ts, _ = synthetic(TRUTH, n=301)
+    draws = [synthetic(TRUTH, n=301, seed=100 + b)[1] for b in range(100)]
+    experiment = rjx.Experiment(rjx.Trace.of(ts, **draws[0]))
+    calibration = rj.Calibration([experiment], fit=BOX)
+    rows = rjx.fit_many(calibration, [[d] for d in draws])
+    assert all(row["converged"] for row in rows)
+    for name, value in TRUTH.items():
+        covered = sum(abs(row[name] - value) <= 1.96 * row[f"{name}.stderr"] for row in rows)
+        assert 88 <= covered <= 99, (name, covered)
