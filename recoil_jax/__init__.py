@@ -74,6 +74,7 @@ from ._params import (
     with_values as with_values,
 )
 from ._parts import AugmentedLagrangian as AugmentedLagrangian
+from ._predict import predict as predict
 from ._problem import (
     FEASIBILITY_TOLERANCE as FEASIBILITY_TOLERANCE,
     Agreement as Agreement,
@@ -144,5 +145,5 @@ __all__ = [  # noqa: RUF022 (grouped by topic, as the docs)
     "TrustRegionLP", "OptaxLocal", "optimise", "default_optimiser", "AugmentedLagrangian",
     "Stopping",
     # Calibration
-    "Calibration", "CalibrationResult", "calibrate", "read_trace",
+    "Calibration", "CalibrationResult", "calibrate", "read_trace", "predict",
 ]  # fmt: skip

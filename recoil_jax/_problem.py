@@ -73,12 +73,14 @@ class Objective(eqx.Module):
       `peak_anchoring_force` have one. The *reported* objective always uses the peaks.
     - `scatter`: `(name, relative offsets)`: evaluate the design at `value·(1 + offset)`
       of that parameter for each offset (vmapped) and take the worst case, for the
-      objective and the metric constraints alike (robust design).
+      objective and the metric constraints alike (robust design). Several parameters
+      move together as `((name, ...), ((offset, ...), ...))`: one tuple of relative
+      offsets per point (e.g. a calibration's sigma points).
     """
 
     weights: dict[str, float]
     temperatures: dict[str, float] = eqx.field(default_factory=dict)
-    scatter: tuple[str, tuple[float, ...]] | None = eqx.field(default=None, static=True)
+    scatter: tuple[Any, tuple[Any, ...]] | None = eqx.field(default=None, static=True)
 
     def __check_init__(self):
         if not self.weights:
@@ -92,12 +94,27 @@ class Objective(eqx.Module):
                 )
         SmoothMax(tuple(self.temperatures), list(self.temperatures.values()))
         if self.scatter is not None:
-            name, offsets = self.scatter
-            parameter(name)
-            if not offsets or any(not -1.0 < o < 10.0 for o in offsets):
+            names, offsets = self.scatter_points
+            for name in names:
+                parameter(name)
+            if offsets.size == 0 or offsets.shape[1] != len(names):
+                raise ParameterError(
+                    "Objective.scatter needs offsets: one per point for one parameter, or one "
+                    "tuple per point with an offset for each parameter"
+                )
+            if not np.all((offsets > -1.0) & (offsets < 10.0)):
                 raise ParameterError(
                     "Objective.scatter offsets must be relative offsets > -1, e.g. (-0.05, 0, 0.05)"
                 )
+
+    @property
+    def scatter_points(self) -> tuple[tuple[str, ...], np.ndarray]:
+        """The scatter as `(names (k,), relative offsets (S, k))` (either form)."""
+        assert self.scatter is not None
+        names, offsets = self.scatter
+        if isinstance(names, str):
+            return (names,), np.asarray(offsets, dtype=float).reshape(-1, 1)
+        return tuple(names), np.asarray(offsets, dtype=float).reshape(len(offsets), -1)
 
     def smooth_max(self, temperature_scale=1.0) -> SmoothMax | None:
         """The `SmoothMax` of the objective's temperatures times `temperature_scale`."""
@@ -327,9 +344,9 @@ def evaluate_design(
     if objective.scatter is None:
         metrics, status = metrics_at(params)
     else:
-        name, offsets = objective.scatter
-        nominal = values_of(params, (name,))
-        scattered = jax.vmap(lambda o: with_values(params, (name,), nominal * (1.0 + o)))(
+        names, offsets = objective.scatter_points
+        nominal = values_of(params, names)
+        scattered = jax.vmap(lambda o: with_values(params, names, nominal * (1.0 + o)))(
             jnp.asarray(offsets)
         )
         per_sample, statuses = jax.vmap(metrics_at)(scattered)

@@ -12,7 +12,8 @@ class Progress:
     """`label [#####.....] done/total unit, elapsed, rate, time left, note`: redrawn in
     place on a terminal, else printed at most every tenth of the way and at the end.
     `enabled=None`: only on a terminal. `already`: work done before this run (a resumed
-    campaign), counted as done but not in the rate."""
+    campaign), counted as done but not in the rate. `rates=False`: no rate and no time
+    left (steps of unequal length, as a calibration's phases)."""
 
     def __init__(
         self,
@@ -22,6 +23,7 @@ class Progress:
         enabled: bool | None,
         stream=None,
         already: int = 0,
+        rates: bool = True,
     ):
         self.label, self.total, self.unit = label, total, unit
         self.already = self.done = already
@@ -30,6 +32,7 @@ class Progress:
         self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
         self.enabled = self.tty if enabled is None else enabled
         self._printed = already
+        self.rates = rates
 
     @property
     def elapsed(self) -> float:
@@ -51,8 +54,9 @@ class Progress:
         filled = int(width * min(done, self.total) / self.total)
         line = (
             f"{self.label} [{'#' * filled}{'.' * (width - filled)}] {done}/{self.total} "
-            f"{self.unit}, {elapsed:.1f} s, {rate:.0f}/s"
-            + ("" if final else f", ~{left:.0f} s left")
+            f"{self.unit}, {elapsed:.1f} s"
+            + (f", {rate:.0f}/s" if self.rates else "")
+            + ("" if final or not self.rates else f", ~{left:.0f} s left")
             + (f", {note}" if note else "")
         )
         print(line, end="\r" if self.tty and not final else "\n", file=self.stream, flush=True)

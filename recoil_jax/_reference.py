@@ -22,7 +22,7 @@ import numpy as np
 
 from ._params import params_from_values, params_to_values
 
-__all__ = ["reference_peaks"]
+__all__ = ["reference_history", "reference_peaks"]
 
 _BOTTOM = 0.95  # the recuperator's gas column may be compressed to this fraction
 
@@ -335,18 +335,53 @@ def reference_peaks(
     chatter when the system comes to rest on the contact boundary, at gap 0 after
     ~1.5 s: use a shorter `t1` for such designs), or if scipy fails.
     """
-    import scipy.integrate  # when used: `import recoil_jax` stays quick
-
-    flat = params_to_values(params_from_values(values or {}))
-    model = _HardModel({name: float(np.asarray(v)) for name, v in flat.items()}, force_table)
+    model = _model_of(values, force_table)
     if t1 is None:
         t1 = 10.0 + (model.shots - 1) * model.interval
+    running, segments, status = _integrate(model, t1, rtol, atol, method, max_segments)
+    return running.metrics() | {"segments": segments, "status": status}
+
+
+def _model_of(values, force_table) -> _HardModel:
+    flat = params_to_values(params_from_values(values or {}))
+    return _HardModel({name: float(np.asarray(v)) for name, v in flat.items()}, force_table)
+
+
+def reference_history(
+    values: Mapping[str, float] | None = None,
+    ts=None,
+    rtol: float = 1e-12,
+    atol: float = 1e-14,
+    method: str = "DOP853",
+    max_segments: int = 20000,
+    force_table=None,
+) -> dict[str, np.ndarray]:
+    """Time histories of the hard-switch model by the independent scipy solver (as
+    `reference_peaks`), at the sorted times `ts` (s, shape `(n,)`, from 0): the state
+    `x_M, v_M, x_m, v_m` and the forces `F_AN`, `F_ct`, by name, shape `(n,)` each; from
+    each segment's dense output (at a round's firing, the value before it)."""
+    model = _model_of(values, force_table)
+    ts = np.asarray(ts, dtype=float)
+    samples = {
+        name: np.full(ts.shape, np.nan) for name in ("x_M", "v_M", "x_m", "v_m", "F_AN", "F_ct")
+    }
+    _integrate(model, float(ts[-1]), rtol, atol, method, max_segments, ts, samples)
+    return samples
+
+
+def _integrate(model, t1, rtol, atol, method, max_segments, ts=None, samples=None):
+    """The segment loop: `(running peaks, segments, status)`; with `ts`, `samples` filled
+    in place."""
+    import scipy.integrate  # when used: `import recoil_jax` stays quick
+
     peak_events = model.peak_events()
     running = _RunningPeaks()
     t = 0.0
     y = np.array([0.0, model.v0 if model.impulse else 0.0, 0.0, 0.0])
     mode = model.initial_mode(y)
     running.consider(model, t, y, mode)
+    if ts is not None:
+        _sample(model, None, mode, -1.0, 0.0, ts, samples, y)
     stops = [*model.stops(t1), t1]
     segments = 0
     status = "ok"
@@ -368,6 +403,7 @@ def reference_peaks(
             atol=atol,
             args=(mode,),
             events=peak_events + switches,
+            dense_output=ts is not None,
         )
         if sol.status < 0:
             raise RuntimeError(f"reference solver failed: {sol.message}")
@@ -375,6 +411,8 @@ def reference_peaks(
         for index in range(len(peak_events)):
             for te, ye in zip(sol.t_events[index], sol.y_events[index], strict=True):
                 running.consider(model, te, ye, mode)
+        if ts is not None:
+            _sample(model, sol, mode, t, sol.t[-1], ts, samples)
         t, y = sol.t[-1], sol.y[:, -1].copy()
         running.consider(model, t, y, mode)
         if sol.status == 1:
@@ -397,4 +435,21 @@ def reference_peaks(
                 else dataclasses.replace(model.initial_mode(y), piece=mode.piece)
             )
             running.consider(model, t, y, mode)
-    return running.metrics() | {"segments": segments, "status": status}
+    return running, segments, status
+
+
+def _sample(model, sol, mode, start, end, ts, samples, y0=None):
+    """Fill the samples at the times in `(start, end]` from a segment's dense output (or
+    at `ts == 0`, the state `y0`)."""
+    inside = (ts > start) & (ts <= end)
+    if not inside.any():
+        return
+    if sol is None:
+        assert y0 is not None
+        states = np.repeat(y0[:, None], inside.sum(), 1)
+    else:
+        states = sol.sol(ts[inside])
+    for name, row in zip(("x_M", "v_M", "x_m", "v_m"), states, strict=True):
+        samples[name][inside] = row
+    samples["F_AN"][inside] = [model.anchoring(y, mode) for y in states.T]
+    samples["F_ct"][inside] = [model.contact_force(y, mode) for y in states.T]

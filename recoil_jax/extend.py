@@ -41,7 +41,10 @@ not need them; `docs/developers.md` shows how to plug a part in.
   `Fitted` (one fitted value with its uncertainty); `validate` (score a fit on a trace
   it did not see); `fit_many` (many data sets of the same experiments, fitted as one
   batch); `signal_sensitivities` (the signals at chosen times with their exact
-  derivatives).
+  derivatives); `FittedParameters` (a fit's hardware values with their covariance,
+  from a result or its `result.json`) and `Prediction` (what `predict` gives);
+  `reference_history` (time histories by the independent hard-switch scipy solver: a
+  synthetic firing test the library shares no code with).
 """
 
 from ._cache import live_programs, set_max_programs, structure_jit
@@ -62,7 +65,9 @@ from ._local import LocalEvaluation, LocalMethod, LocalRun, MinimaxMethod, run_l
 from ._metrics import PEAK_FIELDS, Metric, gradient_key, worst_case
 from ._model import Forces
 from ._params import T1_LIMITS, Parameter, end_time, read_text
+from ._predict import FittedParameters, Prediction
 from ._problem import DesignEvaluation, evaluate_design
+from ._reference import reference_history
 from ._result import RunRecord
 from ._search import GlobalPhase, default_local
 from ._status import OK_CODE, status_codes, status_messages, status_table
@@ -81,6 +86,7 @@ __all__ = [
     "DesignEvaluation",
     "Experiment",
     "Fitted",
+    "FittedParameters",
     "Forces",
     "GlobalPhase",
     "GradientEvaluator",
@@ -92,6 +98,7 @@ __all__ = [
     "MinimaxMethod",
     "MinimaxWindow",
     "Parameter",
+    "Prediction",
     "RunRecord",
     "SearchSpace",
     "StoredEvaluator",
@@ -108,6 +115,7 @@ __all__ = [
     "log_coordinates",
     "minimax_metric",
     "read_text",
+    "reference_history",
     "run_local",
     "set_max_programs",
     "shard_batch",

@@ -149,3 +149,24 @@ def test_bench_smoke():
     (cli,) = result["cli_cache"]
     assert cli["first_s"] > 0 and cli["second_s"] > 0
     assert "then" in format_bench(result)
+
+
+@pytest.mark.slow
+def test_calibration_bench_reports_both_fits():
+    """`bench-calibration` fits the same tests both ways and reports every figure."""
+    from recoil_jax.apps._bench_calibration import (
+        format_calibration_bench,
+        run_calibration_bench,
+    )
+
+    result = run_calibration_bench(
+        samples=401, draws=2, scipy_draws=1, starts=2, prediction_samples=100, cli=False,
+        log=lambda m: None,
+    )  # fmt: skip
+    one = result["one_fit"]
+    assert one["ours_s"] > 0 and one["scipy_solves"] > 0
+    # Both ways reach the same optimum (the models differ by the smoothing only).
+    assert one["max_apart_stderr"] < 0.5 and result["many_fits"]["max_apart_stderr"] < 0.5
+    assert [r["trace"] for r in result["random_starts"]] == ["absorber", "burst"]
+    text = format_calibration_bench(result)
+    assert "scipy" in text and "random starts" in text and "prediction band" in text

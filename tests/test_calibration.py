@@ -7,6 +7,7 @@ the data cannot determine, and refuse bad input with one line.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -74,6 +75,23 @@ def test_one_experiment_recovers_its_parameters_and_its_noise():
     assert result.bic == pytest.approx(N * math.log(result.chi2 / N) + math.log(N) * P)
 
 
+def test_profile_intervals_agree_with_the_linear_ones_where_the_fit_is_linear():
+    """Profiles (each value held, the others refitted) of a nearly linear fit: the
+    profile-likelihood intervals equal the Gauss–Newton ones to 5 % of their width, and
+    each profile rises from 0 at the optimum."""
+    calibration = rj.Calibration([rjx.Experiment(trace(TRUTH))], fit=BOX)
+    result = rj.calibrate(calibration, profiles=True, progress=False)
+    for name, f in result.fitted.items():
+        width = f.ci95[1] - f.ci95[0]
+        assert f.profile_ci95[0] == pytest.approx(f.ci95[0], abs=0.05 * width), name
+        assert f.profile_ci95[1] == pytest.approx(f.ci95[1], abs=0.05 * width), name
+        profile = result.profiles[name]
+        best = int(np.argmin(profile["delta_chi2"]))
+        assert profile["values"][best] == pytest.approx(f.value)
+        assert np.all(np.diff(profile["delta_chi2"][best:]) > 0)
+        assert np.all(np.diff(profile["delta_chi2"][: best + 1]) < 0)
+
+
 def test_two_experiments_with_their_own_v0_and_trigger_delay():
     first = rjx.Experiment(trace(TRUTH | {"v0": 0.69}, seed=1), design={"v0": 0.69})
     second = rjx.Experiment(
@@ -99,10 +117,13 @@ def test_a_robust_loss_fits_through_outliers(loss):
 
 def test_what_the_data_cannot_determine_is_named_not_given_an_interval():
     # A barely-touching absorber: x_M says nothing of the contact's k_c and n_c.
-    barely = rjx.Experiment(trace({"gap": 0.045}, seed=4))
+    barely = rjx.Experiment(trace({"gap": 0.045}, seed=4), design={"gap": 0.045})
     fit = {"k": (1e4, 1e5), "k_c": (1e7, 1e10), "n_c": (1.0, 2.0)}
-    result = rj.calibrate(rj.Calibration([barely], fit=fit), progress=False)
+    result = rj.calibrate(rj.Calibration([barely], fit=fit), profiles=True, progress=False)
     assert result.fitted["k"].identifiable
+    assert abs(result.fitted["k"].value - 27500.0) <= 3 * result.fitted["k"].stderr
+    # n_c sits on its bound with the profile below the threshold there: one side open.
+    assert result.fitted["n_c"].profile_ci95[0] is None
     for name in ("k_c", "n_c"):
         assert not result.fitted[name].identifiable
         assert result.fitted[name].ci95 is None and result.fitted[name].stderr is None
@@ -217,7 +238,8 @@ def test_the_command_line_fits_a_calibration_file(tmp_path, capsys):
         '[[experiment]]\ntrace = "firing_1.csv"\n'
     )
     out = tmp_path / "out"
-    assert main(["calibrate", str(tmp_path / "cal.toml"), "--out", str(out), "--json"]) == 0
+    argv = ["calibrate", str(tmp_path / "cal.toml"), "--out", str(out), "--json", "--profile"]
+    assert main(argv) == 0
     report = json.loads(capsys.readouterr().out)
     assert report == json.loads((out / "result.json").read_text())
     for name, value in TRUTH.items():
@@ -227,16 +249,20 @@ def test_the_command_line_fits_a_calibration_file(tmp_path, capsys):
     assert set(report["rms"]) == {"x_M", "F_AN"} and report["converged"]
     assert {"chi2", "reduced_chi2", "aic", "bic", "correlation", "experiments"} <= set(report)
     assert (out / "fit.png").stat().st_size > 10_000 and (out / "correlation.png").exists()
+    assert (out / "profiles.png").exists() and report["fitted"]["k"]["profile_ci95"][0] < 28000
     # The quick form, one trace, validated on another.
     ts2, signals2 = synthetic(TRUTH | {"v0": 0.69}, seed=6)
     other = write_trace(tmp_path / "firing_2.csv", ts2, signals2)
     code = main(["calibrate", str(tmp_path / "firing_1.csv"), "--fit", "k,c_out,gap",
-                 "v0=0.69", "--out", str(out), "--validate", str(other)])  # fmt: skip
+                 "v0=0.69", "--out", str(out), "--validate", str(other),
+                 "--predict", "m=800"])  # fmt: skip
     assert code == 0
     text = capsys.readouterr().out
-    assert "validation firing_2.csv" in text and "k " in text
-    validation = json.loads((out / "result.json").read_text())["validation"][0]
-    assert validation["reduced_chi2"] == pytest.approx(1.0, abs=0.2)
+    assert "validation firing_2.csv" in text and "k " in text and "prediction" in text
+    report = json.loads((out / "result.json").read_text())
+    assert report["validation"][0]["reduced_chi2"] == pytest.approx(1.0, abs=0.2)
+    assert report["prediction"]["design"]["m"] == 800.0 and report["prediction"]["failed"] == 0
+    assert (out / "prediction.png").stat().st_size > 10_000
 
 
 @pytest.mark.parametrize(
@@ -291,3 +317,174 @@ def test_the_95_percent_intervals_cover_the_truth_95_percent_of_the_time():
     for name, value in TRUTH.items():
         covered = sum(abs(row[name] - value) <= 1.96 * row[f"{name}.stderr"] for row in rows)
         assert 88 <= covered <= 99, (name, covered)
+
+
+def test_traces_from_the_independent_reference_solver_are_fitted():
+    """A firing test made by the hard-switch scipy solver (no model code shared), with
+    noise, fitted by the library's smoothed model: every parameter within 2.5 standard
+    errors (inside its 95 % interval at this seed: at most 1.7)."""
+    from recoil_jax._reference import reference_history
+
+    truth = TRUTH | {"c_ret": 14000.0, "m": 1000.0}
+    ts = np.linspace(0.0, 1.0, 1001)
+    history = reference_history(truth, ts)
+    # The reference history itself agrees with the library's hard-switch history.
+    exact = rj.simulate(rj.params_from_values(truth), rj.Smoothing.exact(), TIGHT, ts)
+    assert np.max(np.abs(history["F_AN"] - np.asarray(exact.anchoring_force))) < 1e-6 * 6e3
+    rng = np.random.default_rng(11)
+    measured = {name: history[name] + NOISE[name] * rng.standard_normal(ts.size)
+                for name in ("x_M", "F_AN")}  # fmt: skip
+    box = BOX | {"c_ret": (1e3, 4e4), "m": (200.0, 3000.0)}
+    calibration = rj.Calibration([rjx.Experiment(rjx.Trace.of(ts, **measured))], fit=box)
+    result = rj.calibrate(calibration, progress=False)
+    within(result, truth, sigmas=2.5)
+
+
+def test_a_prediction_band_from_the_fit_holds_the_true_peaks(tmp_path):
+    """A design the tests never fired (m = 800 kg): its true peaks lie within the band
+    the fit predicts, the sampled band (10,000 plain solves) and the linear one (exact
+    gradients and the covariance) agree, and the fit's `result.json` gives the same."""
+    ts, signals = synthetic(TRUTH, seed=8)
+    calibration = rj.Calibration([rjx.Experiment(rjx.Trace.of(ts, **signals))], fit=BOX)
+    result = rj.calibrate(calibration, progress=False)
+    hardware = result.hardware()
+    assert hardware.names == ("k", "c_out", "gap")
+    prediction = rj.predict(hardware, {"m": 800.0}, progress=False)
+    true = rj.peaks(rj.params_from_values(TRUTH | {"m": 800.0}))
+    for name in ("peak_anchoring_force", "peak_displacement", "max_stroke"):
+        low, high = prediction.sampled[name]["ci95"]
+        assert low <= float(getattr(true, name)) <= high, name
+        assert prediction.linear[name]["std"] == pytest.approx(
+            prediction.sampled[name]["std"], rel=0.1
+        )
+    assert prediction.count == 10_000 and prediction.failed == 0
+    # The same from result.json.
+    path = tmp_path / "result.json"
+    path.write_text(json.dumps(result.to_json()))
+    read = rjx.FittedParameters.from_json(path)
+    assert read.names == hardware.names and np.allclose(read.covariance, hardware.covariance)
+    # Faults: a fitted value given, too few samples, a file that is not a result.
+    with pytest.raises(rj.ParameterError, match="k is fitted"):
+        rj.predict(hardware, {"k": 1e4})
+    with pytest.raises(rj.ParameterError, match="samples"):
+        rj.predict(hardware, samples=1)
+    (tmp_path / "other.json").write_text('{"best": 1}')
+    with pytest.raises(rj.ParameterError, match="not a calibration result"):
+        rjx.FittedParameters.from_json(tmp_path / "other.json")
+    loose = dataclasses.replace(hardware, identifiable=np.asarray([True, False, True]))
+    with pytest.raises(rj.ParameterError, match="c_out not determined"):
+        rj.predict(loose)
+
+
+@pytest.fixture(scope="module")
+def fitted_json(tmp_path_factory):
+    """A calibration's `result.json` (k, c_out, gap fitted to a synthetic test)."""
+    ts, signals = synthetic(TRUTH, seed=9)
+    calibration = rj.Calibration([rjx.Experiment(rjx.Trace.of(ts, **signals))], fit=BOX,
+                                 design={"M": 5600.0})  # fmt: skip
+    result = rj.calibrate(calibration, progress=False)
+    path = tmp_path_factory.mktemp("fit") / "fit.json"
+    path.write_text(json.dumps(result.to_json()))
+    return path
+
+
+STUDY = """description = "design on the fitted hardware"
+[calibration]
+from = "fit.json"
+{extra}
+[design]
+m = 800.0
+[tune]
+{tune}
+[objective]
+peak_anchoring_force = 1.0
+[constraints]
+max_stroke = {{ max = 0.15 }}
+[optimiser]
+starts = 2
+steps = 15
+learning_rate = 0.1
+"""
+
+
+def test_a_study_designs_on_the_fitted_uncertainty(tmp_path, fitted_json, capsys):
+    """`[calibration] from = ...`: the fitted values enter the design, and the objective
+    is the worst case over the fit's 2k + 1 sigma points; checked against plain solves at
+    those points."""
+    (tmp_path / "fit.json").write_text(fitted_json.read_text())
+    study = tmp_path / "robust.toml"
+    study.write_text(STUDY.format(extra="", tune="k_r = [1000.0, 100000.0]\nc_r = [0.0, 2e4]"))
+    out = tmp_path / "out"
+    assert main(["optimise", str(study), "--out", str(out), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["calibration"] == {"from": "fit.json", "parameters": ["k", "c_out", "gap"],
+                                     "points": 7, "solves_per_evaluation": 7}  # fmt: skip
+    fitted = rjx.FittedParameters.from_json(fitted_json)
+    best = report["best"]
+    worst = max(
+        float(rj.peaks(rj.params_from_values(
+            {"M": 5600.0, "m": 800.0, **best, **dict(zip(fitted.names, point, strict=True))}
+        )).peak_anchoring_force)
+        for point in fitted.sigma_points()
+    )  # fmt: skip
+    assert report["objective"] == pytest.approx(worst, rel=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("extra", "tune", "message"),
+    [
+        ("", "k = [1e4, 1e5]", "k is fitted by the calibration"),
+        ('points = "grid"', "k_r = [1e3, 1e5]", "points"),
+        ("colour = 1", "k_r = [1e3, 1e5]", "unknown key 'colour'"),
+        ('points = "sample"\nsamples = 1', "k_r = [1e3, 1e5]", "samples"),
+    ],
+)
+def test_bad_calibration_sections_exit_2(tmp_path, fitted_json, capsys, extra, tune, message):
+    (tmp_path / "fit.json").write_text(fitted_json.read_text())
+    study = tmp_path / "bad.toml"
+    study.write_text(STUDY.format(extra=extra, tune=tune))
+    assert main(["optimise", str(study), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+    study.write_text(STUDY.format(extra="", tune=tune).replace("fit.json", "missing.json"))
+    assert main(["optimise", str(study), "--out", str(tmp_path / "o")]) == 2
+    assert "not found" in capsys.readouterr().err
+
+
+def test_given_noise_is_used_as_given_and_starts_may_be_points():
+    """With every signal's noise given, the fit takes it (one pass) and its reduced chi2
+    tells whether it was right; explicit start points are fitted, and one outside the
+    bounds is refused."""
+    experiment = rjx.Experiment(trace(TRUTH, seed=12), sigma=NOISE)
+    calibration = rj.Calibration([experiment], fit=BOX)
+    points = np.asarray([[2e4, 3e3, 0.05], [5e4, 1e4, 0.01]])
+    result = rj.calibrate(calibration, starts=points, progress=False)
+    assert result.sigma[0] == NOISE and result.starts == 2
+    assert result.reduced_chi2 == pytest.approx(1.0, abs=0.1)
+    within(result, TRUTH)
+    with pytest.raises(rj.ParameterError, match=r"starts\[0\]: k = 200000 is outside"):
+        rj.calibrate(calibration, starts=[[2e5, 3e3, 0.05]])
+    with pytest.raises(rj.ParameterError, match="one row of 3 values"):
+        rj.calibrate(calibration, starts=[[2e4, 3e3]])
+
+
+def test_a_fit_that_does_not_converge_or_a_failed_solve_is_said_plainly(tmp_path, capsys):
+    """Exit 4 when the fit runs out of steps (the best point reached still written), 1
+    when the solves fail; one line each on stderr."""
+    ts, signals = synthetic(TRUTH, seed=13)
+    write_trace(tmp_path / "t.csv", ts, signals)
+    (tmp_path / "c.toml").write_text(
+        "fit_steps = 1\n[fit]\nk = [1e4, 1e5]\nc_out = [1e3, 3e4]\ngap = [0.0, 0.1]\n"
+        '[[experiment]]\ntrace = "t.csv"\n'
+    )
+    out = tmp_path / "out"
+    assert main(["calibrate", str(tmp_path / "c.toml"), "--out", str(out)]) == 4
+    err = capsys.readouterr().err
+    assert "did not converge" in err and "Traceback" not in err
+    assert json.loads((out / "result.json").read_text())["converged"] is False
+    argv = ["calibrate", str(tmp_path / "t.csv"), "--fit", "k", "--out", str(out),
+            "--max-steps", "20"]  # fmt: skip
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert "solver failed" in err and "Traceback" not in err
+    assert json.loads((out / "result.json").read_text())["solved"] is False

@@ -29,6 +29,12 @@ def test_explorer_shows_simulate_numbers_and_errors():
     from recoil_jax.apps._explore import Explorer, _tuned
 
     explorer = Explorer()
+    # A measured trace is drawn over the histories, in their units (mm, kN).
+    trace = rj.extend.Trace.of([0.0, 0.1], x_M=[0.0, 0.05], F_AN=[1000.0, 2000.0])
+    overlaid = Explorer(trace=trace)
+    assert list(overlaid.measured.data["x_M"]) == [0.0, 50.0]
+    assert list(overlaid.measured.data["F_AN"]) == [1.0, 2.0]
+    assert explorer.measured is None
     explorer.set("gap", 0.05)
     expected = _peak(m=1500.0, gap=0.05)
     shown = explorer.peaks_pane.object

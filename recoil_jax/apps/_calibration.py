@@ -3,6 +3,7 @@ file (TOML) or one trace with `--fit`; the report, `result.json` and the figures
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import sys
@@ -27,7 +28,7 @@ NOT_CONVERGED = 4
 
 #: The keys of a calibration file, and of one `[[experiment]]` besides design values.
 _FILE_KEYS = {"description", "design", "fit", "experiment", "validation", "loss", "f_scale",
-              "starts", "seed"}  # fmt: skip
+              "starts", "seed", "fit_steps"}  # fmt: skip
 _EXPERIMENT_KEYS = {"trace", "sigma", "per_experiment", "window", "name"}
 
 
@@ -133,12 +134,13 @@ def load_calibration(path) -> tuple[rj.Calibration, dict[str, Any]]:
     settings = {
         "starts": config.get("starts", 1),
         "seed": config.get("seed", 0),
+        "fit_steps": config.get("fit_steps", 200),
         "description": str(config.get("description", "")),
     }
-    for key in ("starts", "seed"):
+    for key, least in (("starts", 1), ("seed", 0), ("fit_steps", 1)):
         value = settings[key]
-        if isinstance(value, bool) or not isinstance(value, int) or value < (key == "starts"):
-            raise _error(str(path), f"{key} = {value!r}: give an integer >= {int(key == 'starts')}")
+        if isinstance(value, bool) or not isinstance(value, int) or value < least:
+            raise _error(str(path), f"{key} = {value!r}: give an integer >= {least}")
     return calibration, settings
 
 
@@ -178,20 +180,37 @@ def run_calibration(args) -> int:
             )  # fmt: skip
     else:
         calibration = _quick(source, args.fit, args.assignments, args.validate or [])
-        settings = {"starts": 1, "seed": 0, "description": ""}
+        settings = {"starts": 1, "seed": 0, "fit_steps": 200, "description": ""}
     starts = args.starts if args.starts is not None else settings["starts"]
     out = output_folder(args.out)
-    result = rj.calibrate(calibration, starts=starts, seed=settings["seed"], progress=True)
+    calibration = dataclasses.replace(
+        calibration, options=dataclasses.replace(calibration.options, max_steps=args.max_steps)
+    )
+    result = rj.calibrate(
+        calibration, starts=starts, seed=settings["seed"], max_steps=settings["fit_steps"],
+        profiles=args.profile, progress=True,
+    )  # fmt: skip
     report = {"source": str(source), "description": settings["description"], **result.to_json()}
     (out / "result.json").write_text(json.dumps(report, indent=2) + "\n")
     from ._figures import calibration_figures
 
     report["figures"] = [str(p) for p in calibration_figures(result, out)]
+    if args.predict is not None:
+        from ._figures import plot_prediction
+
+        prediction = rj.predict(
+            result.hardware(), parse_assignments(args.predict), seed=settings["seed"],
+            smoothing=calibration.smoothing, progress=True,
+        )  # fmt: skip
+        report["prediction"] = prediction.to_json()
+        report["figures"].append(str(plot_prediction(prediction, out / "prediction.png")))
     (out / "result.json").write_text(json.dumps(report, indent=2) + "\n")
     if args.json:
         print(json.dumps(report))
     else:
         print(fit_report(result))
+        if "prediction" in report:
+            print(prediction_report(report["prediction"]))
     if not result.solved:
         print("recoil-jax: solver failed at the fitted values", file=sys.stderr)
         return 1
@@ -203,6 +222,23 @@ def run_calibration(args) -> int:
         )
         return NOT_CONVERGED
     return 0
+
+
+def prediction_report(prediction: dict) -> str:
+    """The prediction's bands as text."""
+    lines = [
+        f"prediction ({prediction['count']} samples, {prediction['failed']} failed, "
+        f"{prediction['clipped']} moved to the bounds, {prediction['seconds']:.1f} s):"
+    ]
+    for name, sampled in prediction["sampled"].items():
+        linear = prediction["linear"][name]
+        unit = rj.METRICS[name].unit
+        lines.append(
+            f"  {name:22s} {prediction['nominal'][name]:.6g} {unit}, 95% sampled "
+            f"[{sampled['ci95'][0]:.6g}, {sampled['ci95'][1]:.6g}], linear "
+            f"[{linear['ci95'][0]:.6g}, {linear['ci95'][1]:.6g}]"
+        )
+    return "\n".join(lines)
 
 
 def fit_report(result: rj.CalibrationResult) -> str:
@@ -219,12 +255,16 @@ def fit_report(result: rj.CalibrationResult) -> str:
     for name, f in result.fitted.items():
         if f.identifiable and f.ci95 is not None and f.stderr is not None:
             relative = abs(f.stderr / f.value) if f.value else math.inf
-            lines.append(
+            line = (
                 f"    {name:12s} {f.value:.6g} +/- {f.stderr:.3g} ({relative:.2%}), "
                 f"95% [{f.ci95[0]:.6g}, {f.ci95[1]:.6g}]"
             )
         else:
-            lines.append(f"    {name:12s} {f.value:.6g}  (not determined by the data)")
+            line = f"    {name:12s} {f.value:.6g}  (not determined by the data)"
+        if f.profile_ci95 is not None:
+            low, high = (f"{x:.6g}" if x is not None else "bound" for x in f.profile_ci95)
+            line += f"; profile 95% [{low}, {high}]"
+        lines.append(line)
     for text in result.unidentifiable:
         lines.append(f"  not identifiable: {text}")
     names = [n for n, f in result.fitted.items() if f.identifiable]

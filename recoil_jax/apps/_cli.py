@@ -232,6 +232,12 @@ def _bench_store(args) -> int:
     return main_store_bench(args)
 
 
+def _bench_calibration(args) -> int:
+    from ._bench_calibration import main_calibration_bench
+
+    return main_calibration_bench(args)
+
+
 def _bench(args) -> int:
     from ._bench import main_bench
 
@@ -495,8 +501,35 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="TRACE",
         help="a trace to score the fit on, not fitted (repeatable)",
     )
+    calibrate.add_argument(
+        "--profile",
+        action="store_true",
+        help="also profile-likelihood intervals: each value held at 12 points while the "
+        "others are refitted (profiles.png)",
+    )
+    calibrate.add_argument(
+        "--predict",
+        nargs="*",
+        metavar="name=value",
+        help="then predict this design's peaks with 95%% bands from the fitted "
+        "uncertainty (10,000 samples and linear propagation; prediction.png)",
+    )
     calibrate.add_argument("--json", action="store_true", help="print result.json")
+    _add_max_steps(calibrate)
     calibrate.set_defaults(func=_calibrate)
+    calibration_bench = sub.add_parser(
+        "bench-calibration",
+        parents=[common],
+        help="calibration against scipy least_squares on solve_ivp",
+        description="On synthetic firing tests made by the independent scipy solver with "
+        "noise, compare recoil-jax's calibration with scipy's least_squares (finite "
+        "differences) on solve_ivp DOP853 with events: one fit, 100 fits (noise draws), "
+        "the fraction of 20 random starts reaching the best (absorber and 3-round burst "
+        "traces), the prediction band's time and the command line cold and cached.",
+    )
+    calibration_bench.add_argument("--quick", action="store_true", help="small sizes")
+    calibration_bench.add_argument("--json", action="store_true", help="print JSON")
+    calibration_bench.set_defaults(func=_bench_calibration)
     explore = sub.add_parser(
         "explore",
         parents=[common],
@@ -510,6 +543,9 @@ def build_parser() -> argparse.ArgumentParser:
     explore.add_argument("--port", type=int, default=5006, help="port (default 5006)")
     explore.add_argument("--address", default="localhost", help="address (default localhost)")
     explore.add_argument("--no-browser", action="store_true", help="do not open a browser tab")
+    explore.add_argument(
+        "--trace", metavar="CSV", help="a measured trace to show over the histories (points)"
+    )
     explore.set_defaults(func=_explore)
     rep = sub.add_parser(
         "reproduce",

@@ -79,7 +79,12 @@ class Explorer:
     solve (a bottomed-out recuperator) shows why instead of peaks and gradient bars. While
     a new structure compiles (about 20 s the first time), the views show a spinner."""
 
-    def __init__(self, values: dict[str, float] | None = None, duration: float = 2.0):
+    def __init__(
+        self,
+        values: dict[str, float] | None = None,
+        duration: float = 2.0,
+        trace: rjx.Trace | None = None,
+    ):
         import panel as pn
         from bokeh.models import ColumnDataSource, FactorRange
         from bokeh.plotting import figure
@@ -158,6 +163,7 @@ class Explorer:
             **plot,
         )
         self.contact_plot.line("t", "F_ct", source=self.force, color="firebrick", line_width=2)
+        self.measured = None if trace is None else self._overlay(trace)
         self.bar_range = FactorRange()
         self.bar_plot = figure(
             title="peak anchoring force: change for +1 % of each parameter",
@@ -200,6 +206,26 @@ class Explorer:
         )
         self._structure: tuple | None = None
         self._update(time.perf_counter())
+
+    def _overlay(self, trace: rjx.Trace):
+        """A measured trace's signals as points over the live histories (the same units:
+        mm and kN), so a design can be matched to a firing test by hand."""
+        from bokeh.models import ColumnDataSource
+
+        scale = {"x_M": 1e3, "x_m": 1e3, "F_AN": 1e-3, "F_ct": 1e-3}
+        plots = {"x_M": self.motion_plot, "x_m": self.motion_plot, "F_AN": self.force_plot,
+                 "F_ct": self.contact_plot}  # fmt: skip
+        columns: dict[str, Any] = {"t": trace.t.tolist()} | {
+            name: (trace.signals[name] * scale[name]).tolist()
+            for name in scale
+            if name in trace.signals
+        }
+        source = ColumnDataSource(columns)
+        for name in columns:
+            if name != "t":
+                plots[name].scatter("t", name, source=source, size=3, color="gray", alpha=0.5,
+                                    legend_label=f"measured {name}")  # fmt: skip
+        return source
 
     def values(self) -> dict[str, float]:
         """The design the fields describe, by flat name, without the parts that are off
@@ -382,22 +408,24 @@ def _structure(values: dict[str, float]) -> tuple:
     return (*sorted(k for k, v in off.items() if not v), values.get("shots"))
 
 
-def explorer(values: dict[str, float] | None = None, duration: float = 2.0):
+def explorer(values: dict[str, float] | None = None, duration: float = 2.0, trace=None):
     """The design explorer as a Panel layout, for a notebook cell (after
     `import panel as pn; pn.extension()`), starting from the design `values` (flat
-    names; default the paper's best absorber) and showing `duration` seconds."""
-    return Explorer(values, duration).panel()
+    names; default the paper's best absorber) and showing `duration` seconds; with a
+    measured `trace` (`rj.read_trace`), its signals as points over the histories."""
+    return Explorer(values, duration, trace).panel()
 
 
 def main_explore(args, values: dict[str, float]) -> int:
     """Serve the explorer (`recoil-jax explore`), one session per browser tab."""
     import panel as pn
 
-    Explorer(values)  # bad input fails here, before the server starts; compiles once
+    trace = rj.read_trace(args.trace) if args.trace else None
+    Explorer(values, trace=trace)  # bad input fails here, before the server starts
     pn.extension()
     print(f"recoil-jax explore: http://localhost:{args.port}/", flush=True)
     pn.serve(
-        lambda: Explorer(values).panel(),
+        lambda: Explorer(values, trace=trace).panel(),
         port=args.port,
         address=args.address,
         show=not args.no_browser,

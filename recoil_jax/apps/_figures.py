@@ -53,6 +53,8 @@ __all__ = [
     "plot_correlation",
     "plot_heatmap",
     "plot_history",
+    "plot_prediction",
+    "plot_profiles",
     "plot_search_convergence",
     "plot_series",
 ]
@@ -475,10 +477,68 @@ def plot_correlation(result: rj.CalibrationResult, path) -> Path:
     return _save(fig, path)
 
 
+@_styled
+def plot_profiles(result: rj.CalibrationResult, path) -> Path:
+    """Each fitted value's profile (the refitted cost's rise, in units of the reduced
+    chi2) beside the linear approximation's parabola, with the 95 % threshold."""
+    names = list(result.profiles)
+    fig, axes = plt.subplots(1, len(names), figsize=(3.8 * len(names), 3.4), squeeze=False,
+                             layout="constrained")  # fmt: skip
+    threshold = 3.841
+    for ax, name in zip(axes[0], names, strict=True):
+        profile, fitted = result.profiles[name], result.fitted[name]
+        ax.plot(profile["values"], profile["delta_chi2"], "o-", ms=3, label="profile")
+        if fitted.stderr:
+            x = np.linspace(profile["values"].min(), profile["values"].max(), 200)
+            ax.plot(x, ((x - fitted.value) / fitted.stderr) ** 2, "--", color="C1",
+                    label="linear (stderr)")  # fmt: skip
+        ax.axhline(threshold, color="C3", lw=0.9, label="95 % threshold")
+        ax.set_ylim(0, max(3 * threshold, 1.05 * min(profile["delta_chi2"].max(), 40)))
+        ax.set_xlabel(name + ("" if fitted.identifiable else " (not determined)"))
+        ax.ticklabel_format(axis="x", useOffset=False)
+        ax.tick_params(axis="x", labelrotation=30)
+        ax.set_ylabel("rise of chi2 / reduced chi2")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle("profile likelihoods (the others refitted at each point)", fontsize=10)
+    return _save(fig, path)
+
+
 def calibration_figures(result: rj.CalibrationResult, out) -> list[Path]:
-    """The calibration's figures in the folder `out`: `fit.png`, `correlation.png`."""
+    """The calibration's figures in the folder `out`: `fit.png`, `correlation.png` and,
+    with profiles, `profiles.png`."""
     out = Path(out)
-    return [
+    figures = [
         plot_calibration_fit(result, out / "fit.png"),
         plot_correlation(result, out / "correlation.png"),
     ]
+    if result.profiles:
+        figures.append(plot_profiles(result, out / "profiles.png"))
+    return figures
+
+
+@_styled
+def plot_prediction(prediction: rjx.Prediction, path) -> Path:
+    """Each peak metric's sampled values under the fitted uncertainty (histogram), with
+    the nominal value and both 95 % bands (sampled percentiles, linear propagation)."""
+    shown = [n for n in ("peak_anchoring_force", "peak_displacement", "max_stroke")
+             if np.ptp(prediction.samples[n]) > 0]  # fmt: skip
+    fig, axes = plt.subplots(1, len(shown), figsize=(4.6 * len(shown), 3.6), squeeze=False,
+                             layout="constrained")  # fmt: skip
+    for ax, name in zip(axes[0], shown, strict=True):
+        ax.hist(prediction.samples[name], bins=60, color="0.75")
+        ax.axvline(prediction.nominal[name], color="k", lw=1.2, label="at the fitted values")
+        for i, x in enumerate(prediction.sampled[name]["ci95"]):
+            ax.axvline(x, color="C0", ls="--", label="95 %: samples" if i == 0 else None)
+        for i, x in enumerate(prediction.linear[name]["ci95"]):
+            ax.axvline(x, color="C3", ls=":", lw=1.6, label="95 %: linear" if i == 0 else None)
+        ax.set_xlabel(rj.METRICS[name].label)
+        ax.ticklabel_format(axis="x", useOffset=False)
+        ax.tick_params(axis="x", labelrotation=30)
+        ax.set_ylabel("samples")
+        ax.legend(loc="upper left", fontsize=7)
+    fig.suptitle(
+        f"prediction from the calibration's uncertainty ({prediction.count} samples, "
+        f"{prediction.failed} failed)",
+        fontsize=10,
+    )
+    return _save(fig, path)

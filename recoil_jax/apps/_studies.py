@@ -26,6 +26,10 @@ starts = 8                    #   maxiter, seed, max_seconds, and local = "slsqp
 [[front]]                     # optional, repeatable: one optimisation per value (vmapped)
 vary = "m"                    #   a parameter, or a constrained metric (ε-constraint)
 values = [250, 500, 1000]
+[calibration]                 # optional: design on a calibration's fitted hardware
+from = "fit/result.json"      #   (recoil-jax calibrate): its values enter the design and
+points = "sigma"              #   the objective and limits hold at its 2k + 1 sigma points
+                              #   (worst case), or "sample" (samples = N, seed)
 [check]                       # optional checks of the best design
 grid = {gap = [0.0, 0.12, 241]}   # cartesian grid (lo, hi, count) around it
 local = 0.02                  # 1-D scans ± this fraction of each bound's width
@@ -83,6 +87,7 @@ else:  # pragma: no cover
     import tomli as tomllib  # pyright: ignore[reportMissingImports]
 
 _SECTIONS = {
+    "calibration",
     "description",
     "design",
     "tune",
@@ -161,6 +166,7 @@ class Study:
     fronts: list[dict] = field(default_factory=list)
     check: dict = field(default_factory=dict)
     has_start: bool = True  # whether [design] gives a tuned parameter (a start)
+    calibration: dict | None = None  # [calibration]: where from, which parameters, points
 
 
 def _error(path, message: str) -> rj.ParameterError:
@@ -215,7 +221,18 @@ def load_study(path) -> Study:
     tune, bounds = _parse_tune(path, config["tune"])
     objective = _parse_objective(path, config["objective"])
     constraints = _parse_constraints(path, config.get("constraints", {}))
-    params, has_start = _parse_design(path, dict(config.get("design", {})), tune, bounds)
+    design = dict(config.get("design", {}))
+    calibration = None
+    if "calibration" in config:
+        design, objective = _parse_calibration(path, config["calibration"], design, tune, objective)
+        names, offsets = objective.scatter_points
+        calibration = {
+            "from": str(config["calibration"]["from"]),
+            "parameters": list(names),
+            "points": len(offsets),
+            "solves_per_evaluation": len(offsets),
+        }
+    params, has_start = _parse_design(path, design, tune, bounds)
     problem = rj.DesignProblem(
         params=params, objective=objective, tune=tuple(tune), bounds=bounds,
         constraints=constraints,
@@ -234,6 +251,7 @@ def load_study(path) -> Study:
         fronts=fronts,
         check=_parse_check(path, dict(config.get("check", {}))),
         has_start=has_start,
+        calibration=calibration,
     )
     try:
         (search_kwargs if optimiser["method"] == "search" else optimise_kwargs)(study, False)
@@ -278,6 +296,48 @@ def _parse_tune(path, section: dict) -> tuple[list[str], dict[str, tuple[float, 
         tune.append(name)
         bounds[name] = (float(bound[0]), float(bound[1]))
     return tune, bounds
+
+
+_CALIBRATION_KEYS = {"from", "points", "samples", "seed"}
+
+
+def _parse_calibration(path, section, design: dict, tune, objective: rj.Objective):
+    """`[calibration]`: the fitted hardware of a calibration's `result.json` (`from`,
+    relative to the study) enters the design at its fitted values, and the objective and
+    limits hold over its uncertainty: the worst case over a fixed set of points drawn
+    from the fit, `points = "sigma"` (2k + 1 sigma points, default) or `"sample"`
+    (`samples`, `seed`)."""
+    if not isinstance(section, dict) or not isinstance(section.get("from"), str):
+        raise _error(path, '[calibration] needs from = "result.json" (a calibration result)')
+    unknown = set(section) - _CALIBRATION_KEYS
+    if unknown:
+        raise _error(path, f"[calibration] unknown key {sorted(unknown)[0]!r}; known: "
+                     f"{', '.join(sorted(_CALIBRATION_KEYS))}")  # fmt: skip
+    if objective.scatter is not None:
+        raise _error(path, "[calibration] and [objective.scatter] cannot both scatter the design")
+    fitted = rjx.FittedParameters.from_json(Path(path).parent / section["from"])
+    fitted.check_determined()
+    for name in fitted.names:
+        if name in tune:
+            raise _error(path, f"[tune] {name} is fitted by the calibration; it cannot be tuned")
+        if name in design:
+            raise _error(path, f"[design] {name} comes from the calibration; leave it out")
+    kind = section.get("points", "sigma")
+    if kind == "sigma":
+        points = fitted.sigma_points()
+    elif kind == "sample":
+        samples, seed = section.get("samples", 16), section.get("seed", 0)
+        for key, value, least in (("samples", samples, 2), ("seed", seed, 0)):
+            if not isinstance(value, int) or isinstance(value, bool) or value < least:
+                raise _error(path, f"[calibration] {key} = {value!r}: an integer >= {least}")
+        draws, _ = fitted.sample(samples - 1, seed)
+        points = np.concatenate([fitted.values[None], draws])
+    else:
+        raise _error(path, f'[calibration] points = {kind!r}: "sigma" or "sample"')
+    offsets = points / fitted.values - 1.0
+    known = {**fitted.design, **dict(zip(fitted.names, fitted.values.tolist(), strict=True))}
+    scatter = (fitted.names, tuple(tuple(float(o) for o in row) for row in offsets))
+    return known | design, dataclasses.replace(objective, scatter=scatter)
 
 
 def _parse_objective(path, section: dict) -> rj.Objective:
@@ -518,10 +578,10 @@ def _history(problem: rj.DesignProblem, params, time: float) -> rj.History:
 
 
 def _scattered(problem: rj.DesignProblem, params, offsets) -> list[rj.Peaks]:
-    assert problem.objective.scatter is not None
-    name, _ = problem.objective.scatter
-    nominal = float(rj.values_of(params, (name,))[0])
-    return [_peaks(problem, rj.with_values(params, (name,), [nominal * (1 + o)])) for o in offsets]
+    """The peaks at each scatter point, `offsets (S, k)` relative to `params`."""
+    names, _ = problem.objective.scatter_points
+    nominal = np.asarray(rj.values_of(params, names))
+    return [_peaks(problem, rj.with_values(params, names, nominal * (1 + o))) for o in offsets]
 
 
 def _worst_case(problem: rj.DesignProblem, runs: list[rj.Peaks]) -> tuple[dict, float]:
@@ -545,7 +605,7 @@ def _best_summary(study: Study, result: rj.OptimiseResult, scenario: int) -> dic
     limits = result.scenario_limits[scenario]
     if problem.objective.scatter is not None:
         worst, worst_objective = _worst_case(
-            problem, _scattered(problem, params, problem.objective.scatter[1])
+            problem, _scattered(problem, params, problem.objective.scatter_points[1])
         )
         summary["objective"] = worst_objective
         summary["worst_case_metrics"] = worst
@@ -767,7 +827,10 @@ def _outcome(study: Study, result: rj.OptimiseResult, phase) -> dict:
         closest = result.closest_params(0) if np.isfinite(result.closest_violation[0]) else None
         with phase("closest", "no design met every limit: the closest design's peaks"):
             report |= _infeasible_summary(study, closest)
-    return report | {"tuned": list(study.problem.tune)}
+    report |= {"tuned": list(study.problem.tune)}
+    if study.calibration is not None:
+        report["calibration"] = study.calibration
+    return report
 
 
 def _infeasible_summary(study: Study, closest) -> dict:
@@ -1015,19 +1078,23 @@ def _nominal_comparison(study: Study, result, kwargs: dict, out: Path) -> tuple[
     from ._figures import plot_series
 
     problem = study.problem
-    assert problem.objective.scatter is not None
-    name, offsets = problem.objective.scatter
+    names, offsets = problem.objective.scatter_points
     nominal_problem = dataclasses.replace(
         problem, objective=dataclasses.replace(problem.objective, scatter=None)
     )
     nominal = rj.optimise(nominal_problem, **kwargs)
-    fine = np.linspace(min(offsets), max(offsets), 21)
+    # One parameter: a fine line over its range; several: the scatter's own points,
+    # the first of which is the nominal (a calibration's sigma points).
+    line = len(names) == 1
+    fine = np.linspace(offsets.min(), offsets.max(), 21)[:, None] if line else offsets
+    at = len(fine) // 2 if line else int(np.argmin(np.abs(offsets).sum(1)))
     curves, report = {}, {}
     for label, params in (("robust", result.best_params(0)), ("nominal", nominal.best_params(0))):
         objectives = [
             float(problem.objective(r.metrics())) for r in _scattered(problem, params, fine)
         ]
-        curves[f"{label} design"] = (100 * fine, objectives)
+        x = 100 * fine[:, 0] if line else np.arange(len(fine))
+        curves[f"{label} design"] = (x, objectives)
         report[label] = {
             "best": dict(
                 zip(
@@ -1036,13 +1103,13 @@ def _nominal_comparison(study: Study, result, kwargs: dict, out: Path) -> tuple[
                     strict=True,
                 )
             ),
-            "objective_nominal": objectives[len(fine) // 2],
+            "objective_nominal": objectives[at],
             "objective_worst": max(objectives),
         }
     plot_series(
         curves,
         out / "robust_vs_nominal.png",
-        xlabel=f"{name} offset (%)",
+        xlabel=f"{names[0]} offset (%)" if line else "scatter point (0: the fitted values)",
         ylabel="objective",
         title="objective under scatter",
     )

@@ -1,0 +1,236 @@
+"""From a calibration to designs: the fitted hardware parameters with their uncertainty
+(`FittedParameters`) and any design's peaks with a 95 % band from it (`predict`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ._gradients import GRADIENT_OPTIONS, peak_jacobian
+from ._metrics import METRICS
+from ._params import (
+    PARAMETERS,
+    ParameterError,
+    Smoothing,
+    SolverOptions,
+    params_from_values,
+    read_text,
+)
+from ._solve import peaks
+from ._sweep import sweep
+
+__all__ = ["FittedParameters", "Prediction", "predict"]
+
+
+@dataclasses.dataclass(frozen=True)
+class FittedParameters:
+    """The hardware parameters a calibration fitted (shared by its experiments; not the
+    trigger delays or per-experiment values), with their uncertainty.
+
+    - `names (k,)`, `values (k,)` (SI units), `covariance (k, k)`, the fit's bounds
+      `lower`, `upper (k,)`, and `identifiable (k,)`;
+    - `design`: the known values the calibration shared (`[design]`), which a prediction
+      starts from.
+    """
+
+    names: tuple[str, ...]
+    values: np.ndarray
+    covariance: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    identifiable: np.ndarray
+    design: dict[str, float]
+
+    def __post_init__(self):
+        if not self.names:
+            raise ParameterError("the calibration fitted no shared hardware parameter")
+
+    def check_determined(self) -> None:
+        """Raise `ParameterError` if a fitted value is not determined by the data: a band
+        around it would not mean anything."""
+        loose = [n for n, ok in zip(self.names, self.identifiable, strict=True) if not ok]
+        if loose:
+            raise ParameterError(
+                f"{', '.join(loose)} not determined by the calibration's data: a band from "
+                "its uncertainty would mean nothing; fit again with more data, or fix "
+                "it as a known value"
+            )
+
+    def sample(self, count: int, seed: int = 0) -> tuple[np.ndarray, int]:
+        """`count` draws `(count, k)` from the normal of the fit (seeded), clipped to the
+        fit's bounds, and how many were clipped."""
+        rng = np.random.default_rng(seed)
+        draws = rng.multivariate_normal(self.values, self.covariance, size=count, method="eigh")
+        clipped = np.any((draws < self.lower) | (draws > self.upper), axis=1)
+        return np.clip(draws, self.lower, self.upper), int(clipped.sum())
+
+    def sigma_points(self) -> np.ndarray:
+        """`(2k + 1, k)`: the fitted values, and each ± √k times a column of the
+        covariance's square root (the unscented transform's points, equal weights on
+        the sides): a fixed set whose spread is the fit's. Clipped to the bounds."""
+        k = len(self.names)
+        root = np.linalg.cholesky(self.covariance + 1e-300 * np.eye(k))
+        offsets = math.sqrt(k) * root.T
+        points = np.concatenate([self.values[None], self.values + offsets, self.values - offsets])
+        return np.clip(points, self.lower, self.upper)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "names": list(self.names),
+            "values": self.values.tolist(),
+            "covariance": self.covariance.tolist(),
+            "lower": self.lower.tolist(),
+            "upper": self.upper.tolist(),
+            "identifiable": self.identifiable.tolist(),
+            "design": self.design,
+        }
+
+    @classmethod
+    def from_json(cls, path) -> FittedParameters:
+        """Read the `hardware` entry of a calibration's `result.json`."""
+        text = read_text(Path(path), "calibration result")
+        try:
+            entry = json.loads(text)["hardware"]
+            fitted = cls(
+                tuple(entry["names"]),
+                np.asarray(entry["values"], dtype=float),
+                np.asarray(entry["covariance"], dtype=float),
+                np.asarray(entry["lower"], dtype=float),
+                np.asarray(entry["upper"], dtype=float),
+                np.asarray(entry["identifiable"], dtype=bool),
+                {k: float(v) for k, v in entry["design"].items()},
+            )
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+            raise ParameterError(
+                f"{path} is not a calibration result (recoil-jax calibrate's result.json)"
+            ) from None
+        k = len(fitted.names)
+        shapes = [fitted.values.shape, fitted.lower.shape, fitted.upper.shape]
+        if any(s != (k,) for s in shapes) or fitted.covariance.shape != (k, k):
+            raise ParameterError(f"{path}: its hardware entry's sizes do not agree")
+        for name in fitted.names:
+            if name not in PARAMETERS:
+                raise PARAMETERS.unknown(name)
+        return fitted
+
+
+@dataclasses.dataclass(frozen=True)
+class Prediction:
+    """A design's peaks under the fitted uncertainty (`predict`).
+
+    - `design`: every value given (the calibration's known ones, yours, the fitted ones).
+    - `nominal`: each metric (`METRICS`) at the fitted values.
+    - `sampled`: per metric, `mean`, `std` and `ci95` (2.5 and 97.5 percentiles) over the
+      covariance samples; `linear`: per metric, `std` and `ci95` (± 1.96 std) from the
+      exact gradient and the covariance (`g Σ gᵀ`).
+    - `samples`: per metric, the sampled values `(n,)`; `count`, `clipped` (draws moved
+      to the fit's bounds), `failed` (solves that failed, left out and counted),
+      `seconds`.
+    """
+
+    design: dict[str, float]
+    nominal: dict[str, float]
+    sampled: dict[str, dict[str, Any]]
+    linear: dict[str, dict[str, Any]]
+    samples: dict[str, np.ndarray]
+    count: int
+    clipped: int
+    failed: int
+    seconds: float
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "design": self.design,
+            "nominal": self.nominal,
+            "sampled": self.sampled,
+            "linear": self.linear,
+            "count": self.count,
+            "clipped": self.clipped,
+            "failed": self.failed,
+            "seconds": self.seconds,
+        }
+
+
+def predict(
+    fitted: FittedParameters,
+    design: Mapping[str, float] | None = None,
+    *,
+    samples: int = 10_000,
+    seed: int = 0,
+    smoothing: Smoothing = Smoothing(),
+    options: SolverOptions = SolverOptions(),
+    progress: bool | None = None,
+) -> Prediction:
+    """Any design's peak metrics with a 95 % band from a calibration's uncertainty, two
+    ways: `samples` draws from the fitted normal through one batched sweep, and linear
+    propagation of the covariance through the exact gradients at the fitted values.
+
+    **Arguments:**
+
+    - `fitted`: `CalibrationResult.hardware()` or `FittedParameters.from_json(path)`.
+    - `design`: the design's values by flat name (the calibration's known values fill
+      in; the fitted parameters take their fitted values and may not be given).
+    - `samples`, `seed`: the draws; `smoothing`, `options`: the solves'.
+
+    **Raises:** `ParameterError` for a fitted parameter given in `design`, a fitted value
+    the data did not determine, or `samples < 2`.
+    """
+    if not (isinstance(samples, int) and samples >= 2):
+        raise ParameterError(f"samples = {samples!r} is invalid: valid an integer >= 2")
+    fitted.check_determined()
+    design = dict(design or {})
+    for name in design:
+        if name in fitted.names:
+            raise ParameterError(
+                f"{name} is fitted: its value comes from the calibration "
+                f"({fitted.values[fitted.names.index(name)]:g}); leave it out of the design"
+            )
+    clock = time.perf_counter()
+    values = {
+        **fitted.design,
+        **design,
+        **dict(zip(fitted.names, fitted.values.tolist(), strict=True)),
+    }
+    params = params_from_values(values)
+    nominal_peaks = peaks(params, smoothing, options)
+    draws, clipped = fitted.sample(samples, seed)
+    columns = {name: np.full(samples, float(v)) for name, v in values.items()}
+    columns |= {name: draws[:, j] for j, name in enumerate(fitted.names)}
+    result = sweep(columns, smoothing=smoothing, options=options, progress=progress)
+    ok = result.ok
+    _, gradients = peak_jacobian(params, smoothing, GRADIENT_OPTIONS, fitted.names)
+    nominal, sampled, linear, kept = {}, {}, {}, {}
+    for name in METRICS:
+        nominal[name] = float(getattr(nominal_peaks, name))
+        values_ = result.peaks[name][ok]
+        kept[name] = values_
+        low, high = np.percentile(values_, [2.5, 97.5])
+        sampled[name] = {
+            "mean": float(np.mean(values_)),
+            "std": float(np.std(values_, ddof=1)),
+            "ci95": [float(low), float(high)],
+        }
+        g = np.asarray(getattr(gradients, name), dtype=float)
+        std = float(math.sqrt(max(g @ fitted.covariance @ g, 0.0)))
+        linear[name] = {
+            "std": std,
+            "ci95": [nominal[name] - 1.96 * std, nominal[name] + 1.96 * std],
+        }
+    return Prediction(
+        design={k: float(v) for k, v in values.items()},
+        nominal=nominal,
+        sampled=sampled,
+        linear=linear,
+        samples=kept,
+        count=samples,
+        clipped=clipped,
+        failed=int((~ok).sum()),
+        seconds=time.perf_counter() - clock,
+    )

@@ -1,0 +1,276 @@
+"""`recoil-jax bench-calibration`: our calibration against the fit a Python engineer
+writes (scipy `least_squares` with a finite-difference Jacobian on `solve_ivp` DOP853,
+the switches and the contact as events), on synthetic firing tests made by that same
+independent solver with noise.
+
+Measured, side by side in one run: one 5-parameter fit (warm); many fits (noise draws:
+ours as one batch, scipy looping); the fraction of random starts that reach the best
+(both from the same points); the prediction band; the command line cold and cached.
+Speed is reported, never asserted.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import scipy.optimize
+import scipy.stats
+
+import recoil_jax as rj
+import recoil_jax.extend as rjx
+
+from ._bench import host_description
+
+__all__ = ["format_calibration_bench", "main_calibration_bench", "run_calibration_bench"]
+
+#: The firing test: the absorber model, 5 fitted parameters, x_M and F_AN measured.
+TRUTH = {"k": 28000.0, "c_out": 6000.0, "c_ret": 14000.0, "gap": 0.02, "m": 1000.0}
+BOX = {"k": (1e4, 1e5), "c_out": (1e3, 3e4), "c_ret": (1e3, 4e4), "gap": (0.0, 0.1),
+       "m": (200.0, 3000.0)}  # fmt: skip
+NOISE = {"x_M": 2e-4, "F_AN": 300.0}
+#: The burst test: three rounds, half a second apart.
+BURST = {"shots": 3.0, "fire_interval": 0.5}
+#: The scipy way's solver settings: the reference solver's DOP853 with events, at a
+#: tolerance whose finite differences hold (at 1e-6 they are noise).
+SCIPY_SOLVER = {"rtol": 1e-8, "atol": 1e-11}
+#: A start reached the best when its cost is within this of the best (χ² units, noise
+#: given): 0.01 is a tenth of a standard error in the worst direction.
+REACHED = 0.01
+
+
+def firing_test(known: dict, samples: int, end: float, seed: int):
+    """`(t, {signal: measured})`: the reference solver's history with Gaussian noise."""
+    ts = np.linspace(0.0, end, samples)
+    history = rjx.reference_history(known | TRUTH, ts)
+    rng = np.random.default_rng(seed)
+    return ts, {s: history[s] + NOISE[s] * rng.standard_normal(samples) for s in NOISE}
+
+
+class ScipyFit:
+    """What a Python engineer writes: weighted residuals of the hard-switch model solved
+    by `solve_ivp` (DOP853, events), fitted by `least_squares` (trf, bounds, a 2-point
+    Jacobian, `x_scale="jac"`). Counts its solves."""
+
+    def __init__(self, known: dict, ts, measured: dict):
+        self.known, self.ts, self.measured = known, ts, measured
+        self.names = list(BOX)
+        self.solves = 0
+
+    def residuals(self, theta) -> np.ndarray:
+        self.solves += 1
+        values = self.known | dict(zip(self.names, theta, strict=True))
+        history = rjx.reference_history(
+            values, self.ts, rtol=SCIPY_SOLVER["rtol"], atol=SCIPY_SOLVER["atol"]
+        )
+        return np.concatenate([(history[s] - self.measured[s]) / NOISE[s] for s in NOISE])
+
+    def fit(self, start) -> scipy.optimize.OptimizeResult:
+        lower, upper = (np.asarray([BOX[n][i] for n in self.names]) for i in (0, 1))
+        return scipy.optimize.least_squares(
+            self.residuals, start, bounds=(lower, upper), x_scale="jac", method="trf"
+        )
+
+
+def _ours(known: dict, ts, measured: dict) -> rj.Calibration:
+    experiment = rjx.Experiment(rjx.Trace.of(ts, **measured), design=known, sigma=NOISE)
+    return rj.Calibration([experiment], fit=BOX)
+
+
+def _timed(fn):
+    start = time.perf_counter()
+    out = fn()
+    return out, time.perf_counter() - start
+
+
+def one_fit(samples: int, log) -> dict:
+    """One 5-parameter fit of one trace, warm: ours, then scipy's from the same start."""
+    ts, measured = firing_test({}, samples, 1.0, seed=7)
+    calibration = _ours({}, ts, measured)
+    rj.calibrate(calibration, progress=False)  # compiles
+    ours, ours_s = _timed(lambda: rj.calibrate(calibration, progress=False))
+    start = np.asarray([rj.PARAMETERS[n].default for n in BOX])
+    scipy_fit = ScipyFit({}, ts, measured)
+    theirs, theirs_s = _timed(lambda: scipy_fit.fit(start))
+    stderr = np.asarray([ours.fitted[n].stderr for n in BOX])
+    apart = np.abs(theirs.x - np.asarray([ours.values[n] for n in BOX])) / stderr
+    log(f"  one fit: ours {ours_s:.3f} s ({ours.steps} LM steps), scipy {theirs_s:.2f} s "
+        f"({scipy_fit.solves} solves); values apart by <= {apart.max():.2f} stderr")  # fmt: skip
+    return {
+        "samples": samples,
+        "ours_s": ours_s,
+        "ours_steps": ours.steps,
+        "scipy_s": theirs_s,
+        "scipy_solves": scipy_fit.solves,
+        "speedup": theirs_s / ours_s,
+        "max_apart_stderr": float(apart.max()),
+    }
+
+
+def many_fits(samples: int, draws: int, scipy_draws: int, log) -> dict:
+    """`draws` noise draws of one test: ours as one batch (warm), scipy looping over
+    `scipy_draws` of them (its time per fit times `draws`: the fits are independent)."""
+    ts, _ = firing_test({}, samples, 1.0, seed=0)
+    sets = [firing_test({}, samples, 1.0, seed=1000 + b)[1] for b in range(draws)]
+    calibration = _ours({}, ts, sets[0])
+    rjx.fit_many(calibration, [[s] for s in sets])  # compiles
+    rows, ours_s = _timed(lambda: rjx.fit_many(calibration, [[s] for s in sets]))
+    start = np.asarray([rj.PARAMETERS[n].default for n in BOX])
+    apart, scipy_s = [], 0.0
+    for b in range(scipy_draws):
+        fit, seconds = _timed(lambda b=b: ScipyFit({}, ts, sets[b]).fit(start))
+        scipy_s += seconds
+        ours_b = np.asarray([rows[b][n] for n in BOX])
+        stderr = np.asarray([rows[b][f"{n}.stderr"] for n in BOX])
+        apart.append(float(np.max(np.abs(fit.x - ours_b) / stderr)))
+    per_fit = scipy_s / scipy_draws
+    log(f"  {draws} fits: ours {ours_s:.2f} s as one batch; scipy {per_fit:.2f} s a fit "
+        f"(on {scipy_draws}), {per_fit * draws:.1f} s for {draws}")  # fmt: skip
+    return {
+        "draws": draws,
+        "ours_s": ours_s,
+        "scipy_draws": scipy_draws,
+        "scipy_s_per_fit": per_fit,
+        "speedup": per_fit * draws / ours_s,
+        "converged": int(sum(r["converged"] for r in rows)),
+        "max_apart_stderr": max(apart),
+    }
+
+
+def random_starts(name: str, known: dict, end: float, samples: int, starts: int, log) -> dict:
+    """The fraction of `starts` random points in the box (the same for both) from which
+    each fit reaches its best cost (within `REACHED`)."""
+    ts, measured = firing_test(known, samples, end, seed=3)
+    rng = np.random.default_rng(5)
+    lower, upper = (np.asarray([BOX[n][i] for n in BOX]) for i in (0, 1))
+    points = lower + (upper - lower) * rng.random((starts, len(BOX)))
+    calibration = _ours(known, ts, measured)
+    rj.calibrate(calibration, starts=points, progress=False)  # compiles
+    ours, ours_s = _timed(lambda: rj.calibrate(calibration, starts=points, progress=False))
+    costs, theirs_s = [], 0.0
+    for point in points:
+        fit, seconds = _timed(lambda p=point: ScipyFit(known, ts, measured).fit(p))
+        costs.append(2 * fit.cost)  # scipy's cost is half the sum of squares
+        theirs_s += seconds
+    costs = np.asarray(costs)
+    theirs = int(np.sum(costs <= costs.min() + REACHED))
+    log(f"  {name}, {starts} random starts: ours {ours.starts_at_best} reach the best "
+        f"({ours_s:.1f} s), scipy {theirs} ({theirs_s:.1f} s)")  # fmt: skip
+    return {
+        "trace": name,
+        "starts": starts,
+        "ours_reached": ours.starts_at_best,
+        "scipy_reached": theirs,
+        "ours_s": ours_s,
+        "scipy_s": theirs_s,
+        "ours_best_chi2": ours.chi2,
+        "scipy_best_chi2": float(costs.min()),
+    }
+
+
+def prediction(samples: int, log) -> dict:
+    """The 95 % band of one design from `samples` covariance samples (warm)."""
+    ts, measured = firing_test({}, 2001, 1.0, seed=7)
+    hardware = rj.calibrate(_ours({}, ts, measured), progress=False).hardware()
+    design = {"k_r": 20000.0}  # a design change the test did not fire
+    rj.predict(hardware, design, samples=samples, progress=False)
+    result, seconds = _timed(lambda: rj.predict(hardware, design, samples=samples, progress=False))
+    log(f"  prediction band, {samples} samples: {seconds:.2f} s ({result.failed} failed)")
+    return {"samples": samples, "seconds": seconds, "failed": result.failed}
+
+
+def command_line(samples: int, log) -> dict:
+    """`recoil-jax calibrate TRACE --fit ...` in a fresh process: cold (an empty cache),
+    then with the compilation cache holding its programs."""
+    with tempfile.TemporaryDirectory() as folder:
+        ts, measured = firing_test({}, samples, 1.0, seed=7)
+        trace = Path(folder) / "trace.csv"
+        rows = ["t,x_M,F_AN"] + [
+            f"{t:.9g},{x:.9g},{f:.9g}"
+            for t, x, f in zip(ts, measured["x_M"], measured["F_AN"], strict=True)
+        ]
+        trace.write_text("\n".join(rows) + "\n")
+        env = os.environ | {"RECOIL_JAX_CACHE": str(Path(folder) / "cache")}
+        argv = [sys.executable, "-m", "recoil_jax.apps._cli", "calibrate", str(trace),
+                "--fit", ",".join(BOX), "--out", str(Path(folder) / "out")]  # fmt: skip
+        seconds = []
+        for _ in range(2):
+            start = time.perf_counter()
+            subprocess.run(argv, check=True, capture_output=True, env=env)
+            seconds.append(time.perf_counter() - start)
+    log(f"  recoil-jax calibrate: {seconds[0]:.1f} s cold, {seconds[1]:.1f} s cached")
+    return {"cold_s": seconds[0], "cached_s": seconds[1]}
+
+
+def run_calibration_bench(
+    samples: int = 5001,
+    draws: int = 100,
+    scipy_draws: int = 10,
+    starts: int = 20,
+    prediction_samples: int = 10_000,
+    cli: bool = True,
+    log=None,
+) -> dict:
+    """Every figure of the calibration bench (see the module docstring)."""
+    log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
+    log("calibration bench (ours against scipy least_squares on solve_ivp DOP853):")
+    return {
+        "one_fit": one_fit(samples, log),
+        "many_fits": many_fits(min(samples, 1001), draws, scipy_draws, log),
+        "random_starts": [
+            random_starts("absorber", {}, 1.0, min(samples, 2001), starts, log),
+            random_starts("burst", BURST, 1.5, min(samples, 3001), starts, log),
+        ],
+        "prediction": prediction(prediction_samples, log),
+        "command_line": command_line(samples, log) if cli else None,
+        "scipy_solver": {"method": "DOP853", **SCIPY_SOLVER},
+        "host": host_description(),
+    }
+
+
+def format_calibration_bench(result: dict) -> str:
+    one, many = result["one_fit"], result["many_fits"]
+    lines = [
+        f"host: {result['host']['cpu']}, {result['host']['cores']} cores",
+        f"one fit (5 parameters, {one['samples']} samples of x_M and F_AN), warm: ours "
+        f"{one['ours_s']:.3f} s, scipy {one['scipy_s']:.2f} s ({one['scipy_solves']} "
+        f"solves): {one['speedup']:.1f}x; values apart by <= "
+        f"{one['max_apart_stderr']:.2f} stderr",
+        f"{many['draws']} fits (noise draws): ours {many['ours_s']:.2f} s as one batch, "
+        f"scipy {many['scipy_s_per_fit']:.2f} s a fit (looping; measured on "
+        f"{many['scipy_draws']}): {many['speedup']:.0f}x; {many['converged']} converged; "
+        f"values apart by <= {many['max_apart_stderr']:.2f} stderr",
+    ]
+    for row in result["random_starts"]:
+        lines.append(
+            f"{row['trace']}: of {row['starts']} random starts, ours reached the best from "
+            f"{row['ours_reached']} ({row['ours_s']:.1f} s), scipy from "
+            f"{row['scipy_reached']} ({row['scipy_s']:.1f} s)"
+        )
+    p = result["prediction"]
+    lines.append(f"prediction band, {p['samples']} samples: {p['seconds']:.2f} s")
+    if result["command_line"]:
+        c = result["command_line"]
+        lines.append(f"recoil-jax calibrate: {c['cold_s']:.1f} s cold, {c['cached_s']:.1f} s "
+                     "with the compilation cache")  # fmt: skip
+    return "\n".join(lines)
+
+
+def main_calibration_bench(args) -> int:
+    quick = args.quick
+    result = run_calibration_bench(
+        samples=1001 if quick else 5001,
+        draws=8 if quick else 100,
+        scipy_draws=2 if quick else 10,
+        starts=4 if quick else 20,
+        prediction_samples=1000 if quick else 10_000,
+        cli=not quick,
+    )
+    print(json.dumps(result) if args.json else format_calibration_bench(result))
+    return 0
