@@ -71,6 +71,10 @@ __all__ = [
 #: each applied to the residual in units of `f_scale` noise deviations.
 LOSSES = ("linear", "soft_l1", "huber")
 
+#: A start reached the best when its score (−2 log-likelihood) is within this of the
+#: best: a tenth of a standard error in the worst direction.
+REACHED = 0.01
+
 #: The residual given to the fit where an experiment's solve failed (in noise
 #: deviations): large and finite, so that the step is refused rather than NaN.
 _FAILED_RESIDUAL = 1e6
@@ -147,6 +151,8 @@ class Calibration:
                     )
         layout = _Layout.of(self)  # checks the designs and signals
         _prepare(self, self.experiments, layout)  # and the time spans
+        for experiment in self.validation:  # the same checks, before the fit
+            _validation_problem(self, experiment)
 
     def experiment_design(self, experiment: Experiment) -> dict[str, float]:
         """The known values of one experiment: the shared ones, then its own."""
@@ -553,13 +559,23 @@ def _residual_scale(residuals, present, loss: str):
 
 class _FitOutcome(eqx.Module):
     """One lane of a batched fit: the optimum `u`, whether the fit converged, its steps,
-    the noise it settled on `(E, S)` and the cost there."""
+    the noise it settled on `(E, S)`, the cost there, and its `score`: −2 log-likelihood
+    of the Gaussian noise model up to a constant (the cost plus `Σ n log σ²` over every
+    experiment and signal), which ranks fits whose noise was estimated each on its own
+    (their costs are all about N)."""
 
     u: jax.Array
     converged: jax.Array
     steps: jax.Array
     sigma: jax.Array
     cost: jax.Array
+    score: jax.Array
+
+
+def _log_likelihood_term(sigma, present):
+    """`Σ n log σ²` over experiments and signals (`n` samples each), any array module."""
+    xp = jnp if isinstance(sigma, jax.Array) else np
+    return xp.sum(present.sum(-1) * xp.log(sigma**2))
 
 
 def _fit_one(u0, measured, data: _Data, static: _Static) -> _FitOutcome:
@@ -569,8 +585,9 @@ def _fit_one(u0, measured, data: _Data, static: _Static) -> _FitOutcome:
     u1, ok1, steps1 = _solve_lm(u0, data, static)
     if not static.estimate_noise:  # every noise given: one pass
         final = _evaluate(_theta_of_u(u1, data.space), data, static)
-        r = _robust(final.residuals, static.loss, static.f_scale)
-        return _FitOutcome(u1, ok1, steps1, data.sigma, jnp.sum(r**2))
+        cost = jnp.sum(_robust(final.residuals, static.loss, static.f_scale) ** 2)
+        score = cost + _log_likelihood_term(data.sigma, data.present)
+        return _FitOutcome(u1, ok1, steps1, data.sigma, cost, score)
     first = _evaluate(_theta_of_u(u1, data.space), data, static)
     scale = _residual_scale(first.residuals, data.present, static.loss)
     scale = jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0)
@@ -578,8 +595,9 @@ def _fit_one(u0, measured, data: _Data, static: _Static) -> _FitOutcome:
     data = eqx.tree_at(lambda d: d.sigma, data, sigma)
     u2, ok2, steps2 = _solve_lm(u1, data, static)
     final = _evaluate(_theta_of_u(u2, data.space), data, static)
-    r = _robust(final.residuals, static.loss, static.f_scale)
-    return _FitOutcome(u2, ok1 & ok2, steps1 + steps2, sigma, jnp.sum(r**2))
+    cost = jnp.sum(_robust(final.residuals, static.loss, static.f_scale) ** 2)
+    score = cost + _log_likelihood_term(sigma, data.present)
+    return _FitOutcome(u2, ok1 & ok2, steps1 + steps2, sigma, cost, score)
 
 
 @structure_jit
@@ -650,11 +668,14 @@ class CalibrationResult:
       `covariance (P, P)` (SI units).
     - `unidentifiable`: the combinations the data cannot confine within the bounds, in
       words (`"k_c, n_c: 0.71·k_c − 0.70·n_c (box coordinates)"`).
-    - `chi2`, `reduced_chi2`, `aic`, `bic`, `samples` (N), `dof` (N − P); `rms`: per
-      signal, the RMS residual (its unit); `sigma`: per experiment and signal, the noise
-      used (given or estimated).
+    - `chi2`, `reduced_chi2`, `samples` (N), `dof` (N − P); `aic`, `bic`: −2
+      log-likelihood of the Gaussian noise model (`chi2 + Σ n log σ²`, SI units, up to
+      N log 2π) plus 2, or ln N, per estimated value (the fitted ones and each estimated
+      noise); `rms`: per signal, the RMS residual (its unit); `sigma`: per experiment and
+      signal, the noise used (given or estimated).
     - `converged`: the best start's fit converged; `starts`, `starts_at_best`: how many
-      starts were run and how many reached the best cost (within 1e-6).
+      starts were run and how many reached the best (−2 log-likelihood within
+      `REACHED`, 0.01).
     - `experiments`: per experiment, its name, trace, samples, skipped samples and RMS
       per signal; `validation`: the same for the validation experiments.
     - `times`, `measured`, `model`: per experiment (a list), the sample times `(n,)` and
@@ -774,8 +795,18 @@ def _starts(layout: _Layout, starts: int, seed: int) -> np.ndarray:
     return np.concatenate([first[None], points[: starts - 1]])
 
 
+#: Starts are moved this far (box coordinates) inside the bounds: on a bound the bounded
+#: transform's slope is 0, and the fit could never move the value.
+_START_MARGIN = 1e-3
+
+
 def _start_points(layout: _Layout, starts, seed: int) -> np.ndarray:
-    """`starts` (a count, or `(N, P)` values) as points in box coordinates."""
+    """`starts` (a count, or `(N, P)` values) as points in box coordinates, a little
+    inside the bounds (`_START_MARGIN`)."""
+    return np.clip(_given_starts(layout, starts, seed), _START_MARGIN, 1 - _START_MARGIN)
+
+
+def _given_starts(layout: _Layout, starts, seed: int) -> np.ndarray:
     if isinstance(starts, int) and not isinstance(starts, bool):
         if starts < 1:
             raise ParameterError(f"starts = {starts!r} is invalid: valid an integer >= 1")
@@ -838,10 +869,10 @@ def calibrate(
     bar.update(0, f"fitting from {starts} start{'s' if starts > 1 else ''} (one program)")
     measured = jnp.broadcast_to(data.measured, (starts, *data.measured.shape))
     outcome = _fit_program(jnp.asarray(_u_of_z(z0)), measured, data, static)
-    cost = np.asarray(outcome.cost)
-    cost = np.where(np.isfinite(cost), cost, np.inf)
-    best = int(np.argmin(cost))
-    at_best = int(np.sum(cost <= cost[best] * (1 + 1e-6) + 1e-12))
+    score = np.asarray(outcome.score)
+    score = np.where(np.isfinite(score), score, np.inf)
+    best = int(np.argmin(score))
+    at_best = int(np.sum(score <= score[best] + REACHED))
     bar.update(1, f"fitted in {int(outcome.steps[best])} steps; uncertainty")
     data = eqx.tree_at(lambda d: d.sigma, data, outcome.sigma[best])
     theta = _theta_of_u(outcome.u[best], data.space)
@@ -879,12 +910,14 @@ def _with_profiles(result, layout, data, static, u_best):
     theta = np.asarray([result.values[label] for label in layout.labels])
     z = space.z(theta)
     P = len(theta)
+    # The standard error in box coordinates, from the slope there (not by moving θ, which
+    # the bounds would clip at a value on its bound).
+    dtheta_dz = np.asarray(jax.jvp(space.theta, (jnp.asarray(z),), (jnp.ones(P),))[1])
     grids = []
     for i, label in enumerate(layout.labels):
         f = result.fitted[label]
         if f.identifiable and f.stderr:
-            moved = space.z(np.where(np.arange(P) == i, theta + f.stderr, theta))[i]
-            sd_z = max(abs(moved - z[i]), 1e-12)
+            sd_z = max(f.stderr / max(abs(dtheta_dz[i]), 1e-300), 1e-12)
             steps = np.asarray(_PROFILE_STEPS)
             points = np.concatenate([z[i] - sd_z * steps[::-1], z[i] + sd_z * steps])
         else:  # not determined: across the bounds
@@ -898,14 +931,18 @@ def _with_profiles(result, layout, data, static, u_best):
         held_z[i * m : (i + 1) * m, i] = points
     held_theta = np.asarray(jax.vmap(space.theta)(jnp.asarray(held_z)))
     u0 = jnp.broadcast_to(u_best, held.shape)
-    cost, _ = _profile_program(u0, jnp.asarray(held), jnp.asarray(held_theta), data, static)
-    delta = (np.asarray(cost) - result.chi2) / result.reduced_chi2
+    cost, converged = _profile_program(u0, jnp.asarray(held), jnp.asarray(held_theta), data, static)
+    # A point whose refit did not converge is left out (NaN); a rise below 0 (a better
+    # optimum than the fit's) is kept, and shows in the profile.
+    delta = np.where(
+        np.asarray(converged), (np.asarray(cost) - result.chi2) / result.reduced_chi2, np.nan
+    )
     profiles, fitted = {}, dict(result.fitted)
     for i, label in enumerate(layout.labels):
         values = np.concatenate([held_theta[i * m : (i + 1) * m, i], [theta[i]]])
         rise = np.concatenate([delta[i * m : (i + 1) * m], [0.0]])
         order = np.argsort(values, kind="stable")
-        values, rise = values[order], np.maximum(rise[order], 0.0)
+        values, rise = values[order], rise[order]
         profiles[label] = {"values": values, "delta_chi2": rise}
         fitted[label] = dataclasses.replace(
             fitted[label], profile_ci95=_crossings(values, rise, theta[i])
@@ -919,6 +956,7 @@ def _crossings(values, rise, best) -> tuple[float | None, float | None]:
     sides = []
     for lower in (True, False):
         side = values < best if lower else values > best
+        side &= np.isfinite(rise)
         xs, ys = values[side], rise[side]
         if lower:  # nearest first
             xs, ys = xs[::-1], ys[::-1]
@@ -935,10 +973,21 @@ def _crossings(values, rise, best) -> tuple[float | None, float | None]:
 def _report(calibration, layout, data, evaluation, theta, *, converged, starts, steps):
     r = np.asarray(evaluation.residuals)
     present = np.asarray(data.present)
-    J = np.asarray(evaluation.jacobian)[present]  # (N, P)
     codes = np.asarray(evaluation.codes)
-    robust = np.asarray(_robust(jnp.asarray(r[present]), calibration.loss, calibration.f_scale))
+    robust, slope = (
+        np.asarray(a)
+        for a in jax.jvp(
+            lambda x: _robust(x, calibration.loss, calibration.f_scale),
+            (jnp.asarray(r[present]),),
+            (jnp.ones(int(present.sum())),),
+        )
+    )
+    # The Jacobian of the residuals the fit minimised (a robust loss down-weights outliers
+    # there too), `(N, P)`.
+    J = np.asarray(evaluation.jacobian)[present] * slope[:, None]
     N, P = J.shape[0], len(theta)
+    if N == 0:
+        raise ParameterError("calibration: no usable sample within the experiments' windows")
     dof = max(N - P, 1)
     chi2 = float(np.sum(robust**2))
     reduced = chi2 / dof
@@ -999,7 +1048,10 @@ def _report(calibration, layout, data, evaluation, theta, *, converged, starts, 
         for s, name in enumerate(layout.signals)
         if present[:, s].any()
     }
-    log_likelihood_term = N * math.log(max(chi2, 1e-300) / N)
+    # −2 log-likelihood of the Gaussian noise model (up to N log 2π), and how many values
+    # were estimated: the fitted ones and every estimated noise.
+    minus_two_log_likelihood = chi2 + float(_log_likelihood_term(sigma, present))
+    estimated = P + int(np.sum(present.any(-1) & ~np.asarray(data.sigma_given)))
     experiments, times, measured, model = [], [], [], []
     signals_model = np.asarray(evaluation.signals)
     for e, experiment in enumerate(calibration.experiments):
@@ -1024,8 +1076,8 @@ def _report(calibration, layout, data, evaluation, theta, *, converged, starts, 
         unidentifiable=unidentifiable,
         chi2=chi2,
         reduced_chi2=reduced,
-        aic=log_likelihood_term + 2 * P,
-        bic=log_likelihood_term + math.log(N) * P,
+        aic=minus_two_log_likelihood + 2 * estimated,
+        bic=minus_two_log_likelihood + math.log(N) * estimated,
         samples=N,
         dof=dof,
         rms=rms,
@@ -1072,32 +1124,45 @@ def _experiment_summary(experiment, e, layout, present, residual_si, measured, m
     return summary, trace.t, measured_signals, model_signals
 
 
+def _validation_problem(calibration: Calibration, experiment: Experiment) -> Calibration:
+    """A validation experiment as a calibration of its own, every fitted name shared (its
+    `per_experiment` dropped): checked as the fitted experiments are."""
+    alone = dataclasses.replace(experiment, per_experiment=())
+    return dataclasses.replace(calibration, experiments=(alone,), validation=())
+
+
 def validate(
     calibration: Calibration, result: CalibrationResult, experiment: Experiment, static=None
 ) -> dict[str, Any]:
     """Score the fitted model on an experiment the fit did not see: its RMS residual per
-    signal and its reduced χ² under the fit's noise (by signal, the first experiment's
-    where it has one)."""
-    validating = dataclasses.replace(
-        calibration,
-        experiments=(experiment,),
-        fit={k: v for k, v in calibration.fit.items()},
-        validation=(),
-    )
+    signal, and its reduced χ² under the noise it was given, else the fit's (the first
+    fitted experiment that measured the signal), else its own first guess.
+
+    Each fitted name takes the experiment's own known value where it gives one (its
+    `v0`, its `t_shift`), else the fitted shared value, else the mean of the fitted
+    experiments' own values."""
+    validating = _validation_problem(calibration, experiment)
     layout = _Layout.of(validating)
-    shared = np.asarray([result.values.get(label, np.nan) for label in layout.labels])
-    missing = [label for label, v in zip(layout.labels, shared, strict=True) if np.isnan(v)]
-    if missing:  # a per-experiment value of another experiment: use the shared one's mean
-        for i, label in enumerate(layout.labels):
-            if np.isnan(shared[i]):
-                own = [v for k, v in result.values.items() if k.startswith(label + "[")]
-                shared[i] = float(np.mean(own))
+    values = []
+    for label in layout.labels:
+        if label in experiment.design:
+            values.append(float(experiment.design[label]))
+        elif label in result.values:
+            values.append(result.values[label])
+        else:
+            own = [v for k, v in result.values.items() if k.startswith(label + "[")]
+            values.append(float(np.mean(own)))
     data = _prepare(validating, validating.experiments, layout)
-    noise = {k: v for e in result.sigma for k, v in e.items()}
-    sigma = np.asarray([[noise.get(name, 1.0) for name in layout.signals]], dtype=float)
+    sigma = np.array(data.sigma)
+    for s, name in enumerate(layout.signals):
+        if name in experiment.sigma:
+            continue
+        fitted = [e[name] for e in result.sigma if name in e]
+        if fitted:
+            sigma[0, s] = fitted[0]
     data = eqx.tree_at(lambda d: d.sigma, data, jnp.asarray(sigma))
     static = _Static(layout.wrt, layout.signals, calibration.loss, calibration.f_scale, 1)
-    evaluation = _evaluate_program(jnp.asarray(shared), data, static)
+    evaluation = _evaluate_program(jnp.asarray(values), data, static)
     r = np.asarray(evaluation.residuals)
     present = np.asarray(data.present)
     residual_si = r * sigma[..., None]
@@ -1133,7 +1198,7 @@ def fit_many(
                 if name in signals:
                     values = np.asarray(signals[name], dtype=float)
                     batch[b, e, s, : values.size] = values
-    z0 = np.tile(_starts(layout, 1, 0), (len(measured), 1))
+    z0 = np.tile(_start_points(layout, 1, 0), (len(measured), 1))
     outcome = _fit_program(jnp.asarray(_u_of_z(z0)), jnp.asarray(batch), data, static)
     rows = []
     for b in range(len(measured)):

@@ -205,6 +205,11 @@ def predict(
     columns |= {name: draws[:, j] for j, name in enumerate(fitted.names)}
     result = sweep(columns, smoothing=smoothing, options=options, progress=progress)
     ok = result.ok
+    if ok.sum() < 2:
+        raise ParameterError(
+            f"predict: {int((~ok).sum())} of {samples} solves failed "
+            f"({result.failures()[0][1]}): no band to give; check the design"
+        )
     _, gradients = peak_jacobian(params, smoothing, GRADIENT_OPTIONS, fitted.names)
     nominal, sampled, linear, kept = {}, {}, {}, {}
     for name in METRICS:

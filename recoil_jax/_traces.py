@@ -79,7 +79,8 @@ class Trace:
                 raise ParameterError(
                     f"{source}: {name} has {columns[signal].size} samples and t {t.size}"
                 )
-        return _checked(source, t, columns, {name: 0 for name in columns})
+        skipped = {name: int(np.sum(~np.isfinite(v))) for name, v in columns.items()}
+        return _checked(source, t, columns, skipped)
 
     def within(self, start: float, end: float) -> Trace:
         """The samples with `start <= t <= end` (s)."""
@@ -98,17 +99,22 @@ class Trace:
         return int(sum(np.isfinite(v).sum() for v in self.signals.values()))
 
 
-def _checked(source: str, t: np.ndarray, columns: dict, skipped: dict) -> Trace:
+def _checked(source: str, t: np.ndarray, columns: dict, skipped: dict, lines=None) -> Trace:
+    """A checked `Trace`; `lines`: each sample's line in its file (for messages)."""
+
+    def where(i: int) -> str:
+        return f"line {lines[i]}" if lines is not None else f"sample {i + 1}"
+
     if t.ndim != 1 or t.size == 0:
         raise ParameterError(f"{source}: no samples")
     if not np.all(np.isfinite(t)):
         i = int(np.argmax(~np.isfinite(t)))
-        raise ParameterError(f"{source}: t at sample {i + 1} is not a finite number")
+        raise ParameterError(f"{source}, {where(i)}: t is not a finite number")
     steps = np.diff(t)
     if np.any(steps <= 0):
         i = int(np.argmax(steps <= 0)) + 1
         raise ParameterError(
-            f"{source}: column t is not increasing at sample {i + 1} "
+            f"{source}, {where(i)}: column t is not increasing "
             f"(t = {t[i]:g} s after {t[i - 1]:g} s)"
         )
     if not columns:
@@ -142,6 +148,8 @@ def read_trace(path) -> Trace:
         raise ParameterError(f"{source}: empty (no header, no samples)")
     header_line, header = rows[0]
     names = [name.strip() for name in header.split(",")]
+    while names and names[-1] == "":  # a spreadsheet's trailing commas
+        names.pop()
     times = [i for i, name in enumerate(names) if name in TIME_COLUMNS]
     if len(times) != 1:
         raise ParameterError(
@@ -162,10 +170,13 @@ def read_trace(path) -> Trace:
             raise ParameterError(f"{source}, line {header_line}: signal {signal} given twice")
         signals[i] = signal
     t: list[float] = []
+    lines: list[int] = []
     values: dict[str, list[float]] = {name: [] for name in signals.values()}
     skipped = {name: 0 for name in signals.values()}
     for number, line in rows[1:]:
         fields = [field.strip() for field in line.split(",")]
+        while len(fields) > len(names) and fields[-1] == "":
+            fields.pop()
         if len(fields) != len(names):
             raise ParameterError(
                 f"{source}, line {number}: {len(fields)} values for {len(names)} columns"
@@ -176,6 +187,7 @@ def read_trace(path) -> Trace:
                 skipped[name] += 1
             continue
         t.append(time)
+        lines.append(number)
         for i, name in signals.items():
             value = _value(source, number, names[i], fields[i])
             skipped[name] += math.isnan(value)
@@ -183,7 +195,7 @@ def read_trace(path) -> Trace:
     if not t:
         raise ParameterError(f"{source}: no samples below the header")
     columns = {name: np.asarray(v, dtype=float) for name, v in values.items()}
-    return _checked(source, np.asarray(t, dtype=float), columns, skipped)
+    return _checked(source, np.asarray(t, dtype=float), columns, skipped, lines)
 
 
 def _value(source: str, line: int, column: str, field: str) -> float:
@@ -224,6 +236,8 @@ class Experiment:
 
     def __post_init__(self):
         where = self.label
+        sigma = {signal_name(k) or k: v for k, v in self.sigma.items()}
+        object.__setattr__(self, "sigma", sigma)
         for name, value in self.design.items():
             if name == "t_shift":
                 check_value(where, name, value, T_SHIFT)

@@ -69,10 +69,17 @@ def test_one_experiment_recovers_its_parameters_and_its_noise():
     assert f.ci95 == pytest.approx((f.value - 1.96 * f.stderr, f.value + 1.96 * f.stderr))
     assert np.allclose(np.diag(result.correlation), 1.0)
     assert np.all(np.abs(result.correlation) <= 1.0 + 1e-12)
-    # AIC and BIC follow lmfit's definitions from chi2.
-    N, P = result.samples, 3
-    assert result.aic == pytest.approx(N * math.log(result.chi2 / N) + 2 * P)
-    assert result.bic == pytest.approx(N * math.log(result.chi2 / N) + math.log(N) * P)
+    # AIC and BIC: −2 log-likelihood of the Gaussian noise (each signal's own, estimated)
+    # plus 2 or ln N per estimated value: 3 fitted, 2 noises.
+    N, estimated = result.samples, 3 + 2
+    n = result.experiments[0]["samples"] // 2
+    minus_two_log_l = result.chi2 + sum(n * math.log(s**2) for s in result.sigma[0].values())
+    assert result.aic == pytest.approx(minus_two_log_l + 2 * estimated)
+    assert result.bic == pytest.approx(minus_two_log_l + math.log(N) * estimated)
+    # With the noise estimated, chi2 is about N whatever the fit: the concentrated
+    # likelihood is what tells fits apart, e.g. a start at a bound that reaches the same.
+    at_bound = rj.calibrate(dataclasses.replace(calibration, start={"k": 1e4}), progress=False)
+    assert at_bound.values["k"] == pytest.approx(result.values["k"], rel=1e-4)
 
 
 def test_profile_intervals_agree_with_the_linear_ones_where_the_fit_is_linear():
@@ -99,11 +106,24 @@ def test_two_experiments_with_their_own_v0_and_trigger_delay():
         design={"v0": 0.70},  # a guess: fitted as its own
         per_experiment=("v0", "t_shift"),
     )
+    # A third firing, not fitted: its own known v0 and trigger delay are used.
+    third = rjx.Experiment(
+        trace(TRUTH | {"v0": 0.72}, shift=0.002, seed=14),
+        design={"v0": 0.72, "t_shift": 0.002},
+        per_experiment=("v0",),
+    )
     fit = BOX | {"v0": (0.5, 0.9), "t_shift": (-0.01, 0.01)}
-    calibration = rj.Calibration([first, second], fit=fit)
+    calibration = rj.Calibration([first, second], fit=fit, validation=[third])
     result = rj.calibrate(calibration, progress=False)
     assert set(result.fitted) == {"k", "c_out", "gap", "v0", "v0[2]", "t_shift", "t_shift[2]"}
     within(result, TRUTH | {"v0": 0.69, "v0[2]": 0.74, "t_shift": 0.0, "t_shift[2]": 0.003})
+    (validation,) = result.validation
+    assert validation["reduced_chi2"] == pytest.approx(1.0, abs=0.2)
+    # A validation trace is checked with the rest, before the fit.
+    ts = np.linspace(0.0, 2.0, 21)
+    late = rjx.Experiment(rjx.Trace.of(ts, x_M=ts), design={"t1": 1.0})
+    with pytest.raises(rj.ParameterError, match="after the simulated window"):
+        rj.Calibration([first], fit=BOX, validation=[late])
 
 
 @pytest.mark.parametrize("loss", ["soft_l1", "huber"])
@@ -175,6 +195,13 @@ def test_a_spreadsheet_export_with_gaps_is_read(tmp_path):
     assert read.t.tolist() == [0.0, 0.001, 0.002, 0.003]
     assert read.skipped == {"x_M": 2, "F_AN": 2}  # the empty values and the time-less row
     assert read.samples == 6
+    # Trailing commas (a spreadsheet's empty columns) are not columns.
+    path.write_text("t,x_M,,\n0,0,,\n0.1,0.01,,\n")
+    assert list(rj.read_trace(path).signals) == ["x_M"]
+    # A noise may be given under either name of its signal.
+    named = rjx.Experiment(rj.read_trace(path), sigma={"x_M": 1e-3})
+    assert named.sigma == {"x_M": 1e-3}
+    assert rjx.Trace.of([0.0, 1.0], x_M=[0.0, np.nan]).skipped == {"x_M": 1}
 
 
 @pytest.mark.parametrize(
@@ -182,7 +209,7 @@ def test_a_spreadsheet_export_with_gaps_is_read(tmp_path):
     [
         ("x_M,F_AN\n1,2\n", "one time column t"),
         ("t,x_M,pressure\n0,0,1\n", "no signal 'pressure'"),
-        ("t,x_M\n0,0\n0.2,1\n0.1,2\n", "not increasing at sample 3"),
+        ("# c\nt,x_M\n0,0\n0.2,1\n0.1,2\n", "line 5: column t is not increasing"),
         ("t,x_M\n0,0\n0.1,abc\n", "line 3, column x_M: 'abc' is not a number"),
         ("t,x_M\n0,\n0.1,nan\n", "no usable sample"),
         ("t,x_M\n0,0,1\n", "line 2: 3 values for 2 columns"),

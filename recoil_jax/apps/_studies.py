@@ -334,7 +334,12 @@ def _parse_calibration(path, section, design: dict, tune, objective: rj.Objectiv
         points = np.concatenate([fitted.values[None], draws])
     else:
         raise _error(path, f'[calibration] points = {kind!r}: "sigma" or "sample"')
-    offsets = points / fitted.values - 1.0
+    zero = [n for n, v in zip(fitted.names, fitted.values, strict=True) if v == 0.0]
+    if zero:
+        raise _error(path, f"[calibration] {zero[0]} was fitted as 0: the scatter is relative "
+                     "to the fitted values; fix it as a known value instead")  # fmt: skip
+    # A point clipped to a lower bound of 0 sits just above it (offsets must be > -1).
+    offsets = np.maximum(points / fitted.values - 1.0, -1.0 + 1e-9)
     known = {**fitted.design, **dict(zip(fitted.names, fitted.values.tolist(), strict=True))}
     scatter = (fitted.names, tuple(tuple(float(o) for o in row) for row in offsets))
     return known | design, dataclasses.replace(objective, scatter=scatter)
