@@ -5,8 +5,9 @@ The fit is weighted least squares over every experiment, signal and sample,
 Jacobian is the library's forward sensitivities of the signals at the sample times (the
 same error-controlled solve as the peaks' gradients; no finite differences), given to
 optimistix through a `jax.custom_jvp`, so that one solve per step gives the residuals
-and their Jacobian. Every experiment is one lane of one batched solve, and every start
-(`starts`) or noise draw one lane of one batched fit: one compiled program.
+and their Jacobian. The experiments, and the starts (`starts`) or noise draws, run
+one after another inside one compiled program (on a CPU, lockstep lanes cost more than
+they save: `docs/speed.md`).
 
 The parameters move in the search space's coordinates (`SearchSpace`: linear between
 the bounds, or logarithmic over three decades and more) through lmfit's bounded
@@ -463,9 +464,13 @@ def _evaluate(theta, data: _Data, static: _Static) -> _Evaluation:
     P = theta.shape[0]
     index = data.index
     columns = jnp.where(index >= 0, theta[jnp.maximum(index, 0)], data.known)
-    values, gradients, codes = jax.vmap(
-        lambda th, p, ts, t1: _experiment_signals(th, p, ts, t1, data, static)
-    )(columns, data.params, data.times, data.t1)
+    # The experiments one after another (`lax.map`), not in lockstep: a vmapped solve
+    # selects its whole carry, the saved signals included, at every step (measured, one
+    # experiment of 5,001 samples: 13 ms vmapped, 3 ms alone).
+    values, gradients, codes = jax.lax.map(
+        lambda a: _experiment_signals(a[0], a[1], a[2], a[3], data, static),
+        (columns, data.params, data.times, data.t1),
+    )
     ok = (codes == OK_CODE)[:, None, None]
     select = jax.nn.one_hot(index, P) * (index >= 0)[..., None]  # (E, K, P)
     jacobian = jnp.einsum("esnk,ekp->esnp", gradients, select) / data.sigma[..., None, None]
@@ -605,11 +610,13 @@ def _fit_program(u0, measured, data: _Data, static: _Static) -> _FitOutcome:
     """`_fit_one` over a batch, `u0 (B, P)`, `measured (B, E, S, n)`, in one program:
     `static.lanes` fits at a time in lockstep (`vmap`), the groups one after another
     (`lax.map`). On a CPU one lane is fastest: lanes in lockstep run until the slowest
-    has converged, and a CPU gains nothing from solving them side by side (measured, 8
-    fits of 1,001 samples: 2.6 s in lockstep, 0.5 s one by one)."""
-    return jax.lax.map(
-        lambda a: _fit_one(a[0], a[1], data, static), (u0, measured), batch_size=static.lanes
-    )
+    has converged, a vmapped loop selects its whole carry at every step, and a CPU gains
+    nothing from solving lanes side by side (measured, 8 fits of 1,001 samples: 2.6 s in
+    lockstep, 0.5 s as lanes of one, 0.28 s as a plain scan)."""
+    # `batch_size=1` would still vmap (lanes of one, carrying selects); None does not.
+    lanes = static.lanes if static.lanes > 1 else None
+    return jax.lax.map(lambda a: _fit_one(a[0], a[1], data, static), (u0, measured),
+                       batch_size=lanes)  # fmt: skip
 
 
 @structure_jit
@@ -629,7 +636,7 @@ def _profile_program(u0, held, held_theta, data: _Data, static: _Static):
         r = _robust(_evaluate(theta, data, static).residuals, static.loss, static.f_scale)
         return jnp.sum(r**2), ok
 
-    return jax.vmap(one)(u0, held, held_theta)
+    return jax.lax.map(lambda a: one(*a), (u0, held, held_theta))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -130,7 +130,7 @@ def many_fits(samples: int, draws: int, scipy_draws: int, log) -> dict:
         stderr = np.asarray([rows[b][f"{n}.stderr"] for n in BOX])
         apart.append(float(np.max(np.abs(fit.x - ours_b) / stderr)))
     per_fit = scipy_s / scipy_draws
-    log(f"  {draws} fits: ours {ours_s:.2f} s as one batch; scipy {per_fit:.2f} s a fit "
+    log(f"  {draws} fits: ours {ours_s:.2f} s in one program; scipy {per_fit:.2f} s a fit "
         f"(on {scipy_draws}), {per_fit * draws:.1f} s for {draws}")  # fmt: skip
     return {
         "draws": draws,
@@ -242,7 +242,7 @@ def format_calibration_bench(result: dict) -> str:
         f"{one['ours_s']:.3f} s, scipy {one['scipy_s']:.2f} s ({one['scipy_solves']} "
         f"solves): {one['speedup']:.1f}x; values apart by <= "
         f"{one['max_apart_stderr']:.2f} stderr",
-        f"{many['draws']} fits (noise draws): ours {many['ours_s']:.2f} s as one batch, "
+        f"{many['draws']} fits (noise draws): ours {many['ours_s']:.2f} s in one program, "
         f"scipy {many['scipy_s_per_fit']:.2f} s a fit (looping; measured on "
         f"{many['scipy_draws']}): {many['speedup']:.0f}x; {many['converged']} converged; "
         f"values apart by <= {many['max_apart_stderr']:.2f} stderr",
