@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import collections
 import functools
+import hashlib
+import importlib.util
 import os
 import platform
 import re
@@ -178,11 +180,16 @@ def _structure_key(dynamic, static) -> tuple:
     return treedef, tuple(leaves), array_def, shapes
 
 
-def structure_jit(fn):
+def structure_jit(fn, *, exported=None):
     """`eqx.filter_jit(fn)`, with its compiled programs in this process's bounded cache
     (`set_max_programs`): one program per structure of the arguments (the arrays' shapes
     and dtypes, and every non-array argument by value), the least recently used dropped
-    past the limit. Called while tracing another program, `fn` is traced inline."""
+    past the limit. Called while tracing another program, `fn` is traced inline.
+
+    `exported`: a function that rebuilds `fn`'s output from its array leaves (an output
+    of arrays only). With the compilation cache on, the traced program is then also kept
+    in the cache's folder (`jax.export`), keyed by the package's source, JAX's version
+    and the arguments' structure, so that another process skips tracing it too."""
 
     @functools.wraps(fn)
     def call(*args, **kwargs):
@@ -191,13 +198,80 @@ def structure_jit(fn):
             return fn(*args, **kwargs)
         key = (fn, _structure_key(dynamic, static))
         with _lock:
-            program = _programs.pop(key, None) or _compile(fn, static)
+            program = _programs.pop(key, None)
+            if program is None:
+                program = (exported and _exported(fn, dynamic, static, exported)) or _compile(
+                    fn, static
+                )
             _programs[key] = program  # the most recently used last
             while len(_programs) > _limit[0]:
                 _programs.popitem(last=False)
         return program(dynamic)
 
     return call
+
+
+def _source_digest() -> str:
+    digest = hashlib.sha256()
+    for path in sorted(Path(__file__).parent.rglob("*.py")):
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def _export(jitted, shapes):
+    """`jax.export`, allowing LAPACK's custom calls (a QR in a least-squares solve): they
+    carry no guarantee across JAX versions, and none is needed, since an exported
+    program is keyed by the JAX version it was made with."""
+    try:
+        return jax.export.export(jitted)(shapes)
+    except ValueError as error:
+        targets = sorted(set(re.findall(r"custom_call @(\w+)\(", str(error))))
+        if not targets:
+            raise
+        checks = [jax.export.DisabledSafetyCheck.custom_call(t) for t in targets]
+        return jax.export.export(jitted, disabled_checks=checks)(shapes)
+
+
+def _exported(fn, dynamic, static, rebuild):
+    """A program for `fn` at this structure, exported to (or loaded from) the
+    compilation cache's folder; None without a cache folder or flatbuffers, or where
+    JAX cannot export it (the caller then compiles as usual)."""
+    folder = getattr(jax.config, "jax_compilation_cache_dir")  # noqa: B009 (untyped flag)
+    if folder is None or importlib.util.find_spec("flatbuffers") is None:
+        return None
+    leaves, treedef = jax.tree.flatten(dynamic)
+    text = "|".join([
+        _source_digest(), jax.__version__, fn.__qualname__, str(treedef),
+        str(jax.tree.structure(static)), repr(jax.tree.leaves(static)),
+        *(f"{tuple(x.shape)}:{x.dtype}" for x in leaves),
+    ])  # fmt: skip
+    path = (
+        Path(folder)
+        / "exported"
+        / f"{fn.__name__}-{hashlib.sha256(text.encode()).hexdigest()[:32]}"
+    )
+    try:
+        if path.exists():
+            program = jax.export.deserialize(bytearray(path.read_bytes()))
+        else:
+
+            def flat(leaves):
+                args, kwargs = eqx.combine(jax.tree.unflatten(treedef, leaves), static)
+                return jax.tree.leaves(fn(*args, **kwargs))
+
+            shapes = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
+            program = _export(jax.jit(flat), shapes)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            partial = path.with_suffix(".partial")
+            partial.write_bytes(program.serialize())
+            partial.replace(path)  # whole or absent, also with two processes at once
+    except Exception:
+        return None
+
+    def run(dynamic):
+        return rebuild(jax.block_until_ready(program.call(jax.tree.leaves(dynamic))))
+
+    return run
 
 
 def _compile(fn, static):

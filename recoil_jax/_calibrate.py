@@ -20,6 +20,7 @@ interval (`docs/calibration.md`).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 from collections.abc import Mapping, Sequence
@@ -605,7 +606,7 @@ def _fit_one(u0, measured, data: _Data, static: _Static) -> _FitOutcome:
     return _FitOutcome(u2, ok1 & ok2, steps1 + steps2, sigma, cost, score)
 
 
-@structure_jit
+@functools.partial(structure_jit, exported=lambda leaves: _FitOutcome(*leaves))
 def _fit_program(u0, measured, data: _Data, static: _Static) -> _FitOutcome:
     """`_fit_one` over a batch, `u0 (B, P)`, `measured (B, E, S, n)`, in one program:
     `static.lanes` fits at a time in lockstep (`vmap`), the groups one after another
@@ -619,7 +620,7 @@ def _fit_program(u0, measured, data: _Data, static: _Static) -> _FitOutcome:
                        batch_size=lanes)  # fmt: skip
 
 
-@structure_jit
+@functools.partial(structure_jit, exported=lambda leaves: _Evaluation(*leaves))
 def _evaluate_program(theta, data: _Data, static: _Static) -> _Evaluation:
     return _evaluate(theta, data, static)
 

@@ -515,3 +515,25 @@ def test_a_fit_that_does_not_converge_or_a_failed_solve_is_said_plainly(tmp_path
     err = capsys.readouterr().err
     assert "solver failed" in err and "Traceback" not in err
     assert json.loads((out / "result.json").read_text())["solved"] is False
+
+
+def test_a_second_process_loads_the_exported_fit(tmp_path):
+    """With the compilation cache on, the fit's programs are exported to its folder; a
+    second process loads them (no tracing) and gives the same fit to the bit."""
+    import os
+    import subprocess
+    import sys
+
+    ts, signals = synthetic(TRUTH, seed=15)
+    trace_path = write_trace(tmp_path / "t.csv", ts, signals)
+    env = os.environ | {"RECOIL_JAX_CACHE": str(tmp_path / "cache")}
+    reports = []
+    for run in range(2):
+        out = tmp_path / f"out{run}"
+        argv = [sys.executable, "-m", "recoil_jax.apps._cli", "calibrate", str(trace_path),
+                "--fit", "k,c_out,gap", "--out", str(out)]  # fmt: skip
+        subprocess.run(argv, check=True, capture_output=True, env=env, timeout=300)
+        reports.append(json.loads((out / "result.json").read_text()))
+    exported = sorted(p.name.split("-")[0] for p in (tmp_path / "cache" / "exported").iterdir())
+    assert exported == ["_evaluate_program", "_fit_program"]
+    assert reports[0]["fitted"] == reports[1]["fitted"]
