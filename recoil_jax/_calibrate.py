@@ -206,8 +206,8 @@ class _Layout:
     known: np.ndarray
 
     @classmethod
-    def of(cls, calibration: Calibration, experiments=None) -> _Layout:
-        experiments = calibration.experiments if experiments is None else experiments
+    def of(cls, calibration: Calibration) -> _Layout:
+        experiments = calibration.experiments
         labels, parameters, owners = [], [], []
         for name in calibration.fit:
             own = [i for i, e in enumerate(calibration.experiments, 1) if name in e.per_experiment]
@@ -883,23 +883,12 @@ def calibrate(
     at_best = int(np.sum(score <= score[best] + REACHED))
     bar.update(1, f"fitted in {int(outcome.steps[best])} steps; uncertainty")
     data = eqx.tree_at(lambda d: d.sigma, data, outcome.sigma[best])
-    theta = _theta_of_u(outcome.u[best], data.space)
-    evaluation = _evaluate_program(theta, data, static)
-    result = _report(
-        calibration,
-        layout,
-        data,
-        evaluation,
-        np.asarray(theta),
-        converged=bool(outcome.converged[best]),
-        starts=(starts, at_best),
-        steps=int(outcome.steps[best]),
-    )
+    result = _lane_report(calibration, layout, data, static, outcome, best, (starts, at_best))
     if profiles:
         bar.update(2, f"profiles ({len(layout.labels)} values)")
         result = _with_profiles(result, layout, data, static, outcome.u[best])
     bar.update(3, "validation")
-    validation = [validate(calibration, result, e, static) for e in calibration.validation]
+    validation = [validate(calibration, result, e) for e in calibration.validation]
     bar.update(4, "done", final=True)
     return dataclasses.replace(result, validation=validation, seconds=time.perf_counter() - clock)
 
@@ -976,6 +965,22 @@ def _crossings(values, rise, best) -> tuple[float | None, float | None]:
             x0, y0 = x, y
         sides.append(None if found is None else float(found))
     return sides[0], sides[1]
+
+
+def _lane_report(calibration, layout, data, static, outcome: _FitOutcome, lane: int, starts):
+    """The report of one lane of a batched fit, on `data` (with that lane's noise)."""
+    theta = _theta_of_u(outcome.u[lane], data.space)
+    evaluation = _evaluate_program(theta, data, static)
+    return _report(
+        calibration,
+        layout,
+        data,
+        evaluation,
+        np.asarray(theta),
+        converged=bool(outcome.converged[lane]),
+        starts=starts,
+        steps=int(outcome.steps[lane]),
+    )
 
 
 def _report(calibration, layout, data, evaluation, theta, *, converged, starts, steps):
@@ -1140,7 +1145,7 @@ def _validation_problem(calibration: Calibration, experiment: Experiment) -> Cal
 
 
 def validate(
-    calibration: Calibration, result: CalibrationResult, experiment: Experiment, static=None
+    calibration: Calibration, result: CalibrationResult, experiment: Experiment
 ) -> dict[str, Any]:
     """Score the fitted model on an experiment the fit did not see: its RMS residual per
     signal, and its reduced χ² under the noise it was given, else the fit's (the first
@@ -1213,18 +1218,7 @@ def fit_many(
         data_b = eqx.tree_at(
             lambda d: (d.measured, d.sigma), data, (jnp.asarray(batch[b]), outcome.sigma[b])
         )
-        theta = _theta_of_u(outcome.u[b], data.space)
-        evaluation = _evaluate_program(theta, data_b, static)
-        report = _report(
-            calibration,
-            layout,
-            data_b,
-            evaluation,
-            np.asarray(theta),
-            converged=bool(outcome.converged[b]),
-            starts=(1, 1),
-            steps=int(outcome.steps[b]),
-        )
+        report = _lane_report(calibration, layout, data_b, static, outcome, b, (1, 1))
         row = {label: f.value for label, f in report.fitted.items()}
         row |= {
             f"{label}.stderr": (f.stderr if f.stderr is not None else math.nan)
