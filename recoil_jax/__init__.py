@@ -94,6 +94,13 @@ from ._search import (
     minimise as minimise,
     search as search,
 )
+from ._sensitivity import (
+    DGSM as DGSM,
+    MorrisEffects as MorrisEffects,
+    SensitivityResult as SensitivityResult,
+    SobolIndices as SobolIndices,
+    sensitivity as sensitivity,
+)
 from ._solve import (
     History as History,
     peak_metrics as peak_metrics,
@@ -146,4 +153,6 @@ __all__ = [  # noqa: RUF022 (grouped by topic, as the docs)
     "Stopping",
     # Calibration
     "Calibration", "CalibrationResult", "calibrate", "read_trace", "predict",
+    # Global sensitivity
+    "sensitivity", "SensitivityResult", "SobolIndices", "MorrisEffects", "DGSM",
 ]  # fmt: skip

@@ -81,6 +81,24 @@ class FittedParameters:
         points = np.concatenate([self.values[None], self.values + offsets, self.values - offsets])
         return np.clip(points, self.lower, self.upper)
 
+    @property
+    def fitted_design(self) -> dict[str, float]:
+        """The calibration's known values with the fitted values: the design it found."""
+        return {**self.design, **dict(zip(self.names, self.values.tolist(), strict=True))}
+
+    def box(self, sigmas: float = 2.0) -> dict[str, tuple[float, float]]:
+        """Each fitted value ± `sigmas` standard errors, within the fit's bounds: ranges
+        for `sensitivity` (uniform over the box; the correlations are not kept)."""
+        if not (math.isfinite(sigmas) and sigmas > 0):
+            raise ParameterError(f"sigmas = {sigmas!r}: give a number > 0")
+        self.check_determined()
+        stderr = np.sqrt(np.diag(self.covariance)) * sigmas
+        lower = np.maximum(self.values - stderr, self.lower)
+        upper = np.minimum(self.values + stderr, self.upper)
+        return {
+            n: (float(lo), float(hi)) for n, lo, hi in zip(self.names, lower, upper, strict=True)
+        }
+
     def to_json(self) -> dict[str, Any]:
         return {
             "names": list(self.names),

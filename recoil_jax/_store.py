@@ -85,6 +85,18 @@ def _quote(name: str) -> str:
     return '"' + name.replace('"', '""') + '"'
 
 
+def _sql_names(columns: list[str]) -> list[str]:
+    """The SQL names of a table's value columns. SQLite's names ignore case, and the
+    barrel's `M` and the absorber's `m` are both parameters: the first keeps its name, a
+    later one equal to it but for case is stored as `name~2` (`~3`, ...)."""
+    seen: dict[str, int] = {}
+    out = []
+    for name in columns:
+        count = seen[name.lower()] = seen.get(name.lower(), 0) + 1
+        out.append(name if count == 1 else f"{name}~{count}")
+    return out
+
+
 def _connect(path: Path) -> sqlite3.Connection:
     """An SQLite connection in autocommit mode (transactions are explicit), write-ahead
     logged: a killed writer leaves the last committed transaction intact."""
@@ -215,7 +227,7 @@ class SweepStore(_Store):
     kind = "sweep"
 
     def _create_tables(self) -> None:
-        data = ", ".join(f"{_quote(name)} REAL" for name in self.columns)
+        data = ", ".join(f"{_quote(name)} REAL" for name in _sql_names(self.columns))
         self.db.execute(
             "CREATE TABLE chunks (chunk TEXT PRIMARY KEY, designs INTEGER, seconds REAL, "
             "finished REAL, run INTEGER)"
@@ -254,7 +266,7 @@ class SweepStore(_Store):
             np.asarray(codes).tolist(),
             strict=True,
         )
-        names = ["point", "chunk", *self.columns, "status", "status_code"]
+        names = ["point", "chunk", *_sql_names(self.columns), "status", "status_code"]
         insert = (
             f"INSERT INTO points ({', '.join(map(_quote, names))}) "
             f"VALUES ({', '.join('?' * len(names))})"
@@ -282,7 +294,7 @@ class SweepStore(_Store):
         self.db.execute("CREATE TEMP TABLE IF NOT EXISTS wanted (chunk TEXT PRIMARY KEY)")
         self.db.execute("DELETE FROM wanted")
         self.db.executemany("INSERT INTO wanted VALUES (?)", [(c,) for c in chunks])
-        names = ["point", *self.columns, "status_code"]
+        names = ["point", *_sql_names(self.columns), "status_code"]
         rows = self.db.execute(
             f"SELECT {', '.join(map(_quote, names))} FROM points "
             "WHERE chunk IN (SELECT chunk FROM wanted)"
@@ -322,7 +334,7 @@ def read_sweep_store(path) -> tuple[dict[str, str], np.ndarray, dict[str, np.nda
                 f"store {path} holds {done} of {meta['total']} designs: run the same sweep "
                 "with this store to finish it first"
             )
-        names = ["point", *columns, "status_code"]
+        names = ["point", *_sql_names(columns), "status_code"]
         rows = db.execute(f"SELECT {', '.join(map(_quote, names))} FROM points").fetchall()
     finally:
         db.close()
@@ -347,17 +359,22 @@ def store_failures(path) -> dict[str, int]:
 def lowest_row(path, column: str, ok_code: int) -> dict[str, float] | None:
     """The row of a sweep store with the lowest `column` among the solves that
     succeeded (`status_code == ok_code`), by column name; None if there is none."""
-    db, _ = _open_sweep(path)
+    db, meta = _open_sweep(path)
+    columns = json.loads(meta["columns"])
+    by_name = dict(zip(columns, _sql_names(columns), strict=True))
+    sql = _quote(by_name.get(column, column))
     try:
         cursor = db.execute(
-            f"SELECT * FROM points WHERE status_code = ? AND {_quote(column)} IS NOT NULL "
-            f"ORDER BY {_quote(column)} LIMIT 1",
+            f"SELECT * FROM points WHERE status_code = ? AND {sql} IS NOT NULL "
+            f"ORDER BY {sql} LIMIT 1",
             (ok_code,),
         )
         row = cursor.fetchone()
         names = [d[0] for d in cursor.description]
     finally:
         db.close()
+    named = dict(zip(by_name.values(), by_name, strict=True))
+    names = [named.get(n, n) for n in names]
     return None if row is None else dict(zip(names, row, strict=True))
 
 
@@ -409,7 +426,7 @@ class StudyStore(_Store):
         return self.prior_seconds + time.perf_counter() - self._opened
 
     def _create_tables(self) -> None:
-        data = ", ".join(f"{_quote(name)} REAL" for name in self.columns)
+        data = ", ".join(f"{_quote(name)} REAL" for name in _sql_names(self.columns))
         self.db.execute(
             "CREATE TABLE evaluations (evaluation INTEGER PRIMARY KEY AUTOINCREMENT, "
             f"run INTEGER, seconds REAL, phase TEXT, start INTEGER, {data}, violation REAL, "
@@ -453,7 +470,7 @@ class StudyStore(_Store):
 
     def _insert(self, rows: list[dict[str, Any]]):
         names = [
-            "run", "seconds", "phase", "start", *self.columns, "violation", "feasible",
+            "run", "seconds", "phase", "start", *_sql_names(self.columns), "violation", "feasible",
             "status", "status_code", "key", "outputs",
         ]  # fmt: skip
         values, blobs = [], {}

@@ -45,6 +45,12 @@ not need them; `docs/developers.md` shows how to plug a part in.
   from a result or its `result.json`) and `Prediction` (what `predict` gives);
   `reference_history` (time histories by the independent hard-switch scipy solver: a
   synthetic firing test the library shares no code with).
+
+**Global sensitivity's parts**
+
+- `SensitivityMethod` (abstract: how a method samples the box and analyses the outputs;
+  `SobolIndices`, `MorrisEffects` and `DGSM` are three; `SENSITIVITY_METHODS` by name),
+  `sensitivity_box` (the box of a design's ranges, absolute or relative, checked).
 """
 
 from ._cache import live_programs, set_max_programs, structure_jit
@@ -70,6 +76,7 @@ from ._problem import DesignEvaluation, evaluate_design
 from ._reference import reference_history
 from ._result import RunRecord
 from ._search import GlobalPhase, default_local
+from ._sensitivity import SENSITIVITY_METHODS, SensitivityMethod, sensitivity_box
 from ._status import OK_CODE, status_codes, status_messages, status_table
 from ._sweep import StoredSweep, batch_params, default_workers, shard_batch
 from ._traces import T_SHIFT, Experiment, Trace
@@ -78,6 +85,7 @@ __all__ = [
     "LOSSES",
     "OK_CODE",
     "PEAK_FIELDS",
+    "SENSITIVITY_METHODS",
     "SIGNALS",
     "T1_LIMITS",
     "T_SHIFT",
@@ -101,6 +109,7 @@ __all__ = [
     "Prediction",
     "RunRecord",
     "SearchSpace",
+    "SensitivityMethod",
     "StoredEvaluator",
     "StoredSweep",
     "Trace",
@@ -117,6 +126,7 @@ __all__ = [
     "read_text",
     "reference_history",
     "run_local",
+    "sensitivity_box",
     "set_max_programs",
     "shard_batch",
     "signal_sensitivities",

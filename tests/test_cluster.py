@@ -2,6 +2,7 @@
 one process, bit for bit, also when a worker is killed mid-sweep; each chunk is stored
 once."""
 
+import json
 import os
 import signal
 import sqlite3
@@ -155,3 +156,19 @@ def test_a_search_and_the_tuning_baselines_on_a_cluster(client, tmp_path, capsys
         json.loads(captured.out.splitlines()[-1])["best"]
         == json.loads(first.splitlines()[-1])["best"]
     )
+
+
+def test_a_sensitivity_analysis_on_a_cluster(client, tmp_path, capsys):
+    """`sensitivity --scheduler`: its designs go through the sweep's chunks on the
+    cluster; the indices equal those of a run in this process."""
+    (tmp_path / "s.toml").write_text(
+        "[design]\nm = 1500.0\n[ranges]\nk = { relative = 0.1 }\ngap = [0.05, 0.07]\n"
+        '[metrics]\nnames = ["peak_anchoring_force"]\n[method]\nname = "sobol"\nsamples = 256\n'
+    )
+    argv = ["sensitivity", str(tmp_path / "s.toml"), "--out", str(tmp_path / "o"), "--json"]
+    assert main(argv) == 0
+    alone = json.loads(capsys.readouterr().out)
+    assert main([*argv, "--scheduler", client.scheduler.address]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["indices"] == alone["indices"]
+    assert f"2 workers at {client.scheduler.address}" in captured.err

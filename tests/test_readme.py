@@ -9,7 +9,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 #: The pages whose Python blocks continue the README's example, in order.
-PAGES = [README, ROOT / "docs" / "python.md", ROOT / "docs" / "tuning.md"]
+PAGES = [README, *(ROOT / "docs" / f"{page}.md" for page in ("python", "tuning", "sensitivity"))]
 
 
 @pytest.mark.slow

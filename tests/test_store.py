@@ -146,6 +146,25 @@ def test_a_streamed_sweep_keeps_its_results_in_the_store_only(uninterrupted, tmp
         streamed.lowest("peak_force")
 
 
+def test_a_store_keeps_names_that_differ_only_in_case(tmp_path):
+    """The barrel's `M` and the absorber's `m` in one sweep: SQLite's names ignore case,
+    so the second is stored as `m~2`, and reads back under its own name."""
+    designs = {"M": np.array([5000.0, 6000.0]), "m": np.array([500.0, 1500.0]),
+               "gap": np.array([0.03, 0.06])}  # fmt: skip
+    store = tmp_path / "case.sqlite"
+    plain = rj.sweep(designs, progress=False)
+    stored = rj.sweep_to_store(designs, store, progress=False)
+    loaded = stored.load()
+    _assert_same(loaded, plain)
+    for name, column in designs.items():
+        assert np.array_equal(loaded.values[name], column)
+    lowest = stored.lowest("peak_anchoring_force")
+    assert (lowest["M"], lowest["m"]) == tuple(
+        designs[n][int(np.argmin(plain.peaks["peak_anchoring_force"]))] for n in ("M", "m")
+    )
+    assert rj.sweep(designs, store=store, progress=False).stored == 2
+
+
 def test_the_sweep_command_streams_to_its_store(tmp_path, capsys):
     """`sweep --store` without `--out` or `--json` keeps nothing in memory and says the
     same as with them, the lowest peak read from the store."""

@@ -20,6 +20,7 @@ import recoil_jax.extend as rjx
 __all__ = [
     "CLI_COMMANDS",
     "GRADIENT_STUDY",
+    "SCIPY_SETTINGS",
     "bench_designs",
     "cli_cache_timings",
     "format_bench",

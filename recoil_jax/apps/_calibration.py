@@ -13,7 +13,13 @@ from typing import Any
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-from ._inputs import output_folder, parse_assignments, read_text
+from ._inputs import (
+    file_error as _error,
+    file_number as _number,
+    output_folder,
+    parse_assignments,
+    read_text,
+)
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -30,18 +36,6 @@ NOT_CONVERGED = 4
 _FILE_KEYS = {"description", "design", "fit", "experiment", "validation", "loss", "f_scale",
               "starts", "seed", "fit_steps"}  # fmt: skip
 _EXPERIMENT_KEYS = {"trace", "sigma", "per_experiment", "window", "name"}
-
-
-def _error(where: str, message: str) -> rj.ParameterError:
-    return rj.ParameterError(f"{where}: {message}")
-
-
-def _number(where: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise _error(where, f"{value!r} is not a number")
-    if not math.isfinite(value):
-        raise _error(where, f"{value!r} is not finite")
-    return float(value)
 
 
 def _bounds(where: str, value: Any) -> tuple[tuple[float, float], float | None]:

@@ -23,12 +23,15 @@ __all__ = [
     "SETTINGS",
     "check_figure_path",
     "design_warnings",
+    "file_error",
+    "file_number",
     "known",
     "names",
     "number",
     "output_folder",
     "parse_assignments",
     "read_text",
+    "resolve_shipped",
     "split_assignment",
     "unknown_name",
     "warn",
@@ -36,6 +39,37 @@ __all__ = [
 
 #: A text file's contents, or one line saying why not (the library's reader).
 read_text = rjx.read_text
+
+
+def file_error(where, message: str) -> rj.ParameterError:
+    """A fault in a file the command loads: `where` (the file, and the key) first."""
+    return rj.ParameterError(f"{where}: {message}")
+
+
+def file_number(where, value) -> float:
+    """A finite number from a loaded file (TOML), or one line naming `where`."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise file_error(where, f"{value!r} is not a number")
+    if not math.isfinite(value):
+        raise file_error(where, f"{value!r} is not finite")
+    return float(value)
+
+
+def resolve_shipped(source, folder: Path, what: str, shipped_as: str) -> Path:
+    """The file `source` names: an existing path, or the name of a file shipped in
+    `folder` (`name` or `name.toml`, whatever the working directory). `what` names the
+    kind of file and `shipped_as` the shipped ones, for the message."""
+    path = Path(source)
+    if path.exists():
+        return path
+    shipped = folder / (path.name if path.suffix == ".toml" else f"{path.name}.toml")
+    if path.parent == Path(".") and shipped.exists():
+        return shipped
+    names = sorted(p.stem for p in folder.glob("*.toml"))
+    raise rj.ParameterError(
+        f"{what} file {source} not found; shipped {shipped_as}: {', '.join(names) or 'none'}"
+    )
+
 
 #: Names `name=value` items may use besides the parameters (`rj.PARAMETERS`).
 SETTINGS = ("t1",)

@@ -66,7 +66,7 @@ import recoil_jax as rj
 import recoil_jax.extend as rjx
 
 from ._cluster import dask_client
-from ._inputs import output_folder, read_text
+from ._inputs import file_error as _error, output_folder, read_text, resolve_shipped
 
 __all__ = [
     "LOCAL_METHODS",
@@ -169,24 +169,11 @@ class Study:
     calibration: dict | None = None  # [calibration]: where from, which parameters, points
 
 
-def _error(path, message: str) -> rj.ParameterError:
-    return rj.ParameterError(f"{path}: {message}")
-
-
 def resolve_study(study: str | Path) -> Path:
     """The study file `study` names: an existing path, or the name of a shipped study
     (`tuned_absorber` or `tuned_absorber.toml`, found in `optimise/` whatever the working
     directory)."""
-    path = Path(study)
-    if path.exists():
-        return path
-    shipped = SHIPPED / (path.name if path.suffix == ".toml" else f"{path.name}.toml")
-    if path.parent == Path(".") and shipped.exists():
-        return shipped
-    names = sorted(p.stem for p in SHIPPED.glob("*.toml"))
-    raise rj.ParameterError(
-        f"study file {study} not found; shipped studies: {', '.join(names) or 'none'}"
-    )
+    return resolve_shipped(study, SHIPPED, "study", "studies")
 
 
 def _front_values(path, front: dict, constrained: list[str]) -> list[float]:
@@ -340,7 +327,7 @@ def _parse_calibration(path, section, design: dict, tune, objective: rj.Objectiv
                      "to the fitted values; fix it as a known value instead")  # fmt: skip
     # A point clipped to a lower bound of 0 sits just above it (offsets must be > -1).
     offsets = np.maximum(points / fitted.values - 1.0, -1.0 + 1e-9)
-    known = {**fitted.design, **dict(zip(fitted.names, fitted.values.tolist(), strict=True))}
+    known = fitted.fitted_design
     scatter = (fitted.names, tuple(tuple(float(o) for o in row) for row in offsets))
     return known | design, dataclasses.replace(objective, scatter=scatter)
 

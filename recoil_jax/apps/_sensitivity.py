@@ -1,0 +1,275 @@
+"""`recoil-jax sensitivity`: global sensitivity of the peaks over a tolerance box, from a
+file (TOML) or the name of a shipped example (`sensitivity/`); `result.json`,
+`samples.csv` and the figures.
+
+The file, in the style of the study files:
+
+```toml
+description = "..."
+[design]            # the base design: every value not ranged (paper values elsewhere)
+m = 1500.0
+[ranges]            # parameter = [low, high] (SI units), or { relative = 0.05 }
+k = [25000.0, 30000.0]
+v0 = { relative = 0.03 }
+[metrics]
+names = ["peak_anchoring_force", "peak_displacement"]
+objective = { peak_anchoring_force = 1.0 }   # optional: also "objective", their sum
+study = "tuned_absorber"                      # optional: its objective and limited metrics
+[method]
+name = "sobol"      # or "morris", "dgsm"; then that method's settings:
+samples = 1024      # sobol: samples, second_order, resamples, seed
+                    # morris: trajectories, levels, resamples, seed
+                    # dgsm: samples, resamples, seed
+[calibration]       # optional: ranges from a fit's uncertainty
+from = "result.json"  # a calibration's result (relative to this file)
+sigmas = 2.0          # each fitted value +- 2 standard errors
+```
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import recoil_jax as rj
+import recoil_jax.extend as rjx
+
+from ._cluster import dask_client
+from ._inputs import (
+    file_error as _error,
+    file_number as _number,
+    output_folder,
+    read_text,
+    resolve_shipped,
+)
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib  # pyright: ignore[reportMissingImports]
+
+__all__ = ["SHIPPED", "load_sensitivity", "resolve_sensitivity", "run_sensitivity"]
+
+#: The shipped examples.
+SHIPPED = Path(__file__).resolve().parents[2] / "sensitivity"
+
+_SECTIONS = {"description", "design", "ranges", "metrics", "method", "calibration"}
+
+
+def resolve_sensitivity(source: str | Path) -> Path:
+    """The file `source` names: an existing path, or a shipped example's name."""
+    return resolve_shipped(source, SHIPPED, "sensitivity", "examples")
+
+
+def _table(path, config: dict, section: str) -> dict:
+    value = config.get(section, {})
+    if not isinstance(value, dict):
+        raise _error(path, f"[{section}] must be a table (a [{section}] section)")
+    return value
+
+
+def _ranges(path, section: dict) -> dict[str, Any]:
+    ranges: dict[str, Any] = {}
+    for name, value in section.items():
+        where = f"{path}: [ranges] {name}"
+        if isinstance(value, dict):
+            if set(value) != {"relative"}:
+                raise rj.ParameterError(f"{where}: give [low, high] or {{ relative = r }}")
+            ranges[name] = _number(f"{where}.relative", value["relative"])
+        elif isinstance(value, list) and len(value) == 2:
+            ranges[name] = tuple(_number(where, v) for v in value)
+        else:
+            raise rj.ParameterError(f"{where} = {value!r}: give [low, high] or {{ relative = r }}")
+    return ranges
+
+
+def _metrics(path, section: dict) -> tuple[list[str], rj.Objective | None]:
+    unknown = set(section) - {"names", "objective", "study"}
+    if unknown:
+        raise _error(path, f"[metrics] unknown key {sorted(unknown)[0]!r}; known: names, "
+                     "objective, study")  # fmt: skip
+    names = section.get("names", [])
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise _error(path, f"[metrics] names = {names!r}: give a list of metric names")
+    for name in names:
+        if name not in rj.METRICS:
+            known = ", ".join(rj.METRICS)
+            raise _error(path, f"[metrics] unknown metric {name!r}; known: {known} "
+                         "(objective = {...} for a weighted sum)")  # fmt: skip
+    if "objective" in section and "study" in section:
+        raise _error(path, "[metrics] give objective or study, not both")
+    objective = None
+    if "study" in section:
+        from ._studies import load_study
+
+        study = section["study"]
+        if not isinstance(study, str):
+            raise _error(path, f"[metrics] study = {study!r}: give a study's name or file")
+        try:
+            problem = load_study(study).problem
+        except rj.ParameterError as error:
+            raise _error(path, f"[metrics] study: {error}") from None
+        names = names + [m for m, _, _ in problem.metric_constraints if m not in names]
+        objective = problem.objective
+        if objective.scatter is not None:
+            raise _error(path, f"[metrics] study {study}'s objective is a worst case over a "
+                         "scatter, not a function of one design: range the scattered "
+                         "parameters instead")  # fmt: skip
+    elif "objective" in section:
+        weights = section["objective"]
+        if not isinstance(weights, dict) or not weights:
+            raise _error(path, "[metrics] objective = { metric = weight, ... }")
+        where = f"{path}: [metrics] objective"
+        weights = {k: _number(f"{where}.{k}", v) for k, v in weights.items()}
+        try:
+            objective = rj.Objective(weights=weights)
+        except rj.ParameterError as error:
+            raise _error(where, str(error)) from None
+    return names, objective
+
+
+def _method(path, section: dict) -> rjx.SensitivityMethod:
+    name = section.get("name")
+    methods = rjx.SENSITIVITY_METHODS
+    if not isinstance(name, str) or name not in methods:
+        choices = ", ".join(f'"{n}"' for n in methods)
+        raise _error(path, f"[method] name = {name!r}: give one of {choices}")
+    cls = methods[name]
+    keys = {f.name for f in dataclasses.fields(cls)}
+    settings = {k: v for k, v in section.items() if k != "name"}
+    unknown = set(settings) - keys
+    if unknown:
+        raise _error(path, f"[method] {sorted(unknown)[0]!r} is not a setting of "
+                     f"{name}; its settings: {', '.join(sorted(keys))}")  # fmt: skip
+    try:
+        return cls(**settings)
+    except rj.ParameterError as error:
+        raise _error(path, f"[method] {error}") from None
+
+
+def load_sensitivity(source) -> tuple[dict[str, Any], str]:
+    """A sensitivity file (or a shipped example's name) as `rj.sensitivity`'s arguments
+    (design, ranges, metrics, method, objective), checked, and its description."""
+    path = resolve_sensitivity(source)
+    try:
+        config = tomllib.loads(read_text(path, "sensitivity file"))
+    except tomllib.TOMLDecodeError as error:
+        raise _error(path, f"not valid TOML ({error})") from None
+    unknown = set(config) - _SECTIONS
+    if unknown:
+        raise _error(path, f"unknown section {sorted(unknown)[0]!r}; known: "
+                     f"{', '.join(sorted(_SECTIONS))}")  # fmt: skip
+    for section in ("metrics", "method"):
+        if section not in config:
+            raise _error(path, f"missing [{section}]")
+    if "ranges" not in config and "calibration" not in config:
+        raise _error(path, "missing [ranges] (or a [calibration] to take them from)")
+    description = config.get("description", "")
+    if not isinstance(description, str):
+        raise _error(path, "description must be a string")
+    design = {
+        name: _number(f"{path}: [design] {name}", value)
+        for name, value in _table(path, config, "design").items()
+    }
+    for name in design:
+        if name not in rj.PARAMETERS and name != "t1":
+            raise _error(path, f"[design] {rj.PARAMETERS.unknown(name, also=('t1',))}")
+    ranges = _ranges(path, _table(path, config, "ranges"))
+    if "calibration" in config:
+        section = _table(path, config, "calibration")
+        if not isinstance(section.get("from"), str):
+            raise _error(path, '[calibration] needs from = "result.json" (a calibration result)')
+        if set(section) - {"from", "sigmas"}:
+            raise _error(path, "[calibration] takes from and sigmas")
+        sigmas = _number(f"{path}: [calibration] sigmas", section.get("sigmas", 2.0))
+        try:
+            fitted = rjx.FittedParameters.from_json(path.parent / section["from"])
+            box = fitted.box(sigmas)
+        except rj.ParameterError as error:
+            raise _error(path, f"[calibration] {error}") from None
+        for name in fitted.names:
+            if name in design or name in ranges:
+                raise _error(path, f"{name} comes from the calibration; leave it out of "
+                             "[design] and [ranges]")  # fmt: skip
+        design = fitted.fitted_design | design
+        ranges = box | ranges
+    if not ranges:
+        raise _error(path, "[ranges] is empty: range at least one parameter")
+    names, objective = _metrics(path, _table(path, config, "metrics"))
+    method = _method(path, _table(path, config, "method"))
+    try:  # the ranges around the design, and the size of the sample, before anything runs
+        rjx.sensitivity_box(design, ranges)
+    except rj.ParameterError as error:
+        raise _error(path, str(error)) from None
+    arguments = {"design": design, "ranges": ranges, "metrics": names, "method": method,
+                 "objective": objective}  # fmt: skip
+    return arguments, description
+
+
+def write_samples(result: rj.SensitivityResult, path: Path) -> Path:
+    """Every design's ranged values and metrics (empty where its solve failed), and
+    whether its solve succeeded."""
+    with path.open("w", newline="") as file:
+        writer = csv.writer(file)
+        writer.writerow([*result.parameters, *result.metrics, "ok"])
+        outputs = [result.outputs[m] for m in result.metrics]
+        for i, row in enumerate(result.samples):
+            ok = bool(result.ok[i])
+            values = [f"{v:.10g}" if ok else "" for v in (o[i] for o in outputs)]
+            writer.writerow([*(f"{v:.10g}" for v in row), *values, int(ok)])
+    return path
+
+
+def summary(result: rj.SensitivityResult) -> str:
+    """Per metric, the parameters ranked by the method's main index, with intervals."""
+    main = result.main
+    conf = f"{main}_conf"
+    lines = [
+        f"sensitivity ({result.method}): {len(result.parameters)} parameters, "
+        f"{len(result.ok):,} designs ({result.used:,} used, {int((~result.ok).sum())} "
+        f"failed), {result.seconds:.1f} s"
+    ]
+    for metric in result.metrics:
+        note = " (constant over the box)" if metric in result.constant else ""
+        lines.append(f"  {metric}, by {main}{note}:")
+        for name in result.ranking(metric):
+            entry = result.indices[metric][name]
+            extra = f"  S1 {entry['S1']:.3f} ± {entry['S1_conf']:.3f}" if "S1" in entry else ""
+            lines.append(f"    {name:<22} {entry[main]:.4g} ± {entry[conf]:.2g}{extra}")
+    return "\n".join(lines)
+
+
+def run_sensitivity(args) -> int:
+    """The `sensitivity` command."""
+    arguments, description = load_sensitivity(args.source)
+    out = output_folder(args.out)
+    # The sweep's defaults (tighter with gradients), with the command's step limit.
+    options = rj.GRADIENT_OPTIONS if arguments["method"].gradients else rj.SolverOptions()
+    options = dataclasses.replace(options, max_steps=args.max_steps)
+    with dask_client(args.workers, args.scheduler) as client:
+        result = rj.sensitivity(
+            **arguments, options=options, store=args.store, client=client, progress=True
+        )
+    report = {"source": str(args.source), "description": description, **result.to_json()}
+    write_samples(result, out / "samples.csv")
+    from ._figures import sensitivity_figures
+
+    report["figures"] = [str(p) for p in sensitivity_figures(result, out)]
+    (out / "result.json").write_text(json.dumps(report, indent=2) + "\n")
+    if args.json:
+        print(json.dumps(report))
+    else:
+        print(summary(result))
+        print(f"  wrote {out / 'result.json'}, samples.csv and {len(report['figures'])} figures")
+    if result.failures:
+        reasons = "; ".join(f"{n} × {r}" for r, n in result.failures.items())
+        print(
+            f"recoil-jax: {int((~result.ok).sum())} of {len(result.ok)} solves failed "
+            f"({reasons}); the indices rest on the other {result.used} designs",
+            file=sys.stderr,
+        )
+    return 0
