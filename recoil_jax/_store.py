@@ -104,12 +104,18 @@ def _connect(path: Path) -> sqlite3.Connection:
         raise ParameterError(f"store {path} is a folder: give the path of a file")
     if not path.parent.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
+    writable = path if path.exists() else path.parent
+    if not os.access(writable, os.W_OK):
+        what = "cannot be written" if path.exists() else f"cannot be made in {path.parent}"
+        raise ParameterError(f"store {path} {what} (permission denied): give another path")
     try:
         # Shared by a study's threads, each write under the store's lock.
         db = sqlite3.connect(path, isolation_level=None, timeout=60.0, check_same_thread=False)
         db.execute("PRAGMA journal_mode=WAL")
         db.execute("PRAGMA synchronous=NORMAL")
         tables = {row[0] for row in db.execute("SELECT name FROM sqlite_master")}
+    except sqlite3.OperationalError as error:  # read-only, full, or a file system fault
+        raise ParameterError(f"store {path} cannot be used ({error}): give another path") from None
     except sqlite3.DatabaseError as error:
         raise ParameterError(
             f"store {path} is not a recoil-jax store ({error}): give a new path"
@@ -119,6 +125,58 @@ def _connect(path: Path) -> sqlite3.Connection:
         raise ParameterError(
             f"store {path} is an SQLite file, but not a recoil-jax store: give a new path"
         )
+    return db
+
+
+def _hold(path: Path):
+    """The store's writer lock: an exclusive `flock` on `FILE.lock` beside it, held
+    until the store closes (the kernel lets go of it when the process ends, killed or
+    not). The lock file says who holds it. A second writer is refused, naming the
+    holder: two writers would solve and store the same designs twice. None where the
+    platform has no `flock` (Windows)."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover
+        return None
+    lock_path = path.with_name(path.name + ".lock")
+    try:
+        handle = open(lock_path, "a+")  # held until the store closes
+    except OSError as error:
+        raise ParameterError(
+            f"store {path}: cannot make its lock file {lock_path} ({error.strerror})"
+        ) from None
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.seek(0)
+        holder = handle.read().strip() or "another process"
+        handle.close()
+        raise ParameterError(
+            f"store {path} is in use by {holder}: wait for that run to end (or stop it), "
+            "or give another store; two runs on one store would solve everything twice"
+        ) from None
+    handle.seek(0)
+    handle.truncate()
+    handle.write(
+        f"process {os.getpid()} on {socket.gethostname()} since "
+        f"{time.strftime('%Y-%m-%d %H:%M:%S')}\n"
+    )
+    handle.flush()
+    return handle
+
+
+def _connect_read(path: Path) -> sqlite3.Connection:
+    """A read-only connection to an existing store (`progress` and the readers never
+    write into it, not even a new database into an empty file)."""
+    if not path.is_file():
+        raise ParameterError(f"store {path}: no such file")
+    if path.stat().st_size == 0:
+        raise ParameterError(f"store {path} is empty: not a recoil-jax store")
+    try:
+        db = sqlite3.connect(path.resolve().as_uri() + "?mode=ro", uri=True, timeout=60.0)
+        db.execute("SELECT name FROM sqlite_master").fetchall()
+    except sqlite3.DatabaseError as error:
+        raise ParameterError(f"store {path} is not a recoil-jax store ({error})") from None
     return db
 
 
@@ -139,7 +197,15 @@ class _Store:
 
     def __init__(self, path, *, identity: str, total: int, plan: dict, columns, description):
         self.path = Path(path)
-        self.db = _connect(self.path)
+        if self.path.is_dir():
+            raise ParameterError(f"store {self.path} is a folder: give the path of a file")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._writer = _hold(self.path)
+        try:
+            self.db = _connect(self.path)
+        except BaseException:
+            self._release()
+            raise
         try:
             meta = _read_meta(self.db)
             if meta:
@@ -151,6 +217,7 @@ class _Store:
                 self._create(identity, total, description)
         except BaseException:
             self.db.close()
+            self._release()
             raise
         self.total = total
         cursor = self.db.execute(
@@ -211,6 +278,13 @@ class _Store:
 
     def close(self) -> None:
         self.db.close()
+        self._release()
+
+    def _release(self) -> None:
+        """Let go of the writer lock (the lock file stays, saying who held it last)."""
+        if self._writer is not None:
+            self._writer.close()  # closing the file releases its flock
+            self._writer = None
 
     def __enter__(self):
         return self
@@ -244,6 +318,24 @@ class SweepStore(_Store):
     def done(self) -> dict[str, int]:
         """The committed chunks: key -> number of designs."""
         return dict(self.db.execute("SELECT chunk, designs FROM chunks").fetchall())
+
+    def drop_incomplete(self) -> int:
+        """Forget every committed chunk whose rows are not all there (lost, deleted by
+        hand) or are there twice, so that it is solved again rather than read as zeros;
+        returns how many designs that drops."""
+        rows = dict(self.db.execute("SELECT chunk, COUNT(*) FROM points GROUP BY chunk").fetchall())
+        done = self.done()
+        broken = [c for c, n in done.items() if rows.get(c, 0) != n]
+        stray = [c for c in rows if c not in done]
+
+        def write(db) -> int:
+            dropped = 0
+            for chunk in broken + stray:
+                dropped += db.execute("DELETE FROM points WHERE chunk = ?", (chunk,)).rowcount
+                db.execute("DELETE FROM chunks WHERE chunk = ?", (chunk,))
+            return dropped
+
+        return self._transaction(write) if broken or stray else 0
 
     def commit(
         self,
@@ -308,9 +400,7 @@ class SweepStore(_Store):
 def _open_sweep(path) -> tuple[sqlite3.Connection, dict[str, str]]:
     """A sweep's store, to read: its connection and `meta` (raises `ParameterError`)."""
     path = Path(path)
-    if not path.is_file():
-        raise ParameterError(f"store {path}: no such file")
-    db = _connect(path)
+    db = _connect_read(path)
     meta = _read_meta(db)
     if meta.get("kind") != "sweep":
         db.close()
@@ -623,12 +713,7 @@ def campaign_progress(path) -> CampaignProgress:
     """Where the campaign whose store is `path` stands (`CampaignProgress`), read while it
     runs (from another process) or after it stopped. Raises `ParameterError` for a
     missing file or one that is not a store."""
-    path = Path(path)
-    if not path.is_file():
-        raise ParameterError(f"store {path}: no such file")
-    if path.stat().st_size == 0:  # refused before SQLite would write a new database into it
-        raise ParameterError(f"store {path} is empty: not a recoil-jax store")
-    db = _connect(path)
+    db = _connect_read(Path(path))
     best = float("nan")
     try:
         meta = _read_meta(db)

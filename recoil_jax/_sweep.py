@@ -7,6 +7,7 @@ import dataclasses
 import inspect
 import itertools
 import json
+import math
 import os
 import sys
 import time
@@ -299,13 +300,48 @@ def grid(axes: Mapping[str, Sequence[float]], fixed: Mapping[str, float] | None 
     returns `(columns, shape)` for `sweep`."""
     names = list(axes)
     arrays = [np.asarray(axes[n], dtype=float).reshape(-1) for n in names]
-    points = np.array(list(itertools.product(*arrays)), dtype=float).reshape(-1, len(names))
-    columns = {n: points[:, j] for j, n in enumerate(names)}
+    shape = tuple(len(a) for a in arrays)
+    count = math.prod(shape)
+    check_memory(
+        count, 8 * (len(names) + len(fixed or {})), "a grid",
+        "give a smaller grid (its columns are made in memory, also for a store)",
+    )  # fmt: skip
+    # C order over `names`, as itertools.product would give it.
+    columns = {
+        n: np.broadcast_to(a.reshape([-1 if i == j else 1 for i in range(len(names))]), shape)
+        .reshape(-1)
+        .copy()
+        for j, (n, a) in enumerate(zip(names, arrays, strict=True))
+    }
     for name, value in (fixed or {}).items():
         if name in columns:
             raise ParameterError(f"{name} is both swept and fixed")
-        columns[name] = np.full(points.shape[0], float(value))
-    return columns, tuple(len(a) for a in arrays)
+        columns[name] = np.full(count, float(value))
+    return columns, shape
+
+
+def _available_memory() -> int | None:
+    """Bytes of memory this machine has free (Linux's MemAvailable), or None."""
+    try:
+        with open("/proc/meminfo") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def check_memory(designs: int, bytes_per_design: int, what: str, advice: str) -> None:
+    """Refuse, before anything is allocated, `what` of `designs` designs whose arrays
+    (`bytes_per_design` each) would take more than half of the free memory."""
+    available = _available_memory()
+    need = designs * bytes_per_design
+    if available is not None and need > available // 2:
+        raise ParameterError(
+            f"{what} of {designs:,} designs needs about {need / 1e9:,.1f} GB in memory, more "
+            f"than half of the {available / 1e9:.1f} GB free here: {advice}"
+        )
 
 
 def default_workers(devices: Sequence[Any]) -> int:
@@ -826,6 +862,17 @@ def _sweep(
         raise ParameterError("a sweep whose results are not kept in memory needs a store")
     wrt = tuple(wrt) if wrt else None
     options = options or (GRADIENT_OPTIONS if wrt else SolverOptions())
+    if in_memory:  # the results of every design, and their copies on the way
+        if isinstance(designs, Mapping):
+            count, names = len(next(iter(designs.values()), ())), len(designs)
+        else:
+            count, names = len(designs), len(designs[0]) if len(designs) else 0
+        outputs = len(PEAK_FIELDS) + 1 + len(METRICS) * len(wrt or ())
+        check_memory(
+            count, 8 * 3 * (names + outputs), "a sweep in memory",
+            "keep the results in a store instead (--store FILE.sqlite on the command line "
+            "without --out and --json, rj.sweep_to_store in Python), or sweep fewer designs",
+        )  # fmt: skip
     columns = _as_columns(designs)  # validates every point, before any compilation
     n = len(next(iter(columns.values())))
     groups = _groups(columns, options, wrt, force_table)
@@ -839,6 +886,12 @@ def _sweep(
     if store is not None:
         store_ = _open_store(store, columns, smoothing, options, wrt, force_table, plan, progress)
         plan = store_.plan
+        if (dropped := store_.drop_incomplete()) and progress is not False:
+            print(
+                f"sweep: {store} had chunks with rows missing or doubled ({dropped} rows "
+                "dropped): those chunks are solved again",
+                file=sys.stderr,
+            )
 
     names = list(PEAK_FIELDS.values()) + [gradient_key(m, w) for m in METRICS for w in wrt or ()]
     out: dict[str, np.ndarray] = {}

@@ -301,12 +301,14 @@ def test_kill_9_at_random_moments_loses_only_the_chunk_in_flight(tmp_path):
     done_before = 0
     for kill in range(3):
         process = subprocess.Popen([sys.executable, str(script), str(store)])
-        _kill_after_a_new_commit(process, store, done_before, moments)
+        running = _kill_after_a_new_commit(process, store, done_before, moments)
         rows = _rows(store)
         assert rows["integrity"] == "ok", (seed, kill)
         assert rows["points"][0] == rows["points"][1] == rj.campaign_progress(store).done
         done_before = rows["points"][0]
-        assert 0 < done_before < 8192, (seed, kill, done_before)
+        # A busy machine's last few chunks may all commit within the random moment: the
+        # run then ends on its own before the kill.
+        assert 0 < done_before <= 8192 and (running or done_before == 8192), (seed, kill)
     namespace: dict = {}
     exec(_KILLED_SWEEP.split("rj.sweep(")[0], namespace)
     designs = namespace["designs"]

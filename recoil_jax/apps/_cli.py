@@ -4,7 +4,10 @@ to the other commands (each in its own module, imported when used)."""
 from __future__ import annotations
 
 import argparse
+import errno
 import json
+import os
+import sqlite3
 import sys
 
 import recoil_jax as rj
@@ -16,10 +19,11 @@ from ._inputs import (
     names,
     output_folder,
     parse_assignments,
+    remove_unused_folders,
     warn,
 )
 
-__all__ = ["INFEASIBLE", "build_parser", "describe", "main"]
+__all__ = ["INFEASIBLE", "INTERRUPTED", "build_parser", "describe", "main"]
 
 #: The modules of the `apps` extra (pyproject.toml), and what needs them.
 OPTIONAL = {
@@ -32,6 +36,17 @@ OPTIONAL = {
 #: The exit status of `optimise` when no design met every limit (0 done, 1 a solve
 #: failed, 2 bad input).
 INFEASIBLE = 3
+
+#: The exit status after Ctrl-C (the shell's 128 + SIGINT).
+INTERRUPTED = 130
+
+#: What the file system can do to a run that is not a bug of ours: full, read-only, not
+#: permitted, too many files, a broken device.
+_ENVIRONMENT_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM,
+                       errno.EMFILE, errno.ENFILE, errno.EIO}  # fmt: skip
+#: SQLite's messages for the same faults, on a store.
+_SQLITE_ENVIRONMENT = ("database or disk is full", "readonly database", "unable to open",
+                       "disk I/O error")  # fmt: skip
 
 
 def _simulate(args) -> int:
@@ -617,7 +632,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command line with `argv` (default `sys.argv[1:]`); returns the exit code:
-    0 done, 1 a solve failed, 2 bad input, 3 (`optimise`) no design met every limit."""
+    0 done, 1 a solve failed (or the disk, the pipe or a store failed the run), 2 bad
+    input, 3 (`optimise`) no design met every limit, 4 (`calibrate`) the fit did not
+    converge, 130 interrupted (Ctrl-C). An output folder the command made and left
+    empty is removed when it does not succeed."""
     rj.use_avx2_codegen()  # before any computation: the flag is read as the backend starts
     parser = build_parser()
     # name=value items may come after the flags (`simulate m=500 --hard t1=2`).
@@ -630,9 +648,27 @@ def main(argv: list[str] | None = None) -> int:
         args.assignments = list(args.assignments) + extra
     # The benchmarks measure compilation among other things: they never load from disk.
     if not args.no_cache and not args.command.startswith("bench"):
-        rj.enable_compilation_cache()
+        try:
+            rj.enable_compilation_cache()
+        except OSError as error:  # RECOIL_JAX_CACHE naming a file, or under /proc
+            folder = error.filename or os.environ.get("RECOIL_JAX_CACHE", "")
+            print(f"recoil-jax: warning: the compilation cache {folder} cannot be used "
+                  f"({error.strerror}); running without it", file=sys.stderr)  # fmt: skip
+    status = _run(args)
+    if status != 0:
+        remove_unused_folders()
+    return status
+
+
+def _run(args) -> int:
+    """The command, inside the one boundary where what the outside world does to a run
+    (bad input, a failed solve, a missing extra, Ctrl-C, a closed pipe, a full or
+    read-only disk) becomes one line on stderr and a documented status. Anything else
+    is a bug, and keeps its traceback."""
     try:
-        return args.func(args)
+        status = args.func(args)
+        sys.stdout.flush()  # a full disk or closed pipe on stdout shows here, not at exit
+        return status
     except rj.ParameterError as error:
         print(f"recoil-jax: error: {error}", file=sys.stderr)
         return 2
@@ -648,6 +684,37 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
+    except KeyboardInterrupt:
+        print(f"recoil-jax: interrupted; {_kept(args)}", file=sys.stderr)
+        return INTERRUPTED
+    except BrokenPipeError:
+        # The reader went away (`| head`): nothing more to say, to anyone. Point stdout
+        # at /dev/null so that the interpreter's own flush at exit does not fail again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
+    except OSError as error:
+        if error.errno not in _ENVIRONMENT_ERRORS:
+            raise
+        where = f" {error.filename}" if error.filename else " (standard output)"
+        print(f"recoil-jax: error: cannot write{where}: {error.strerror}", file=sys.stderr)
+        return 1
+    except sqlite3.OperationalError as error:
+        if not any(text in str(error) for text in _SQLITE_ENVIRONMENT):
+            raise
+        store = getattr(args, "store", None)
+        print(f"recoil-jax: error: store {store}: {error}", file=sys.stderr)
+        return 1
+
+
+def _kept(args) -> str:
+    """What an interrupted command kept, and how to go on."""
+    store = getattr(args, "store", None)
+    if store:
+        return (f"every finished part is in {store}: run the same command with --store "
+                f"{store} to resume")  # fmt: skip
+    if args.command in ("sweep", "optimise", "sensitivity"):
+        return "nothing was kept (give --store FILE.sqlite to make a run resumable)"
+    return "nothing was kept"
 
 
 if __name__ == "__main__":

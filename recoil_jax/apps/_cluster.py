@@ -4,6 +4,8 @@ ADDRESS` (a running one). Dask is imported only when one is asked for."""
 from __future__ import annotations
 
 import contextlib
+import os
+import re
 import sys
 from collections.abc import Iterator
 from typing import Any
@@ -11,6 +13,23 @@ from typing import Any
 import recoil_jax as rj
 
 __all__ = ["dask_client"]
+
+#: The address forms of a Dask scheduler: `[protocol://]host:port`.
+_ADDRESS = re.compile(r"^((tcp|tls|inproc|ucx|ws|wss)://)?[A-Za-z0-9_.\-\[\]:]+:\d{1,5}$")
+
+
+def _cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def _check_address(scheduler: str) -> None:
+    """A scheduler's address in a form Dask takes (before Dask is asked, which may start a
+    cluster of its own for an empty one, or fail in many ways for others)."""
+    if not _ADDRESS.match(scheduler):
+        raise rj.ParameterError(
+            f"--scheduler {scheduler!r} is not a scheduler's address: give "
+            "[tcp://]host:port, as the scheduler prints it (e.g. tcp://10.0.0.5:8786)"
+        )
 
 
 @contextlib.contextmanager
@@ -27,14 +46,23 @@ def dask_client(workers: int | None, scheduler: str | None) -> Iterator[Any]:
         )
     if workers is not None and workers < 1:
         raise rj.ParameterError(f"--workers {workers} is invalid: valid is an integer >= 1")
+    if workers is not None and workers > (cores := _cores()):
+        # Each worker solves its chunk on every core already: more processes than cores
+        # only add memory (about 0.5 GB each) and contention.
+        print(f"recoil-jax: warning: --workers {workers} is more than the {cores} cores "
+              f"here; using {cores}", file=sys.stderr)  # fmt: skip
+        workers = cores
+    if scheduler is not None:
+        _check_address(scheduler)
     from distributed import Client, LocalCluster
 
     if scheduler is not None:
         try:
             client = Client(scheduler, timeout="10s")
-        except OSError as error:
+        except (OSError, ValueError, TypeError, RuntimeError) as error:  # incl. TimeoutError
+            reason = str(error).splitlines()[0] if str(error) else type(error).__name__
             raise rj.ParameterError(
-                f"--scheduler {scheduler}: no Dask scheduler answered ({error})"
+                f"--scheduler {scheduler}: no Dask scheduler answered ({reason})"
             ) from None
         with client:
             print(

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import html
 import re
+import socket
 import time
 from typing import Any
 
@@ -26,7 +27,7 @@ import recoil_jax.extend as rjx
 
 from ._inputs import parse_assignments
 
-__all__ = ["EXPLORER_KNOTS", "Explorer", "explorer", "main_explore"]
+__all__ = ["EXPLORER_KNOTS", "Explorer", "check_listen", "explorer", "main_explore"]
 
 #: Orifice knots the explorer offers (when `piston_area > 0`).
 EXPLORER_KNOTS = 4
@@ -420,17 +421,48 @@ def main_explore(args, values: dict[str, float]) -> int:
     """Serve the explorer (`recoil-jax explore`), one session per browser tab."""
     import panel as pn
 
+    check_listen(args.address, args.port)
     trace = rj.read_trace(args.trace) if args.trace else None
     Explorer(values, trace=trace)  # bad input fails here, before the server starts
     pn.extension()
-    print(f"recoil-jax explore: http://localhost:{args.port}/", flush=True)
+    print(f"recoil-jax explore: http://{_host(args.address)}:{args.port}/", flush=True)
+    origins = {f"{host}:{args.port}" for host in ("localhost", "127.0.0.1", args.address)}
     pn.serve(
         lambda: Explorer(values, trace=trace).panel(),
         port=args.port,
         address=args.address,
         show=not args.no_browser,
         title="recoil-jax explorer",
-        websocket_origin=[f"localhost:{args.port}", f"127.0.0.1:{args.port}"],
+        websocket_origin=sorted(origins),
         verbose=False,
     )
     return 0
+
+
+def _host(address: str) -> str:
+    """An address as it goes in a URL (an IPv6 one in brackets)."""
+    return f"[{address}]" if ":" in address else address
+
+
+def check_listen(address: str, port: int) -> None:
+    """That the server can listen on `address:port` (before it starts, which would
+    otherwise print its URL and then fail with a traceback): one line if not."""
+    if not 1 <= port <= 65535:
+        raise rj.ParameterError(f"--port {port} is invalid: valid is 1 to 65535")
+    try:
+        infos = socket.getaddrinfo(address, port, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError) as error:
+        raise rj.ParameterError(
+            f"--address {address!r} is not an address of this machine ({error}): give a "
+            "host name or IP address, e.g. localhost or 0.0.0.0"
+        ) from None
+    family, kind, protocol, _, where = infos[0]
+    with socket.socket(family, kind, protocol) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind(where)
+        except OSError as error:
+            raise rj.ParameterError(
+                f"cannot listen on {address}:{port} ({error.strerror}): give another "
+                "--port, or an --address of this machine"
+            ) from None

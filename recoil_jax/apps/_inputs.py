@@ -8,6 +8,7 @@ solved or compiled.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import sys
@@ -20,6 +21,7 @@ import recoil_jax as rj
 import recoil_jax.extend as rjx
 
 __all__ = [
+    "MADE_FOLDERS",
     "SETTINGS",
     "check_figure_path",
     "design_warnings",
@@ -31,6 +33,7 @@ __all__ = [
     "output_folder",
     "parse_assignments",
     "read_text",
+    "remove_unused_folders",
     "resolve_shipped",
     "split_assignment",
     "unknown_name",
@@ -125,10 +128,16 @@ def number(text: str) -> float:
     return value
 
 
+#: The output folders this process made (`output_folder`), first made first: the
+#: command line removes those still empty when a command is refused or interrupted.
+MADE_FOLDERS: list[Path] = []
+
+
 def output_folder(path) -> Path:
     """`path` as a folder to write into, made if missing (before any solve): a path that
     is a file, passes through one, or cannot be made or written is one line."""
     path = Path(path)
+    missing = [p for p in (path, *path.parents) if not p.exists()]
     if path.exists() and not path.is_dir():
         raise rj.ParameterError(f"--out {path} is a file, not a folder: give a folder")
     try:
@@ -139,9 +148,18 @@ def output_folder(path) -> Path:
         ) from None
     except OSError as error:
         raise rj.ParameterError(f"--out {path} cannot be made: {error.strerror}") from None
+    MADE_FOLDERS.extend(reversed(missing))
     if not os.access(path, os.W_OK | os.X_OK):
         raise rj.ParameterError(f"--out {path} cannot be written (permission denied)")
     return path
+
+
+def remove_unused_folders() -> None:
+    """Remove the folders `output_folder` made that are still empty (innermost first)."""
+    while MADE_FOLDERS:
+        folder = MADE_FOLDERS.pop()
+        with contextlib.suppress(OSError):  # not empty, or gone: leave it
+            folder.rmdir()
 
 
 def check_figure_path(path) -> Path:

@@ -448,10 +448,42 @@ def _parse_fronts(path, fronts, problem: rj.DesignProblem) -> list[dict]:
     return fronts
 
 
+#: The most points a study's `[check] grid` may have (about 10 s of solves).
+MAX_GRID_CHECK = 100_000
+
+
 def _parse_check(path, check: dict) -> dict:
-    """`[check]`: which checks of the best design to run."""
+    """`[check]`: which checks of the best design to run, each setting checked here (a
+    check runs after the optimiser: a bad one would lose the run)."""
     if set(check) - _CHECK_KEYS:
         raise _error(path, f"[check] unknown key(s) {', '.join(sorted(set(check) - _CHECK_KEYS))}")
+    for key in ("hard", "nominal"):
+        if key in check and not isinstance(check[key], bool):
+            raise _error(path, f"[check] {key} = {check[key]!r}: give true or false")
+    if "local" in check:
+        fraction = check["local"]
+        if not _is_number(fraction) or not 0.0 < fraction <= 1.0:
+            raise _error(path, f"[check] local = {fraction!r}: a fraction of each bound's "
+                         "width, in (0, 1]")  # fmt: skip
+    if "grid" in check:
+        grid = check["grid"]
+        if not isinstance(grid, dict) or not grid:
+            raise _error(path, "[check] grid = { name = [lo, hi, count], ... }")
+        points = 1
+        for name, spec in grid.items():
+            where = f"[check] grid.{name}"
+            if name not in rj.PARAMETERS:
+                raise _error(path, f"{where}: {rj.PARAMETERS.unknown(name)}")
+            if not (isinstance(spec, list) and len(spec) == 3 and all(map(_is_number, spec))):
+                raise _error(path, f"{where} = {spec!r}: give [lo, hi, count]")
+            lo, hi, count = spec
+            if not (isinstance(count, int) and count >= 1) or not lo <= hi:
+                raise _error(path, f"{where} = {spec!r}: need lo <= hi and an integer count "
+                             ">= 1")  # fmt: skip
+            points *= count
+        if points > MAX_GRID_CHECK:
+            raise _error(path, f"[check] grid has {points:,} points, more than "
+                         f"{MAX_GRID_CHECK:,}: give fewer")  # fmt: skip
     return check
 
 

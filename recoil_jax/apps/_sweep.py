@@ -26,23 +26,33 @@ from ._inputs import (
     warn,
 )
 
-__all__ = ["parse_axis", "read_points", "run_sweep", "write_figures", "write_results"]
+__all__ = ["MAX_AXIS", "parse_axis", "read_points", "run_sweep", "write_figures", "write_results"]
+
+
+#: The most values one axis `start:stop:count` may have (800 MB of them).
+MAX_AXIS = 100_000_000
 
 
 def parse_axis(name: str, text: str) -> np.ndarray:
     """`a,b,c` (a list) or `start:stop:count` (inclusive linspace); one value is fixed."""
     try:
-        if ":" in text:
-            start, stop, count = text.split(":")
-            if int(count) < 1:
-                raise ValueError
-            return np.linspace(number(start), number(stop), int(count))
-        return np.array([number(v) for v in text.split(",")])
+        if ":" not in text:
+            return np.array([number(v) for v in text.split(",")])
+        start, stop, count = text.split(":")
+        first, last, count = number(start), number(stop), int(count)
+        if count < 1:
+            raise ValueError
     except ValueError as error:
         raise rj.ParameterError(
             f"{name}={text!r}: expected a number, a list a,b,c or a range start:stop:count"
             f"{error if str(error).startswith(':') else ''}"
         ) from None
+    if count > MAX_AXIS:
+        raise rj.ParameterError(
+            f"{name}={text}: {count:,} values on one axis, more than {MAX_AXIS:,}: give a "
+            "smaller count"
+        )
+    return np.linspace(first, last, count)
 
 
 def read_points(path) -> list[dict]:

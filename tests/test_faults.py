@@ -1,0 +1,323 @@
+"""What the outside world does to a run ends in one line and a documented status (issue
+45): Ctrl-C, a closed pipe, a full disk, a bad cache folder, bad cluster addresses, a
+port in use; work and memory bounded before they start; one writer per store, lost rows
+solved again, `progress` never writing; a refused run leaving no empty folder behind."""
+
+from __future__ import annotations
+
+import errno
+import os
+import signal
+import socket
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import recoil_jax as rj
+from recoil_jax._store import _hold
+from recoil_jax.apps import _sweep as sweep_app, main
+
+CLI = [sys.executable, "-m", "recoil_jax.apps._cli"]
+
+
+def _one_line(err: str) -> str:
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+def _raising(error):
+    def command(args):
+        raise error
+
+    return command
+
+
+def test_ctrl_c_is_one_line_saying_what_was_kept_and_status_130(monkeypatch, tmp_path, capsys):
+    monkeypatch.setattr(sweep_app, "run_sweep", _raising(KeyboardInterrupt()))
+    store = tmp_path / "s.sqlite"
+    assert main(["sweep", "m=500,1500", "--store", str(store)]) == 130
+    line = _one_line(capsys.readouterr().err)
+    assert f"every finished part is in {store}" in line and "to resume" in line
+    assert main(["sweep", "m=500,1500"]) == 130
+    assert "give --store FILE.sqlite" in _one_line(capsys.readouterr().err)
+
+
+def test_a_full_disk_is_one_line_naming_the_file_and_other_errors_keep_their_traceback(
+    monkeypatch, capsys
+):
+    full = OSError(errno.ENOSPC, "No space left on device", "out/result.json")
+    monkeypatch.setattr(sweep_app, "run_sweep", _raising(full))
+    assert main(["sweep", "m=500,1500"]) == 1
+    line = _one_line(capsys.readouterr().err)
+    assert line == "recoil-jax: error: cannot write out/result.json: No space left on device"
+    # A bug is not an input fault: its traceback stays, so that tests find it.
+    monkeypatch.setattr(sweep_app, "run_sweep", _raising(FileNotFoundError(2, "gone", "x")))
+    with pytest.raises(FileNotFoundError):
+        main(["sweep", "m=500,1500"])
+    monkeypatch.setattr(sweep_app, "run_sweep", _raising(RuntimeError("a bug")))
+    with pytest.raises(RuntimeError, match="a bug"):
+        main(["sweep", "m=500,1500"])
+
+
+def test_a_cache_folder_that_cannot_be_made_is_a_warning(monkeypatch, tmp_path, capsys):
+    (tmp_path / "file").write_text("not a folder")
+    monkeypatch.setenv("RECOIL_JAX_CACHE", str(tmp_path / "file"))
+    assert main(["progress", str(tmp_path / "none.sqlite")]) == 2  # the command still runs
+    err = capsys.readouterr().err
+    assert "warning: the compilation cache" in err and "running without it" in err
+    assert "no such file" in err
+
+
+@pytest.mark.parametrize("address", ["garbage!!", "", "http://127.0.0.1:8786", "tcp://host"])
+def test_a_bad_scheduler_address_is_one_line(address, capsys):
+    argv = ["sweep", "m=500,1500", "gap=0.05", "--scheduler", address]
+    started = time.perf_counter()
+    assert main(argv) == 2
+    assert "is not a scheduler's address" in _one_line(capsys.readouterr().err)
+    assert time.perf_counter() - started < 5.0
+
+
+def test_more_workers_than_cores_are_capped_with_a_warning(monkeypatch, capsys):
+    distributed = pytest.importorskip("distributed")
+    from recoil_jax.apps._cluster import _cores, dask_client
+
+    made = {}
+
+    class Cluster:
+        def __init__(self, n_workers, **kwargs):
+            made["workers"] = n_workers
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return None
+
+    class Client(Cluster):
+        def __init__(self, cluster):
+            pass
+
+    monkeypatch.setattr(distributed, "LocalCluster", Cluster)
+    monkeypatch.setattr(distributed, "Client", Client)
+    with dask_client(1000, None):
+        pass
+    assert made["workers"] == _cores()
+    assert f"--workers 1000 is more than the {_cores()} cores" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        (["--port", "70000"], "--port 70000 is invalid"),
+        (["--port", "-5"], "--port -5 is invalid"),
+        (["--address", "not an address!"], "is not an address of this machine"),
+    ],
+)
+def test_explore_refuses_what_it_cannot_listen_on_before_printing_a_url(options, message, capsys):
+    pytest.importorskip("panel")
+    assert main(["explore", "--no-browser", *options]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and message in _one_line(captured.err)
+
+
+@pytest.mark.slow  # the explorer's first solve compiles
+def test_explore_refuses_a_port_in_use_and_prints_the_address_it_serves(monkeypatch, capsys):
+    panel = pytest.importorskip("panel")
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        argv = ["explore", "--no-browser", "--address", "127.0.0.1", "--port", str(port)]
+        assert main(argv) == 2
+        assert "cannot listen on 127.0.0.1" in _one_line(capsys.readouterr().err)
+    served = {}
+    monkeypatch.setattr(panel, "serve", lambda *a, **k: served.update(k))
+    assert main(argv) == 0
+    assert capsys.readouterr().out == f"recoil-jax explore: http://127.0.0.1:{port}/\n"
+    assert served["address"] == "127.0.0.1" and f"127.0.0.1:{port}" in served["websocket_origin"]
+
+
+def test_an_axis_or_a_grid_too_large_for_memory_is_refused_with_its_size(capsys):
+    assert main(["sweep", "m=10:2000:1000000000", "gap=0.05", "--json"]) == 2
+    assert "1,000,000,000 values on one axis" in _one_line(capsys.readouterr().err)
+    assert main(["sweep", "m=10:2000:100000", "gap=0:0.1:100000", "--json"]) == 2
+    line = _one_line(capsys.readouterr().err)
+    assert "a grid of 10,000,000,000 designs needs about 160.0 GB" in line
+    with pytest.raises(rj.ParameterError, match="a sweep in memory of 3,000,000,000 designs"):
+        rj.sweep({"m": np.broadcast_to(1000.0, (3_000_000_000,))}, progress=False)
+
+
+@pytest.mark.slow
+def test_a_refused_huge_sweep_stays_small_in_a_real_process(tmp_path):
+    """The resident memory of the refused sweep, measured in its own process."""
+    script = (
+        "import resource, sys\n"
+        "from recoil_jax.apps import main\n"
+        "status = main(['sweep', 'm=10:2000:100000', 'gap=0:0.1:100000', '--json'])\n"
+        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, status)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=120)  # fmt: skip
+    peak_kb, status = done.stdout.split()
+    assert status == "2" and "160.0 GB" in done.stderr
+    assert int(peak_kb) < 1_500_000, peak_kb  # KB: the refusal allocates nothing big
+
+
+STUDY = """
+[tune]
+gap = [0.0, 0.12]
+[objective]
+peak_anchoring_force = 1.0
+[optimiser]
+steps = 2
+[check]
+"""
+
+
+@pytest.mark.parametrize(
+    ("check", "message"),
+    [
+        ("grid = { gap = [0.0, 0.2, 1000000000] }", "1,000,000,000 points, more than 100,000"),
+        ("grid = { gap = [0.0, 0.2, 0] }", "an integer count >= 1"),
+        ("grid = { gap = [0.2, 0.0, 5] }", "lo <= hi"),
+        ("grid = { spring = [0.0, 0.2, 5] }", "unknown parameter 'spring'"),
+        ("local = -1", "local = -1: a fraction of each bound's width, in (0, 1]"),
+        ("hard = 'yes'", "hard = 'yes': give true or false"),
+    ],
+)
+def test_every_count_of_a_study_is_checked_at_load(tmp_path, capsys, check, message):
+    (tmp_path / "s.toml").write_text(STUDY + check + "\n")
+    out = tmp_path / "out"
+    assert main(["optimise", str(tmp_path / "s.toml"), "--out", str(out)]) == 2
+    assert message in _one_line(capsys.readouterr().err)
+    assert not out.exists()
+
+
+def test_a_refused_run_leaves_no_empty_output_folder(tmp_path, capsys):
+    (tmp_path / "s.toml").write_text(STUDY)
+    foreign = tmp_path / "sweep.sqlite"
+    rj.sweep({"m": [500.0, 1000.0]}, store=foreign, progress=False)
+    out = tmp_path / "new" / "out"
+    argv = ["optimise", str(tmp_path / "s.toml"), "--out", str(out), "--store", str(foreign)]
+    assert main(argv) == 2  # refused after the folder was made: the store is a sweep's
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "not of this one" in err.strip().splitlines()[-1]
+    assert not (tmp_path / "new").exists()
+
+
+def test_a_second_writer_is_refused_naming_the_holder(tmp_path, capsys):
+    store = tmp_path / "s.sqlite"
+    holder = _hold(store)
+    try:
+        assert main(["sweep", "m=500,1500", "gap=0.05", "--store", str(store)]) == 2
+        line = _one_line(capsys.readouterr().err)
+        assert f"in use by process {os.getpid()} on {socket.gethostname()} since" in line
+    finally:
+        holder.close()
+    assert main(["sweep", "m=500,1500", "gap=0.05", "--store", str(store)]) == 0
+
+
+def test_lost_rows_are_solved_again_not_read_as_zeros(tmp_path, capsys):
+    designs = {"m": np.linspace(200.0, 2000.0, 300), "gap": np.full(300, 0.05)}
+    plain = rj.sweep(designs, progress=False)
+    store = tmp_path / "s.sqlite"
+    rj.sweep(designs, store=store, progress=False, chunk_size=128, workers=1)
+    with sqlite3.connect(store) as db:
+        db.execute("DELETE FROM points WHERE point IN (3, 200)")
+    capsys.readouterr()
+    again = rj.sweep(designs, store=store, chunk_size=128, workers=1)
+    assert "rows missing or doubled" in capsys.readouterr().err
+    assert again.ok.all() and again.stored < 300
+    np.testing.assert_allclose(
+        again.peaks["peak_anchoring_force"], plain.peaks["peak_anchoring_force"], rtol=1e-12
+    )
+    with sqlite3.connect(store) as db:
+        assert db.execute("SELECT COUNT(*), COUNT(DISTINCT point) FROM points").fetchone() == (
+            300,
+            300,
+        )
+
+
+def test_progress_never_writes_into_the_store(tmp_path, capsys):
+    store = tmp_path / "s.sqlite"
+    rj.sweep({"m": [500.0, 1000.0]}, store=store, progress=False)
+    before = (store.stat().st_size, store.stat().st_mtime_ns, store.read_bytes())
+    assert main(["progress", str(store)]) == 0
+    assert (store.stat().st_size, store.stat().st_mtime_ns, store.read_bytes()) == before
+    empty = tmp_path / "empty.sqlite"
+    empty.write_bytes(b"")
+    assert main(["progress", str(empty)]) == 2
+    assert empty.stat().st_size == 0
+
+
+def _wait_for(predicate, seconds: float) -> None:
+    end = time.monotonic() + seconds
+    while not predicate():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.2)
+
+
+def _stored(store: Path) -> int:
+    try:
+        return rj.campaign_progress(store).done
+    except rj.ParameterError:
+        return 0
+
+
+@pytest.mark.slow
+def test_real_processes_ctrl_c_a_second_writer_and_a_resume(tmp_path):
+    """A sweep in its own process holds its store: a second writer is refused naming
+    it; SIGINT stops it with one line and status 130; the same command resumes."""
+    store = tmp_path / "s.sqlite"
+    argv = [*CLI, "sweep", "m=100:3000:300", "gap=0:0.15:301", "--store", str(store)]
+    env = os.environ | {"RECOIL_JAX_CACHE": str(tmp_path / "cache")}
+    first = subprocess.Popen(argv, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        _wait_for(lambda: _stored(store) > 0, 240)
+        second = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=120)
+        assert second.returncode == 2
+        assert f"is in use by process {first.pid}" in _one_line(second.stderr)
+        first.send_signal(signal.SIGINT)
+        _, err = first.communicate(timeout=120)
+    finally:
+        first.kill()
+    assert first.returncode == 130, err
+    last = err.strip().splitlines()[-1]
+    assert "Traceback" not in err and last.startswith("recoil-jax: interrupted; every")
+    assert f"--store {store} to resume" in last
+    kept = _stored(store)
+    assert 0 < kept < 300 * 301
+    resumed = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr
+    assert f"resuming from {store}: {kept} of 90300" in resumed.stderr
+    assert rj.campaign_progress(store).done == 90300
+
+
+@pytest.mark.slow
+def test_real_processes_a_closed_pipe_is_quiet_and_a_full_disk_one_line(tmp_path):
+    env = os.environ | {"RECOIL_JAX_CACHE": str(tmp_path / "cache")}
+    sweep = subprocess.Popen(
+        [*CLI, "sweep", "m=100:3000:30", "gap=0:0.15:31", "--json"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+    )  # fmt: skip
+    assert sweep.stdout is not None and sweep.stderr is not None
+    sweep.stdout.read(100)
+    sweep.stdout.close()  # as `| head -c 100` does
+    err = sweep.stderr.read().decode()
+    assert sweep.wait(timeout=300) == 1
+    assert "Traceback" not in err and "Broken pipe" not in err and "Exception" not in err, err
+    if not Path("/dev/full").exists():
+        pytest.skip("no /dev/full here")
+    with open("/dev/full", "w") as full:
+        done = subprocess.run([*CLI, "simulate", "--json"], stdout=full, stderr=subprocess.PIPE,
+                              text=True, env=env, timeout=300)  # fmt: skip
+    assert done.returncode == 1
+    assert _one_line(done.stderr) == (
+        "recoil-jax: error: cannot write (standard output): No space left on device"
+    )

@@ -1,0 +1,229 @@
+"""The command line's whole surface against generated mistakes (hypothesis): command
+lines and files from a grammar of what a user gets wrong (numbers, ranges, names,
+paths, file contents, encodings, options), run in-process through `main` with every
+solve stubbed out. Each run either reaches a solve (its input was accepted) or ends with
+a documented status, one `recoil-jax: error:` line (warnings aside) and no traceback,
+within a second or two: every check happens before anything is solved.
+
+CI runs a fixed set of 150 (`derandomize`); `RECOIL_JAX_EXAMPLES=2000 pytest
+tests/test_property.py` runs 2000 new ones. The examples database is off (nothing is
+written into the repository).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import string
+import tempfile
+import time
+from pathlib import Path
+
+import pytest
+
+hypothesis = pytest.importorskip("hypothesis")
+from hypothesis import (  # noqa: E402
+    HealthCheck,
+    given,
+    settings,
+    strategies as st,
+)
+
+import recoil_jax as rj  # noqa: E402
+from recoil_jax.apps import _exported, main  # noqa: E402
+
+EXAMPLES = int(os.environ.get("RECOIL_JAX_EXAMPLES", "150"))
+#: CI: the same examples every run; on demand (RECOIL_JAX_EXAMPLES given), new ones.
+FIXED = "RECOIL_JAX_EXAMPLES" not in os.environ
+
+
+class Reached(BaseException):
+    """A solve was about to start: the input was accepted."""
+
+
+def _reached(*args, **kwargs):
+    raise Reached
+
+
+SOLVES = ["peaks", "simulate", "sweep", "sweep_grid", "sweep_to_store", "search",
+          "optimise", "calibrate", "sensitivity", "predict"]  # fmt: skip
+
+# --- the grammar ----------------------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[1]
+names = st.sampled_from(
+    [*rj.PARAMETERS, "t1", "M", "mass", "Gap", "orifice_99", "k ", "", "x_M", "objective"]
+)
+numbers = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.sampled_from([0, -1, 1, 1e-300, 1e309, -1e309, 5600, 0.062, 1e12, 2**63]),
+    st.integers(-(10**20), 10**20),
+)
+MISTAKES = ["", " ", "abc", "1,2", "1:2", "1:2:3", "0:1:0", "1:2:-5", "0x10", "1e", "--1",
+            "٣", "1_000", "nan", "inf", "1:2:99999999999", "0:1:100000000000", ",", "1,,2",
+            "1;2"]  # fmt: skip
+number_texts = st.one_of(numbers.map(repr), st.sampled_from(MISTAKES))
+assignments = st.builds(lambda n, v: f"{n}={v}", names, number_texts)
+junk = st.text(string.printable + "éß€\ufeff\x00", max_size=60)
+TOML_VALUES = ['"text"', "true", "[]", "{}", "[1.0]", "[0.0, 1.0]", "[1.0, 0.0]",
+               "[0.0, 1.0, 5]", "{ relative = 0.1 }", "{ relative = 2 }", '"sobol"',
+               '"search"', "-1", "1e400", "[[1]]"]  # fmt: skip
+toml_values = st.one_of(
+    numbers.map(lambda x: repr(x) if x == x else "nan"), st.sampled_from(TOML_VALUES)
+)
+
+
+def _toml_file(sections: list[str], keys: list[str]):
+    """Sections of `key = value` lines, drawn from names a user might use."""
+    line = st.builds(lambda k, v: f"{k} = {v}", st.sampled_from(keys), toml_values)
+    section = st.builds(
+        lambda name, lines: f"[{name}]\n" + "\n".join(lines),
+        st.sampled_from(sections),
+        st.lists(line, max_size=4),
+    )
+    tails = st.sampled_from(["", "\n", "\n[[", "\x00"])
+    return st.builds(lambda parts, tail: "\n".join(parts) + tail, st.lists(section, max_size=5),
+                     tails)  # fmt: skip
+
+
+def _mutated(folder: str):
+    """A shipped file with one line dropped, or one value replaced by a mistake: the
+    checks deep inside a file that is otherwise right."""
+    texts = [p.read_text() for p in sorted((ROOT / folder).glob("*.toml"))]
+
+    def mutate(text: str, line: int, value: str, drop: bool) -> str:
+        lines = text.splitlines()
+        i = line % len(lines)
+        if drop:
+            del lines[i]
+        elif "=" in lines[i]:
+            lines[i] = lines[i].split("=")[0] + "= " + value
+        return "\n".join(lines)
+
+    values = st.one_of(toml_values, number_texts.map(repr))
+    return st.builds(mutate, st.sampled_from(texts), st.integers(0, 200), values, st.booleans())
+
+
+STUDY_KEYS = [*rj.PARAMETERS, "peak_anchoring_force", "peak_displacement", "method", "steps",
+              "samples", "starts", "seed", "local", "grid", "hard", "vary", "values", "max",
+              "min", "from", "points", "minimax", "learning_rate"]  # fmt: skip
+STUDY_SECTIONS = ["design", "tune", "objective", "constraints", "optimiser", "check",
+                  "calibration", "objective.temperatures", "bogus"]  # fmt: skip
+study_files = st.one_of(_toml_file(STUDY_SECTIONS, STUDY_KEYS), _mutated("optimise"))
+SENSITIVITY_KEYS = [*STUDY_KEYS, "names", "objective", "study", "name", "second_order",
+                    "trajectories", "levels", "resamples", "sigmas"]  # fmt: skip
+sensitivity_files = st.one_of(
+    _toml_file(["design", "ranges", "metrics", "method", "calibration", "bogus"],
+               SENSITIVITY_KEYS),
+    _mutated("sensitivity"),
+)  # fmt: skip
+csv_files = st.one_of(
+    junk,
+    st.builds(
+        lambda header, rows, bom, end: ("\ufeff" if bom else "") + end.join([header, *rows]),
+        st.sampled_from(["t,x_M", "t,F_AN", "t_s,F_N", "t,x_M,F_AN", "t,bogus", "x_M,t", "t",
+                         "", "t;x_M", "t,x_M,x_M"]),
+        st.lists(st.builds(lambda a, b: f"{a},{b}", number_texts, number_texts), max_size=6),
+        st.booleans(),
+        st.sampled_from(["\n", "\r\n", "\r"]),
+    ),
+)  # fmt: skip
+
+
+@st.composite
+def command_lines(draw, folder: Path):
+    """A command line, with the files it names written into `folder`."""
+
+    def file(name: str, content) -> str:
+        path = folder / name
+        data = draw(content)
+        path.write_bytes(data.encode("utf-8", "surrogatepass"))
+        return str(path)
+
+    paths = st.sampled_from([str(folder), str(folder / "missing" / "x"), "/proc/x",
+                             str(folder / "f.txt"), "", str(folder / "out")])  # fmt: skip
+    (folder / "f.txt").write_text("a file")
+    command = draw(st.sampled_from(["simulate", "sweep", "optimise", "sensitivity",
+                                    "calibrate", "progress"]))  # fmt: skip
+    argv = [command, "--no-cache"]
+    if command == "simulate":
+        argv += draw(st.lists(assignments, max_size=4))
+        if draw(st.booleans()):
+            argv += ["--max-steps", draw(number_texts)]
+        if draw(st.booleans()):
+            argv += ["--plot", draw(st.one_of(paths, st.just(str(folder / "h.pdf2"))))]
+        if draw(st.booleans()):
+            argv += ["--force-table", file("table.csv", csv_files)]
+    elif command == "sweep":
+        argv += draw(st.lists(assignments, max_size=4))
+        if draw(st.booleans()):
+            argv += ["--points", file("points.csv", csv_files)]
+        if draw(st.booleans()):
+            argv += ["--out", draw(paths)]
+        if draw(st.booleans()):
+            argv += ["--store", draw(st.one_of(paths, st.just(file("s.sqlite", junk))))]
+        if draw(st.booleans()):
+            argv += ["--workers", draw(st.sampled_from(["0", "-3", "x"]))]
+        if draw(st.booleans()):
+            argv += ["--scheduler", draw(st.sampled_from(["", "garbage!!", "http://h:1"]))]
+    elif command == "optimise":
+        argv += [file("study.toml", study_files), "--out", str(folder / "out")]
+        if draw(st.booleans()):
+            argv += ["--seed", draw(number_texts)]
+    elif command == "sensitivity":
+        argv += [file("s.toml", sensitivity_files), "--out", str(folder / "out")]
+    elif command == "calibrate":
+        argv += [file("trace.csv", csv_files)]
+        argv += ["--fit", draw(st.sampled_from(["k", "k,c_out", "", "bogus", "t_shift,k"]))]
+        argv += draw(st.lists(assignments, max_size=2))
+    else:
+        argv += [draw(st.one_of(paths, st.just(file("p.sqlite", junk))))]
+    if draw(st.booleans()):
+        argv.append("--json")
+    return argv
+
+
+@pytest.fixture(scope="module")
+def stubbed():
+    with pytest.MonkeyPatch.context() as patch:
+        for name in SOLVES:
+            patch.setattr(rj, name, _reached)
+        patch.setattr(_exported, "exported_peaks", _reached)
+        yield
+
+
+@settings(
+    max_examples=EXAMPLES, deadline=None, derandomize=FIXED, database=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture,
+                           HealthCheck.data_too_large],
+)  # fmt: skip
+@given(data=st.data())
+def test_every_mistake_is_one_line_and_a_documented_status(stubbed, data):
+    with tempfile.TemporaryDirectory() as folder:
+        argv = data.draw(command_lines(Path(folder)))
+        err, out = io.StringIO(), io.StringIO()
+        started = time.perf_counter()
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
+            try:
+                status = main(argv)
+            except Reached:
+                return  # accepted: a solve would start
+            except SystemExit as exit:  # argparse: its usage line and status 2
+                assert exit.code == 2, argv
+                return
+        seconds = time.perf_counter() - started
+        lines = [line for line in err.getvalue().splitlines() if line.strip()]
+        errors = [line for line in lines if line.startswith("recoil-jax: error:")]
+        assert status in (0, 1, 2), (argv, status, lines)
+        if status == 2:
+            assert len(errors) == 1, (argv, lines)
+        others = [line for line in lines if line not in errors]
+        assert all(
+            line.startswith(("recoil-jax: warning:", "sweep:", "study ")) for line in others
+        ), (
+            argv,
+            lines,
+        )
+        assert "Traceback" not in err.getvalue()
+        assert seconds < 10.0, (argv, seconds)
