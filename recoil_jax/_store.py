@@ -169,7 +169,8 @@ def _connect_read(path: Path) -> sqlite3.Connection:
     """A read-only connection to an existing store (`progress` and the readers never
     write into it, not even a new database into an empty file)."""
     if not path.is_file():
-        raise ParameterError(f"store {path}: no such file")
+        what = "no such file" if not path.exists() else "not a regular file"
+        raise ParameterError(f"store {path}: {what}")
     if path.stat().st_size == 0:
         raise ParameterError(f"store {path} is empty: not a recoil-jax store")
     try:
@@ -199,6 +200,8 @@ class _Store:
         self.path = Path(path)
         if self.path.is_dir():
             raise ParameterError(f"store {self.path} is a folder: give the path of a file")
+        if self.path.exists() and not self.path.is_file():  # /dev/null, a pipe, a socket
+            raise ParameterError(f"store {self.path} is not a regular file: give a file's path")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._writer = _hold(self.path)
         try:

@@ -156,11 +156,15 @@ def test_an_axis_or_a_grid_too_large_for_memory_is_refused_with_its_size(capsys)
 @pytest.mark.slow
 def test_a_refused_huge_sweep_stays_small_in_a_real_process(tmp_path):
     """The resident memory of the refused sweep, measured in its own process."""
+    if not Path("/proc/self/status").exists():
+        pytest.skip("no /proc here")
+    # VmHWM, this program's own peak: ru_maxrss would carry over the forked parent's.
     script = (
-        "import resource, sys\n"
+        "import re\n"
         "from recoil_jax.apps import main\n"
         "status = main(['sweep', 'm=10:2000:100000', 'gap=0:0.1:100000', '--json'])\n"
-        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, status)\n"
+        "text = open('/proc/self/status').read()\n"
+        "print(re.search(r'VmHWM:\\s+(\\d+) kB', text).group(1), status)\n"
     )
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                           timeout=120)  # fmt: skip
@@ -321,3 +325,35 @@ def test_real_processes_a_closed_pipe_is_quiet_and_a_full_disk_one_line(tmp_path
     assert _one_line(done.stderr) == (
         "recoil-jax: error: cannot write (standard output): No space left on device"
     )
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["simulate", "--plot", "{tmp}/file.txt/h.png"], "--plot's folder"),
+        (["simulate", "--plot", "/proc/recoil/h.png"], "--plot's folder /proc/recoil cannot"),
+        (["simulate", "--plot", "{tmp}"], "is a folder"),
+        (["sweep", "m=500,1500", "--out", "/proc/recoil"], "--out /proc/recoil cannot be made"),
+        (["sweep", "m=500,1500", "--out", "{tmp}/file.txt"], "is a file, not a folder"),
+    ],
+)
+def test_an_output_that_cannot_be_written_is_refused_before_solving(
+    tmp_path, capsys, argv, message
+):
+    (tmp_path / "file.txt").write_text("a file")
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    if argv[-1] == str(tmp_path):  # a folder given as the figure's file
+        argv[-1] = str(tmp_path / "dir.png")
+        (tmp_path / "dir.png").mkdir()
+    assert main(argv) == 2
+    assert message in _one_line(capsys.readouterr().err)
+
+
+def test_a_store_that_is_not_a_regular_file_is_refused(tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = ["sweep", "m=500,1500", "--store", os.devnull, "--out", str(out)]
+    assert main(argv) == 2
+    assert f"store {os.devnull} is not a regular file" in _one_line(capsys.readouterr().err)
+    assert not out.exists() and not Path(os.devnull + ".lock").exists()
+    assert main(["progress", os.devnull]) == 2
+    assert "not a regular file" in _one_line(capsys.readouterr().err)

@@ -133,24 +133,25 @@ def number(text: str) -> float:
 MADE_FOLDERS: list[Path] = []
 
 
-def output_folder(path) -> Path:
+def output_folder(path, option: str = "--out") -> Path:
     """`path` as a folder to write into, made if missing (before any solve): a path that
-    is a file, passes through one, or cannot be made or written is one line."""
+    is a file, passes through one, or cannot be made or written is one line naming
+    `option`."""
     path = Path(path)
     missing = [p for p in (path, *path.parents) if not p.exists()]
     if path.exists() and not path.is_dir():
-        raise rj.ParameterError(f"--out {path} is a file, not a folder: give a folder")
+        raise rj.ParameterError(f"{option} {path} is a file, not a folder: give a folder")
     try:
         path.mkdir(parents=True, exist_ok=True)
     except (FileExistsError, NotADirectoryError):
         raise rj.ParameterError(
-            f"--out {path}: a part of the path is a file, not a folder"
+            f"{option} {path}: a part of the path is a file, not a folder"
         ) from None
     except OSError as error:
-        raise rj.ParameterError(f"--out {path} cannot be made: {error.strerror}") from None
+        raise rj.ParameterError(f"{option} {path} cannot be made: {error.strerror}") from None
     MADE_FOLDERS.extend(reversed(missing))
     if not os.access(path, os.W_OK | os.X_OK):
-        raise rj.ParameterError(f"--out {path} cannot be written (permission denied)")
+        raise rj.ParameterError(f"{option} {path} cannot be written (permission denied)")
     return path
 
 
@@ -163,7 +164,8 @@ def remove_unused_folders() -> None:
 
 
 def check_figure_path(path) -> Path:
-    """`path` if matplotlib can write a figure of its suffix (checked before any solve)."""
+    """`path` if matplotlib can write a figure of its suffix into its folder (made if
+    missing; checked before any solve)."""
     from matplotlib.figure import Figure
 
     path = Path(path)
@@ -173,6 +175,9 @@ def check_figure_path(path) -> Path:
             f"cannot write a figure to {path}: give a file ending in one of "
             + ", ".join(f".{f}" for f in sorted(formats))
         )
+    if path.is_dir():
+        raise rj.ParameterError(f"--plot {path} is a folder: give a file")
+    output_folder(path.parent, option="--plot's folder")  # made if missing, and writable
     return path
 
 
