@@ -31,6 +31,7 @@ A study's store (`StudyStore`) has `meta` and `runs` too, and instead of `points
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import io
 import json
@@ -138,6 +139,7 @@ def _hold(path: Path):
         import fcntl
     except ImportError:  # pragma: no cover
         return None
+    path = path.resolve()  # one lock for every name of the file (links, relative paths)
     lock_path = path.with_name(path.name + ".lock")
     try:
         handle = open(lock_path, "a+")  # held until the store closes
@@ -147,14 +149,20 @@ def _hold(path: Path):
         ) from None
     try:
         fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        handle.seek(0)
-        holder = handle.read().strip() or "another process"
-        handle.close()
-        raise ParameterError(
-            f"store {path} is in use by {holder}: wait for that run to end (or stop it), "
-            "or give another store; two runs on one store would solve everything twice"
-        ) from None
+    except OSError as error:
+        if error.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            handle.seek(0)
+            holder = handle.read().strip() or "another process"
+            handle.close()
+            raise ParameterError(
+                f"store {path} is in use by {holder}: wait for that run to end (or stop "
+                "it), or give another store; two runs on one store would solve everything "
+                "twice"
+            ) from None
+        handle.close()  # a file system without flock (some network ones): no lock
+        print(f"recoil-jax: warning: store {path}: its file system cannot lock it "
+              f"({error.strerror}); run one command on it at a time", file=sys.stderr)  # fmt: skip
+        return None
     handle.seek(0)
     handle.truncate()
     handle.write(
@@ -176,6 +184,8 @@ def _connect_read(path: Path) -> sqlite3.Connection:
     try:
         db = sqlite3.connect(path.resolve().as_uri() + "?mode=ro", uri=True, timeout=60.0)
         db.execute("SELECT name FROM sqlite_master").fetchall()
+    except sqlite3.OperationalError as error:  # a folder it cannot read, a lock, ...
+        raise ParameterError(f"store {path} cannot be opened ({error})") from None
     except sqlite3.DatabaseError as error:
         raise ParameterError(f"store {path} is not a recoil-jax store ({error})") from None
     return db
@@ -202,6 +212,14 @@ class _Store:
             raise ParameterError(f"store {self.path} is a folder: give the path of a file")
         if self.path.exists() and not self.path.is_file():  # /dev/null, a pipe, a socket
             raise ParameterError(f"store {self.path} is not a regular file: give a file's path")
+        if self.path.is_file() and self.path.stat().st_size:
+            with open(self.path, "rb") as file:  # before a lock file is made beside it
+                header = file.read(16)
+            if header != b"SQLite format 3\x00":
+                raise ParameterError(
+                    f"store {self.path} is not a recoil-jax store (not an SQLite file): give "
+                    "a new path"
+                )
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._writer = _hold(self.path)
         try:
@@ -251,7 +269,8 @@ class _Store:
             out = write(db)
             db.execute("COMMIT")
         except BaseException:
-            db.execute("ROLLBACK")
+            if db.in_transaction:  # SQLite may have rolled back itself (a full disk)
+                db.execute("ROLLBACK")
             raise
         return out
 
@@ -325,18 +344,17 @@ class SweepStore(_Store):
     def drop_incomplete(self) -> int:
         """Forget every committed chunk whose rows are not all there (lost, deleted by
         hand) or are there twice, so that it is solved again rather than read as zeros;
-        returns how many designs that drops."""
+        returns how many designs those chunks hold."""
         rows = dict(self.db.execute("SELECT chunk, COUNT(*) FROM points GROUP BY chunk").fetchall())
         done = self.done()
         broken = [c for c, n in done.items() if rows.get(c, 0) != n]
         stray = [c for c in rows if c not in done]
 
         def write(db) -> int:
-            dropped = 0
             for chunk in broken + stray:
-                dropped += db.execute("DELETE FROM points WHERE chunk = ?", (chunk,)).rowcount
+                db.execute("DELETE FROM points WHERE chunk = ?", (chunk,))
                 db.execute("DELETE FROM chunks WHERE chunk = ?", (chunk,))
-            return dropped
+            return sum(int(done.get(c) or rows.get(c) or 0) for c in broken + stray)
 
         return self._transaction(write) if broken or stray else 0
 
@@ -432,6 +450,13 @@ def read_sweep_store(path) -> tuple[dict[str, str], np.ndarray, dict[str, np.nda
     finally:
         db.close()
     table = np.array(rows, dtype=float).reshape(len(rows), len(names))
+    total = int(meta["total"])
+    if len(rows) != total or len(np.unique(table[:, 0])) != total:
+        raise ParameterError(
+            f"store {path} holds {len(np.unique(table[:, 0]))} distinct of its {total} designs "
+            f"in {len(rows)} rows (rows lost or doubled): run the same sweep with this store "
+            "to solve those chunks again"
+        )
     data = {name: table[:, j + 1] for j, name in enumerate(columns)}
     data["status_code"] = table[:, -1].astype(np.int32)
     return meta | {"seconds": str(seconds)}, table[:, 0].astype(int), data

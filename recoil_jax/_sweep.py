@@ -321,15 +321,24 @@ def grid(axes: Mapping[str, Sequence[float]], fixed: Mapping[str, float] | None 
 
 
 def _available_memory() -> int | None:
-    """Bytes of memory this machine has free (Linux's MemAvailable), or None."""
+    """Bytes of memory this process may still use: Linux's MemAvailable, or less where a
+    container's memory limit (cgroup v2) leaves less; None where neither is known."""
+    free = []
     try:
         with open("/proc/meminfo") as meminfo:
             for line in meminfo:
                 if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
+                    free.append(int(line.split()[1]) * 1024)
     except (OSError, ValueError, IndexError):
         pass
-    return None
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        used = Path("/sys/fs/cgroup/memory.current").read_text().strip()
+        if limit != "max":
+            free.append(int(limit) - int(used))
+    except (OSError, ValueError):
+        pass
+    return min(free) if free else None
 
 
 def check_memory(designs: int, bytes_per_design: int, what: str, advice: str) -> None:
@@ -862,19 +871,15 @@ def _sweep(
         raise ParameterError("a sweep whose results are not kept in memory needs a store")
     wrt = tuple(wrt) if wrt else None
     options = options or (GRADIENT_OPTIONS if wrt else SolverOptions())
+    columns = _as_columns(designs)  # validates every point, before any compilation
+    n = len(next(iter(columns.values())))
     if in_memory:  # the results of every design, and their copies on the way
-        if isinstance(designs, Mapping):
-            count, names = len(next(iter(designs.values()), ())), len(designs)
-        else:
-            count, names = len(designs), len(designs[0]) if len(designs) else 0
         outputs = len(PEAK_FIELDS) + 1 + len(METRICS) * len(wrt or ())
         check_memory(
-            count, 8 * 3 * (names + outputs), "a sweep in memory",
+            n, 8 * 3 * (len(columns) + outputs), "a sweep in memory",
             "keep the results in a store instead (--store FILE.sqlite on the command line "
             "without --out and --json, rj.sweep_to_store in Python), or sweep fewer designs",
         )  # fmt: skip
-    columns = _as_columns(designs)  # validates every point, before any compilation
-    n = len(next(iter(columns.values())))
     groups = _groups(columns, options, wrt, force_table)
 
     devices = list(devices) if devices is not None else jax.local_devices()
@@ -885,10 +890,26 @@ def _sweep(
     store_ = None
     if store is not None:
         store_ = _open_store(store, columns, smoothing, options, wrt, force_table, plan, progress)
+    try:  # the store (and its writer lock) is closed whatever happens from here
+        return _run_sweep(
+            in_memory, columns, n, groups, store, store_, plan, smoothing, options, wrt,
+            devices, client, progress, shown,
+        )  # fmt: skip
+    finally:
+        if store_ is not None:
+            store_.close()
+
+
+def _run_sweep(
+    in_memory, columns, n, groups, store, store_, plan, smoothing, options, wrt, devices,
+    client, progress, shown,
+):  # fmt: skip
+    """`_sweep` once its store is open: resume from it, solve the rest, return."""
+    if store_ is not None:
         plan = store_.plan
         if (dropped := store_.drop_incomplete()) and progress is not False:
             print(
-                f"sweep: {store} had chunks with rows missing or doubled ({dropped} rows "
+                f"sweep: {store} had chunks with rows missing or doubled ({dropped} designs "
                 "dropped): those chunks are solved again",
                 file=sys.stderr,
             )
@@ -913,22 +934,18 @@ def _sweep(
             )
     bar = Progress("sweep", n, "designs", shown, already=already)
     todo = [chunk for chunk in _chunks(groups, plan) if chunk.key not in stored]
-    try:
-        solved = _solved_chunks(todo, groups, smoothing, options, wrt, devices, plan, client)
-        for chunk, chunk_columns, chunk_seconds in solved:
-            for name, column in chunk_columns.items() if in_memory else ():
-                out[name][chunk.points] = column
-            if store_ is not None:
-                # About 0.1 s per 16,384 designs, against about 1.4 s to solve them.
-                given = {name: values[chunk.points] for name, values in columns.items()}
-                messages = status_messages(status_item(chunk_columns["status_code"]))
-                store_.commit(
-                    chunk.key, chunk.points, chunk_columns | given, messages, chunk_seconds
-                )
-            bar.update(bar.done + len(chunk.points))
-    finally:
+    solved = _solved_chunks(todo, groups, smoothing, options, wrt, devices, plan, client)
+    for chunk, chunk_columns, chunk_seconds in solved:
+        for name, column in chunk_columns.items() if in_memory else ():
+            out[name][chunk.points] = column
         if store_ is not None:
-            store_.close()
+            # About 0.1 s per 16,384 designs, against about 1.4 s to solve them.
+            given = {name: values[chunk.points] for name, values in columns.items()}
+            messages = status_messages(status_item(chunk_columns["status_code"]))
+            store_.commit(chunk.key, chunk.points, chunk_columns | given, messages, chunk_seconds)
+        bar.update(bar.done + len(chunk.points))
+    if store_ is not None:
+        store_.close()  # before the store is read back below
     if not in_memory:
         assert store is not None
         failures = store_failures(store)

@@ -3,7 +3,7 @@ lines and files from a grammar of what a user gets wrong (numbers, ranges, names
 paths, file contents, encodings, options), run in-process through `main` with every
 solve stubbed out. Each run either reaches a solve (its input was accepted) or ends with
 a documented status, one `recoil-jax: error:` line (warnings aside) and no traceback,
-within a second or two: every check happens before anything is solved.
+well within 30 s: every check happens before anything is solved.
 
 CI runs a fixed set of 150 (`derandomize`); `RECOIL_JAX_EXAMPLES=2000 pytest
 tests/test_property.py` runs 2000 new ones. The examples database is off (nothing is
@@ -226,4 +226,4 @@ def test_every_mistake_is_one_line_and_a_documented_status(stubbed, data):
             lines,
         )
         assert "Traceback" not in err.getvalue()
-        assert seconds < 10.0, (argv, seconds)
+        assert seconds < 30.0, (argv, seconds)  # checks, not solves: well under a second

@@ -4,9 +4,12 @@ to the other commands (each in its own module, imported when used)."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
+import io
 import json
 import os
+import select
 import sqlite3
 import sys
 
@@ -14,6 +17,7 @@ import recoil_jax as rj
 import recoil_jax.extend as rjx
 
 from ._inputs import (
+    MADE_FOLDERS,
     check_figure_path,
     design_warnings,
     names,
@@ -41,9 +45,9 @@ INFEASIBLE = 3
 INTERRUPTED = 130
 
 #: What the file system can do to a run that is not a bug of ours: full, read-only, not
-#: permitted, too many files, a broken device.
+#: permitted, a broken device.
 _ENVIRONMENT_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM,
-                       errno.EMFILE, errno.ENFILE, errno.EIO}  # fmt: skip
+                       errno.EIO}  # fmt: skip
 #: SQLite's messages for the same faults, on a store.
 _SQLITE_ENVIRONMENT = ("database or disk is full", "readonly database", "unable to open",
                        "disk I/O error")  # fmt: skip
@@ -654,9 +658,13 @@ def main(argv: list[str] | None = None) -> int:
             folder = error.filename or os.environ.get("RECOIL_JAX_CACHE", "")
             print(f"recoil-jax: warning: the compilation cache {folder} cannot be used "
                   f"({error.strerror}); running without it", file=sys.stderr)  # fmt: skip
-    status = _run(args)
-    if status != 0:
-        remove_unused_folders()
+    MADE_FOLDERS.clear()  # this command's folders only (main may run many times)
+    status = 1
+    try:
+        status = _run(args)
+    finally:
+        if status != 0:
+            remove_unused_folders()
     return status
 
 
@@ -667,8 +675,6 @@ def _run(args) -> int:
     is a bug, and keeps its traceback."""
     try:
         status = args.func(args)
-        sys.stdout.flush()  # a full disk or closed pipe on stdout shows here, not at exit
-        return status
     except rj.ParameterError as error:
         print(f"recoil-jax: error: {error}", file=sys.stderr)
         return 2
@@ -687,28 +693,60 @@ def _run(args) -> int:
     except KeyboardInterrupt:
         print(f"recoil-jax: interrupted; {_kept(args)}", file=sys.stderr)
         return INTERRUPTED
-    except BrokenPipeError:
-        # The reader went away (`| head`): nothing more to say, to anyone. Point stdout
-        # at /dev/null so that the interpreter's own flush at exit does not fail again.
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    except BrokenPipeError as error:
+        if _stdout_closed():
+            return 1  # the reader went away (`| head`): nothing more to say, to anyone
+        print(f"recoil-jax: error: a pipe closed: {error}", file=sys.stderr)
         return 1
     except OSError as error:
         if error.errno not in _ENVIRONMENT_ERRORS:
             raise
-        where = f" {error.filename}" if error.filename else " (standard output)"
-        print(f"recoil-jax: error: cannot write{where}: {error.strerror}", file=sys.stderr)
+        where = f"{error.filename}: " if error.filename else ""
+        print(f"recoil-jax: error: {where}{error.strerror}", file=sys.stderr)
         return 1
     except sqlite3.OperationalError as error:
         if not any(text in str(error) for text in _SQLITE_ENVIRONMENT):
             raise
         store = getattr(args, "store", None)
-        print(f"recoil-jax: error: store {store}: {error}", file=sys.stderr)
+        where = f"store {store}: " if store else ""
+        print(f"recoil-jax: error: {where}{error}", file=sys.stderr)
         return 1
+    try:  # a full disk or a closed pipe on stdout shows here, not at exit
+        sys.stdout.flush()
+    except BrokenPipeError:
+        if not _stdout_closed():
+            print("recoil-jax: error: standard output closed", file=sys.stderr)
+        return 1
+    except OSError as error:
+        print(f"recoil-jax: error: cannot write standard output: {error.strerror}",
+              file=sys.stderr)  # fmt: skip
+        return 1
+    return status
+
+
+def _stdout_closed() -> bool:
+    """Whether stdout's reader has gone (a pipe whose reading end is closed reports an
+    error to `poll`): if so, point stdout at /dev/null, so that the interpreter's own
+    flush at exit does not fail again."""
+    try:
+        descriptor = sys.stdout.fileno()
+        watch = select.poll()
+        watch.register(descriptor, select.POLLOUT)
+        closed = any(event & select.POLLERR for _, event in watch.poll(0))
+    except (OSError, ValueError, AttributeError, io.UnsupportedOperation):
+        return False  # not a file (a notebook, a test's capture): not a closed pipe
+    if not closed:
+        return False
+    with contextlib.suppress(OSError, ValueError, io.UnsupportedOperation):
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    return True
 
 
 def _kept(args) -> str:
     """What an interrupted command kept, and how to go on."""
-    store = getattr(args, "store", None)
+    store = getattr(args, "store", None) if args.command != "progress" else None
     if store:
         return (f"every finished part is in {store}: run the same command with --store "
                 f"{store} to resume")  # fmt: skip

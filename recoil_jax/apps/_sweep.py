@@ -278,6 +278,7 @@ def run_sweep(args) -> int:
             axes[name] = values
     table = rj.ForceTable.from_csv(args.force_table) if args.force_table else None
     designs: list[dict] = []  # from --points
+    shape: tuple[int, ...] = ()  # the grid's
     if args.points:
         if axes:
             raise rj.ParameterError(
@@ -301,7 +302,7 @@ def run_sweep(args) -> int:
                 "range start:stop:count, or --points FILE"
             )
         wrt = ("gap",) if "gap" in axes else None
-        columns, _ = rj.grid(axes, fixed)
+        columns, shape = rj.grid(axes, fixed)  # made once (it may be large)
     warn(design_warnings({n: _given(c) for n, c in columns.items()}, table))
     # The sweep's own options (tighter with gradients), with the step limit asked for.
     options = rj.GRADIENT_OPTIONS if wrt else rj.SolverOptions()
@@ -311,7 +312,7 @@ def run_sweep(args) -> int:
         output_folder(args.out)  # once the input is known good, before any solve
     if args.store and not args.out and not args.json:
         # Nothing asks for the results here: they stream to the store, not into memory.
-        return _sweep_to_store(args, axes, fixed, designs, wrt, options, table)
+        return _sweep_to_store(args, axes, designs or columns, wrt, options, table)
     with dask_client(args.workers, args.scheduler) as client:
         if args.points:
             result = rj.sweep(
@@ -323,9 +324,8 @@ def run_sweep(args) -> int:
                 client=client,
             )
         else:
-            result = rj.sweep_grid(
-                axes,
-                fixed,
+            result = rj.sweep(
+                columns,
                 wrt=wrt,
                 options=options,
                 progress=progress,
@@ -333,6 +333,7 @@ def run_sweep(args) -> int:
                 store=args.store,
                 client=client,
             )
+            result.swept, result.grid_shape = tuple(axes), shape
     if args.json:
         print(json.dumps(result.records()))
     else:
@@ -366,19 +367,13 @@ def run_sweep(args) -> int:
     return 0  # failed points are reported per point (status), not as a failed command
 
 
-def _sweep_to_store(args, axes, fixed, designs, wrt, options, table) -> int:
-    """`sweep --store` with neither `--out` nor `--json`: `rj.sweep_to_store`, and a
-    summary read from the store."""
+def _sweep_to_store(args, axes, designs, wrt, options, table) -> int:
+    """`sweep --store` with neither `--out` nor `--json`: `rj.sweep_to_store` of the
+    points or the grid's columns (`designs`), and a summary read from the store."""
     with dask_client(args.workers, args.scheduler) as client:
-        if args.points:
-            stored = rj.sweep_to_store(
-                designs, args.store, options=options, force_table=table, client=client
-            )
-        else:
-            columns, _ = rj.grid(axes, fixed)
-            stored = rj.sweep_to_store(
-                columns, args.store, wrt=wrt, options=options, force_table=table, client=client
-            )
+        stored = rj.sweep_to_store(
+            designs, args.store, wrt=wrt, options=options, force_table=table, client=client
+        )
     solved = stored.designs - stored.stored
     read = f" ({stored.stored} read from the store)" if stored.stored else ""
     print(
