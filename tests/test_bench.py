@@ -161,13 +161,14 @@ def test_calibration_bench_reports_both_fits():
 
     result = run_calibration_bench(
         samples=401, draws=2, scipy_draws=1, starts=2, prediction_samples=100, cli=False,
-        log=lambda m: None,
+        burst_seeds=1, log=lambda m: None,
     )  # fmt: skip
     one = result["one_fit"]
     assert one["ours_s"] > 0 and one["scipy_solves"] > 0
     # Both ways reach the same optimum (the models differ by the smoothing only).
     assert one["max_apart_stderr"] < 0.5 and result["many_fits"]["max_apart_stderr"] < 0.5
-    assert [r["trace"] for r in result["random_starts"]] == ["absorber", "burst"]
+    assert [r["trace"] for r in result["random_starts"]] == ["absorber", "burst", "burst"]
+    assert [r["seeds"] for r in result["random_starts"]] == [[3, 5], [3, 5], [100, 200]]
     text = format_calibration_bench(result)
     assert "scipy" in text and "random starts" in text and "prediction band" in text
 

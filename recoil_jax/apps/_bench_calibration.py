@@ -143,11 +143,14 @@ def many_fits(samples: int, draws: int, scipy_draws: int, log) -> dict:
     }
 
 
-def random_starts(name: str, known: dict, end: float, samples: int, starts: int, log) -> dict:
+def random_starts(
+    name: str, known: dict, end: float, samples: int, starts: int, log, seeds=(3, 5)
+) -> dict:
     """The fraction of `starts` random points in the box (the same for both) from which
-    each fit reaches its best cost (within `REACHED`)."""
-    ts, measured = firing_test(known, samples, end, seed=3)
-    rng = np.random.default_rng(5)
+    each fit reaches its best cost (within `REACHED`); `seeds`: the trace's noise and the
+    starts'."""
+    ts, measured = firing_test(known, samples, end, seed=seeds[0])
+    rng = np.random.default_rng(seeds[1])
     lower, upper = (np.asarray([BOX[n][i] for n in BOX]) for i in (0, 1))
     points = lower + (upper - lower) * rng.random((starts, len(BOX)))
     calibration = _ours(known, ts, measured)
@@ -164,6 +167,7 @@ def random_starts(name: str, known: dict, end: float, samples: int, starts: int,
         f"({ours_s:.1f} s), scipy {theirs} ({theirs_s:.1f} s)")  # fmt: skip
     return {
         "trace": name,
+        "seeds": list(seeds),
         "starts": starts,
         "ours_reached": ours.starts_at_best,
         "scipy_reached": theirs,
@@ -215,17 +219,25 @@ def run_calibration_bench(
     starts: int = 20,
     prediction_samples: int = 10_000,
     cli: bool = True,
+    burst_seeds: int = 0,
     log=None,
 ) -> dict:
-    """Every figure of the calibration bench (see the module docstring)."""
+    """Every figure of the calibration bench (see the module docstring); `burst_seeds`:
+    the burst's random starts again from that many more traces and sets of starts
+    (noise seeds 100, 101, ..., start seeds 200, 201, ...)."""
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
     log("calibration bench (ours against scipy least_squares on solve_ivp DOP853):")
+    burst = min(samples, 3001)
     return {
         "one_fit": one_fit(samples, log),
         "many_fits": many_fits(min(samples, 1001), draws, scipy_draws, log),
         "random_starts": [
             random_starts("absorber", {}, 1.0, min(samples, 2001), starts, log),
-            random_starts("burst", BURST, 1.5, min(samples, 3001), starts, log),
+            random_starts("burst", BURST, 1.5, burst, starts, log),
+            *(
+                random_starts("burst", BURST, 1.5, burst, starts, log, (100 + i, 200 + i))
+                for i in range(burst_seeds)
+            ),
         ],
         "prediction": prediction(prediction_samples, log),
         "command_line": command_line(samples, log) if cli else None,
@@ -249,7 +261,8 @@ def format_calibration_bench(result: dict) -> str:
     ]
     for row in result["random_starts"]:
         lines.append(
-            f"{row['trace']}: of {row['starts']} random starts, ours reached the best from "
+            f"{row['trace']} (seeds {row['seeds']}): of {row['starts']} random starts, ours "
+            "reached the best from "
             f"{row['ours_reached']} ({row['ours_s']:.1f} s), scipy from "
             f"{row['scipy_reached']} ({row['scipy_s']:.1f} s)"
         )
@@ -271,6 +284,7 @@ def main_calibration_bench(args) -> int:
         starts=4 if quick else 20,
         prediction_samples=1000 if quick else 10_000,
         cli=not quick,
+        burst_seeds=args.burst_seeds,
     )
     print(json.dumps(result) if args.json else format_calibration_bench(result))
     return 0

@@ -589,6 +589,13 @@ def build_parser() -> argparse.ArgumentParser:
         "traces), the prediction band's time and the command line cold and cached.",
     )
     calibration_bench.add_argument("--quick", action="store_true", help="small sizes")
+    calibration_bench.add_argument(
+        "--burst-seeds",
+        type=int,
+        default=0,
+        metavar="K",
+        help="also the burst's random starts from K more traces and sets of starts",
+    )
     calibration_bench.add_argument("--json", action="store_true", help="print JSON")
     calibration_bench.set_defaults(func=_bench_calibration)
     sensitivity_bench = sub.add_parser(
