@@ -100,11 +100,8 @@ def _sql_names(columns: list[str]) -> list[str]:
 
 def _connect(path: Path) -> sqlite3.Connection:
     """An SQLite connection in autocommit mode (transactions are explicit), write-ahead
-    logged: a killed writer leaves the last committed transaction intact."""
-    if path.is_dir():
-        raise ParameterError(f"store {path} is a folder: give the path of a file")
-    if not path.parent.exists():
-        path.parent.mkdir(parents=True, exist_ok=True)
+    logged: a killed writer leaves the last committed transaction intact. (`_Store`
+    checked the path and made its folder.)"""
     writable = path if path.exists() else path.parent
     if not os.access(writable, os.W_OK):
         what = "cannot be written" if path.exists() else f"cannot be made in {path.parent}"

@@ -18,13 +18,8 @@ from ._inputs import (
     file_number as _number,
     output_folder,
     parse_assignments,
-    read_text,
+    read_toml,
 )
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib  # pyright: ignore[reportMissingImports]
 
 __all__ = ["NOT_CONVERGED", "load_calibration", "run_calibration"]
 
@@ -89,10 +84,7 @@ def load_calibration(path) -> tuple[rj.Calibration, dict[str, Any]]:
     """A calibration file as a `Calibration`, and its settings (`starts`, `seed`,
     `description`). Every fault is a `ParameterError` naming the file and the key."""
     path = Path(path)
-    try:
-        config = tomllib.loads(read_text(path, "calibration file"))
-    except tomllib.TOMLDecodeError as error:
-        raise rj.ParameterError(f"{path}: not valid TOML ({error})") from None
+    config = read_toml(path, "calibration file")
     unknown = set(config) - _FILE_KEYS
     if unknown:
         raise _error(str(path), f"unknown key {sorted(unknown)[0]!r}; known: "

@@ -20,6 +20,11 @@ import numpy as np
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib  # pyright: ignore[reportMissingImports]
+
 __all__ = [
     "MADE_FOLDERS",
     "SETTINGS",
@@ -33,6 +38,7 @@ __all__ = [
     "output_folder",
     "parse_assignments",
     "read_text",
+    "read_toml",
     "remove_unused_folders",
     "resolve_shipped",
     "split_assignment",
@@ -42,6 +48,15 @@ __all__ = [
 
 #: A text file's contents, or one line saying why not (the library's reader).
 read_text = rjx.read_text
+
+
+def read_toml(path, what: str) -> dict:
+    """A TOML file (a study, a calibration, a sensitivity analysis) as a dict, or one line
+    naming the file: missing, not text, or not valid TOML."""
+    try:
+        return tomllib.loads(read_text(path, what))
+    except tomllib.TOMLDecodeError as error:
+        raise file_error(path, f"not valid TOML ({error})") from None
 
 
 def file_error(where, message: str) -> rj.ParameterError:

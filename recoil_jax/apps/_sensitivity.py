@@ -43,14 +43,9 @@ from ._inputs import (
     file_error as _error,
     file_number as _number,
     output_folder,
-    read_text,
+    read_toml,
     resolve_shipped,
 )
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib  # pyright: ignore[reportMissingImports]
 
 __all__ = ["SHIPPED", "load_sensitivity", "resolve_sensitivity", "run_sensitivity"]
 
@@ -155,10 +150,7 @@ def load_sensitivity(source) -> tuple[dict[str, Any], str]:
     """A sensitivity file (or a shipped example's name) as `rj.sensitivity`'s arguments
     (design, ranges, metrics, method, objective), checked, and its description."""
     path = resolve_sensitivity(source)
-    try:
-        config = tomllib.loads(read_text(path, "sensitivity file"))
-    except tomllib.TOMLDecodeError as error:
-        raise _error(path, f"not valid TOML ({error})") from None
+    config = read_toml(path, "sensitivity file")
     unknown = set(config) - _SECTIONS
     if unknown:
         raise _error(path, f"unknown section {sorted(unknown)[0]!r}; known: "

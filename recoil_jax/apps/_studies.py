@@ -66,7 +66,7 @@ import recoil_jax as rj
 import recoil_jax.extend as rjx
 
 from ._cluster import dask_client
-from ._inputs import file_error as _error, output_folder, read_text, resolve_shipped
+from ._inputs import file_error as _error, output_folder, read_toml, resolve_shipped
 
 __all__ = [
     "LOCAL_METHODS",
@@ -81,10 +81,6 @@ __all__ = [
     "search_kwargs",
 ]
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib  # pyright: ignore[reportMissingImports]
 
 _SECTIONS = {
     "calibration",
@@ -249,10 +245,7 @@ def load_study(path) -> Study:
 
 def _read_config(path: Path) -> dict:
     """The study file's TOML, its sections checked (known, and the required ones there)."""
-    try:
-        config = tomllib.loads(read_text(path, "study file"))
-    except tomllib.TOMLDecodeError as error:
-        raise _error(path, f"not valid TOML: {error}") from None
+    config = read_toml(path, "study file")
     unknown = set(config) - _SECTIONS
     if unknown:
         raise _error(
