@@ -501,8 +501,16 @@ def pack(arrays: dict[str, Any]) -> bytes:
     return buffer.getvalue()
 
 
+# `np.load` parses each array's header with `ast.literal_eval`; CPython 3.11 keeps the
+# AST builder's depth counter per interpreter, not per thread, so two threads parsing at
+# once can fail with "SystemError: AST constructor recursion depth mismatch"
+# (python/cpython#106905). A study's local runs replay stored outputs from their threads.
+_UNPACK_LOCK = threading.Lock()
+
+
 def unpack(blob: bytes) -> dict[str, np.ndarray]:
-    with np.load(io.BytesIO(blob), allow_pickle=False) as data:
+    """The named arrays of `pack`'s bytes. Thread-safe: one header parsed at a time."""
+    with _UNPACK_LOCK, np.load(io.BytesIO(blob), allow_pickle=False) as data:
         return {k: data[k] for k in data.files}
 
 

@@ -636,3 +636,45 @@ def test_a_store_names_a_local_method_as_before_its_settings_moved():
     assert {name: fingerprint(store_form(m)) for name, m in methods.items()} == NAMES_BEFORE
     # Another setting is another name.
     assert fingerprint(store_form(rj.SLSQP(maxiter=8))) != NAMES_BEFORE["SLSQP()"]
+
+
+def test_stored_outputs_are_unpacked_one_header_at_a_time(monkeypatch):
+    """`np.load` parses headers with `ast`, which CPython 3.11 does not make safe across
+    threads (python/cpython#106905; a resumed study's local runs replay from threads):
+    `unpack` must never run two loads at once, and must return the arrays it packed."""
+    import threading
+
+    import recoil_jax._store as store_module
+
+    real_load, inside, most = np.load, [0], [0]
+    count_lock = threading.Lock()
+
+    def slow_load(*args, **kwargs):
+        with count_lock:
+            inside[0] += 1
+            most[0] = max(most[0], inside[0])
+        time.sleep(0.002)  # long enough for the other threads to try to enter
+        try:
+            return real_load(*args, **kwargs)
+        finally:
+            with count_lock:
+                inside[0] -= 1
+
+    monkeypatch.setattr(store_module.np, "load", slow_load)
+    arrays = {"peak": np.float64(1.5), "gradient": np.arange(6.0).reshape(2, 3)}
+    blob = store_module.pack(arrays)
+    results: list = []
+
+    def work():
+        for _ in range(20):
+            results.append(store_module.unpack(blob))
+
+    threads = [threading.Thread(target=work) for _ in range(6)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert len(results) == 120 and most[0] == 1
+    for out in results:
+        assert set(out) == set(arrays)
+        np.testing.assert_array_equal(out["gradient"], arrays["gradient"])
