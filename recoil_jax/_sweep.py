@@ -11,7 +11,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -47,6 +47,7 @@ from ._store import SweepStore, fingerprint, lowest_row, read_sweep_store, store
 
 __all__ = [
     "CHUNK_SIZE",
+    "Grid",
     "StoredSweep",
     "SweepResult",
     "batch_params",
@@ -295,29 +296,99 @@ def shard_batch(tree, devices: Sequence[Any] | None = None):
     return jax.device_put(tree, NamedSharding(mesh, PartitionSpec("batch")))
 
 
+class Grid:
+    """The cartesian product of `axes` (name -> values; C order, as `itertools.product`
+    gives it) plus `fixed` values (name -> value), without its columns made: `sweep` and
+    `sweep_to_store` make them a chunk at a time, so a streamed grid's memory does not
+    grow with it (`docs/campaigns.md`); `grid` makes them all.
+
+    - `shape`: the axes' lengths; `len(grid)`: the number of designs;
+    - `columns(rows)`: `name -> (len(rows),)` values of the designs at flat indices `rows`
+      (a slice or an integer array; None: every design).
+
+    **Raises:** `ParameterError` for an axis without values, or a name both swept and
+    fixed. The values are checked by `sweep`, before anything is compiled."""
+
+    def __init__(
+        self, axes: Mapping[str, Sequence[float]], fixed: Mapping[str, float] | None = None
+    ):
+        self.axes = {n: np.asarray(v, dtype=float).reshape(-1) for n, v in axes.items()}
+        self.fixed = {n: float(v) for n, v in (fixed or {}).items()}
+        for name, values in self.axes.items():
+            if not len(values):
+                raise ParameterError(f"the grid's axis {name} has no values")
+            if name in self.fixed:
+                raise ParameterError(f"{name} is both swept and fixed")
+        self.shape = tuple(len(a) for a in self.axes.values())
+
+    def __len__(self) -> int:
+        return math.prod(self.shape)
+
+    @property
+    def names(self) -> list[str]:
+        return [*self.axes, *self.fixed]
+
+    def columns(self, rows: slice | np.ndarray | None = None) -> dict[str, np.ndarray]:
+        n = len(self)
+        if rows is None:  # every design, by broadcasting (no index arrays)
+            shape, d = self.shape, len(self.shape)
+            out = {
+                name: np.broadcast_to(a.reshape([-1 if i == j else 1 for i in range(d)]), shape)
+                .reshape(-1)
+                .copy()
+                for j, (name, a) in enumerate(self.axes.items())
+            }
+            count = n
+        else:
+            flat = np.arange(*rows.indices(n)) if isinstance(rows, slice) else np.asarray(rows)
+            index = np.unravel_index(flat, self.shape) if self.shape else ()
+            out = {name: a[i] for (name, a), i in zip(self.axes.items(), index, strict=True)}
+            count = len(flat)
+        return out | {name: np.full(count, value) for name, value in self.fixed.items()}
+
+    def probe(self) -> tuple[Grid, np.ndarray]:
+        """The small grid that meets every check that involves more than one value of a
+        design (its structure, its load against its end time, the orifice a piston
+        needs): each of those axes reduced to its extremes, its zero and its NaN (those
+        checks are monotone in each value), every other axis to its first value (its
+        values are checked one by one); and the index in this grid of each of its
+        designs (for messages)."""
+        reduced, positions = {}, []
+        for name, values in self.axes.items():
+            kept = [0]  # positions on the axis
+            if name in _CROSS_CHECKED or _is_knot(name):
+                missing = np.isnan(values)
+                if not missing.all():
+                    kept = [int(np.nanargmin(values)), int(np.nanargmax(values))]
+                kept += [int(np.argmax(values == 0))] * bool(np.any(values == 0))
+                kept += [int(np.argmax(missing))] * bool(missing.any())
+            # One position per distinct value (NaN once).
+            distinct = dict.fromkeys(kept)
+            by_value = {("nan" if np.isnan(values[i]) else values[i]): i for i in distinct}
+            positions.append(np.array(sorted(by_value.values())))
+            reduced[name] = values[positions[-1]]
+        probe = Grid(reduced, self.fixed)
+        index = np.unravel_index(np.arange(len(probe)), probe.shape) if probe.shape else ()
+        where = [kept[i] for kept, i in zip(positions, index, strict=True)]
+        flat = np.ravel_multi_index(where, self.shape) if self.shape else np.zeros(1, int)
+        return probe, np.asarray(flat).reshape(-1)
+
+
+#: Names whose checks involve other values of the same design: the structure (`m = 0`,
+#: `shots`), the load against the end time, and the piston area against the orifice.
+_CROSS_CHECKED = ("m", "shots", "fire_interval", "pulse_time", "t1", "piston_area")
+
+
 def grid(axes: Mapping[str, Sequence[float]], fixed: Mapping[str, float] | None = None):
     """Cartesian product of `axes` (name -> values), C order, plus `fixed` values:
-    returns `(columns, shape)` for `sweep`."""
-    names = list(axes)
-    arrays = [np.asarray(axes[n], dtype=float).reshape(-1) for n in names]
-    shape = tuple(len(a) for a in arrays)
-    count = math.prod(shape)
+    returns `(columns, shape)` for `sweep`, made in memory (`Grid` makes them on demand)."""
+    designs = Grid(axes, fixed)
     check_memory(
-        count, 8 * (len(names) + len(fixed or {})), "a grid",
-        "give a smaller grid (its columns are made in memory, also for a store)",
+        len(designs), 8 * len(designs.names), "a grid",
+        "give a smaller grid, or sweep Grid(axes, fixed) to a store (its columns are made "
+        "a chunk at a time)",
     )  # fmt: skip
-    # C order over `names`, as itertools.product would give it.
-    columns = {
-        n: np.broadcast_to(a.reshape([-1 if i == j else 1 for i in range(len(names))]), shape)
-        .reshape(-1)
-        .copy()
-        for j, (n, a) in enumerate(zip(names, arrays, strict=True))
-    }
-    for name, value in (fixed or {}).items():
-        if name in columns:
-            raise ParameterError(f"{name} is both swept and fixed")
-        columns[name] = np.full(count, float(value))
-    return columns, shape
+    return designs.columns(), designs.shape
 
 
 def _available_memory() -> int | None:
@@ -369,8 +440,9 @@ def default_workers(devices: Sequence[Any]) -> int:
 
 def with_table(params: RecoilParams, table: ForceTable) -> RecoilParams:
     """`params` (one design, or a batch with a leading axis on every leaf) with the
-    breech force `table` (one round) for every design; a load with the default rhythm is
-    added where there is none."""
+    breech force `table` (one round) for every design, or each design's own (a batched
+    table `(B, n)`, `ForceTable.stacked`); a load with the default rhythm is added where
+    there is none."""
     batch = np.shape(params.barrel.v0)
     load = params.load
     if load is None:
@@ -378,9 +450,10 @@ def with_table(params: RecoilParams, table: ForceTable) -> RecoilParams:
             pulse_time=np.full(batch, PARAMETERS["pulse_time"].default),
             fire_interval=np.full(batch, PARAMETERS["fire_interval"].default),
         )
+    points = np.shape(table.t)[-1]
     batched = ForceTable(
-        t=np.broadcast_to(np.asarray(table.t), (*batch, *np.shape(table.t))),
-        F=np.broadcast_to(np.asarray(table.F), (*batch, *np.shape(table.F))),
+        t=np.broadcast_to(np.asarray(table.t), (*batch, points)),
+        F=np.broadcast_to(np.asarray(table.F), (*batch, points)),
     )
     load = eqx.tree_at(lambda q: q.table, load, batched, is_leaf=lambda x: x is None)
     return eqx.tree_at(lambda p: p.load, params, load, is_leaf=lambda x: x is None)
@@ -489,12 +562,17 @@ class _Group(NamedTuple):
 _CHECK_SLICE = 65536
 
 
-def _groups(columns, options: SolverOptions, wrt, force_table) -> list[_Group]:
-    """The sweep's designs by structure (`_structure_groups`), each with its end times,
-    its loads checked to fit them and the `wrt` it has; raises `ParameterError` before
-    anything is compiled."""
+def _groups(
+    columns, options: SolverOptions, wrt, force_table, labels=None, every_wrt: bool = True
+) -> list[_Group]:
+    """The designs by structure (`_structure_groups`), each with its end times, its loads
+    checked to fit them and the `wrt` it has; raises `ParameterError` before anything is
+    compiled. `labels`: the designs' indices in the sweep (default: their positions; a
+    grid's block or probe gives its own); `every_wrt`: check that each of `wrt` is a
+    parameter of some group (a grid checks this once, on its `Grid.probe`)."""
     groups = []
     for indices, given in _structure_groups(columns):
+        indices = indices if labels is None else np.asarray(labels)[indices]
         given = dict(given)
         t1 = given.pop("t1", None)
         group = _Group(indices, given, np.zeros(0), None, True, force_table)
@@ -518,7 +596,7 @@ def _groups(columns, options: SolverOptions, wrt, force_table) -> list[_Group]:
             group_wrt = tuple(w for w in wrt if _has(probe, w)) or None
         absorber = probe.absorber is not None
         groups.append(group._replace(t1=np.concatenate(ends), wrt=group_wrt, absorber=absorber))
-    for w in wrt or ():
+    for w in wrt if every_wrt and wrt else ():
         if not any(w in (g.wrt or ()) for g in groups):
             check_wrt(groups[0].params(slice(0, 1)), (w,))  # raises, naming why
     for g in groups:
@@ -529,46 +607,54 @@ def _groups(columns, options: SolverOptions, wrt, force_table) -> list[_Group]:
 
 class _Chunk(NamedTuple):
     """One compiled call's worth of a group's designs: `key` (in the store), the group,
-    `points` (indices into the sweep's input, in solving order) and `size` (the padded
-    batch the program is compiled for)."""
+    `rows` (positions in the group, in solving order), `points` (their indices into the
+    sweep's input) and `size` (the padded batch the program is compiled for)."""
 
     key: str
-    group: int
+    group: _Group
+    rows: np.ndarray
     points: np.ndarray
     size: int
 
 
-def _chunks(groups, plan: dict) -> list[_Chunk]:
-    """The sweep cut into chunks, group by group, in solving order (the gap ascending,
-    with `sort_by_gap`, so that the impact-heavy designs start early)."""
+def _per_chunk(plan: dict) -> int:
+    """The most designs per chunk: `chunk_size`, a multiple of the workers."""
+    workers = plan["workers"]
+    return max(workers, plan["chunk_size"] - plan["chunk_size"] % workers)
+
+
+def _chunks(groups, plan: dict, prefix: str = "", full: bool = False) -> list[_Chunk]:
+    """The designs cut into chunks, group by group, in solving order (the gap ascending,
+    with `sort_by_gap`, so that the impact-heavy designs start early). `prefix` starts
+    each key; `full`: every chunk of `_per_chunk`'s size (a grid's chunks, which would
+    otherwise come in many sizes, each compiled)."""
     workers = plan["workers"]
     out = []
     for number, group in enumerate(groups):
-        indices = group.indices
-        n = len(indices)
+        n = len(group.indices)
         # Without a gap column every design has the default gap: no order to take.
         sort = plan["sort_by_gap"] and group.absorber and "gap" in group.columns
         order = np.argsort(group.columns["gap"], kind="stable") if sort else np.arange(n)
-        chunk = max(workers, plan["chunk_size"] - plan["chunk_size"] % workers)
-        # No bigger than needed, rounded up to a power of two per part and to at least
-        # `SHARED_CHUNK`: the padding is never solved, and every sweep of up to that many
-        # designs (a study's samples and its checks) runs one program per structure.
-        per_part = -(-n // workers)
-        needed = max(workers * (1 << (per_part - 1).bit_length()), SHARED_CHUNK)
-        chunk = min(chunk, needed - needed % workers)
+        chunk = _per_chunk(plan)
+        if not full:
+            # No bigger than needed, rounded up to a power of two per part and to at
+            # least `SHARED_CHUNK`: the padding is never solved, and every sweep of up to
+            # that many designs (a study's samples and its checks) runs one program per
+            # structure.
+            per_part = -(-n // workers)
+            needed = max(workers * (1 << (per_part - 1).bit_length()), SHARED_CHUNK)
+            chunk = min(chunk, needed - needed % workers)
         for begin in range(0, n, chunk):
-            out.append(
-                _Chunk(f"{number}:{begin}", number, indices[order[begin : begin + chunk]], chunk)
-            )
+            rows = order[begin : begin + chunk]
+            out.append(_Chunk(f"{prefix}{number}:{begin}", group, rows, group.indices[rows], chunk))
     return out
 
 
-def _chunk_batch(chunk: _Chunk, groups, position: np.ndarray):
+def _chunk_batch(chunk: _Chunk):
     """The chunk's designs and end times, padded to its compiled size with its last."""
-    group = groups[chunk.group]
-    local = position[chunk.points]  # positions within the group
-    padded = np.concatenate([local, np.full(chunk.size - len(local), local[-1])])
-    return jax.tree.map(np.asarray, group.params(padded)), group.t1[padded]
+    rows = chunk.rows
+    padded = np.concatenate([rows, np.full(chunk.size - len(rows), rows[-1])])
+    return jax.tree.map(np.asarray, chunk.group.params(padded)), chunk.group.t1[padded]
 
 
 def _solve_chunk(batch, t1, count, smoothing, options, wrt, all_wrt, devices, plan):
@@ -605,20 +691,14 @@ def _solve_chunk_on_worker(
     )
 
 
-def _solved_chunks(todo, groups, smoothing, options, all_wrt, devices, plan, client):
-    """`(chunk, columns, seconds)` for each chunk of `todo` as it finishes: one after
-    the other here, or as Dask tasks on `client`'s workers (a chunk whose worker dies is
-    run again elsewhere by Dask)."""
-    positions = {}
-    for number, group in enumerate(groups):
-        indices = group.indices
-        position = np.zeros(max(indices) + 1 if len(indices) else 0, dtype=int)
-        position[indices] = np.arange(len(indices))
-        positions[number] = position
+def _solved_chunks(todo, smoothing, options, all_wrt, devices, plan, client):
+    """`(chunk, columns, seconds)` for each chunk of `todo` (an iterable, made as it is
+    taken) as it finishes: one after the other here, or as Dask tasks on `client`'s
+    workers (a chunk whose worker dies is run again elsewhere by Dask)."""
     if client is None:
         for chunk in todo:
-            batch, t1 = _chunk_batch(chunk, groups, positions[chunk.group])
-            wrt = groups[chunk.group].wrt
+            batch, t1 = _chunk_batch(chunk)
+            wrt = chunk.group.wrt
             yield (
                 chunk,
                 *_solve_chunk(
@@ -635,7 +715,7 @@ def _solved_chunks(todo, groups, smoothing, options, all_wrt, devices, plan, cli
     waiting = iter(todo)
 
     def submit(chunk: _Chunk) -> None:
-        batch, t1 = _chunk_batch(chunk, groups, positions[chunk.group])
+        batch, t1 = _chunk_batch(chunk)
         future = client.submit(
             _solve_chunk_on_worker,
             batch,
@@ -643,7 +723,7 @@ def _solved_chunks(todo, groups, smoothing, options, all_wrt, devices, plan, cli
             len(chunk.points),
             smoothing,
             options,
-            groups[chunk.group].wrt,
+            chunk.group.wrt,
             all_wrt,
             plan,
             cache,
@@ -670,6 +750,65 @@ def _solved_chunks(todo, groups, smoothing, options, all_wrt, devices, plan, cli
             future.cancel()
 
 
+class _Columns:
+    """A sweep's designs given as columns, all in memory (`_as_columns`): grouped by
+    structure and checked as a whole, chunked group by group."""
+
+    def __init__(self, columns: dict[str, np.ndarray], options, wrt, force_table):
+        self.columns = columns
+        self.names = list(columns)
+        self.count = len(next(iter(columns.values())))
+        self.groups = _groups(columns, options, wrt, force_table)
+
+    def identity(self) -> Any:
+        return self.columns
+
+    def chunks(self, plan: dict) -> Iterator[_Chunk]:
+        return iter(_chunks(self.groups, plan))
+
+    def given(self, points: np.ndarray) -> dict[str, np.ndarray]:
+        return {name: values[points] for name, values in self.columns.items()}
+
+    def all_columns(self) -> dict[str, np.ndarray]:
+        return self.columns
+
+
+class _GridColumns:
+    """A sweep of a `Grid`: its values checked on its axes and on its `Grid.probe` (before
+    anything is compiled), its columns made a block of `_per_chunk` designs at a time,
+    each block grouped and chunked on its own (so that memory does not grow with the
+    grid), in input order."""
+
+    def __init__(self, designs: Grid, options, wrt, force_table):
+        for name, values in [*designs.axes.items(), ("fixed", None)]:
+            # Each value on its own: the checks are elementwise.
+            _as_columns({name: values} if values is not None else designs.columns(slice(0, 1)))
+        probe, labels = designs.probe()
+        _groups(_as_columns(probe.columns()), options, wrt, force_table, labels)
+        self.grid, self.names, self.count = designs, designs.names, len(designs)
+        self.options, self.wrt, self.force_table = options, wrt, force_table
+
+    def identity(self) -> Any:
+        return ("grid", self.grid.axes, self.grid.fixed)
+
+    def chunks(self, plan: dict) -> Iterator[_Chunk]:
+        block = _per_chunk(plan)
+        for number, begin in enumerate(range(0, self.count, block)):
+            columns = self.grid.columns(slice(begin, begin + block))
+            labels = np.arange(begin, min(begin + block, self.count))
+            groups = _groups(
+                columns, self.options, self.wrt, self.force_table, labels, every_wrt=False
+            )
+            # One block: chunks as for columns; more: all of one size (one program).
+            yield from _chunks(groups, plan, f"{number}/", full=self.count > block)
+
+    def given(self, points: np.ndarray) -> dict[str, np.ndarray]:
+        return self.grid.columns(points)
+
+    def all_columns(self) -> dict[str, np.ndarray]:
+        return self.grid.columns()
+
+
 def _plan(workers, lanes, chunk_size, sort_by_gap) -> dict:
     if workers < 1:
         raise ParameterError(f"workers = {workers} is invalid: valid >= 1")
@@ -681,17 +820,17 @@ def _plan(workers, lanes, chunk_size, sort_by_gap) -> dict:
     }
 
 
-def _open_store(path, columns, smoothing, options, wrt, force_table, plan, bar_enabled):
+def _open_store(path, designs, smoothing, options, wrt, force_table, plan, bar_enabled):
     """The store at `path` for this sweep (created, or checked to be this sweep's); its
     plan replaces `plan`, so that the chunks are those of the run that made it."""
     from . import __version__
 
     identity = fingerprint(
-        "sweep", __version__, columns, smoothing, options, wrt or (), force_table
+        "sweep", __version__, designs.identity(), smoothing, options, wrt or (), force_table
     )
-    names = [name for name in columns] + list(PEAK_FIELDS.values())
+    names = [*designs.names, *PEAK_FIELDS.values()]
     names += [gradient_key(m, w) for m in METRICS for w in wrt or ()]
-    n = len(next(iter(columns.values())))
+    n = designs.count
     store = SweepStore(
         path,
         identity=identity,
@@ -700,7 +839,7 @@ def _open_store(path, columns, smoothing, options, wrt, force_table, plan, bar_e
         columns=names,
         description={
             "designs": n,
-            "names": sorted(columns),
+            "names": sorted(designs.names),
             "wrt": list(wrt or ()),
             "created": time.strftime("%Y-%m-%d %H:%M:%S"),
         },
@@ -734,9 +873,10 @@ def sweep(
 
     **Arguments:**
 
-    - `designs`: a list of `{name: value}` dicts, or a mapping `name -> (n,) array` (e.g.
-      from `grid`). Names are flat parameter names, plus `t1` (the end time, per point);
-      names not given take the paper's values. `m = 0` is the simplified model, and may be
+    - `designs`: a list of `{name: value}` dicts, a mapping `name -> (n,) array` (e.g.
+      from `grid`), or a `Grid` (its columns made a chunk at a time, in input order).
+      Names are flat parameter names, plus `t1` (the end time, per point); names not
+      given take the paper's values. `m = 0` is the simplified model, and may be
       mixed with absorbers: the two groups run apart and merge in input order.
     - `smoothing`: the switch widths, shared by every point.
     - `options`: default `SolverOptions()`, or `GRADIENT_OPTIONS` with `wrt`; its `t1`
@@ -871,29 +1011,34 @@ def _sweep(
         raise ParameterError("a sweep whose results are not kept in memory needs a store")
     wrt = tuple(wrt) if wrt else None
     options = options or (GRADIENT_OPTIONS if wrt else SolverOptions())
-    columns = _as_columns(designs)  # validates every point, before any compilation
-    n = len(next(iter(columns.values())))
+    columns = None if isinstance(designs, Grid) else _as_columns(designs)  # validated
+    if columns is None:
+        names, n = designs.names, len(designs)
+    else:
+        names, n = list(columns), len(next(iter(columns.values())))
     if in_memory:  # the results of every design, and their copies on the way
         outputs = len(PEAK_FIELDS) + 1 + len(METRICS) * len(wrt or ())
         check_memory(
-            n, 8 * 3 * (len(columns) + outputs), "a sweep in memory",
+            n, 8 * 3 * (len(names) + outputs), "a sweep in memory",
             "keep the results in a store instead (--store FILE.sqlite on the command line "
             "without --out and --json, rj.sweep_to_store in Python), or sweep fewer designs",
         )  # fmt: skip
-    groups = _groups(columns, options, wrt, force_table)
+    if columns is None:
+        source = _GridColumns(designs, options, wrt, force_table)
+    else:
+        source = _Columns(columns, options, wrt, force_table)
 
     devices = list(devices) if devices is not None else jax.local_devices()
     plan = _plan(workers or default_workers(devices), lanes, chunk_size, sort_by_gap)
-    per_chunk = max(plan["workers"], plan["chunk_size"] - plan["chunk_size"] % plan["workers"])
     # By default a progress line for more than one chunk, and for every campaign (store).
-    shown = progress if progress is not None else (n > per_chunk or store is not None)
+    shown = progress if progress is not None else (n > _per_chunk(plan) or store is not None)
     store_ = None
     if store is not None:
-        store_ = _open_store(store, columns, smoothing, options, wrt, force_table, plan, progress)
+        store_ = _open_store(store, source, smoothing, options, wrt, force_table, plan, progress)
     try:  # the store (and its writer lock) is closed whatever happens from here
         return _run_sweep(
-            in_memory, columns, n, groups, store, store_, plan, smoothing, options, wrt,
-            devices, client, progress, shown,
+            in_memory, source, store, store_, plan, smoothing, options, wrt, devices, client,
+            progress, shown,
         )  # fmt: skip
     finally:
         if store_ is not None:
@@ -901,10 +1046,11 @@ def _sweep(
 
 
 def _run_sweep(
-    in_memory, columns, n, groups, store, store_, plan, smoothing, options, wrt, devices,
-    client, progress, shown,
+    in_memory, designs, store, store_, plan, smoothing, options, wrt, devices, client,
+    progress, shown,
 ):  # fmt: skip
     """`_sweep` once its store is open: resume from it, solve the rest, return."""
+    n = designs.count
     if store_ is not None:
         plan = store_.plan
         if (dropped := store_.drop_incomplete()) and progress is not False:
@@ -933,14 +1079,14 @@ def _run_sweep(
                 file=sys.stderr,
             )
     bar = Progress("sweep", n, "designs", shown, already=already)
-    todo = [chunk for chunk in _chunks(groups, plan) if chunk.key not in stored]
-    solved = _solved_chunks(todo, groups, smoothing, options, wrt, devices, plan, client)
+    todo = (chunk for chunk in designs.chunks(plan) if chunk.key not in stored)
+    solved = _solved_chunks(todo, smoothing, options, wrt, devices, plan, client)
     for chunk, chunk_columns, chunk_seconds in solved:
         for name, column in chunk_columns.items() if in_memory else ():
             out[name][chunk.points] = column
         if store_ is not None:
             # About 0.1 s per 16,384 designs, against about 1.4 s to solve them.
-            given = {name: values[chunk.points] for name, values in columns.items()}
+            given = designs.given(chunk.points)
             messages = status_messages(status_item(chunk_columns["status_code"]))
             store_.commit(chunk.key, chunk.points, chunk_columns | given, messages, chunk_seconds)
         bar.update(bar.done + len(chunk.points))
@@ -957,14 +1103,16 @@ def _run_sweep(
                 file=sys.stderr,
             )
         return StoredSweep(Path(store), n, already, failed, bar.elapsed)
+    columns = designs.all_columns()
     values: dict[str, np.ndarray] = {}
-    for group in groups:
-        for name, column in _group_values(group.columns).items():
-            values.setdefault(name, np.full(n, np.nan))[group.indices] = column
+    for indices, given in _structure_groups(columns):
+        given = {name: column for name, column in given.items() if name != "t1"}
+        for name, column in _group_values(given).items():
+            values.setdefault(name, np.full(n, np.nan))[indices] = column
     seconds = bar.elapsed
     # Every requested value as given (absorber parameters of m = 0 points included).
     values = {name: v for name, v in values.items() if not np.all(np.isnan(v))}
-    values |= {name: columns[name] for name in columns}
+    values |= columns
 
     codes = out["status_code"]
     peaks = {field: out[key] for field, key in PEAK_FIELDS.items()}
@@ -993,10 +1141,10 @@ def _run_sweep(
 def sweep_grid(
     axes: Mapping[str, Sequence[float]], fixed: Mapping[str, float] | None = None, **kwargs
 ) -> SweepResult:
-    """`sweep` over the cartesian product of `axes` (see `grid`); the result knows its
+    """`sweep` over the cartesian product of `axes` (a `Grid`); the result knows its
     `swept` names and `grid_shape`."""
-    columns, shape = grid(axes, fixed)
-    result = sweep(columns, **kwargs)
+    designs = Grid(axes, fixed)
+    result = sweep(designs, **kwargs)
     result.swept = tuple(axes)
-    result.grid_shape = shape
+    result.grid_shape = designs.shape
     return result

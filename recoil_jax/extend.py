@@ -24,7 +24,9 @@ not need them; `docs/developers.md` shows how to plug a part in.
 - `structure_jit`, `live_programs`, `set_max_programs`: programs per structure of the
   arguments, in a bounded cache (`docs/campaigns.md`).
 - `batch_params`, `shard_batch`, `default_workers`: designs as a batched pytree, split
-  over devices, and the sweep's default worker count.
+  over devices, and the sweep's default worker count; `Grid`: a grid whose designs
+  `sweep` and `sweep_to_store` make a chunk at a time (a streamed grid's memory does not
+  grow with it).
 - `status_codes`, `status_messages`, `status_table`, `OK_CODE`: a `Status` item's
   integer codes and messages, every code with its message, and the code of success.
 - `PEAK_FIELDS`, `gradient_key`, `Metric`, `Parameter`: the keys of the files and the
@@ -78,7 +80,7 @@ from ._result import RunRecord
 from ._search import GlobalPhase, default_local
 from ._sensitivity import SENSITIVITY_METHODS, SensitivityMethod, sensitivity_box
 from ._status import OK_CODE, status_codes, status_messages, status_table
-from ._sweep import StoredSweep, batch_params, default_workers, shard_batch
+from ._sweep import Grid, StoredSweep, batch_params, default_workers, shard_batch
 from ._traces import T_SHIFT, Experiment, Trace
 
 __all__ = [
@@ -98,6 +100,7 @@ __all__ = [
     "Forces",
     "GlobalPhase",
     "GradientEvaluator",
+    "Grid",
     "LocalEvaluation",
     "LocalMethod",
     "LocalRun",

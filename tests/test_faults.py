@@ -84,6 +84,21 @@ def test_a_bad_scheduler_address_is_one_line(address, capsys):
     assert time.perf_counter() - started < 30.0  # no Dask asked, no timeout waited
 
 
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (["--workers", "0"], "--workers 0 is invalid"),
+        (["--scheduler", "garbage!!"], "is not a scheduler's address"),
+        (["--workers", "2", "--scheduler", "tcp://127.0.0.1:1"], "not both"),
+    ],
+)
+def test_optimise_refuses_its_cluster_options_before_it_starts(options, message, tmp_path, capsys):
+    argv = ["optimise", "tuned_absorber", "--out", str(tmp_path / "out"), *options]
+    assert main(argv) == 2
+    assert message in _one_line(capsys.readouterr().err)  # the study's first line not printed
+    assert not (tmp_path / "out").exists()
+
+
 def test_more_workers_than_cores_are_capped_with_a_warning(monkeypatch, capsys):
     distributed = pytest.importorskip("distributed")
     from recoil_jax.apps._cluster import _cores, dask_client
@@ -151,7 +166,10 @@ def test_an_axis_or_a_grid_too_large_for_memory_is_refused_with_its_size(monkeyp
     monkeypatch.setattr(sweep_module, "_available_memory", lambda: 10**9)
     assert main(["sweep", "m=10:2000:100000", "gap=0:0.1:100000", "--json"]) == 2
     line = _one_line(capsys.readouterr().err)
-    assert "a grid of 10,000,000,000 designs needs about 160.0 GB" in line
+    assert "a sweep in memory of 10,000,000,000 designs needs about" in line
+    assert "keep the results in a store instead (--store FILE.sqlite" in line
+    with pytest.raises(rj.ParameterError, match=r"a grid of 200,000,000 designs needs about 3\.2"):
+        rj.grid({"m": np.ones(20_000), "gap": np.ones(10_000)})
     with pytest.raises(rj.ParameterError, match="a sweep in memory of 3,000,000 designs"):
         rj.sweep({"m": np.full(3_000_000, 1000.0)}, progress=False)
 
@@ -174,8 +192,54 @@ def test_a_refused_huge_sweep_stays_small_in_a_real_process(tmp_path):
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                           timeout=120)  # fmt: skip
     peak_kb, status = done.stdout.split()
-    assert status == "2" and "160.0 GB" in done.stderr
+    assert status == "2" and "a sweep in memory of 10,000,000,000 designs" in done.stderr
     assert int(peak_kb) < 1_500_000, peak_kb  # KB: the refusal allocates nothing big
+
+
+@pytest.mark.slow
+def test_a_streamed_grid_keeps_its_memory_whatever_its_size(tmp_path):
+    """A grid of 10^10 designs streamed to a store runs in the memory of one of 10^4: its
+    columns are made a chunk at a time (the solves stubbed, so that only the sweep's own
+    memory is measured; the run is stopped after its first chunks)."""
+    if not Path("/proc/self/status").exists():
+        pytest.skip("no /proc here")
+    script = (
+        "import re, sys\n"
+        "import numpy as np\n"
+        "import recoil_jax as rj, recoil_jax.extend as rjx\n"
+        "import recoil_jax._sweep as sweep\n"
+        "solved = []\n"
+        "def stub(batch, t1, count, *args):\n"
+        "    solved.append(count)\n"
+        "    if len(solved) > 6:\n"
+        "        raise KeyboardInterrupt\n"
+        "    peaks = {key: np.ones(count) for key in rjx.PEAK_FIELDS.values()}\n"
+        "    return peaks | {'status_code': np.zeros(count, np.int32)}, 0.01\n"
+        "sweep._solve_chunk = stub\n"
+        "side = int(sys.argv[1])\n"
+        "grid = rjx.Grid({'m': np.linspace(10, 2000, side), 'gap': np.linspace(0, 0.1, side)})\n"
+        "try:\n"
+        "    rj.sweep_to_store(grid, sys.argv[2], chunk_size=4096, progress=False)\n"
+        "except KeyboardInterrupt:\n"
+        "    pass\n"
+        "stored = rj.campaign_progress(sys.argv[2])\n"
+        "text = open('/proc/self/status').read()\n"
+        "print(re.search(r'VmHWM:\\s+(\\d+) kB', text).group(1), stored.done, stored.total)\n"
+    )
+    peaks = {}
+    for side in (100, 100_000):
+        store = tmp_path / f"grid{side}.sqlite"
+        done = subprocess.run(
+            [sys.executable, "-c", script, str(side), str(store)],
+            capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert done.returncode == 0, done.stderr
+        peak_kb, stored, total = map(int, done.stdout.split())
+        assert total == side**2 and stored == min(6 * 4096, side**2)
+        peaks[side] = peak_kb
+    # The columns of 10^10 designs alone would take 160 GB; the two runs differ by the
+    # axes (1.6 MB) and noise.
+    assert peaks[100_000] < peaks[100] + 100_000, peaks
 
 
 STUDY = """

@@ -42,6 +42,41 @@ def test_grid_sweep_matches_single_solves_and_reference(reference_cases):
     assert checked == 8
 
 
+def test_a_grid_made_a_chunk_at_a_time_equals_its_columns():
+    """`Grid` makes the designs of `grid` (C order, as itertools.product) on demand; a
+    sweep of it, cut into blocks of one chunk each, gives the columns' results bit for
+    bit, and its checks name the design in the grid that fails."""
+    import itertools
+
+    axes = {"m": [0.0, 500.0, 1500.0], "gap": np.linspace(0.0, 0.09, 3), "k_r": [9e3, 13e3]}
+    designs = rjx.Grid(axes, {"c_r": 300.0})
+    columns, shape = rj.grid(axes, {"c_r": 300.0})
+    product = np.array(list(itertools.product(*axes.values())))
+    assert len(designs) == 18 and designs.shape == shape == (3, 3, 2)
+    for i, name in enumerate(axes):
+        np.testing.assert_array_equal(columns[name], product[:, i])
+        np.testing.assert_array_equal(designs.columns(slice(4, 15))[name], product[4:15, i])
+        np.testing.assert_array_equal(designs.columns(np.array([17, 0, 9]))[name],
+                                      product[[17, 0, 9], i])  # fmt: skip
+    in_memory = rj.sweep(columns, chunk_size=8, progress=False)
+    made = rj.sweep(designs, chunk_size=8, progress=False)  # 3 blocks, each 2 structures
+    for field in rjx.PEAK_FIELDS:
+        np.testing.assert_array_equal(made.peaks[field], in_memory.peaks[field])
+    assert set(made.values) == set(in_memory.values)
+    for name, values in made.values.items():
+        np.testing.assert_array_equal(values, in_memory.values[name])
+    # The probe meets every check between values: the load against t1 at the right design.
+    burst = rjx.Grid({"shots": [1, 3], "fire_interval": [0.5, 4.0], "gap": [0.01, 0.02]})
+    with pytest.raises(rj.ParameterError, match=r"design 6\): the last of 3 rounds fires at 8 s"):
+        rj.sweep(rjx.Grid(burst.axes, {"t1": 6.0}))
+    with pytest.raises(rj.ParameterError, match=r"Absorber\.gap\[1\] = -0\.02 m"):
+        rj.sweep(rjx.Grid({"m": [500.0, 600.0], "gap": [0.01, -0.02]}))
+    with pytest.raises(rj.ParameterError, match="both swept and fixed"):
+        rjx.Grid({"m": [1.0, 2.0]}, {"m": 3.0})
+    with pytest.raises(rj.ParameterError, match="axis gap has no values"):
+        rjx.Grid({"gap": []})
+
+
 def test_order_chunking_and_sorting_do_not_change_results():
     rng = np.random.default_rng(5)
     designs = [

@@ -12,7 +12,7 @@ from typing import Any
 
 import recoil_jax as rj
 
-__all__ = ["dask_client"]
+__all__ = ["check_cluster", "dask_client"]
 
 #: The address forms of a Dask scheduler: `[protocol://]host:port`.
 _ADDRESS = re.compile(r"^((tcp|tls|inproc|ucx|ws|wss)://)?[A-Za-z0-9_.\-\[\]:]+:\d{1,5}$")
@@ -32,6 +32,19 @@ def _check_address(scheduler: str) -> None:
         )
 
 
+def check_cluster(workers: int | None, scheduler: str | None) -> None:
+    """Refuse `--workers` and `--scheduler` given together, a worker count below 1 and an
+    address that is not one, before any work (`dask_client` checks them too)."""
+    if workers is not None and scheduler is not None:
+        raise rj.ParameterError(
+            "give --workers N (a local cluster) or --scheduler ADDRESS, not both"
+        )
+    if workers is not None and workers < 1:
+        raise rj.ParameterError(f"--workers {workers} is invalid: valid is an integer >= 1")
+    if scheduler is not None:
+        _check_address(scheduler)
+
+
 @contextlib.contextmanager
 def dask_client(workers: int | None, scheduler: str | None) -> Iterator[Any]:
     """A `distributed.Client` for the run: on a `LocalCluster` of `workers` worker
@@ -40,20 +53,13 @@ def dask_client(workers: int | None, scheduler: str | None) -> Iterator[Any]:
     if workers is None and scheduler is None:
         yield None
         return
-    if workers is not None and scheduler is not None:
-        raise rj.ParameterError(
-            "give --workers N (a local cluster) or --scheduler ADDRESS, not both"
-        )
-    if workers is not None and workers < 1:
-        raise rj.ParameterError(f"--workers {workers} is invalid: valid is an integer >= 1")
+    check_cluster(workers, scheduler)
     if workers is not None and workers > (cores := _cores()):
         # Each worker solves its chunk on every core already: more processes than cores
         # only add memory (about 0.5 GB each) and contention.
         print(f"recoil-jax: warning: --workers {workers} is more than the {cores} cores "
               f"here; using {cores}", file=sys.stderr)  # fmt: skip
         workers = cores
-    if scheduler is not None:
-        _check_address(scheduler)
     from distributed import Client, LocalCluster
 
     if scheduler is not None:

@@ -278,6 +278,7 @@ def run_sweep(args) -> int:
             axes[name] = values
     table = rj.ForceTable.from_csv(args.force_table) if args.force_table else None
     designs: list[dict] = []  # from --points
+    grid = None  # or the grid
     shape: tuple[int, ...] = ()  # the grid's
     if args.points:
         if axes:
@@ -302,7 +303,11 @@ def run_sweep(args) -> int:
                 "range start:stop:count, or --points FILE"
             )
         wrt = ("gap",) if "gap" in axes else None
-        columns, shape = rj.grid(axes, fixed)  # made once (it may be large)
+        # Its columns made a chunk at a time as it is swept: a streamed grid's memory
+        # does not grow with it.
+        grid = rjx.Grid(axes, fixed)
+        shape = grid.shape
+        columns = grid.axes | {name: np.array([value]) for name, value in fixed.items()}
     warn(design_warnings({n: _given(c) for n, c in columns.items()}, table))
     # The sweep's own options (tighter with gradients), with the step limit asked for.
     options = rj.GRADIENT_OPTIONS if wrt else rj.SolverOptions()
@@ -312,7 +317,7 @@ def run_sweep(args) -> int:
         output_folder(args.out)  # once the input is known good, before any solve
     if args.store and not args.out and not args.json:
         # Nothing asks for the results here: they stream to the store, not into memory.
-        return _sweep_to_store(args, axes, designs or columns, wrt, options, table)
+        return _sweep_to_store(args, axes, designs or grid, wrt, options, table)
     with dask_client(args.workers, args.scheduler) as client:
         if args.points:
             result = rj.sweep(
@@ -325,7 +330,7 @@ def run_sweep(args) -> int:
             )
         else:
             result = rj.sweep(
-                columns,
+                grid,
                 wrt=wrt,
                 options=options,
                 progress=progress,
@@ -369,7 +374,7 @@ def run_sweep(args) -> int:
 
 def _sweep_to_store(args, axes, designs, wrt, options, table) -> int:
     """`sweep --store` with neither `--out` nor `--json`: `rj.sweep_to_store` of the
-    points or the grid's columns (`designs`), and a summary read from the store."""
+    points or the grid (`designs`), and a summary read from the store."""
     with dask_client(args.workers, args.scheduler) as client:
         stored = rj.sweep_to_store(
             designs, args.store, wrt=wrt, options=options, force_table=table, client=client
