@@ -43,6 +43,7 @@ from ._gradients import (
 )
 from ._params import (
     PARAMETERS,
+    ForceTable,
     ParameterError,
     RecoilParams,
     Smoothing,
@@ -57,7 +58,7 @@ from ._params import (
 from ._predict import FittedParameters
 from ._progress import Progress
 from ._status import OK_CODE
-from ._sweep import batch_params
+from ._sweep import batch_params, with_table
 from ._traces import T_SHIFT, Experiment, known_values
 
 __all__ = [
@@ -108,6 +109,8 @@ class Calibration:
       `f_scale` noise deviations.
     - `smoothing`, `options`: as for any solve (default `GRADIENT_OPTIONS`, rtol 1e-7).
     - `validation`: experiments scored with the fitted values but not fitted.
+    - `force_table`: the breech force of one round for every experiment that does not
+      give its own (`Experiment.force_table`).
 
     **Raises:** `ParameterError` (at construction, before anything compiles) for an empty
     experiment list, an unknown or integer parameter, bounds reversed or outside the valid
@@ -124,6 +127,7 @@ class Calibration:
     smoothing: Smoothing = Smoothing()  # noqa: RUF009 (immutable)
     options: SolverOptions = GRADIENT_OPTIONS
     validation: Sequence[Experiment] = ()
+    force_table: ForceTable | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "experiments", tuple(self.experiments))
@@ -159,6 +163,10 @@ class Calibration:
     def experiment_design(self, experiment: Experiment) -> dict[str, float]:
         """The known values of one experiment: the shared ones, then its own."""
         return {**self.design, **experiment.design}
+
+    def experiment_table(self, experiment: Experiment) -> ForceTable | None:
+        """The force table one experiment fires: its own, else the shared one."""
+        return experiment.force_table if experiment.force_table is not None else self.force_table
 
 
 def _check_fitted(name: str, bounds, start) -> None:
@@ -344,6 +352,15 @@ def _prepare(calibration: Calibration, experiments, layout: _Layout) -> _Data:
             f"calibration: the experiments must share one structure (all with or all "
             f"without an absorber, one number of rounds): {error}"
         ) from None
+    tables = [calibration.experiment_table(e) for e in experiments]
+    if any(table is not None for table in tables):
+        missing = [e.label for e, table in zip(experiments, tables, strict=True) if table is None]
+        if missing:
+            raise ParameterError(
+                f"calibration: {missing[0]} has no force table but other experiments do: "
+                "give every experiment one (or a shared force_table), or none"
+            )
+        params = with_table(params, ForceTable.stacked([t for t in tables if t is not None]))
     n = max(len(t.t) for t in traces)
     E, S = len(experiments), len(layout.signals)
     times = np.zeros((E, n))

@@ -122,15 +122,23 @@ METRICS: dict[str, Metric] = {
 }
 
 
-def worst_case(values: Mapping[str, Any], xp: Any = np) -> dict[str, Any]:
+def worst_case(
+    values: Mapping[str, Any], xp: Any = np, quantile: float | None = None
+) -> dict[str, Any]:
     """The worst case of each quantity over a scatter of designs (`values`: name →
     values, the scatter along every axis): a metric's own extreme (the least stroke, the
-    greatest peak); any other quantity (a smooth maximum) its greatest. `xp`: `numpy` or
-    `jax.numpy`."""
-    return {
-        name: xp.min(v) if name in METRICS and METRICS[name].extreme == "min" else xp.max(v)
-        for name, v in values.items()
-    }
+    greatest peak); any other quantity (a smooth maximum) its greatest. With `quantile`
+    q, the q-quantile towards the worst instead (q of the scatter is no worse; the
+    `1 - q` quantile of a metric whose extreme is its least; linear interpolation, as
+    `numpy.quantile`; q = 1 is the worst case). `xp`: `numpy` or `jax.numpy`."""
+    out = {}
+    for name, v in values.items():
+        least = name in METRICS and METRICS[name].extreme == "min"
+        if quantile is None:
+            out[name] = xp.min(v) if least else xp.max(v)
+        else:
+            out[name] = xp.quantile(v, 1.0 - quantile if least else quantile)
+    return out
 
 
 def metric(name: str) -> Metric:

@@ -597,6 +597,10 @@ def read_text(path, what: str) -> str:
         raise ParameterError(f"{what} {path} cannot be read: {error.strerror}") from None
 
 
+#: The spacing (s) of the zero-force points that pad a shorter table (`ForceTable.stacked`).
+_PAD_SPACING = 1e-9
+
+
 class ForceTable(eqx.Module):
     """A tabulated breech force of one round: `F` (N) at times `t` (s, from the round's
     firing), linear between points and zero outside them; shape `(n,)` each, `n >= 2`,
@@ -626,6 +630,24 @@ class ForceTable(eqx.Module):
                 f"ForceTable.t[{i}] = {times[i]:g} s is invalid: times must increase "
                 f"strictly (t[{i - 1}] = {times[i - 1]:g} s)"
             )
+
+    @classmethod
+    def stacked(cls, tables: Sequence[ForceTable]) -> ForceTable:
+        """One batched table `(B, n)` of `tables` (one round each), for designs that
+        each fire their own: the shorter padded to the longest with points of zero force
+        1 ns apart after their end. That is exact for a table that ends at zero force
+        (outside its points a table's force is zero); one that ends at F_last gains a
+        1 ns ramp to zero, an impulse of F_last · 0.5 ns."""
+        length = max(int(np.shape(t.t)[-1]) for t in tables)
+        times, forces = [], []
+        for table in tables:
+            t, F = np.asarray(table.t, dtype=float), np.asarray(table.F, dtype=float)
+            if t.ndim != 1:
+                raise ParameterError("ForceTable.stacked: each table must be of one round, (n,)")
+            extra = length - len(t)
+            times.append(np.concatenate([t, t[-1] + _PAD_SPACING * np.arange(1, extra + 1)]))
+            forces.append(np.concatenate([F, np.zeros(extra)]))
+        return cls(np.stack(times), np.stack(forces))
 
     @classmethod
     def from_csv(cls, path) -> ForceTable:

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from ._gradients import SIGNAL_ALIASES, SIGNALS
-from ._params import Limits, ParameterError, check_value, parameter, read_text
+from ._params import ForceTable, Limits, ParameterError, check_value, parameter, read_text
 
 __all__ = [
     "TIME_COLUMNS",
@@ -225,6 +225,9 @@ class Experiment:
       experiment's number from 1.
     - `window`: `(start, end)` (s): only the samples within it are fitted.
     - `name`: for reports (default: the trace's file name).
+    - `force_table`: this firing's measured breech force of one round (`ForceTable`, e.g.
+      its chamber pressure times the bore area), over the calibration's; it replaces
+      the impulse (`v0`) or pulse. Either every experiment has a table or none does.
     """
 
     trace: Trace
@@ -233,6 +236,7 @@ class Experiment:
     per_experiment: tuple[str, ...] = ()
     window: tuple[float, float] | None = None
     name: str = ""
+    force_table: ForceTable | None = None
 
     def __post_init__(self):
         where = self.label
@@ -255,6 +259,8 @@ class Experiment:
             start, end = self.window
             if not start < end:
                 raise ParameterError(f"{where}: window [{start:g}, {end:g}] s is empty")
+        if self.force_table is not None and not isinstance(self.force_table, ForceTable):
+            raise ParameterError(f"{where}: force_table must be a ForceTable")
 
     @property
     def label(self) -> str:

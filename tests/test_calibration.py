@@ -82,6 +82,55 @@ def test_one_experiment_recovers_its_parameters_and_its_noise():
     assert at_bound.values["k"] == pytest.approx(result.values["k"], rel=1e-4)
 
 
+def _pulse(points: int, duration: float, impulse: float) -> rj.ForceTable:
+    """A half-sine breech force of `impulse` (N s) over `duration`, at `points` points
+    (ending at zero force, as a measured pulse does)."""
+    t = np.linspace(0.0, duration, points)
+    return rj.ForceTable(t, impulse * np.pi / (2 * duration) * np.sin(np.pi * t / duration))
+
+
+def test_each_experiment_fires_its_own_force_table():
+    """Two firings, each with its own measured breech force (tables of 41 and 67 points,
+    different impulses): both fitted at once (the shorter table padded), the shared
+    values recovered; padding changes no signal; a table for some experiments only is
+    refused."""
+    tables = [_pulse(41, 0.004, 5600.0 * 0.66), _pulse(67, 0.006, 5600.0 * 0.72)]
+    # Padding the shorter with zero force after its end changes nothing.
+    padded = rj.ForceTable.stacked(tables)
+    assert padded.t.shape == (2, 67) and np.all(np.diff(padded.t, axis=1) > 0)
+    design = rj.params_from_values(TRUTH)
+    ts = np.linspace(0.0, 0.6, 601)
+    alone = rj.simulate(rj.with_table(design, tables[0]), rj.Smoothing(), TIGHT, ts)
+    short = rj.ForceTable(padded.t[0], padded.F[0])
+    again = rj.simulate(rj.with_table(design, short), rj.Smoothing(), TIGHT, ts)
+    np.testing.assert_allclose(again.x_M, alone.x_M, rtol=1e-8, atol=1e-12)
+    experiments = []
+    for number, table in enumerate(tables):
+        history = rj.simulate(rj.with_table(design, table), rj.Smoothing(), TIGHT, ts)
+        rng = np.random.default_rng(40 + number)
+        noisy = np.asarray(history.x_M) + NOISE["x_M"] * rng.standard_normal(ts.size)
+        measured = rjx.Trace.of(ts, x_M=noisy)
+        experiments.append(rjx.Experiment(measured, force_table=table, name=f"firing {number}"))
+    result = rj.calibrate(rj.Calibration(experiments, fit=BOX), progress=False)
+    assert result.converged and result.solved
+    within(result, TRUTH)
+    # The fit used each firing's own table: with the other's swapped in, it is worse.
+    swapped = [
+        dataclasses.replace(e, force_table=t)
+        for e, t in zip(experiments, tables[::-1], strict=True)
+    ]
+    worse = rj.calibrate(rj.Calibration(swapped, fit=BOX), progress=False)
+    assert result.rms["x_M"] == pytest.approx(NOISE["x_M"], rel=0.1)
+    assert worse.rms["x_M"] > 2 * result.rms["x_M"]
+    with pytest.raises(rj.ParameterError, match="firing 1 has no force table but other"):
+        rj.Calibration([experiments[0], dataclasses.replace(experiments[1], force_table=None)],
+                       fit=BOX)  # fmt: skip
+    # A shared table serves every experiment that has none of its own.
+    shared = rj.Calibration([dataclasses.replace(experiments[0], force_table=None)], fit=BOX,
+                            force_table=tables[0])  # fmt: skip
+    assert shared.experiment_table(shared.experiments[0]) is tables[0]
+
+
 def test_profile_intervals_agree_with_the_linear_ones_where_the_fit_is_linear():
     """Profiles (each value held, the others refitted) of a nearly linear fit: the
     profile-likelihood intervals equal the Gauss–Newton ones to 5 % of their width, and
@@ -445,7 +494,8 @@ def test_a_study_designs_on_the_fitted_uncertainty(tmp_path, fitted_json, capsys
     assert main(["optimise", str(study), "--out", str(out), "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["calibration"] == {"from": "fit.json", "parameters": ["k", "c_out", "gap"],
-                                     "points": 7, "solves_per_evaluation": 7}  # fmt: skip
+                                     "points": 7, "solves_per_evaluation": 7,
+                                     "held_at": "worst case"}  # fmt: skip
     fitted = rjx.FittedParameters.from_json(fitted_json)
     best = report["best"]
     worst = max(
@@ -457,6 +507,31 @@ def test_a_study_designs_on_the_fitted_uncertainty(tmp_path, fitted_json, capsys
     assert report["objective"] == pytest.approx(worst, rel=1e-6)
 
 
+@pytest.mark.slow
+def test_a_study_holds_its_limits_at_a_quantile_of_sampled_fits(tmp_path, fitted_json, capsys):
+    """`quantile = q` with sampled points: the objective reported (and optimised) is the
+    q-quantile of plain solves at those points, not their worst."""
+    (tmp_path / "fit.json").write_text(fitted_json.read_text())
+    study = tmp_path / "quantile.toml"
+    extra = 'points = "sample"\nsamples = 9\nseed = 4\nquantile = 0.75'
+    study.write_text(STUDY.format(extra=extra, tune="k_r = [1000.0, 100000.0]\nc_r = [0.0, 2e4]"))
+    assert main(["optimise", str(study), "--out", str(tmp_path / "out"), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["calibration"]["held_at"] == "quantile 0.75"
+    assert report["calibration"]["solves_per_evaluation"] == 9
+    fitted = rjx.FittedParameters.from_json(fitted_json)
+    draws, _ = fitted.sample(8, 4)
+    points = np.concatenate([fitted.values[None], draws])
+    peaks = [
+        float(rj.peaks(rj.params_from_values(
+            {"M": 5600.0, "m": 800.0, **report["best"], **dict(zip(fitted.names, p, strict=True))}
+        )).peak_anchoring_force)
+        for p in points
+    ]  # fmt: skip
+    assert report["objective"] == pytest.approx(np.quantile(peaks, 0.75), rel=1e-6)
+    assert report["objective"] < max(peaks)
+
+
 @pytest.mark.parametrize(
     ("extra", "tune", "message"),
     [
@@ -464,6 +539,9 @@ def test_a_study_designs_on_the_fitted_uncertainty(tmp_path, fitted_json, capsys
         ('points = "grid"', "k_r = [1e3, 1e5]", "points"),
         ("colour = 1", "k_r = [1e3, 1e5]", "unknown key 'colour'"),
         ('points = "sample"\nsamples = 1', "k_r = [1e3, 1e5]", "samples"),
+        ("quantile = 0.9", "k_r = [1e3, 1e5]", 'quantile needs points = "sample"'),
+        ('points = "sample"\nquantile = 1.5', "k_r = [1e3, 1e5]", "quantile = 1.5: a number"),
+        ('points = "sample"\nquantile = 0', "k_r = [1e3, 1e5]", "quantile = 0: a number"),
     ],
 )
 def test_bad_calibration_sections_exit_2(tmp_path, fitted_json, capsys, extra, tune, message):

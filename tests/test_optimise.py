@@ -1,6 +1,7 @@
 """The optimiser: differentiable peaks, the smooth maximum, constraints, one compilation,
 agreement with a dense grid, and the study command line."""
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -181,6 +182,20 @@ def test_scatter_objective_is_the_worst_case():
         for o in offsets
     ]
     np.testing.assert_allclose(float(worst), max(separate), rtol=1e-6)
+    # At a quantile: numpy's, of the same solves (the median of three is the middle one).
+    median = dataclasses.replace(
+        problem, objective=dataclasses.replace(problem.objective, quantile=0.5)
+    )
+    evaluation = jax.jit(lambda th: rjx.evaluate_design(median, th))(jnp.array([0.062]))
+    np.testing.assert_allclose(float(evaluation.objective), np.median(separate), rtol=1e-6)
+    np.testing.assert_allclose(
+        float(evaluation.metrics["peak_anchoring_force"]), np.median(separate), rtol=1e-6
+    )
+    for bad, message in ((0.0, "valid 0 < quantile <= 1"), (1.5, "valid 0 < quantile <= 1")):
+        with pytest.raises(rj.ParameterError, match=message):
+            rj.Objective({"peak_anchoring_force": 1.0}, scatter=("v0", offsets), quantile=bad)
+    with pytest.raises(rj.ParameterError, match="quantile needs a scatter"):
+        rj.Objective({"peak_anchoring_force": 1.0}, quantile=0.9)
 
 
 @pytest.mark.slow

@@ -29,8 +29,17 @@ NOT_CONVERGED = 4
 
 #: The keys of a calibration file, and of one `[[experiment]]` besides design values.
 _FILE_KEYS = {"description", "design", "fit", "experiment", "validation", "loss", "f_scale",
-              "starts", "seed", "fit_steps"}  # fmt: skip
-_EXPERIMENT_KEYS = {"trace", "sigma", "per_experiment", "window", "name"}
+              "starts", "seed", "fit_steps", "force_table"}  # fmt: skip
+_EXPERIMENT_KEYS = {"trace", "sigma", "per_experiment", "window", "name", "force_table"}
+
+
+def _force_table(where: str, value: Any, folder: Path) -> rj.ForceTable | None:
+    """`force_table = "file.csv"` (relative to the calibration file), or None."""
+    if value is None:
+        return None
+    if not isinstance(value, str):
+        raise _error(where, 'give force_table = "file.csv" (header t_s,F_N)')
+    return rj.ForceTable.from_csv(folder / value)
 
 
 def _bounds(where: str, value: Any) -> tuple[tuple[float, float], float | None]:
@@ -77,6 +86,7 @@ def _experiment(where: str, entry: Any, folder: Path) -> rjx.Experiment:
         per_experiment=tuple(per),
         window=window,
         name=str(entry.get("name", "")),
+        force_table=_force_table(f"{where}.force_table", entry.get("force_table"), folder),
     )
 
 
@@ -116,6 +126,7 @@ def load_calibration(path) -> tuple[rj.Calibration, dict[str, Any]]:
         loss=config.get("loss", "linear"),
         f_scale=_number("f_scale", config.get("f_scale", 3.0)),
         validation=validation,
+        force_table=_force_table("force_table", config.get("force_table"), folder),
     )
     settings = {
         "starts": config.get("starts", 1),
@@ -130,8 +141,9 @@ def load_calibration(path) -> tuple[rj.Calibration, dict[str, Any]]:
     return calibration, settings
 
 
-def _quick(trace_path, fit_names: str | None, assignments, validate) -> rj.Calibration:
-    """One trace with `--fit a,b,c` (bounds: each parameter's documented range)."""
+def _quick(trace_path, fit_names: str | None, assignments, validate, force_table) -> rj.Calibration:
+    """One trace with `--fit a,b,c` (bounds: each parameter's documented range), and the
+    force table it fired (`--force-table`), if any."""
     if not fit_names:
         raise rj.ParameterError(
             f"calibrate {trace_path}: name the parameters to fit with --fit k,c_out,..."
@@ -147,7 +159,8 @@ def _quick(trace_path, fit_names: str | None, assignments, validate) -> rj.Calib
     design = parse_assignments(assignments)
     experiment = rjx.Experiment(rj.read_trace(trace_path), design=design)
     validation = [rjx.Experiment(rj.read_trace(v), design=design) for v in validate]
-    return rj.Calibration([experiment], fit=fit, validation=validation)
+    table = rj.ForceTable.from_csv(force_table) if force_table else None
+    return rj.Calibration([experiment], fit=fit, validation=validation, force_table=table)
 
 
 def run_calibration(args) -> int:
@@ -157,15 +170,19 @@ def run_calibration(args) -> int:
         if args.fit:
             raise rj.ParameterError("--fit is for a trace (.csv); a calibration file has [fit]")
         calibration, settings = load_calibration(source)
+        if args.force_table:
+            raise rj.ParameterError(
+                "--force-table is for a trace (.csv); a calibration file has force_table"
+            )
         if args.validate:
             extra = [rjx.Experiment(rj.read_trace(v), design={}) for v in args.validate]
-            calibration = rj.Calibration(
-                calibration.experiments, fit=calibration.fit, start=calibration.start,
-                design=calibration.design, loss=calibration.loss,
-                f_scale=calibration.f_scale, validation=(*calibration.validation, *extra),
-            )  # fmt: skip
+            calibration = dataclasses.replace(
+                calibration, validation=(*calibration.validation, *extra)
+            )
     else:
-        calibration = _quick(source, args.fit, args.assignments, args.validate or [])
+        calibration = _quick(
+            source, args.fit, args.assignments, args.validate or [], args.force_table
+        )
         settings = {"starts": 1, "seed": 0, "fit_steps": 200, "description": ""}
     starts = args.starts if args.starts is not None else settings["starts"]
     out = output_folder(args.out)

@@ -545,6 +545,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="then predict this design's peaks with 95%% bands from the fitted "
         "uncertainty (10,000 samples and linear propagation; prediction.png)",
     )
+    calibrate.add_argument(
+        "--force-table",
+        metavar="FILE.csv",
+        help="with a trace: the breech force of one round it fired (header t_s,F_N)",
+    )
     calibrate.add_argument("--json", action="store_true", help="print result.json")
     _add_max_steps(calibrate)
     calibrate.set_defaults(func=_calibrate)

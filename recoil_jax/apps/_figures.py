@@ -395,7 +395,12 @@ def objective_label(problem: rj.DesignProblem | None) -> str:
     if problem is None:
         return "objective"
     weights = problem.objective.weights
-    worst = " (worst case of the scatter)" if problem.objective.scatter is not None else ""
+    worst = ""
+    if problem.objective.scatter is not None:
+        q = problem.objective.quantile
+        worst = (
+            " (worst case of the scatter)" if q is None else f" ({q:.0%} quantile of the scatter)"
+        )
     if len(weights) == 1:
         ((name, weight),) = weights.items()
         label = rj.METRICS[name].label

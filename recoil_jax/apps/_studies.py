@@ -29,7 +29,8 @@ values = [250, 500, 1000]
 [calibration]                 # optional: design on a calibration's fitted hardware
 from = "fit/result.json"      #   (recoil-jax calibrate): its values enter the design and
 points = "sigma"              #   the objective and limits hold at its 2k + 1 sigma points
-                              #   (worst case), or "sample" (samples = N, seed)
+                              #   (worst case), or "sample" (samples = N, seed, and
+                              #   quantile = q to hold them at that quantile, not the worst)
 [check]                       # optional checks of the best design
 grid = {gap = [0.0, 0.12, 241]}   # cartesian grid (lo, hi, count) around it
 local = 0.02                  # 1-D scans ± this fraction of each bound's width
@@ -65,7 +66,7 @@ import numpy as np
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-from ._cluster import dask_client
+from ._cluster import check_cluster, dask_client
 from ._inputs import file_error as _error, output_folder, read_toml, resolve_shipped
 
 __all__ = [
@@ -214,6 +215,9 @@ def load_study(path) -> Study:
             "parameters": list(names),
             "points": len(offsets),
             "solves_per_evaluation": len(offsets),
+            "held_at": "worst case"
+            if objective.quantile is None
+            else f"quantile {objective.quantile:g}",
         }
     params, has_start = _parse_design(path, design, tune, bounds)
     problem = rj.DesignProblem(
@@ -278,7 +282,7 @@ def _parse_tune(path, section: dict) -> tuple[list[str], dict[str, tuple[float, 
     return tune, bounds
 
 
-_CALIBRATION_KEYS = {"from", "points", "samples", "seed"}
+_CALIBRATION_KEYS = {"from", "points", "samples", "seed", "quantile"}
 
 
 def _parse_calibration(path, section, design: dict, tune, objective: rj.Objective):
@@ -286,7 +290,8 @@ def _parse_calibration(path, section, design: dict, tune, objective: rj.Objectiv
     relative to the study) enters the design at its fitted values, and the objective and
     limits hold over its uncertainty: the worst case over a fixed set of points drawn
     from the fit, `points = "sigma"` (2k + 1 sigma points, default) or `"sample"`
-    (`samples`, `seed`)."""
+    (`samples`, `seed`), or with `quantile = q` (sampled points only) the q-quantile
+    towards the worst."""
     if not isinstance(section, dict) or not isinstance(section.get("from"), str):
         raise _error(path, '[calibration] needs from = "result.json" (a calibration result)')
     unknown = set(section) - _CALIBRATION_KEYS
@@ -314,6 +319,15 @@ def _parse_calibration(path, section, design: dict, tune, objective: rj.Objectiv
         points = np.concatenate([fitted.values[None], draws])
     else:
         raise _error(path, f'[calibration] points = {kind!r}: "sigma" or "sample"')
+    quantile = section.get("quantile")
+    if quantile is not None:
+        if kind != "sample":
+            raise _error(path, '[calibration] quantile needs points = "sample": a quantile of '
+                         "the 2k + 1 sigma points does not estimate one of the fit")  # fmt: skip
+        if isinstance(quantile, bool) or not _is_number(quantile) or not 0 < quantile <= 1:
+            raise _error(path, f"[calibration] quantile = {quantile!r}: a number in (0, 1] "
+                         "(1: the worst case)")  # fmt: skip
+        quantile = float(quantile)
     zero = [n for n, v in zip(fitted.names, fitted.values, strict=True) if v == 0.0]
     if zero:
         raise _error(path, f"[calibration] {zero[0]} was fitted as 0: the scatter is relative "
@@ -322,7 +336,7 @@ def _parse_calibration(path, section, design: dict, tune, objective: rj.Objectiv
     offsets = np.maximum(points / fitted.values - 1.0, -1.0 + 1e-9)
     known = fitted.fitted_design
     scatter = (fitted.names, tuple(tuple(float(o) for o in row) for row in offsets))
-    return known | design, dataclasses.replace(objective, scatter=scatter)
+    return known | design, dataclasses.replace(objective, scatter=scatter, quantile=quantile)
 
 
 def _parse_objective(path, section: dict) -> rj.Objective:
@@ -602,11 +616,17 @@ def _scattered(problem: rj.DesignProblem, params, offsets) -> list[rj.Peaks]:
 
 
 def _worst_case(problem: rj.DesignProblem, runs: list[rj.Peaks]) -> tuple[dict, float]:
-    """Worst-case metrics (each metric's own extreme) by JSON key, and the worst
-    objective, over the scattered solves `runs`."""
+    """Worst-case metrics (each metric's own extreme, or the objective's quantile
+    towards it) by JSON key, and the objective the same way, over the scattered solves
+    `runs`: what the optimiser held."""
+    objective = problem.objective
     values = {name: [float(getattr(r, name)) for r in runs] for name in rj.METRICS}
-    worst = {rj.METRICS[name].key: float(v) for name, v in rjx.worst_case(values).items()}
-    return worst, max(float(problem.objective(r.metrics())) for r in runs)
+    worst = rjx.worst_case(values, quantile=objective.quantile)
+    objectives = np.array([float(objective(r.metrics())) for r in runs])
+    return (
+        {rj.METRICS[name].key: float(v) for name, v in worst.items()},
+        float(objective.over_scatter(objectives)),
+    )
 
 
 def _best_summary(study: Study, result: rj.OptimiseResult, scenario: int) -> dict:
@@ -781,6 +801,7 @@ def _prepared(path, seed: int | None, workers, scheduler) -> Study:
     """The study to run: loaded, its seed replaced by `seed`, the cluster options
     checked against its method."""
     study = load_study(path)
+    check_cluster(workers, scheduler)  # before the study's first line is printed
     if (workers is not None or scheduler is not None) and study.optimiser["method"] != "search":
         raise rj.ParameterError(
             f"{study.name}: --workers and --scheduler spread the global phase of "
