@@ -348,6 +348,8 @@ def test_the_command_line_fits_a_calibration_file(tmp_path, capsys):
         (["{trace}"], "--fit"),
         (["{trace}", "--fit", "k,stiffness"], "stiffness"),
         (["{toml}", "--fit", "k"], "--fit is for a trace"),
+        (["{toml}", "--force-table", "{trace}"], "--force-table is for a trace"),
+        (["{trace}", "--fit", "k", "--force-table", "none.csv"], "force table none.csv not found"),
     ],
 )
 def test_bad_command_lines_exit_2(tmp_path, capsys, arguments, message):
@@ -370,6 +372,18 @@ def test_bad_command_lines_exit_2(tmp_path, capsys, arguments, message):
         ('[fit]\nk = [1e4, 1e5]\nstarts = 0\n[[experiment]]\ntrace = "t.csv"\n', "starts"),
         ("[fit\n", "not valid TOML"),
         ('colour = 1\n[fit]\nk = [1e4, 1e5]\n[[experiment]]\ntrace = "t.csv"\n', "colour"),
+        (
+            '[fit]\nk = [1e4, 1e5]\n[[experiment]]\ntrace = "t.csv"\nforce_table = 3\n',
+            '[[experiment]] 1.force_table: give force_table = "file.csv"',
+        ),
+        (
+            'force_table = "none.csv"\n[fit]\nk = [1e4, 1e5]\n[[experiment]]\ntrace = "t.csv"\n',
+            "force table",
+        ),
+        (
+            '[fit]\nk = [1e4, 1e5]\n[[experiment]]\ntrace = "t.csv"\nforce_table = "t.csv"\n',
+            "t.csv: expected a CSV with the header t_s,F_N",
+        ),
     ],
 )
 def test_bad_calibration_files_exit_2(tmp_path, capsys, body, message):
