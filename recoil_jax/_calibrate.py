@@ -22,6 +22,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import os
+import sys
 import time
 from collections.abc import Mapping, Sequence
 from typing import Any, Literal
@@ -58,6 +60,7 @@ from ._params import (
 from ._predict import FittedParameters
 from ._progress import Progress
 from ._status import OK_CODE
+from ._store import CalibrationStore, fingerprint
 from ._sweep import batch_params, with_table
 from ._traces import T_SHIFT, Experiment, known_values
 
@@ -860,6 +863,7 @@ def calibrate(
     max_steps: int = 200,
     profiles: bool = False,
     progress: bool | None = None,
+    store: str | os.PathLike | None = None,
 ) -> CalibrationResult:
     """Fit the parameters `calibration.fit` to its experiments' traces.
 
@@ -875,6 +879,10 @@ def calibrate(
     - `profiles`: also profile each value (refit the others with it held at 12 points
       around the optimum, or across the bounds where it is not determined; one batched
       program) for profile-likelihood intervals, as lmfit's `conf_interval`.
+    - `store`: the path of an SQLite file that keeps each finished part (a chunk of
+      `STARTS_PER_CHUNK` starts, the profiles), so that a killed calibration resumes: the
+      same call with the same store reads the parts it has and fits the rest, to the
+      same result bit for bit. A store made by another calibration is refused.
 
     **Returns:** a `CalibrationResult`: values, standard errors, 95 % intervals,
     correlation, identifiability, χ², AIC, BIC, RMS per signal, the fitted signals.
@@ -891,9 +899,77 @@ def calibrate(
     static = _Static(layout.wrt, layout.signals, calibration.loss, calibration.f_scale,
                      max_steps, _estimates_noise(data))  # fmt: skip
     bar = Progress("calibrate", 4, "phases", progress, rates=False)
-    bar.update(0, f"fitting from {starts} start{'s' if starts > 1 else ''} (one program)")
-    measured = jnp.broadcast_to(data.measured, (starts, *data.measured.shape))
-    outcome = _fit_program(jnp.asarray(_u_of_z(z0)), measured, data, static)
+    store_ = None
+    if store is not None:
+        store_ = _open_store(store, calibration, layout, data, static, z0, profiles)
+        if (done := store_.stored_fits()) and progress is not False:
+            print(f"calibrate: resuming from {store}: {done} fits already done",
+                  file=sys.stderr)  # fmt: skip
+    try:  # the store (and its writer lock) closed whatever happens
+        return _calibrate(
+            calibration, layout, data, static, z0, profiles, bar, store_, clock
+        )  # fmt: skip
+    finally:
+        if store_ is not None:
+            store_.close()
+
+
+#: Starts fitted per part of a calibration kept in a store (each part committed).
+STARTS_PER_CHUNK = 8
+
+
+def _open_store(path, calibration, layout, data, static, z0, profiles):
+    """The calibration's store at `path` (made, or checked to be this calibration's)."""
+    from . import __version__
+
+    identity = fingerprint("calibration", __version__, data, static, np.asarray(z0), bool(profiles))
+    total = len(z0) + (2 * len(_PROFILE_STEPS) * len(layout.labels) if profiles else 0)
+    description = {
+        "fit": list(layout.labels),
+        "starts": len(z0),
+        "experiments": [e.label for e in calibration.experiments],
+        "created": time.strftime("%Y-%m-%d %H:%M:%S"),
+    }
+    return CalibrationStore(path, identity=identity, total=total,
+                            plan={"starts_per_chunk": STARTS_PER_CHUNK}, columns=(),
+                            description=description)  # fmt: skip
+
+
+def _stored_part(store_, part: str, fits: int, compute) -> dict[str, np.ndarray]:
+    """A part of the calibration: read from the store, or computed (`compute()`, named
+    arrays) and committed there; without a store, computed."""
+    if store_ is not None and (arrays := store_.stored(part)) is not None:
+        return arrays
+    started = time.perf_counter()
+    arrays = {name: np.asarray(value) for name, value in compute().items()}
+    if store_ is not None:
+        store_.commit(part, fits, arrays, time.perf_counter() - started)
+    return arrays
+
+
+def _fit_starts(u0: np.ndarray, data: _Data, static: _Static, store_) -> _FitOutcome:
+    """Every start's fit: one program for them all, or with a store one part per
+    `starts_per_chunk` of its plan (the last part shorter), each read or committed."""
+
+    def fit(u):
+        measured = jnp.broadcast_to(data.measured, (len(u), *data.measured.shape))
+        outcome = _fit_program(jnp.asarray(u), measured, data, static)
+        return {f.name: getattr(outcome, f.name) for f in dataclasses.fields(outcome)}
+
+    size = len(u0) if store_ is None else int(store_.plan["starts_per_chunk"])
+    parts = []
+    for begin in range(0, len(u0), size):
+        chunk = u0[begin : begin + size]
+        parts.append(_stored_part(store_, f"fit:{begin}", len(chunk), lambda u=chunk: fit(u)))
+    return _FitOutcome(**{k: jnp.concatenate([p[k] for p in parts]) for k in parts[0]})
+
+
+def _calibrate(calibration, layout, data, static, z0, profiles, bar, store_, clock):
+    """`calibrate` once its inputs are checked and its store (if any) open."""
+    starts = len(z0)
+    where = "one program" if store_ is None else f"parts of {store_.plan['starts_per_chunk']}"
+    bar.update(0, f"fitting from {starts} start{'s' if starts > 1 else ''} ({where})")
+    outcome = _fit_starts(_u_of_z(z0), data, static, store_)
     score = np.asarray(outcome.score)
     score = np.where(np.isfinite(score), score, np.inf)
     best = int(np.argmin(score))
@@ -903,7 +979,7 @@ def calibrate(
     result = _lane_report(calibration, layout, data, static, outcome, best, (starts, at_best))
     if profiles:
         bar.update(2, f"profiles ({len(layout.labels)} values)")
-        result = _with_profiles(result, layout, data, static, outcome.u[best])
+        result = _with_profiles(result, layout, data, static, outcome.u[best], store_)
     bar.update(3, "validation")
     validation = [validate(calibration, result, e) for e in calibration.validation]
     bar.update(4, "done", final=True)
@@ -916,10 +992,11 @@ _PROFILE_STEPS = (1.0, 1.5, 2.0, 2.5, 3.0, 4.0)
 _PROFILE_THRESHOLD = float(scipy.stats.chi2.ppf(0.95, 1))
 
 
-def _with_profiles(result, layout, data, static, u_best):
+def _with_profiles(result, layout, data, static, u_best, store_=None):
     """`result` with every fitted value's profile and profile-likelihood interval: the
     value held at each profile point while the others are refitted (every point of
-    every value one lane of one batched fit), under the fit's noise."""
+    every value one lane of one batched fit), under the fit's noise; one part of the
+    store."""
     space = layout.space
     theta = np.asarray([result.values[label] for label in layout.labels])
     z = space.z(theta)
@@ -945,7 +1022,15 @@ def _with_profiles(result, layout, data, static, u_best):
         held_z[i * m : (i + 1) * m, i] = points
     held_theta = np.asarray(jax.vmap(space.theta)(jnp.asarray(held_z)))
     u0 = jnp.broadcast_to(u_best, held.shape)
-    cost, converged = _profile_program(u0, jnp.asarray(held), jnp.asarray(held_theta), data, static)
+
+    def refit():
+        cost, converged = _profile_program(
+            u0, jnp.asarray(held), jnp.asarray(held_theta), data, static
+        )
+        return {"cost": cost, "converged": converged}
+
+    part = _stored_part(store_, "profiles", len(held), refit)
+    cost, converged = part["cost"], part["converged"]
     # A point whose refit did not converge is left out (NaN); a rise below 0 (a better
     # optimum than the fit's) is kept, and shows in the profile.
     delta = np.where(

@@ -52,6 +52,7 @@ from ._problem import DesignProblem, best_feasible_note, feasible, largest_viola
 from ._status import OK_CODE, status_messages
 
 __all__ = [
+    "CalibrationStore",
     "CampaignProgress",
     "StudyStore",
     "SweepStore",
@@ -415,6 +416,41 @@ class SweepStore(_Store):
         return table[:, 0].astype(int), data
 
 
+class CalibrationStore(_Store):
+    """A calibration's store: each part of the fit committed with its outputs as it
+    finishes (a chunk of starts `fit:<first>`, the profiles `profiles`), so that a killed
+    calibration resumes with the parts it had. `chunks` as a sweep's (`designs`: the
+    fits in the part), with the part's arrays in `outputs` (`.npz` bytes, bit for bit);
+    `plan`: `starts_per_chunk`, kept from the run that made the store."""
+
+    kind = "calibration"
+
+    def _create_tables(self) -> None:
+        self.db.execute(
+            "CREATE TABLE chunks (chunk TEXT PRIMARY KEY, designs INTEGER, seconds REAL, "
+            "finished REAL, run INTEGER, outputs BLOB)"
+        )
+
+    def stored_fits(self) -> int:
+        """How many fits the committed parts hold."""
+        return int(self.db.execute("SELECT COALESCE(SUM(designs), 0) FROM chunks").fetchone()[0])
+
+    def stored(self, part: str) -> dict[str, np.ndarray] | None:
+        """The arrays of the committed `part`, or None."""
+        row = self.db.execute("SELECT outputs FROM chunks WHERE chunk = ?", (part,)).fetchone()
+        return None if row is None else unpack(row[0])
+
+    def commit(self, part: str, fits: int, arrays: dict[str, Any], seconds: float) -> None:
+        """Write one part (`fits`: how many fits it holds) in one transaction."""
+        blob = pack(arrays)
+        self._transaction(
+            lambda db: db.execute(
+                "INSERT OR IGNORE INTO chunks VALUES (?, ?, ?, ?, ?, ?)",
+                (part, fits, seconds, time.time(), self.run, blob),
+            )
+        )
+
+
 def _open_sweep(path) -> tuple[sqlite3.Connection, dict[str, str]]:
     """A sweep's store, to read: its connection and `meta` (raises `ParameterError`)."""
     path = Path(path)
@@ -694,6 +730,9 @@ def _describe(kind: str | None, description: dict) -> str:
         parts = [f"study {description.get('study', '?')}"]
         if description.get("tune"):
             parts.append("tuning " + ", ".join(description["tune"]))
+    elif kind == "calibration":
+        parts = [f"a calibration of {', '.join(description.get('fit', ['?']))}"]
+        parts.append(f"{description.get('starts', '?')} starts")
     else:
         parts = [f"{description.get('designs', '?')} designs"]
         if description.get("names"):
@@ -706,9 +745,10 @@ def _describe(kind: str | None, description: dict) -> str:
 class CampaignProgress(NamedTuple):
     """Where a campaign stands, read from its store (`campaign_progress`).
 
-    - `kind`: `"sweep"` or `"study"`;
+    - `kind`: `"sweep"`, `"study"` or `"calibration"`;
     - `total`, `done`: a sweep's designs, and those committed; a study's planned
       evaluations (a rough guide: a local run may take more or fewer) and those made;
+      a calibration's fits (its starts, and its profiles' points) and those committed;
     - `runs`: how many times it was started or resumed;
     - `rate`: designs (evaluations) per second over the latest run (NaN before that
       run's first commit);
@@ -734,7 +774,8 @@ class CampaignProgress(NamedTuple):
                 text += f", {self.rate:.1f}/s in the latest run"
             return text
         share = self.done / self.total if self.total else 1.0
-        text = f"{self.kind}: {self.done}/{self.total} designs ({100 * share:.1f} %), {runs}"
+        unit = "fits" if self.kind == "calibration" else "designs"
+        text = f"{self.kind}: {self.done}/{self.total} {unit} ({100 * share:.1f} %), {runs}"
         if self.done >= self.total:
             return text + ", finished"
         if np.isfinite(self.rate):

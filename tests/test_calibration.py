@@ -315,9 +315,19 @@ def test_the_command_line_fits_a_calibration_file(tmp_path, capsys):
     )
     out = tmp_path / "out"
     argv = ["calibrate", str(tmp_path / "cal.toml"), "--out", str(out), "--json", "--profile"]
-    assert main(argv) == 0
+    store = ["--store", str(tmp_path / "cal.sqlite")]
+    assert main([*argv, *store]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report == json.loads((out / "result.json").read_text())
+    # Again with its store: the fit and the profiles read back, the same report.
+    assert main([*argv, *store]) == 0
+    captured = capsys.readouterr()
+    # 1 start and 3 x 12 profile points.
+    assert "calibrate: resuming from" in captured.err and "37 fits already done" in captured.err
+    again = json.loads(captured.out)
+    assert {k: v for k, v in again.items() if k != "seconds"} == {
+        k: v for k, v in report.items() if k != "seconds"
+    }
     for name, value in TRUTH.items():
         fitted = report["fitted"][name]
         assert fitted["identifiable"] and fitted["ci95"][0] - 2 * fitted["stderr"] <= value
@@ -629,3 +639,41 @@ def test_a_second_process_loads_the_exported_fit(tmp_path):
     exported = sorted(p.name.split("-")[0] for p in (tmp_path / "cache" / "exported").iterdir())
     assert exported == ["_evaluate_program", "_fit_program"]
     assert reports[0]["fitted"] == reports[1]["fitted"]
+
+
+@pytest.mark.slow  # three fit programs compiled (12, 8 and 4 starts)
+def test_a_stored_calibration_resumes_to_the_same_result(tmp_path, monkeypatch, capsys):
+    """With a store, the starts are fitted in parts of 8, each committed: a calibration
+    stopped after its first part resumes with it (not fitted again) to the result of an
+    uninterrupted run, bit for bit, which is that of one program without a store; a
+    store of another calibration is refused; `progress` reads it."""
+    import recoil_jax._calibrate as calibrate_module
+
+    calibration = rj.Calibration([rjx.Experiment(trace(TRUTH, n=201))], fit=BOX)
+    plain = rj.calibrate(calibration, starts=12, progress=False)
+    real, calls = calibrate_module._fit_program, []
+
+    def stopped_after_one(u0, *args):
+        calls.append(len(u0))
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(u0, *args)
+
+    store = tmp_path / "fit.sqlite"
+    monkeypatch.setattr(calibrate_module, "_fit_program", stopped_after_one)
+    with pytest.raises(KeyboardInterrupt):
+        rj.calibrate(calibration, starts=12, store=store, progress=False)
+    assert rj.campaign_progress(store).line().startswith("calibration: 8/12 fits")
+    calls.clear()
+    resumed = rj.calibrate(calibration, starts=12, store=store)
+    assert calls == [4]  # only the part that was not stored
+    assert "calibrate: resuming from" in (err := capsys.readouterr().err)
+    assert "8 fits already done" in err
+    for name in TRUTH:
+        assert resumed.values[name] == plain.values[name], name
+        assert resumed.fitted[name].stderr == plain.fitted[name].stderr
+    assert resumed.starts_at_best == plain.starts_at_best and resumed.chi2 == plain.chi2
+    assert rj.campaign_progress(store).done == 12
+    other = dataclasses.replace(calibration, fit={"k": (1e4, 1e5), "c_out": (1e3, 3e4)})
+    with pytest.raises(rj.ParameterError, match="holds the results of a different calibration"):
+        rj.calibrate(other, starts=12, store=store, progress=False)

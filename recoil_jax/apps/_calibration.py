@@ -191,7 +191,7 @@ def run_calibration(args) -> int:
     )
     result = rj.calibrate(
         calibration, starts=starts, seed=settings["seed"], max_steps=settings["fit_steps"],
-        profiles=args.profile, progress=True,
+        profiles=args.profile, progress=True, store=args.store,
     )  # fmt: skip
     report = {"source": str(source), "description": settings["description"], **result.to_json()}
     (out / "result.json").write_text(json.dumps(report, indent=2) + "\n")

@@ -546,6 +546,12 @@ def build_parser() -> argparse.ArgumentParser:
         "uncertainty (10,000 samples and linear propagation; prediction.png)",
     )
     calibrate.add_argument(
+        "--store",
+        metavar="FILE.sqlite",
+        help="commit each finished part of the fit (8 starts, the profiles) to this "
+        "SQLite file; the same command with the same store resumes a stopped calibration",
+    )
+    calibrate.add_argument(
         "--force-table",
         metavar="FILE.csv",
         help="with a trace: the breech force of one round it fired (header t_s,F_N)",
@@ -762,7 +768,7 @@ def _kept(args) -> str:
     if store:
         return (f"every finished part is in {store}: run the same command with --store "
                 f"{store} to resume")  # fmt: skip
-    if args.command in ("sweep", "optimise", "sensitivity"):
+    if args.command in ("sweep", "optimise", "sensitivity", "calibrate"):
         return "nothing was kept (give --store FILE.sqlite to make a run resumable)"
     return "nothing was kept"
 
