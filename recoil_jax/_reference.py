@@ -359,7 +359,8 @@ def reference_history(
     """Time histories of the hard-switch model by the independent scipy solver (as
     `reference_peaks`), at the sorted times `ts` (s, shape `(n,)`, from 0): the state
     `x_M, v_M, x_m, v_m` and the forces `F_AN`, `F_ct`, by name, shape `(n,)` each; from
-    each segment's dense output (at a round's firing, the value before it)."""
+    each segment's dense output. At a round's firing the value is the one after it (its
+    impulse applied), as at `t = 0` and as `rj.simulate` gives it."""
     model = _model_of(values, force_table)
     ts = np.asarray(ts, dtype=float)
     samples = {
@@ -435,6 +436,8 @@ def _integrate(model, t1, rtol, atol, method, max_segments, ts=None, samples=Non
                 else dataclasses.replace(model.initial_mode(y), piece=mode.piece)
             )
             running.consider(model, t, y, mode)
+            if ts is not None:  # a sample at the firing itself: after it, as at t = 0
+                _sample(model, None, mode, np.nextafter(t, -np.inf), t, ts, samples, y)
     return running, segments, status
 
 

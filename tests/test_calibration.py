@@ -131,6 +131,15 @@ def test_each_experiment_fires_its_own_force_table():
     assert shared.experiment_table(shared.experiments[0]) is tables[0]
 
 
+def test_the_profile_threshold_is_the_chi2_quantile():
+    import scipy.stats
+
+    import recoil_jax._calibrate as calibrate_module
+
+    threshold = calibrate_module._PROFILE_THRESHOLD
+    assert threshold == pytest.approx(scipy.stats.chi2.ppf(0.95, 1), rel=1e-14)
+
+
 def test_profile_intervals_agree_with_the_linear_ones_where_the_fit_is_linear():
     """Profiles (each value held, the others refitted) of a nearly linear fit: the
     profile-likelihood intervals equal the Gauss–Newton ones to 5 % of their width, and

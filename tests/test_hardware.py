@@ -271,6 +271,22 @@ def test_one_round_of_a_burst_is_the_single_shot():
             assert float(getattr(one, name)) == float(getattr(single, name)), name
 
 
+def test_a_history_at_a_firing_holds_its_impulse_as_the_reference_does():
+    """At the instant a later round fires, a history is the state after its impulse, as
+    at t = 0, in the library and the independent reference solver alike (the velocity a
+    whole v0 above the instant before; a sample there is what a trace on a grid that
+    meets the firings holds)."""
+    values = {"m": 1000.0, "gap": 0.02, "shots": 3, "fire_interval": 0.5}
+    ts = np.array([0.0, 0.5 - 1e-7, 0.5, 0.5 + 1e-7, 1.0 - 1e-7, 1.0, 1.2])
+    reference = rjx.reference_history(values, ts)
+    history = rj.simulate(rj.params_from_values(values), rj.Smoothing(), _tight(), ts)
+    v0 = rj.PARAMETERS["v0"].default
+    for i in (2, 5):  # the firings of rounds 2 and 3
+        assert reference["v_M"][i] == pytest.approx(reference["v_M"][i - 1] + v0, abs=1e-5)
+    np.testing.assert_allclose(history.v_M, reference["v_M"], rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(history.anchoring_force, reference["F_AN"], rtol=1e-6, atol=1e-3)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("load", [{}, {"pulse_time": 0.005}], ids=["impulse", "pulse"])
 @pytest.mark.parametrize(
