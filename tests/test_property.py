@@ -107,7 +107,7 @@ def _mutated(folder: str):
 
 STUDY_KEYS = [*rj.PARAMETERS, "peak_anchoring_force", "peak_displacement", "method", "steps",
               "samples", "starts", "seed", "local", "grid", "hard", "vary", "values", "max",
-              "min", "from", "points", "minimax", "learning_rate"]  # fmt: skip
+              "min", "from", "points", "minimax", "learning_rate", "quantile"]  # fmt: skip
 STUDY_SECTIONS = ["design", "tune", "objective", "constraints", "optimiser", "check",
                   "calibration", "objective.temperatures", "bogus"]  # fmt: skip
 study_files = st.one_of(_toml_file(STUDY_SECTIONS, STUDY_KEYS), _mutated("optimise"))
@@ -177,6 +177,10 @@ def command_lines(draw, folder: Path):
         argv += [file("trace.csv", csv_files)]
         argv += ["--fit", draw(st.sampled_from(["k", "k,c_out", "", "bogus", "t_shift,k"]))]
         argv += draw(st.lists(assignments, max_size=2))
+        if draw(st.booleans()):
+            argv += ["--store", draw(st.one_of(paths, st.just(file("c.sqlite", junk))))]
+        if draw(st.booleans()):
+            argv += ["--force-table", file("table.csv", csv_files)]
     else:
         argv += [draw(st.one_of(paths, st.just(file("p.sqlite", junk))))]
     if draw(st.booleans()):
