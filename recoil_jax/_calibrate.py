@@ -157,6 +157,15 @@ class Calibration:
                     raise ParameterError(
                         f"{experiment.label}: per_experiment names {name}, which [fit] does not"
                     )
+        # A validation experiment fires as the fitted ones do: a table, or none.
+        tables = self.experiment_table(self.experiments[0]) is not None
+        for experiment in self.validation:
+            if (self.experiment_table(experiment) is not None) != tables:
+                has, fitted = ("no force table", "do") if tables else ("a force table", "do not")
+                raise ParameterError(
+                    f"{experiment.label}: this validation experiment has {has} but the "
+                    f"fitted ones {fitted}: every experiment fires a table, or none does"
+                )
         layout = _Layout.of(self)  # checks the designs and signals
         _prepare(self, self.experiments, layout)  # and the time spans
         for experiment in self.validation:  # the same checks, before the fit
@@ -950,17 +959,21 @@ def _stored_part(store_, part: str, fits: int, compute) -> dict[str, np.ndarray]
 
 def _fit_starts(u0: np.ndarray, data: _Data, static: _Static, store_) -> _FitOutcome:
     """Every start's fit: one program for them all, or with a store one part per
-    `starts_per_chunk` of its plan (the last part shorter), each read or committed."""
-
-    def fit(u):
-        measured = jnp.broadcast_to(data.measured, (len(u), *data.measured.shape))
-        outcome = _fit_program(jnp.asarray(u), measured, data, static)
-        return {f.name: getattr(outcome, f.name) for f in dataclasses.fields(outcome)}
+    `starts_per_chunk` of its plan (the last padded to it), each read or committed."""
 
     size = len(u0) if store_ is None else int(store_.plan["starts_per_chunk"])
+
+    def fit(u):
+        # A short last part is padded with its last start: one program for every part
+        # (a fit costs less than a compilation); the padding's fits are dropped.
+        padded = np.concatenate([u, np.repeat(u[-1:], size - len(u), axis=0)])
+        measured = jnp.broadcast_to(data.measured, (size, *data.measured.shape))
+        outcome = _fit_program(jnp.asarray(padded), measured, data, static)
+        return {f.name: getattr(outcome, f.name)[: len(u)] for f in dataclasses.fields(outcome)}
+
     parts = []
     for begin in range(0, len(u0), size):
-        chunk = u0[begin : begin + size]
+        chunk = np.asarray(u0[begin : begin + size])
         parts.append(_stored_part(store_, f"fit:{begin}", len(chunk), lambda u=chunk: fit(u)))
     return _FitOutcome(**{k: jnp.concatenate([p[k] for p in parts]) for k in parts[0]})
 

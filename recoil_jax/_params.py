@@ -603,8 +603,9 @@ _PAD_SPACING = 1e-9
 
 class ForceTable(eqx.Module):
     """A tabulated breech force of one round: `F` (N) at times `t` (s, from the round's
-    firing), linear between points and zero outside them; shape `(n,)` each, `n >= 2`,
-    `t` strictly increasing from `t[0] >= 0`. The table's integral is the round's
+    firing), linear between points and zero outside them; shape `(n,)` each, `n >= 2`
+    (or `(B, n)`: each design of a batch its own, `ForceTable.stacked`), `t` strictly
+    increasing from `t[0] >= 0`. The table's integral is the round's
     momentum (`Barrel.v0` is not used). `ForceTable.from_csv` reads a CSV file with the
     header `t_s,F_N`."""
 
@@ -622,12 +623,14 @@ class ForceTable(eqx.Module):
                 f"ForceTable: t and F must be of the same length >= 2, got shapes "
                 f"{t.shape} and {F.shape}"
             )
-        times = t.reshape(-1, t.shape[-1])[0]  # a batch shares one table
-        steps = np.diff(times)
-        if np.any(steps <= 0):
-            i = int(np.argmax(steps <= 0)) + 1
+        rows = t.reshape(-1, t.shape[-1])  # a batch: each design's table
+        bad = np.diff(rows, axis=-1) <= 0
+        if np.any(bad):
+            row, i = np.unravel_index(int(np.argmax(bad)), bad.shape)
+            times, i = rows[row], int(i) + 1
+            where = f" (table {row})" if len(rows) > 1 else ""
             raise ParameterError(
-                f"ForceTable.t[{i}] = {times[i]:g} s is invalid: times must increase "
+                f"ForceTable.t[{i}] = {times[i]:g} s is invalid{where}: times must increase "
                 f"strictly (t[{i - 1}] = {times[i - 1]:g} s)"
             )
 
@@ -969,8 +972,8 @@ def check_load_fits(params: RecoilParams, t1: Any, max_steps: int, labels: Any =
         return
     t1 = np.asarray(t1, dtype=float)
     last = (load.shots - 1) * np.asarray(load.fire_interval, dtype=float)
-    if load.table is not None:
-        length, what = float(np.asarray(load.table.t).reshape(-1)[-1]), "the force table"
+    if load.table is not None:  # each design's own table (`ForceTable.stacked`) may end apart
+        length, what = np.asarray(load.table.t, dtype=float)[..., -1], "the force table"
     else:
         length, what = PULSE_LENGTHS * np.asarray(load.pulse_time, dtype=float), "the pulse"
     last, length, t1 = np.broadcast_arrays(last, length, t1)

@@ -208,7 +208,7 @@ def _is_knot(name: str) -> bool:
     return name in PARAMETERS and PARAMETERS[name].index is not None
 
 
-def _structure_groups(columns: dict[str, np.ndarray]) -> list[tuple[np.ndarray, dict]]:
+def _structure_groups(columns: dict[str, np.ndarray], labels=None) -> list[tuple[np.ndarray, dict]]:
     """The designs split by the structure of their pytree, which one compiled program
     serves: with or without an absorber (`m = 0`), the number of rounds (`shots`, static)
     and the number of orifice knots. Returns `(indices, columns)` per group, in order of
@@ -224,8 +224,9 @@ def _structure_groups(columns: dict[str, np.ndarray]) -> list[tuple[np.ndarray, 
     holes = np.any(present & (np.arange(len(knots))[:, None] >= count[None, :]), axis=0)
     if holes.any():
         i = int(np.argmax(holes))
+        label = i if labels is None else int(np.asarray(labels)[i])
         raise ParameterError(
-            f"design {i}: orifice knots must be numbered from 0 without holes: "
+            f"design {label}: orifice knots must be numbered from 0 without holes: "
             f"{knots[count[i]][1]} is missing"
         )
     # One integer per design, no Python object per design (a sweep may have millions):
@@ -319,6 +320,8 @@ class Grid:
                 raise ParameterError(f"the grid's axis {name} has no values")
             if name in self.fixed:
                 raise ParameterError(f"{name} is both swept and fixed")
+        if not self.axes and not self.fixed:
+            raise ParameterError("a grid needs at least one axis or fixed value")
         self.shape = tuple(len(a) for a in self.axes.values())
 
     def __len__(self) -> int:
@@ -350,14 +353,17 @@ class Grid:
         """The small grid that meets every check that involves more than one value of a
         design (its structure, its load against its end time, the orifice a piston
         needs): each of those axes reduced to its extremes, its zero and its NaN (those
-        checks are monotone in each value), every other axis to its first value (its
-        values are checked one by one); and the index in this grid of each of its
-        designs (for messages)."""
+        checks are monotone in each value), an orifice knot's to one value present and
+        one absent, every other axis to its first value (its values are checked one by
+        one); and the index in this grid of each of its designs (for messages)."""
         reduced, positions = {}, []
         for name, values in self.axes.items():
             kept = [0]  # positions on the axis
-            if name in _CROSS_CHECKED or _is_knot(name):
-                missing = np.isnan(values)
+            missing = np.isnan(values)
+            if _is_knot(name):  # its checks ask only whether it is there
+                kept += [int(np.argmax(missing))] * bool(missing.any())
+                kept += [int(np.argmax(~missing))] * bool(not missing.all())
+            elif name in _CROSS_CHECKED:
                 if not missing.all():
                     kept = [int(np.nanargmin(values)), int(np.nanargmax(values))]
                 kept += [int(np.argmax(values == 0))] * bool(np.any(values == 0))
@@ -571,7 +577,7 @@ def _groups(
     grid's block or probe gives its own); `every_wrt`: check that each of `wrt` is a
     parameter of some group (a grid checks this once, on its `Grid.probe`)."""
     groups = []
-    for indices, given in _structure_groups(columns):
+    for indices, given in _structure_groups(columns, labels):
         indices = indices if labels is None else np.asarray(labels)[indices]
         given = dict(given)
         t1 = given.pop("t1", None)
@@ -763,8 +769,9 @@ class _Columns:
     def identity(self) -> Any:
         return self.columns
 
-    def chunks(self, plan: dict) -> Iterator[_Chunk]:
-        return iter(_chunks(self.groups, plan))
+    def chunks(self, plan: dict, done: Mapping[str, int]) -> Iterator[_Chunk]:
+        """The chunks, those in `done` (key -> designs, from the store) left out."""
+        return (c for c in _chunks(self.groups, plan) if c.key not in done)
 
     def given(self, points: np.ndarray) -> dict[str, np.ndarray]:
         return {name: values[points] for name, values in self.columns.items()}
@@ -789,18 +796,32 @@ class _GridColumns:
         self.options, self.wrt, self.force_table = options, wrt, force_table
 
     def identity(self) -> Any:
-        return ("grid", self.grid.axes, self.grid.fixed)
+        # The axes in their order (it sets which design each index is): a dict's keys
+        # are sorted when it is flattened.
+        axes = self.grid.axes
+        return ("grid", tuple(axes), tuple(axes.values()), self.grid.fixed)
 
-    def chunks(self, plan: dict) -> Iterator[_Chunk]:
+    def chunks(self, plan: dict, done: Mapping[str, int]) -> Iterator[_Chunk]:
+        """The chunks, block by block, those in `done` (key -> designs, from the store)
+        left out; a block whose every design is stored is not made at all (a resumed
+        campaign near its end does not rebuild what it has)."""
         block = _per_chunk(plan)
+        stored: dict[str, int] = {}
+        for key, designs in done.items():
+            prefix = key.split("/", 1)[0]
+            stored[prefix] = stored.get(prefix, 0) + int(designs)
         for number, begin in enumerate(range(0, self.count, block)):
+            if stored.get(str(number), 0) >= min(block, self.count - begin):
+                continue
             columns = self.grid.columns(slice(begin, begin + block))
             labels = np.arange(begin, min(begin + block, self.count))
             groups = _groups(
                 columns, self.options, self.wrt, self.force_table, labels, every_wrt=False
             )
             # One block: chunks as for columns; more: all of one size (one program).
-            yield from _chunks(groups, plan, f"{number}/", full=self.count > block)
+            for chunk in _chunks(groups, plan, f"{number}/", full=self.count > block):
+                if chunk.key not in done:
+                    yield chunk
 
     def given(self, points: np.ndarray) -> dict[str, np.ndarray]:
         return self.grid.columns(points)
@@ -1079,7 +1100,7 @@ def _run_sweep(
                 file=sys.stderr,
             )
     bar = Progress("sweep", n, "designs", shown, already=already)
-    todo = (chunk for chunk in designs.chunks(plan) if chunk.key not in stored)
+    todo = designs.chunks(plan, stored)
     solved = _solved_chunks(todo, smoothing, options, wrt, devices, plan, client)
     for chunk, chunk_columns, chunk_seconds in solved:
         for name, column in chunk_columns.items() if in_memory else ():

@@ -125,6 +125,12 @@ def test_each_experiment_fires_its_own_force_table():
     with pytest.raises(rj.ParameterError, match="firing 1 has no force table but other"):
         rj.Calibration([experiments[0], dataclasses.replace(experiments[1], force_table=None)],
                        fit=BOX)  # fmt: skip
+    # Each design's own table is checked, and a validation firing must fire one too.
+    with pytest.raises(rj.ParameterError, match=r"ForceTable.t\[2\] = 1 s is invalid \(table 1\)"):
+        rj.ForceTable(np.array([[0.0, 1.0, 2.0], [0.0, 2.0, 1.0]]), np.zeros((2, 3)))
+    without = dataclasses.replace(experiments[1], force_table=None, name="firing 3")
+    with pytest.raises(rj.ParameterError, match="firing 3: this validation experiment has no"):
+        rj.Calibration(experiments, fit=BOX, validation=[without])
     # A shared table serves every experiment that has none of its own.
     shared = rj.Calibration([dataclasses.replace(experiments[0], force_table=None)], fit=BOX,
                             force_table=tables[0])  # fmt: skip
@@ -675,7 +681,7 @@ def test_a_stored_calibration_resumes_to_the_same_result(tmp_path, monkeypatch, 
     assert rj.campaign_progress(store).line().startswith("calibration: 8/12 fits")
     calls.clear()
     resumed = rj.calibrate(calibration, starts=12, store=store)
-    assert calls == [4]  # only the part that was not stored
+    assert calls == [8]  # only the part that was not stored (4 starts, padded to 8)
     assert "calibrate: resuming from" in (err := capsys.readouterr().err)
     assert "8 fits already done" in err
     for name in TRUTH:

@@ -42,7 +42,7 @@ def test_grid_sweep_matches_single_solves_and_reference(reference_cases):
     assert checked == 8
 
 
-def test_a_grid_made_a_chunk_at_a_time_equals_its_columns():
+def test_a_grid_made_a_chunk_at_a_time_equals_its_columns(tmp_path):
     """`Grid` makes the designs of `grid` (C order, as itertools.product) on demand; a
     sweep of it, cut into blocks of one chunk each, gives the columns' results bit for
     bit, and its checks name the design in the grid that fails."""
@@ -75,6 +75,54 @@ def test_a_grid_made_a_chunk_at_a_time_equals_its_columns():
         rjx.Grid({"m": [1.0, 2.0]}, {"m": 3.0})
     with pytest.raises(rj.ParameterError, match="axis gap has no values"):
         rjx.Grid({"gap": []})
+    with pytest.raises(rj.ParameterError, match="at least one axis or fixed value"):
+        rjx.Grid({})
+    # A knot missing before one that is there: the design's index in the grid, not in
+    # the probe (which keeps positions 0 and 3 of orifice_0).
+    holes = rjx.Grid({"orifice_0": [1e-4, 2e-4, 3e-4, np.nan], "orifice_1": [2e-4]})
+    with pytest.raises(rj.ParameterError, match=r"design 3: orifice knots must be numbered"):
+        rj.sweep(holes)
+    # A store knows its grid by its axes in their order (the order sets each index).
+    store = tmp_path / "grid.sqlite"
+    rj.sweep(designs, chunk_size=8, progress=False, store=store)
+    turned = rjx.Grid(dict(reversed(list(axes.items()))), {"c_r": 300.0})
+    with pytest.raises(rj.ParameterError, match="holds the results of a different sweep"):
+        rj.sweep(turned, chunk_size=8, progress=False, store=store)
+
+
+def test_a_resumed_grid_does_not_rebuild_the_blocks_it_has(tmp_path, monkeypatch):
+    """A grid stopped after two of its five blocks resumes with the other three: the
+    stored blocks are not made, grouped or checked again (the solves stubbed)."""
+    import recoil_jax._sweep as sweep_module
+
+    solved, grouped, stop = [], [], [True]
+
+    def stub(batch, t1, count, *args):
+        solved.append(count)
+        if len(solved) == 3 and stop[0]:  # the first run only
+            stop[0] = False
+            raise KeyboardInterrupt
+        peaks = {key: np.ones(count) for key in rjx.PEAK_FIELDS.values()}
+        return peaks | {"status_code": np.zeros(count, np.int32)}, 0.01
+
+    real_groups = sweep_module._groups
+
+    def counted(columns, *args, **kwargs):
+        grouped.append(len(next(iter(columns.values()))))
+        return real_groups(columns, *args, **kwargs)
+
+    monkeypatch.setattr(sweep_module, "_solve_chunk", stub)
+    monkeypatch.setattr(sweep_module, "_groups", counted)
+    designs = rjx.Grid({"m": np.linspace(500.0, 1500.0, 5), "gap": np.linspace(0.0, 0.1, 8)})
+    store = tmp_path / "grid.sqlite"
+    with pytest.raises(KeyboardInterrupt):
+        rj.sweep_to_store(designs, store, chunk_size=8, workers=1, progress=False)
+    assert rj.campaign_progress(store).done == 16
+    solved.clear()
+    grouped.clear()
+    done = rj.sweep_to_store(designs, store, chunk_size=8, workers=1, progress=False)
+    assert done.stored == 16 and done.designs == 40 and solved == [8, 8, 8]
+    assert grouped[1:] == [8, 8, 8]  # the probe, then only the three blocks left
 
 
 def test_order_chunking_and_sorting_do_not_change_results():
