@@ -933,7 +933,7 @@ def _open_store(path, calibration, layout, data, static, z0, profiles):
     from . import __version__
 
     identity = fingerprint("calibration", __version__, data, static, np.asarray(z0), bool(profiles))
-    total = len(z0) + (2 * len(_PROFILE_STEPS) * len(layout.labels) if profiles else 0)
+    total = len(z0) + (_PROFILE_POINTS * len(layout.labels) if profiles else 0)
     description = {
         "fit": list(layout.labels),
         "starts": len(z0),
@@ -1002,6 +1002,8 @@ def _calibrate(calibration, layout, data, static, z0, profiles, bar, store_, clo
 
 #: Where a profile is evaluated, in standard errors from the optimum (each side).
 _PROFILE_STEPS = (1.0, 1.5, 2.0, 2.5, 3.0, 4.0)
+#: The points of each value's profile (refits), on both sides.
+_PROFILE_POINTS = 2 * len(_PROFILE_STEPS)
 #: The 95 % threshold of a profile's Δχ² (one degree of freedom): `chi2.ppf(0.95, 1)`,
 #: the square of the normal's 97.5 % point (a literal: importing scipy.stats takes 0.4 s
 #: of the command line's start; a test checks it against scipy).
@@ -1028,7 +1030,7 @@ def _with_profiles(result, layout, data, static, u_best, store_=None):
             steps = np.asarray(_PROFILE_STEPS)
             points = np.concatenate([z[i] - sd_z * steps[::-1], z[i] + sd_z * steps])
         else:  # not determined: across the bounds
-            points = np.linspace(0.0, 1.0, 2 * len(_PROFILE_STEPS))
+            points = np.linspace(0.0, 1.0, _PROFILE_POINTS)
         grids.append(np.clip(points, 0.0, 1.0))
     m = len(grids[0])
     held = np.zeros((P * m, P), dtype=bool)

@@ -779,6 +779,10 @@ class _Columns:
     def all_columns(self) -> dict[str, np.ndarray]:
         return self.columns
 
+    def structures(self, columns) -> list[tuple[np.ndarray, dict[str, np.ndarray]]]:
+        """`(indices, given columns)` per structure (the groups it was chunked by)."""
+        return [(g.indices, g.columns) for g in self.groups]
+
 
 class _GridColumns:
     """A sweep of a `Grid`: its values checked on its axes and on its `Grid.probe` (before
@@ -787,10 +791,9 @@ class _GridColumns:
     grid), in input order."""
 
     def __init__(self, designs: Grid, options, wrt, force_table):
-        for name, values in [*designs.axes.items(), ("fixed", None)]:
-            # Each value on its own: the checks are elementwise.
-            _as_columns({name: values} if values is not None else designs.columns(slice(0, 1)))
-        probe, labels = designs.probe()
+        for name, values in designs.axes.items():
+            _as_columns({name: values})  # each value on its own: the checks are elementwise
+        probe, labels = designs.probe()  # the fixed values too
         _groups(_as_columns(probe.columns()), options, wrt, force_table, labels)
         self.grid, self.names, self.count = designs, designs.names, len(designs)
         self.options, self.wrt, self.force_table = options, wrt, force_table
@@ -828,6 +831,13 @@ class _GridColumns:
 
     def all_columns(self) -> dict[str, np.ndarray]:
         return self.grid.columns()
+
+    def structures(self, columns) -> list[tuple[np.ndarray, dict[str, np.ndarray]]]:
+        """`(indices, given columns)` per structure of `all_columns` (`t1` left out)."""
+        return [
+            (indices, {name: c for name, c in given.items() if name != "t1"})
+            for indices, given in _structure_groups(columns)
+        ]
 
 
 def _plan(workers, lanes, chunk_size, sort_by_gap) -> dict:
@@ -1126,8 +1136,7 @@ def _run_sweep(
         return StoredSweep(Path(store), n, already, failed, bar.elapsed)
     columns = designs.all_columns()
     values: dict[str, np.ndarray] = {}
-    for indices, given in _structure_groups(columns):
-        given = {name: column for name, column in given.items() if name != "t1"}
+    for indices, given in designs.structures(columns):
         for name, column in _group_values(given).items():
             values.setdefault(name, np.full(n, np.nan))[indices] = column
     seconds = bar.elapsed
