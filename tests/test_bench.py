@@ -171,6 +171,10 @@ def test_calibration_bench_reports_both_fits():
     assert [r["seeds"] for r in result["random_starts"]] == [[3, 5], [3, 5], [100, 200]]
     text = format_calibration_bench(result)
     assert "scipy" in text and "random starts" in text and "prediction band" in text
+    bursts = result["random_starts"][1:]
+    total = f"burst, all 2 traces: of 4 random starts, ours reached the best from " \
+            f"{sum(r['ours_reached'] for r in bursts)}, scipy from "  # fmt: skip
+    assert total in text
 
 
 @pytest.mark.slow

@@ -55,6 +55,26 @@ def within(result, truth, sigmas=3.0):
         assert abs(fitted.value - value) <= sigmas * fitted.stderr, (name, fitted, value)
 
 
+def test_the_fit_stops_within_a_thousandth_of_a_standard_error_of_the_optimum(monkeypatch):
+    """The fit's stopping test (the Gauss–Newton step left is under 0.001 standard
+    errors) against the same fit run to optimistix's test alone at 10⁻⁹: the values
+    agree within 0.002 standard errors, and the tight fit takes more steps to get
+    there."""
+    from recoil_jax import _calibrate
+
+    calibration = rj.Calibration([rjx.Experiment(trace(TRUTH, seed=3))], fit=BOX)
+    ours = rj.calibrate(calibration, progress=False)
+    monkeypatch.setattr(_calibrate, "_LM_STANDARD_ERRORS", 0.0)
+    monkeypatch.setattr(_calibrate, "_LM_TOLERANCE", 1e-9)
+    # Another step limit: another program, traced with the settings above.
+    tight = rj.calibrate(calibration, progress=False, max_steps=400)
+    assert ours.converged and tight.converged
+    for name in BOX:
+        apart = abs(ours.values[name] - tight.values[name]) / tight.fitted[name].stderr
+        assert apart < 2e-3, (name, apart)
+    assert ours.steps < tight.steps
+
+
 def test_one_experiment_recovers_its_parameters_and_its_noise():
     calibration = rj.Calibration([rjx.Experiment(trace(TRUTH))], fit=BOX)
     result = rj.calibrate(calibration, progress=False)
@@ -544,6 +564,36 @@ def test_a_study_designs_on_the_fitted_uncertainty(tmp_path, fitted_json, capsys
         for point in fitted.sigma_points()
     )  # fmt: skip
     assert report["objective"] == pytest.approx(worst, rel=1e-6)
+
+
+def test_a_sensitivity_run_ranges_the_fitted_values_over_their_uncertainty(
+    tmp_path, fitted_json, capsys
+):
+    """A sensitivity file's `[calibration] from = ...` on a real fit's `result.json`: each
+    fitted value ranged over ± `sigmas` standard errors about its value (within its
+    bounds), the values the fit held kept, and the run's indices over those ranges."""
+    from recoil_jax.apps._sensitivity import load_sensitivity
+
+    (tmp_path / "fit.json").write_text(fitted_json.read_text())
+    (tmp_path / "s.toml").write_text(
+        '[calibration]\nfrom = "fit.json"\nsigmas = 2.0\n[design]\nm = 800.0\n'
+        '[metrics]\nnames = ["peak_anchoring_force"]\n[method]\nname = "dgsm"\n'
+        "samples = 16\n"
+    )
+    fitted = json.loads(fitted_json.read_text())["fitted"]
+    arguments, _ = load_sensitivity(tmp_path / "s.toml")
+    assert set(arguments["ranges"]) == set(BOX)
+    for name, (low, high) in arguments["ranges"].items():
+        value, stderr = fitted[name]["value"], fitted[name]["stderr"]
+        assert low == pytest.approx(max(value - 2 * stderr, BOX[name][0]), rel=1e-12)
+        assert high == pytest.approx(min(value + 2 * stderr, BOX[name][1]), rel=1e-12)
+        assert arguments["design"][name] == pytest.approx(value, rel=1e-12)
+    assert arguments["design"]["M"] == 5600.0 and arguments["design"]["m"] == 800.0
+    argv = ["sensitivity", str(tmp_path / "s.toml"), "--out", str(tmp_path / "o"), "--json"]
+    assert main(argv) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert set(report["indices"]["peak_anchoring_force"]) == set(BOX)
+    assert report["failed"] == 0
 
 
 @pytest.mark.slow

@@ -364,12 +364,43 @@ def test_the_command_writes_its_report_and_figures_and_a_store_resumes(tmp_path,
     assert again["stored"] == 256 and again["indices"] == report["indices"]
 
 
+def test_a_studys_objective_and_limits_screened_by_morris_from_the_command(tmp_path, capsys):
+    """`study = ...` gives the study's objective and its limited metrics indices of their
+    own; Morris through the command writes its μ*–σ figure."""
+    text = SMALL.replace('names = ["peak_anchoring_force", "max_stroke"]',
+                         'names = []\nstudy = "tuned_absorber"')  # fmt: skip
+    text = text.replace('name = "sobol"\nsamples = 64', 'name = "morris"\ntrajectories = 8')
+    (tmp_path / "s.toml").write_text(text)
+    argv = ["sensitivity", str(tmp_path / "s.toml"), "--out", str(tmp_path / "out"), "--json",
+            "--no-cache"]  # fmt: skip
+    assert main(argv) == 0
+    report = json.loads(capsys.readouterr().out)
+    # tuned_absorber: minimise the peak anchoring force with max_stroke <= 0.15 m (m is
+    # held by its bounds, not a metric).
+    assert set(report["indices"]) == {"objective", "max_stroke"}
+    assert report["designs"] == 8 * 3 and report["failed"] == 0
+    effects = report["indices"]["objective"]
+    assert set(effects) == {"k", "gap"}
+    assert {"mu_star", "mu_star_conf", "sigma"} <= set(effects["k"])
+    # The objective is the peak anchoring force (weight 1): k moves it, within the box.
+    samples = (tmp_path / "out" / "samples.csv").read_text().splitlines()
+    header = samples[0].split(",")
+    assert "objective" in header and "peak_anchoring_force" not in header
+    assert effects["k"]["mu_star"] > 0
+    assert (tmp_path / "out" / "morris.png").stat().st_size > 0
+
+
 @pytest.mark.parametrize(
     ("text", "message"),
     [
         (SMALL.replace('name = "sobol"', 'name = "fast"'), "name = 'fast': give one of \"sobol\""),
         (SMALL.replace("samples = 64", "trajectories = 8"), "'trajectories' is not a setting"),
         (SMALL.replace("samples = 64", "samples = 100"), "a power of 2"),
+        (SMALL.replace("samples = 64", "samples = 32"), r"samples = 32: give an integer >= 64"),
+        (
+            SMALL.replace("gap = [0.059, 0.065]", "kk = [1.0, 2.0]"),
+            "unknown parameter 'kk'; known: M, k,",
+        ),
         (SMALL.replace("[ranges]", "[range]"), "unknown section 'range'"),
         (SMALL.replace('"max_stroke"', '"stroke"'), "unknown metric 'stroke'"),
         (SMALL.replace("gap = [0.059, 0.065]", "gap = [0.059]"), r"\[ranges\] gap"),

@@ -271,6 +271,13 @@ def format_calibration_bench(result: dict) -> str:
             f"{row['ours_reached']} ({row['ours_s']:.1f} s), scipy from "
             f"{row['scipy_reached']} ({row['scipy_s']:.1f} s)"
         )
+    bursts = [row for row in result["random_starts"] if row["trace"] == "burst"]
+    if len(bursts) > 1:
+        lines.append(
+            f"burst, all {len(bursts)} traces: of {sum(r['starts'] for r in bursts)} random "
+            f"starts, ours reached the best from {sum(r['ours_reached'] for r in bursts)}, "
+            f"scipy from {sum(r['scipy_reached'] for r in bursts)}"
+        )
     p = result["prediction"]
     lines.append(f"prediction band, {p['samples']} samples: {p['seconds']:.2f} s")
     if result["command_line"]:
