@@ -355,6 +355,10 @@ class _Static(eqx.Module):
     max_steps: int = eqx.field(static=True)
     estimate_noise: bool = eqx.field(static=True, default=True)
     lanes: int = eqx.field(static=True, default=1)
+    # Levenberg–Marquardt's stopping tests (fields, so that a program made with others
+    # is another program, never a cached one).
+    lm_tolerance: float = eqx.field(static=True, default=_LM_TOLERANCE)
+    lm_standard_errors: float = eqx.field(static=True, default=_LM_STANDARD_ERRORS)
 
 
 def _prepare(calibration: Calibration, experiments, layout: _Layout) -> _Data:
@@ -594,6 +598,9 @@ class _MarquardtTrustRegion(optx.ClassicalTrustRegion):
         )
         diagonal = jnp.sum(f_eval_info.jac.as_matrix() ** 2, axis=0)  # pyright: ignore[reportAttributeAccessIssue]
         first = 1.0 / (self.first_damping * jnp.maximum(jnp.max(diagonal), 1e-300))
+        # A Jacobian that is not finite at the start: optimistix's damping of 1, whose
+        # step is then refused (not a NaN damping, whose zero steps it would accept).
+        first = jnp.where(jnp.isfinite(first), first, 1.0)
         step_size = jnp.where(first_step, first, step_size)
         return step_size, accept, result, eqx.tree_at(lambda s: s.step_size, state, step_size)
 
@@ -601,12 +608,13 @@ class _MarquardtTrustRegion(optx.ClassicalTrustRegion):
 class _LevenbergMarquardt(optx.AbstractGaussNewton):
     """Levenberg–Marquardt (optimistix's Gauss–Newton with a damped Newton descent)
     with `_MarquardtTrustRegion` and a second stopping test: the Gauss–Newton step from
-    the last accepted point would move the fit by under `standard_errors`
-    (`_LM_STANDARD_ERRORS`)."""
+    the last accepted point would move the fit by under `standard_errors`. Never at a
+    point where an experiment's solve failed (a residual of at least `failed`)."""
 
     rtol: float
     atol: float
     standard_errors: float
+    failed: float
     norm: Any = optx.max_norm
     # optimistix declares these abstract; its own LevenbergMarquardt narrows them so.
     descent: optx.DampedNewtonDescent = optx.DampedNewtonDescent()  # pyright: ignore[reportIncompatibleVariableOverride]
@@ -615,19 +623,27 @@ class _LevenbergMarquardt(optx.AbstractGaussNewton):
 
     def terminate(self, fn, y, args, options, state, tags):
         done, result = super().terminate(fn, y, args, options, state, tags)
+        data, held, _ = args
         jacobian, residuals = state.f_info.jac.as_matrix(), state.f_info.residual
         step = jnp.linalg.lstsq(jacobian, residuals)[0]
         # The step's squared length in standard errors: ‖J δ‖² over the residual
-        # variance (the covariance's scale).
+        # variance (the covariance's scale: the samples present, the values free).
         length2 = jnp.sum((jacobian @ step) ** 2)
-        variance = jnp.sum(residuals**2) / max(residuals.shape[0] - step.shape[0], 1)
+        freedom = jnp.maximum(data.present.sum() - jnp.sum(~held), 1)
+        variance = jnp.sum(residuals**2) / freedom
         near = length2 <= self.standard_errors**2 * jnp.maximum(variance, 1e-300)
-        return done | (near & ~state.first_step), result
+        near = near & jnp.all(jnp.abs(residuals) < self.failed) & ~state.first_step
+        return done | near, result
 
 
 def _solve_lm(u0, data: _Data, static: _Static, held=None, held_theta=None):
+    with jax.ensure_compile_time_eval():  # half the failed residual, as the loss gives it
+        failed = float(_robust(jnp.asarray(0.5 * _FAILED_RESIDUAL), static.loss, static.f_scale))
     solver = _LevenbergMarquardt(
-        rtol=_LM_TOLERANCE, atol=_LM_TOLERANCE, standard_errors=_LM_STANDARD_ERRORS
+        rtol=static.lm_tolerance,
+        atol=static.lm_tolerance,
+        standard_errors=static.lm_standard_errors,
+        failed=failed,
     )
     held = jnp.zeros(u0.shape, dtype=bool) if held is None else held
     held_theta = jnp.zeros(u0.shape) if held_theta is None else held_theta
