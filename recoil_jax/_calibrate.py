@@ -76,6 +76,11 @@ __all__ = [
 #: each applied to the residual in units of `f_scale` noise deviations.
 LOSSES = ("linear", "soft_l1", "huber")
 
+#: A value within this of a bound of its box (box coordinates, the bounds 0 and 1) ended
+#: on that bound (`Fitted.at_bound`): the fit's bounded transform approaches a bound it
+#: is pressed against to ~1e-6 of the box.
+AT_BOUND = 1e-4
+
 #: A start reached the best when its score (−2 log-likelihood) is within this of the
 #: best: a tenth of a standard error in the worst direction.
 REACHED = 0.01
@@ -758,6 +763,11 @@ class Fitted:
     ci95: tuple[float, float] | None
     identifiable: bool
     profile_ci95: tuple[float | None, float | None] | None = None
+    #: `"lower"` or `"upper"` where the value ended on that bound of its box (within
+    #: `AT_BOUND` of the box): the best fit within the bounds, which the data may want
+    #: beyond them. Its interval is then the curvature there, cut at the bound, not a
+    #: confidence interval.
+    at_bound: str | None = None
 
     def to_json(self) -> dict[str, Any]:
         out = {
@@ -765,6 +775,7 @@ class Fitted:
             "stderr": self.stderr,
             "ci95": None if self.ci95 is None else list(self.ci95),
             "identifiable": self.identifiable,
+            "at_bound": self.at_bound,
         }
         if self.profile_ci95 is not None:
             out["profile_ci95"] = list(self.profile_ci95)
@@ -1242,15 +1253,17 @@ def _report(calibration, layout, data, evaluation, theta, *, converged, starts, 
     correlation[:, ~identifiable] = np.nan
     fitted = {}
     for i, label in enumerate(layout.labels):
+        zi = float(z[i])
+        side = "lower" if zi <= AT_BOUND else "upper" if zi >= 1.0 - AT_BOUND else None
         if identifiable[i]:
+            low, high = theta[i] - 1.96 * sd[i], theta[i] + 1.96 * sd[i]
+            if side is not None:  # nothing beyond the bound is a fit
+                low, high = max(low, layout.lower[i]), min(high, layout.upper[i])
             fitted[label] = Fitted(
-                float(theta[i]),
-                float(sd[i]),
-                (float(theta[i] - 1.96 * sd[i]), float(theta[i] + 1.96 * sd[i])),
-                True,
+                float(theta[i]), float(sd[i]), (float(low), float(high)), True, at_bound=side
             )
         else:
-            fitted[label] = Fitted(float(theta[i]), None, None, False)
+            fitted[label] = Fitted(float(theta[i]), None, None, False, at_bound=side)
     sigma = np.asarray(data.sigma)
     residual_si = r * sigma[..., None]
     rms = {

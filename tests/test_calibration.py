@@ -412,19 +412,43 @@ def test_the_command_line_fits_a_calibration_file(tmp_path, capsys):
     assert {"chi2", "reduced_chi2", "aic", "bic", "correlation", "experiments"} <= set(report)
     assert (out / "fit.png").stat().st_size > 10_000 and (out / "correlation.png").exists()
     assert (out / "profiles.png").exists() and report["fitted"]["k"]["profile_ci95"][0] < 28000
-    # The quick form, one trace, validated on another.
+    # The quick form, one trace with a dropout (10 samples of x_M lost), validated on
+    # another.
     ts2, signals2 = synthetic(TRUTH | {"v0": 0.69}, seed=6)
     other = write_trace(tmp_path / "firing_2.csv", ts2, signals2)
-    code = main(["calibrate", str(tmp_path / "firing_1.csv"), "--fit", "k,c_out,gap",
+    dropout = dict(signals, x_M=np.where((ts >= 0.1) & (ts < 0.11), np.nan, signals["x_M"]))
+    write_trace(tmp_path / "gaps.csv", ts, dropout)
+    code = main(["calibrate", str(tmp_path / "gaps.csv"), "--fit", "k,c_out,gap",
                  "v0=0.69", "--out", str(out), "--validate", str(other),
                  "--predict", "m=800"])  # fmt: skip
     assert code == 0
     text = capsys.readouterr().out
     assert "validation firing_2.csv" in text and "k " in text and "prediction" in text
+    assert "  skipped (empty or NaN) in gaps.csv: 10 of x_M\n" in text
     report = json.loads((out / "result.json").read_text())
     assert report["validation"][0]["reduced_chi2"] == pytest.approx(1.0, abs=0.2)
     assert report["prediction"]["design"]["m"] == 800.0 and report["prediction"]["failed"] == 0
     assert (out / "prediction.png").stat().st_size > 10_000
+
+
+def test_a_value_pressed_against_its_bound_is_said_to_be_there(tmp_path, capsys):
+    """Bounds that leave out the true stiffness (k ≤ 15,000 N/m against 28,000): k ends on
+    its upper bound, said in the report, warned of on stderr, and its interval cut at the
+    bound; the values inside their boxes are not flagged."""
+    ts, signals = synthetic(TRUTH, seed=2)
+    write_trace(tmp_path / "firing.csv", ts, signals)
+    (tmp_path / "c.toml").write_text(
+        "[fit]\nk = [1e4, 1.5e4]\nc_out = [1e3, 3e4]\ngap = [0.0, 0.1]\n"
+        '[[experiment]]\ntrace = "firing.csv"\n'
+    )
+    assert main(["calibrate", str(tmp_path / "c.toml"), "--out", str(tmp_path / "o")]) == 0
+    captured = capsys.readouterr()
+    assert "    k            15000  (on its upper bound; the curvature there +/- " in captured.out
+    assert "warning: k = 15000 ended on its upper bound" in captured.err
+    fitted = json.loads((tmp_path / "o" / "result.json").read_text())["fitted"]
+    assert fitted["k"]["at_bound"] == "upper" and fitted["k"]["ci95"][1] == 15000.0
+    assert fitted["k"]["value"] == pytest.approx(15000.0, rel=1e-6)
+    assert fitted["c_out"]["at_bound"] is None and fitted["gap"]["at_bound"] is None
 
 
 @pytest.mark.parametrize(

@@ -214,6 +214,11 @@ def run_calibration(args) -> int:
         print(fit_report(result))
         if "prediction" in report:
             print(prediction_report(report["prediction"]))
+    for name, f in result.fitted.items():
+        if f.at_bound is not None:
+            print(f"recoil-jax: warning: {name} = {f.value:.6g} ended on its {f.at_bound} "
+                  "bound: the data may want it beyond, so it has no confidence interval; "
+                  "widen its bounds if the hardware allows", file=sys.stderr)  # fmt: skip
     if not result.solved:
         print("recoil-jax: solver failed at the fitted values", file=sys.stderr)
         return 1
@@ -253,10 +258,20 @@ def fit_report(result: rj.CalibrationResult) -> str:
         f"  samples {result.samples}, dof {result.dof}, chi2 {result.chi2:.6g}, "
         f"reduced chi2 {result.reduced_chi2:.4g}, AIC {result.aic:.6g}, BIC {result.bic:.6g}",
         "  rms: " + ", ".join(f"{k} {v:.4g}" for k, v in result.rms.items()),
-        "  fitted:",
     ]
+    for experiment in result.experiments:  # empty or NaN samples, left out of the fit
+        skipped = {k: n for k, n in experiment["skipped"].items() if n}
+        if skipped:
+            counts = ", ".join(f"{n} of {k}" for k, n in skipped.items())
+            lines.append(f"  skipped (empty or NaN) in {experiment['name']}: {counts}")
+    lines.append("  fitted:")
     for name, f in result.fitted.items():
-        if f.identifiable and f.ci95 is not None and f.stderr is not None:
+        if f.at_bound is not None:
+            line = f"    {name:12s} {f.value:.6g}  (on its {f.at_bound} bound"
+            if f.identifiable and f.stderr is not None:
+                line += f"; the curvature there +/- {f.stderr:.3g}"
+            line += ")" if f.identifiable else "; not determined by the data)"
+        elif f.identifiable and f.ci95 is not None and f.stderr is not None:
             relative = abs(f.stderr / f.value) if f.value else math.inf
             line = (
                 f"    {name:12s} {f.value:.6g} +/- {f.stderr:.3g} ({relative:.2%}), "
