@@ -382,7 +382,7 @@ def _integrate(model, t1, rtol, atol, method, max_segments, ts=None, samples=Non
     mode = model.initial_mode(y)
     running.consider(model, t, y, mode)
     if ts is not None:
-        _sample(model, None, mode, -1.0, 0.0, ts, samples, y)
+        _sample_at(model, mode, 0.0, y, ts, samples)
     stops = [*model.stops(t1), t1]
     segments = 0
     status = "ok"
@@ -437,21 +437,26 @@ def _integrate(model, t1, rtol, atol, method, max_segments, ts=None, samples=Non
             )
             running.consider(model, t, y, mode)
             if ts is not None:  # a sample at the firing itself: after it, as at t = 0
-                _sample(model, None, mode, np.nextafter(t, -np.inf), t, ts, samples, y)
+                _sample_at(model, mode, t, y, ts, samples)
     return running, segments, status
 
 
-def _sample(model, sol, mode, start, end, ts, samples, y0=None):
-    """Fill the samples at the times in `(start, end]` from a segment's dense output (or
-    at `ts == 0`, the state `y0`)."""
+def _sample(model, sol, mode, start, end, ts, samples):
+    """Fill the samples at the times in `(start, end]` from a segment's dense output."""
     inside = (ts > start) & (ts <= end)
-    if not inside.any():
-        return
-    if sol is None:
-        assert y0 is not None
-        states = np.repeat(y0[:, None], inside.sum(), 1)
-    else:
-        states = sol.sol(ts[inside])
+    if inside.any():
+        _fill(model, mode, inside, sol.sol(ts[inside]), samples)
+
+
+def _sample_at(model, mode, t, y, ts, samples):
+    """Fill the samples at exactly `t` (the start, or a firing: after its impulse) with
+    the state `y`."""
+    inside = ts == t
+    if inside.any():
+        _fill(model, mode, inside, np.repeat(y[:, None], inside.sum(), 1), samples)
+
+
+def _fill(model, mode, inside, states, samples):
     for name, row in zip(("x_M", "v_M", "x_m", "v_m"), states, strict=True):
         samples[name][inside] = row
     samples["F_AN"][inside] = [model.anchoring(y, mode) for y in states.T]

@@ -613,14 +613,18 @@ def _groups(
 
 class _Chunk(NamedTuple):
     """One compiled call's worth of a group's designs: `key` (in the store), the group,
-    `rows` (positions in the group, in solving order), `points` (their indices into the
-    sweep's input) and `size` (the padded batch the program is compiled for)."""
+    `rows` (positions in the group, in solving order) and `size` (the padded batch the
+    program is compiled for)."""
 
     key: str
     group: _Group
     rows: np.ndarray
-    points: np.ndarray
     size: int
+
+    @property
+    def points(self) -> np.ndarray:
+        """The chunk's designs' indices into the sweep's input."""
+        return self.group.indices[self.rows]
 
 
 def _per_chunk(plan: dict) -> int:
@@ -652,7 +656,7 @@ def _chunks(groups, plan: dict, prefix: str = "", full: bool = False) -> list[_C
             chunk = min(chunk, needed - needed % workers)
         for begin in range(0, n, chunk):
             rows = order[begin : begin + chunk]
-            out.append(_Chunk(f"{prefix}{number}:{begin}", group, rows, group.indices[rows], chunk))
+            out.append(_Chunk(f"{prefix}{number}:{begin}", group, rows, chunk))
     return out
 
 
