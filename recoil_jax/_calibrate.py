@@ -42,6 +42,7 @@ from ._gradients import (
     SIGNALS,
     signal_sensitivities,
 )
+from ._model_check import ModelCheck, check_residuals, trace_noise
 from ._params import (
     PARAMETERS,
     ForceTable,
@@ -408,7 +409,7 @@ def _prepare(calibration: Calibration, experiments, layout: _Layout) -> _Data:
                 values = trace.signals[name]
                 present[e, s, :m] = np.isfinite(values)
                 measured[e, s, :m] = np.where(np.isfinite(values), values, 0.0)
-                sigma[e, s] = experiment.sigma.get(name) or _noise_guess(trace.t, values)
+                sigma[e, s] = experiment.sigma.get(name) or _noise_guess(values)
                 given[e, s] = name in experiment.sigma
         # The solve runs to the trace's end at the earliest trigger the fit may try.
         p = shift_column[e]
@@ -460,19 +461,13 @@ def _estimates_noise(data: _Data) -> bool:
     return bool(np.any(measured & ~np.asarray(data.sigma_given)))
 
 
-def _noise_guess(t, values) -> float:
-    """A first guess of a signal's noise from its samples alone: the spread of its
-    successive differences (MAD, robust to outliers), which on a densely sampled smooth
-    signal is the noise's √2 times; at least 1e-9 of the signal's size."""
+def _noise_guess(values) -> float:
+    """A first guess of a signal's noise from its samples alone (`trace_noise`: robust,
+    allowing for coloured noise); at least 1e-9 of the signal's size."""
     finite = values[np.isfinite(values)]
     size = float(np.max(np.abs(finite))) if finite.size else 1.0
-    steps = np.diff(finite)
-    guess = (
-        1.4826 * float(np.median(np.abs(steps - np.median(steps)))) / math.sqrt(2)
-        if (steps.size)
-        else 0.0
-    )
-    return max(guess, 1e-9 * size, 1e-300)
+    own = trace_noise(finite).sigma
+    return max(own if math.isfinite(own) else 0.0, 1e-9 * size, 1e-300)
 
 
 def _experiment_signals(theta_e, params, times, t1, data: _Data, static: _Static):
@@ -768,6 +763,9 @@ class Fitted:
     #: beyond them. Its interval is then the curvature there, cut at the bound, not a
     #: confidence interval.
     at_bound: str | None = None
+    #: The model does not explain the traces (`CalibrationResult.check`): `stderr` and
+    #: `ci95` are withheld (None), since they assume it does.
+    withheld: bool = False
 
     def to_json(self) -> dict[str, Any]:
         out = {
@@ -776,6 +774,7 @@ class Fitted:
             "ci95": None if self.ci95 is None else list(self.ci95),
             "identifiable": self.identifiable,
             "at_bound": self.at_bound,
+            "withheld": self.withheld,
         }
         if self.profile_ci95 is not None:
             out["profile_ci95"] = list(self.profile_ci95)
@@ -808,6 +807,12 @@ class CalibrationResult:
     - `profiles`: with `profiles=True`, each value's profile: `values (m,)` and
       `delta_chi2 (m,)` (the refitted cost's rise over the best, in units of the
       reduced χ²; 3.84 bounds the 95 % interval).
+    - `check`: the test of the residuals against each trace's own noise
+      (`ModelCheck`); `explains`: it passed. Where it did not, every `Fitted`'s interval
+      is withheld.
+    - `structure`: the model fitted (`absorber`, `load`: impulse, pulse or force table,
+      `shots`, `hardware`: the optional groups present); `defaults`: the design values
+      no experiment gave and the fit did not fit, taken from the defaults.
     - `bounds`: each fitted value's bounds; `design`: the known values the experiments
       shared. `hardware()`: the fitted hardware parameters with their covariance, for
       `predict` and robust studies.
@@ -840,6 +845,15 @@ class CalibrationResult:
     bounds: dict[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
     design: dict[str, float] = dataclasses.field(default_factory=dict)
     profiles: dict[str, dict[str, np.ndarray]] = dataclasses.field(default_factory=dict)
+    check: ModelCheck = dataclasses.field(default_factory=lambda: ModelCheck(()))
+    structure: dict[str, Any] = dataclasses.field(default_factory=dict)
+    defaults: dict[str, float] = dataclasses.field(default_factory=dict)
+
+    @property
+    def explains(self) -> bool:
+        """The model explains the traces: no signal's residuals are far above its noise
+        or far from white (`check`)."""
+        return self.check.explains
 
     def hardware(self) -> FittedParameters:
         """The fitted values shared by every experiment that are design parameters (not
@@ -856,6 +870,7 @@ class CalibrationResult:
             np.asarray([self.bounds[n][1] for n in names]),
             np.asarray([self.fitted[n].identifiable for n in names], dtype=bool),
             dict(self.design),
+            self.explains,
         )
 
     @property
@@ -883,6 +898,9 @@ class CalibrationResult:
             "sigma": self.sigma,
             "converged": self.converged,
             "solved": self.solved,
+            "explains": self.explains,
+            "model": {"structure": self.structure, "defaults": self.defaults},
+            "model_check": self.check.to_json(),
             "starts": self.starts,
             "starts_at_best": self.starts_at_best,
             "steps": self.steps,
@@ -1149,9 +1167,10 @@ def _with_profiles(result, layout, data, static, u_best, store_=None):
         order = np.argsort(values, kind="stable")
         values, rise = values[order], rise[order]
         profiles[label] = {"values": values, "delta_chi2": rise}
-        fitted[label] = dataclasses.replace(
-            fitted[label], profile_ci95=_crossings(values, rise, theta[i])
-        )
+        if not fitted[label].withheld:  # the profile's interval assumes the model too
+            fitted[label] = dataclasses.replace(
+                fitted[label], profile_ci95=_crossings(values, rise, theta[i])
+            )
     return dataclasses.replace(result, fitted=fitted, profiles=profiles)
 
 
@@ -1251,30 +1270,8 @@ def _report(calibration, layout, data, evaluation, theta, *, converged, starts, 
         correlation = covariance / np.outer(sd, sd)
     correlation[~identifiable, :] = np.nan
     correlation[:, ~identifiable] = np.nan
-    fitted = {}
-    for i, label in enumerate(layout.labels):
-        zi = float(z[i])
-        side = "lower" if zi <= AT_BOUND else "upper" if zi >= 1.0 - AT_BOUND else None
-        if identifiable[i]:
-            low, high = theta[i] - 1.96 * sd[i], theta[i] + 1.96 * sd[i]
-            if side is not None:  # nothing beyond the bound is a fit
-                low, high = max(low, layout.lower[i]), min(high, layout.upper[i])
-            fitted[label] = Fitted(
-                float(theta[i]), float(sd[i]), (float(low), float(high)), True, at_bound=side
-            )
-        else:
-            fitted[label] = Fitted(float(theta[i]), None, None, False, at_bound=side)
     sigma = np.asarray(data.sigma)
     residual_si = r * sigma[..., None]
-    rms = {
-        name: float(np.sqrt(np.mean(residual_si[:, s][present[:, s]] ** 2)))
-        for s, name in enumerate(layout.signals)
-        if present[:, s].any()
-    }
-    # −2 log-likelihood of the Gaussian noise model (up to N log 2π), and how many values
-    # were estimated: the fitted ones and every estimated noise.
-    minus_two_log_likelihood = chi2 + float(_log_likelihood_term(sigma, present))
-    estimated = P + int(np.sum(present.any(-1) & ~np.asarray(data.sigma_given)))
     experiments, times, measured, model = [], [], [], []
     signals_model = np.asarray(evaluation.signals)
     for e, experiment in enumerate(calibration.experiments):
@@ -1291,6 +1288,37 @@ def _report(calibration, layout, data, evaluation, theta, *, converged, starts, 
         times.append(t)
         measured.append(m)
         model.append(fit)
+    check = check_residuals(
+        [(x.label, t, m, fit, x.sigma)
+         for x, t, m, fit in zip(calibration.experiments, times, measured, model, strict=True)],
+        {name: SIGNALS[name][0] for name in layout.signals},
+        robust=calibration.loss != "linear",
+    )  # fmt: skip
+    fitted = {}
+    for i, label in enumerate(layout.labels):
+        zi = float(z[i])
+        side = "lower" if zi <= AT_BOUND else "upper" if zi >= 1.0 - AT_BOUND else None
+        if not check.explains:  # an interval would assume the model the data refute
+            fitted[label] = Fitted(float(theta[i]), None, None, bool(identifiable[i]),
+                                   at_bound=side, withheld=True)  # fmt: skip
+        elif identifiable[i]:
+            low, high = theta[i] - 1.96 * sd[i], theta[i] + 1.96 * sd[i]
+            if side is not None:  # nothing beyond the bound is a fit
+                low, high = max(low, layout.lower[i]), min(high, layout.upper[i])
+            fitted[label] = Fitted(
+                float(theta[i]), float(sd[i]), (float(low), float(high)), True, at_bound=side
+            )
+        else:
+            fitted[label] = Fitted(float(theta[i]), None, None, False, at_bound=side)
+    rms = {
+        name: float(np.sqrt(np.mean(residual_si[:, s][present[:, s]] ** 2)))
+        for s, name in enumerate(layout.signals)
+        if present[:, s].any()
+    }
+    # −2 log-likelihood of the Gaussian noise model (up to N log 2π), and how many values
+    # were estimated: the fitted ones and every estimated noise.
+    minus_two_log_likelihood = chi2 + float(_log_likelihood_term(sigma, present))
+    estimated = P + int(np.sum(present.any(-1) & ~np.asarray(data.sigma_given)))
     return CalibrationResult(
         fitted=fitted,
         values={label: float(theta[i]) for i, label in enumerate(layout.labels)},
@@ -1321,7 +1349,31 @@ def _report(calibration, layout, data, evaluation, theta, *, converged, starts, 
             for i, label in enumerate(layout.labels)
         },
         design={k: float(v) for k, v in calibration.design.items() if k != "t1"},
+        check=check,
+        **_structure(calibration),
     )
+
+
+def _structure(calibration: Calibration) -> dict[str, Any]:
+    """The model a calibration fits (`CalibrationResult.structure`), from its first
+    experiment (they share one structure), and the values it took from the defaults."""
+    experiment = calibration.experiments[0]
+    values = _design_of(calibration, experiment)
+    groups = {PARAMETERS[name].group for name in values}
+    if calibration.experiment_table(experiment) is not None:
+        load = "force table"
+    else:
+        load = "pulse" if values.get("pulse_time", 0.0) > 0 else "impulse"
+    given = {*calibration.fit, *(k for x in calibration.experiments for k in x.design),
+             *calibration.design}  # fmt: skip
+    structure = {
+        "absorber": values.get("m", 0.0) > 0,
+        "load": load,
+        "shots": int(values.get("shots", 1)),
+        "hardware": sorted(groups - {"barrel", "absorber", "contact", "load"}),
+    }
+    defaults = {k: v for k, v in values.items() if k not in given}
+    return {"structure": structure, "defaults": defaults}
 
 
 def _experiment_summary(experiment, e, layout, present, residual_si, measured, model):
@@ -1405,11 +1457,13 @@ def validate(
 
 def fit_many(
     calibration: Calibration, measured: Sequence[Sequence[Mapping[str, np.ndarray]]]
-) -> list[dict[str, float]]:
+) -> list[dict[str, Any]]:
     """Fit many data sets of the same experiments at once (one batched program): e.g.
     noise draws of a synthetic test. `measured[b][e]`: the signals of experiment `e` in
     data set `b`, on that experiment's sample times. Returns each set's fitted values
-    by label with their standard errors (`"<label>.stderr"`) and a `"converged"` flag."""
+    by label with their standard errors (`"<label>.stderr"`; NaN where withheld), a
+    `"converged"` flag, whether the model `"explains"` the set, the `"failing"` signals
+    (`"x_M in firing.csv"`) and the whole `"check"` (`ModelCheck`)."""
     layout = _Layout.of(calibration)
     data = _prepare(calibration, calibration.experiments, layout)
     static = _Static(layout.wrt, layout.signals, calibration.loss, calibration.f_scale, 200,
@@ -1429,11 +1483,14 @@ def fit_many(
             lambda d: (d.measured, d.sigma), data, (jnp.asarray(batch[b]), outcome.sigma[b])
         )
         report = _lane_report(calibration, layout, data_b, static, outcome, b, (1, 1))
-        row = {label: f.value for label, f in report.fitted.items()}
+        row: dict[str, Any] = {label: f.value for label, f in report.fitted.items()}
         row |= {
             f"{label}.stderr": (f.stderr if f.stderr is not None else math.nan)
             for label, f in report.fitted.items()
         }
         row["converged"] = report.converged
+        row["explains"] = report.explains
+        row["failing"] = [f"{c.signal} in {c.experiment}" for c in report.check.failing]
+        row["check"] = report.check
         rows.append(row)
     return rows

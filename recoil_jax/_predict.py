@@ -47,6 +47,8 @@ class FittedParameters:
     upper: np.ndarray
     identifiable: np.ndarray
     design: dict[str, float]
+    #: The calibration's model explained its traces (`CalibrationResult.explains`).
+    explains: bool = True
 
     def __post_init__(self):
         if not self.names:
@@ -54,7 +56,12 @@ class FittedParameters:
 
     def check_determined(self) -> None:
         """Raise `ParameterError` if a fitted value is not determined by the data: a band
-        around it would not mean anything."""
+        around it would not mean anything, or if the model did not explain the traces."""
+        if not self.explains:
+            raise ParameterError(
+                "the calibration's model does not explain its traces (model_check in its "
+                "result.json): its uncertainty would mean nothing; fit the right model first"
+            )
         loose = [n for n, ok in zip(self.names, self.identifiable, strict=True) if not ok]
         if loose:
             raise ParameterError(
@@ -108,6 +115,7 @@ class FittedParameters:
             "upper": self.upper.tolist(),
             "identifiable": self.identifiable.tolist(),
             "design": self.design,
+            "explains": self.explains,
         }
 
     @classmethod
@@ -124,6 +132,7 @@ class FittedParameters:
                 np.asarray(entry["upper"], dtype=float),
                 np.asarray(entry["identifiable"], dtype=bool),
                 {k: float(v) for k, v in entry["design"].items()},
+                bool(entry.get("explains", True)),  # results written before the check
             )
         except (json.JSONDecodeError, KeyError, TypeError, ValueError):
             raise ParameterError(

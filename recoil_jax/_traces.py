@@ -18,7 +18,14 @@ from typing import Any
 import numpy as np
 
 from ._gradients import SIGNAL_ALIASES, SIGNALS
-from ._params import ForceTable, Limits, ParameterError, check_value, parameter, read_text
+from ._params import (
+    ForceTable,
+    Limits,
+    ParameterError,
+    check_value,
+    params_from_values,
+    read_text,
+)
 
 __all__ = [
     "TIME_COLUMNS",
@@ -242,11 +249,12 @@ class Experiment:
         where = self.label
         sigma = {signal_name(k) or k: v for k, v in self.sigma.items()}
         object.__setattr__(self, "sigma", sigma)
-        for name, value in self.design.items():
-            if name == "t_shift":
-                check_value(where, name, value, T_SHIFT)
-            elif name != "t1":
-                check_value(where, name, value, parameter(name))
+        if "t_shift" in self.design:
+            check_value(where, "t_shift", self.design["t_shift"], T_SHIFT)
+        try:  # the one check of a design's values (as `simulate`'s): m = 0, no absorber
+            params_from_values({k: v for k, v in self.design.items() if k not in ("t_shift", "t1")})
+        except ParameterError as error:
+            raise ParameterError(f"{where}: {error}") from None
         for name, value in self.sigma.items():
             if name not in self.trace.signals:
                 raise ParameterError(

@@ -40,7 +40,9 @@ not need them; `docs/developers.md` shows how to plug a part in.
 
 - `Experiment` (a trace and what is known of its firing), `Trace`, `SIGNALS` (the
   measurable signals, with units), `T_SHIFT` (the trigger delay's range), `LOSSES`;
-  `Fitted` (one fitted value with its uncertainty); `validate` (score a fit on a trace
+  `Fitted` (one fitted value with its uncertainty); `ModelCheck` and `SignalCheck` (the
+  test of a fit's residuals against each trace's own noise, `trace_noise`, and for
+  whiteness: does the model explain the traces?); `validate` (score a fit on a trace
   it did not see); `fit_many` (many data sets of the same experiments, fitted as one
   batch); `signal_sensitivities` (the signals at chosen times with their exact
   derivatives); `FittedParameters` (a fit's hardware values with their covariance,
@@ -72,6 +74,7 @@ from ._gradients import SIGNALS, signal_sensitivities
 from ._local import LocalEvaluation, LocalMethod, LocalRun, MinimaxMethod, run_local
 from ._metrics import PEAK_FIELDS, Metric, gradient_key, worst_case
 from ._model import Forces
+from ._model_check import ModelCheck, SignalCheck, trace_noise
 from ._params import T1_LIMITS, Parameter, end_time, read_text
 from ._predict import FittedParameters, Prediction
 from ._problem import DesignEvaluation, evaluate_design
@@ -108,11 +111,13 @@ __all__ = [
     "MinimaxEvaluator",
     "MinimaxMethod",
     "MinimaxWindow",
+    "ModelCheck",
     "Parameter",
     "Prediction",
     "RunRecord",
     "SearchSpace",
     "SensitivityMethod",
+    "SignalCheck",
     "StoredEvaluator",
     "StoredSweep",
     "Trace",
@@ -137,6 +142,7 @@ __all__ = [
     "status_messages",
     "status_table",
     "structure_jit",
+    "trace_noise",
     "validate",
     "worst_case",
 ]

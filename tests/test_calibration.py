@@ -16,6 +16,7 @@ import pytest
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
+from recoil_jax.apps._calibration import MODEL_MISFIT
 from recoil_jax.apps._cli import main
 
 TIGHT = rj.SolverOptions(t1=1.0, rtol=1e-10, atol=1e-13)
@@ -433,22 +434,32 @@ def test_the_command_line_fits_a_calibration_file(tmp_path, capsys):
 
 def test_a_value_pressed_against_its_bound_is_said_to_be_there(tmp_path, capsys):
     """Bounds that leave out the true stiffness (k ≤ 15,000 N/m against 28,000): k ends on
-    its upper bound, said in the report, warned of on stderr, and its interval cut at the
-    bound; the values inside their boxes are not flagged."""
+    its upper bound, said in the report and on stderr; the model so bounded does not
+    explain the trace (status 5, no intervals); the values inside their boxes are not
+    flagged. Within bounds that hold the truth, an interval on a bound is cut there."""
     ts, signals = synthetic(TRUTH, seed=2)
     write_trace(tmp_path / "firing.csv", ts, signals)
     (tmp_path / "c.toml").write_text(
         "[fit]\nk = [1e4, 1.5e4]\nc_out = [1e3, 3e4]\ngap = [0.0, 0.1]\n"
         '[[experiment]]\ntrace = "firing.csv"\n'
     )
-    assert main(["calibrate", str(tmp_path / "c.toml"), "--out", str(tmp_path / "o")]) == 0
+    code = main(["calibrate", str(tmp_path / "c.toml"), "--out", str(tmp_path / "o")])
     captured = capsys.readouterr()
-    assert "    k            15000  (on its upper bound; the curvature there +/- " in captured.out
-    assert "warning: k = 15000 ended on its upper bound" in captured.err
+    assert code == MODEL_MISFIT
+    assert "    k            15000  (on its upper bound)" in captured.out
+    assert "k = 15000 ended on its upper bound: widen the bounds" in captured.err
     fitted = json.loads((tmp_path / "o" / "result.json").read_text())["fitted"]
-    assert fitted["k"]["at_bound"] == "upper" and fitted["k"]["ci95"][1] == 15000.0
+    assert fitted["k"]["at_bound"] == "upper" and fitted["k"]["ci95"] is None
     assert fitted["k"]["value"] == pytest.approx(15000.0, rel=1e-6)
     assert fitted["c_out"]["at_bound"] is None and fitted["gap"]["at_bound"] is None
+    # A bound at the true value (c_out 6,000): at this seed the data want it a little below,
+    # the model still explains the trace, and the interval is cut at the bound.
+    box = BOX | {"c_out": (6000.0, 3e4)}
+    result = rj.calibrate(rj.Calibration([rjx.Experiment(trace(TRUTH, seed=3))], fit=box),
+                          progress=False)  # fmt: skip
+    c_out = result.fitted["c_out"]
+    assert result.explains and c_out.at_bound == "lower" and c_out.ci95 is not None
+    assert c_out.ci95[0] == 6000.0 < c_out.ci95[1]
 
 
 @pytest.mark.parametrize(

@@ -5,13 +5,15 @@ independent solver with noise.
 
 Measured, side by side in one run: one 5-parameter fit (warm); many fits (noise draws:
 ours as one batch, scipy looping); the fraction of random starts that reach the best
-(both from the same points); the prediction band; the command line cold and cached.
+(both from the same points); the prediction band; how often the model check flags a
+wrong model and a right one (`model_check_rates`); the command line cold and cached.
 Speed is reported, never asserted.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -146,6 +148,83 @@ def many_fits(samples: int, draws: int, scipy_draws: int, log) -> dict:
     }
 
 
+#: The model check's cases: a wrong model, (the truth, the design fitted, the trigger
+#: delay of the truth's firing (s)) by name; and the right ones, by noise correlation.
+WRONG_MODELS = {
+    "absorber trace fitted without the absorber": ({}, {"m": 0.0}, 0.0),
+    "simplified trace fitted with the absorber": ({"m": 0.0}, {}, 0.0),
+    "10 ms pulse fitted as an impulse": ({"pulse_time": 0.01}, {}, 0.0),
+    "20 ms trigger delay fitted with t_shift = 0": ({}, {}, 0.02),
+}
+RIGHT_MODELS = {
+    "absorber, white noise": ({}, 0.0),
+    "absorber, AR(1) noise, phi 0.5": ({}, 0.5),
+    "simplified, white noise": ({"m": 0.0}, 0.0),
+    "simplified, AR(1) noise, phi 0.5": ({"m": 0.0}, 0.5),
+}
+#: The model check's test: the newcomer's noise (issue 52), three values fitted over
+#: their documented ranges (as `calibrate TRACE --fit k,c_out,c_ret` does) with the
+#: noise estimated.
+CHECK_NOISE = {"x_M": 3e-4, "F_AN": 40.0}
+CHECK_FIT = {"k": (1e3, 1e6), "c_out": (0.0, 5e4), "c_ret": (0.0, 5e4)}
+
+
+def _coloured(rng, samples: int, phi: float) -> np.ndarray:
+    """Unit-variance AR(1) noise `n_t = phi n_(t-1) + sqrt(1 - phi^2) e_t` (a data
+    logger's filter), started in its stationary state."""
+    import scipy.signal
+
+    e = rng.standard_normal(samples)
+    return scipy.signal.lfilter([math.sqrt(1 - phi * phi)], [1.0, -phi], e,
+                                zi=[phi * e[0]])[0]  # fmt: skip
+
+
+def model_check_rates(draws: int, samples: int, log, end: float = 1.0) -> dict:
+    """How often the model check flags a fit, over `draws` noise draws of each wrong
+    model (`WRONG_MODELS`) and `draws // 2` of each right one (`RIGHT_MODELS`), each
+    trace made by the independent reference solver, fitted as one batch (`fit_many`):
+    flagged, and flagged naming a signal."""
+    ts = np.linspace(0.0, end, samples)
+
+    def flagged(truth: dict, design: dict, delay: float, phi: float, count: int, seed: int):
+        history = rjx.reference_history(truth, np.clip(ts - delay, 0.0, None))
+        clean = {s: np.where(ts < delay, 0.0, history[s]) for s in CHECK_NOISE}
+        sets = []
+        for b in range(count):
+            rng = np.random.default_rng(seed + b)
+            sets.append({s: clean[s] + CHECK_NOISE[s] * _coloured(rng, samples, phi)
+                         for s in CHECK_NOISE})  # fmt: skip
+        experiment = rjx.Experiment(rjx.Trace.of(ts, **sets[0]), design=design)
+        rows = rjx.fit_many(rj.Calibration([experiment], fit=CHECK_FIT), [[x] for x in sets])
+        windows = [(w, c.trace_correlation) for r in rows for c in r["check"].signals
+                   for w in c.windows]  # fmt: skip
+        return {
+            "draws": count,
+            "flagged": sum(not r["explains"] for r in rows),
+            "named": sum(bool(r["failing"]) for r in rows),
+            "converged": sum(bool(r["converged"]) for r in rows),
+            # The margins: the windows' largest and smallest size over the noise, and
+            # their largest lag-1 autocorrelation above the trace's own noise's.
+            "window_ratio": [min(w.ratio for w, _ in windows), max(w.ratio for w, _ in windows)],
+            "correlation_above_noise": max(w.correlation - phi for w, phi in windows),
+        }
+
+    cases = [
+        ("wrong", name, truth, design, delay, 0.0, draws)
+        for name, (truth, design, delay) in WRONG_MODELS.items()
+    ]
+    cases += [("right", name, truth, truth, 0.0, phi, draws // 2)
+              for name, (truth, phi) in RIGHT_MODELS.items()]  # fmt: skip
+    out: dict[str, dict] = {"wrong": {}, "right": {}}
+    for i, (kind, name, truth, design, delay, phi, count) in enumerate(cases):
+        start = time.perf_counter()
+        row = flagged(truth, design, delay, phi, count, 10_000 * (i + 1))
+        out[kind][name] = row
+        log(f"  model check, {kind} model, {name}: {row['flagged']} of {count} flagged "
+            f"({time.perf_counter() - start:.1f} s)")  # fmt: skip
+    return {"samples": samples, "end": end, "noise": CHECK_NOISE, **out}
+
+
 def random_starts(
     name: str, known: dict, end: float, samples: int, starts: int, log, seeds=(3, 5)
 ) -> dict:
@@ -245,6 +324,7 @@ def run_calibration_bench(
             ),
         ],
         "prediction": prediction(prediction_samples, log),
+        "model_check": model_check_rates(draws, min(samples, 1001), log),
         "command_line": command_line(samples, log) if cli else None,
         "scipy_solver": {"method": "DOP853", **SCIPY_SOLVER},
         "host": host_description(),
@@ -280,6 +360,15 @@ def format_calibration_bench(result: dict) -> str:
         )
     p = result["prediction"]
     lines.append(f"prediction band, {p['samples']} samples: {p['seconds']:.2f} s")
+    check = result["model_check"]
+    for kind, says in (("wrong", "flagged, naming a signal"), ("right", "flagged")):
+        key = "named" if kind == "wrong" else "flagged"
+        for name, row in check[kind].items():
+            lines.append(f"model check, {kind} model ({name}): {row[key]} of {row['draws']} "
+                         f"{says}")  # fmt: skip
+    right = check["right"].values()
+    lines.append(f"model check, false alarms: {sum(r['flagged'] for r in right)} of "
+                 f"{sum(r['draws'] for r in right)} right fits")  # fmt: skip
     if result["command_line"]:
         c = result["command_line"]
         runs = c.get("cached_runs") or [c["cached_s"]]

@@ -21,11 +21,14 @@ from ._inputs import (
     read_toml,
 )
 
-__all__ = ["NOT_CONVERGED", "load_calibration", "run_calibration"]
+__all__ = ["MODEL_MISFIT", "NOT_CONVERGED", "load_calibration", "run_calibration"]
 
 #: The exit status when the fit did not converge (0 fitted, 1 a solve failed, 2 bad
 #: input).
 NOT_CONVERGED = 4
+#: The exit status when the fit converged but the model does not explain the traces:
+#: residuals far above the traces' own noise, or far from white (`rj.ModelCheck`).
+MODEL_MISFIT = 5
 
 #: The keys of a calibration file, and of one `[[experiment]]` besides design values.
 _FILE_KEYS = {"description", "design", "fit", "experiment", "validation", "loss", "f_scale",
@@ -157,6 +160,8 @@ def _quick(trace_path, fit_names: str | None, assignments, validate, force_table
         else:
             raise rj.PARAMETERS.unknown(name, also=("t_shift",))
     design = parse_assignments(assignments)
+    known = {k: v for k, v in design.items() if k not in ("t_shift", "t1")}
+    rj.params_from_values(known)  # checked as simulate checks it (m = 0: no absorber)
     experiment = rjx.Experiment(rj.read_trace(trace_path), design=design)
     validation = [rjx.Experiment(rj.read_trace(v), design=design) for v in validate]
     table = rj.ForceTable.from_csv(force_table) if force_table else None
@@ -198,7 +203,7 @@ def run_calibration(args) -> int:
     from ._figures import calibration_figures
 
     report["figures"] = [str(p) for p in calibration_figures(result, out)]
-    if args.predict is not None:
+    if args.predict is not None and result.explains:
         from ._figures import plot_prediction
 
         prediction = rj.predict(
@@ -215,7 +220,7 @@ def run_calibration(args) -> int:
         if "prediction" in report:
             print(prediction_report(report["prediction"]))
     for name, f in result.fitted.items():
-        if f.at_bound is not None:
+        if f.at_bound is not None and result.explains:
             print(f"recoil-jax: warning: {name} = {f.value:.6g} ended on its {f.at_bound} "
                   "bound: the data may want it beyond, so it has no confidence interval; "
                   "widen its bounds if the hardware allows", file=sys.stderr)  # fmt: skip
@@ -229,7 +234,43 @@ def run_calibration(args) -> int:
             file=sys.stderr,
         )
         return NOT_CONVERGED
+    if not result.explains:
+        failing = ", ".join(dict.fromkeys(c.signal for c in result.check.failing))
+        predicted = "; no prediction was made" if args.predict is not None else ""
+        bounds = [f"{n} = {f.value:.6g} ended on its {f.at_bound} bound"
+                  for n, f in result.fitted.items() if f.at_bound is not None]  # fmt: skip
+        if bounds:  # the other way a fit fails to explain: bounds that leave out the truth
+            predicted += f"; {', '.join(bounds)}: widen the bounds if the hardware allows"
+        print(f"recoil-jax: the model does not explain the traces ({failing}): its values "
+              "are the best a wrong model gives, and have no intervals; check what the "
+              "design says of the test (an absorber or none, the load, the trigger delay "
+              f"t_shift){predicted}", file=sys.stderr)  # fmt: skip
+        return MODEL_MISFIT
     return 0
+
+
+def structure_line(structure: dict) -> str:
+    """The model a calibration fitted, in words (`CalibrationResult.structure`)."""
+    if not structure:
+        return "unknown"
+    load = {"impulse": "an impulse (v0)", "pulse": "a pulse (pulse_time)",
+            "force table": "a measured force table"}[structure["load"]]  # fmt: skip
+    shots = structure["shots"]
+    hardware = " and ".join(structure["hardware"]) or "no buffer or recuperator"
+    absorber = "absorber" if structure["absorber"] else "no absorber (m = 0)"
+    return f"{absorber}; {shots} round{'s' if shots > 1 else ''} of {load}; {hardware}"
+
+
+def _check_line(check: rjx.ModelCheck) -> str:
+    """The model check's verdict, with each signal's residual RMS beside its noise."""
+    several = len({c.experiment for c in check.signals}) > 1
+    noises = "; ".join(
+        f"{c.signal}{' in ' + c.experiment if several else ''} rms "
+        f"{c.rms:.3g} against noise {c.noise:.3g}{' (given)' if c.noise_given else ''}"
+        for c in check.signals
+    )
+    verdict = "explains the traces" if check.explains else "does NOT explain the traces"
+    return f"  model check: the model {verdict} ({noises})"
 
 
 def prediction_report(prediction: dict) -> str:
@@ -258,15 +299,28 @@ def fit_report(result: rj.CalibrationResult) -> str:
         f"  samples {result.samples}, dof {result.dof}, chi2 {result.chi2:.6g}, "
         f"reduced chi2 {result.reduced_chi2:.4g}, AIC {result.aic:.6g}, BIC {result.bic:.6g}",
         "  rms: " + ", ".join(f"{k} {v:.4g}" for k, v in result.rms.items()),
+        f"  model fitted: {structure_line(result.structure)}",
     ]
+    if result.defaults:
+        lines.append("  defaults taken (not given, not fitted): " + ", ".join(
+            f"{k} {v:g} {rj.PARAMETERS[k].unit}".rstrip() for k, v in result.defaults.items()
+        ))  # fmt: skip
+    if result.check.signals:
+        lines.append(_check_line(result.check))
+        lines.extend(f"    {c.reason()}" for c in result.check.failing)
     for experiment in result.experiments:  # empty or NaN samples, left out of the fit
         skipped = {k: n for k, n in experiment["skipped"].items() if n}
         if skipped:
             counts = ", ".join(f"{n} of {k}" for k, n in skipped.items())
             lines.append(f"  skipped (empty or NaN) in {experiment['name']}: {counts}")
-    lines.append("  fitted:")
+    withheld = " (no intervals: the model does not explain the traces)"
+    lines.append("  fitted:" + (withheld if not result.explains else ""))
     for name, f in result.fitted.items():
-        if f.at_bound is not None:
+        if f.withheld:
+            line = f"    {name:12s} {f.value:.6g}"
+            if f.at_bound is not None:
+                line += f"  (on its {f.at_bound} bound)"
+        elif f.at_bound is not None:
             line = f"    {name:12s} {f.value:.6g}  (on its {f.at_bound} bound"
             if f.identifiable and f.stderr is not None:
                 line += f"; the curvature there +/- {f.stderr:.3g}"
@@ -292,7 +346,7 @@ def fit_report(result: rj.CalibrationResult) -> str:
         for j, b in enumerate(result.fitted)
         if i < j and a in names and b in names and abs(result.correlation[i, j]) >= 0.5
     ]
-    if pairs:
+    if pairs and result.explains:
         lines.append(
             "  correlations >= 0.5: " + ", ".join(f"{a}~{b} {c:+.3f}" for a, b, c in pairs)
         )

@@ -511,7 +511,9 @@ def build_parser() -> argparse.ArgumentParser:
         "[design], [fit], [[experiment]]), or one trace (CSV: t and signal columns) with "
         "--fit. Writes result.json (values, standard errors, 95%% intervals, "
         "correlation, identifiability, chi2, AIC, BIC), fit.png and correlation.png. "
-        "Exit 0 fitted, 1 a solve failed, 2 bad input, 4 the fit did not converge.",
+        "Exit 0 fitted, 1 a solve failed, 2 bad input, 4 the fit did not converge, 5 the "
+        "model does not explain the traces (residuals far above the traces' own noise, "
+        "or far from white).",
     )
     calibrate.add_argument("source", help="a calibration file (.toml) or a trace (.csv)")
     calibrate.add_argument("assignments", nargs="*", metavar="name=value",
@@ -656,7 +658,8 @@ def main(argv: list[str] | None = None) -> int:
     """Run the command line with `argv` (default `sys.argv[1:]`); returns the exit code:
     0 done, 1 a solve failed (or the disk, the pipe or a store failed the run), 2 bad
     input, 3 (`optimise`) no design met every limit, 4 (`calibrate`) the fit did not
-    converge, 130 interrupted (Ctrl-C). An output folder the command made and left
+    converge, 5 (`calibrate`) the model does not explain the traces, 130 interrupted
+    (Ctrl-C). An output folder the command made and left
     empty is removed when it does not succeed."""
     rj.use_avx2_codegen()  # before any computation: the flag is read as the backend starts
     parser = build_parser()

@@ -429,8 +429,11 @@ def _save(fig, path) -> Path:
 def plot_calibration_fit(result: rj.CalibrationResult, path) -> Path:
     """Measured against fitted for each experiment (columns) and signal (rows), each
     with its residual panel below (in the signal's unit)."""
+    from ._calibration import structure_line
+
     signals = list(dict.fromkeys(s for m in result.measured for s in m))
     experiments = len(result.times)
+    checks = {(c.experiment, c.signal): c for c in result.check.signals}
     fig, axes = plt.subplots(
         2 * len(signals),
         experiments,
@@ -460,9 +463,27 @@ def plot_calibration_fit(result: rj.CalibrationResult, path) -> Path:
             bottom.plot(t, residual, ".", ms=2, color="C3")
             bottom.axhline(0.0, color="k", lw=0.8)
             bottom.set_ylabel(f"residual ({unit})")
+            check = checks.get((name, signal))
+            if check is not None:  # the noise the residuals are held to, and where they fail
+                for y in (-2 * check.noise, 2 * check.noise):
+                    bottom.axhline(y, color="k", lw=0.6, ls="--")
+                for start, end in check.failing_spans():
+                    for ax in (top, bottom):
+                        ax.axvspan(start, end, color="C3", alpha=0.12, lw=0)
         axes[-1, e].set_xlabel("t (s)")
     fitted = ", ".join(f"{k} = {v:.4g}" for k, v in result.values.items())
-    fig.suptitle(f"calibration (reduced chi2 {result.reduced_chi2:.3g})\n{fitted}", fontsize=10)
+    verdict = (
+        "the model explains the traces\n(dashed: twice the noise)"
+        if result.explains
+        else "the model does NOT explain the traces\n(shaded: where it fails; dashed: twice "
+        "the noise)"
+    )
+    fig.suptitle(
+        f"calibration of: {structure_line(result.structure)}\nreduced chi2 "
+        f"{result.reduced_chi2:.3g}; {fitted}\n{verdict}",
+        fontsize=9,
+        color="k" if result.explains else "C3",
+    )
     return _save(fig, path)
 
 
