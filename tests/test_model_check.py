@@ -43,14 +43,17 @@ def _trace(path, truth: dict, seed: int = 0, phi: float = 0.0, delay: float = 0.
 @pytest.mark.parametrize("phi", [0.0, 0.25, 0.5])
 def test_a_traces_own_noise_is_read_from_its_samples_alone(phi):
     """On the paper's absorber trace (a kink at the firing, the impacts), the noise and
-    its correlation come back from the samples: sigma within 8 % and phi within 0.12 in
-    each of 10 draws (1,001 samples), for white and AR(1) noise."""
+    its correlation come back from the samples: over 50 draws of 1,001 samples, sigma
+    within 15 % (within 11 % in 95 % of them) and phi within 0.12, for white and AR(1)
+    noise."""
     clean = np.asarray(rj.simulate(rj.RecoilParams(), ts=TS).anchoring_force)
-    for seed in range(10):
-        rng = np.random.default_rng(seed)
-        own = rjx.trace_noise(clean + 40.0 * _coloured(rng, TS.size, phi))
-        assert abs(own.sigma / 40.0 - 1.0) < 0.08, (phi, seed, own)
-        assert abs(own.correlation - phi) < 0.12, (phi, seed, own)
+    sigma, correlation = [], []
+    for seed in range(50):
+        own = rjx.trace_noise(clean + 40.0 * _coloured(np.random.default_rng(seed), TS.size, phi))
+        sigma.append(abs(own.sigma / 40.0 - 1.0))
+        correlation.append(abs(own.correlation - phi))
+    assert max(sigma) < 0.15 and np.percentile(sigma, 95) < 0.11, sigma
+    assert max(correlation) < 0.12, correlation
 
 
 def test_a_trace_too_short_or_constant_has_no_noise_to_read():
