@@ -441,9 +441,7 @@ def check_value(owner: str, name: str, value: Any, limits: Limits) -> None:
     if not bad.any():
         return
     index = int(np.argmax(bad))
-    where = ""
-    if array.ndim:
-        where = "[" + ", ".join(str(int(i)) for i in np.unravel_index(index, array.shape)) + "]"
+    where = _element(array, index)
     bad_value = flat[index]
     unit = f" {limits.unit}" if limits.unit else ""
     if bad_finite[index]:
@@ -459,6 +457,14 @@ def check_value(owner: str, name: str, value: Any, limits: Limits) -> None:
         f"valid {name} {limits.describe()}{documented}"
         + (f" ({limits.meaning})" if limits.meaning else "")
     )
+
+
+def _element(array: np.ndarray, index: int) -> str:
+    """How a message names the element at flat `index` of `array`: `[i, j]`, or nothing
+    for a scalar."""
+    if not array.ndim:
+        return ""
+    return "[" + ", ".join(str(int(i)) for i in np.unravel_index(index, array.shape)) + "]"
 
 
 def _as_float_array(value: Any) -> Any:
@@ -561,6 +567,30 @@ class Absorber(_Validated):
     c_r: Any = _registered("c_r")
 
     LIMITS: ClassVar[Mapping[str, Limits]] = _group_limits("absorber")
+
+    def __check_init__(self):  # before _Validated's range check: m = 0 is a model, not a mass
+        zero = _first_zero(self.m)
+        if zero is not None:
+            batch = "; a batch that mixes m = 0 and m > 0 is a sweep (rj.sweep)" if zero else ""
+            raise ParameterError(
+                f"Absorber.m{zero} = 0 kg: an absorber has a mass (m > 0); a design without "
+                "absorber is absorber=None (RecoilParams(absorber=None)), or m=0 in the "
+                f"flat-name forms (params_from_values, the command line){batch}"
+            )
+
+
+def _first_zero(value: Any) -> str | None:
+    """Where a concrete `value` first is zero: `""` for a scalar, `"[i]"` in an array;
+    None if nowhere, or for a tracer, `None` or a value that is not a number (the range
+    check reports the latter)."""
+    if value is None or not is_concrete(value):
+        return None
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+    zero = array.reshape(-1) == 0
+    return _element(array, int(np.argmax(zero))) if zero.any() else None
 
 
 class Contact(_Validated):

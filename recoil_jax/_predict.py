@@ -152,7 +152,8 @@ class FittedParameters:
 class Prediction:
     """A design's peaks under the fitted uncertainty (`predict`).
 
-    - `design`: every value given (the calibration's known ones, yours, the fitted ones).
+    - `design`: every value given (the calibration's known ones, yours, the fitted ones);
+      `given`: yours, the design it predicts (empty: the calibration's own design).
     - `nominal`: each metric (`METRICS`) at the fitted values.
     - `sampled`: per metric, `mean`, `std` and `ci95` (2.5 and 97.5 percentiles) over the
       covariance samples; `linear`: per metric, `std` and `ci95` (± 1.96 std) from the
@@ -163,6 +164,7 @@ class Prediction:
     """
 
     design: dict[str, float]
+    given: dict[str, float]
     nominal: dict[str, float]
     sampled: dict[str, dict[str, Any]]
     linear: dict[str, dict[str, Any]]
@@ -175,6 +177,7 @@ class Prediction:
     def to_json(self) -> dict[str, Any]:
         return {
             "design": self.design,
+            "given": self.given,
             "nominal": self.nominal,
             "sampled": self.sampled,
             "linear": self.linear,
@@ -257,6 +260,7 @@ def predict(
         }
     return Prediction(
         design={k: float(v) for k, v in values.items()},
+        given={k: float(v) for k, v in design.items()},
         nominal=nominal,
         sampled=sampled,
         linear=linear,

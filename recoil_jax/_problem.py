@@ -123,6 +123,13 @@ class Objective(eqx.Module):
                     "Objective.quantile needs a scatter: it is taken over the scatter's points"
                 )
 
+    @property
+    def unit(self) -> str:
+        """The objective's unit: its metrics' (`METRICS`) when they share one (the weights
+        taken as pure numbers), else theirs as a weighted sum (`"N + m (weighted)"`)."""
+        units = list(dict.fromkeys(METRICS[name].unit for name in self.weights))
+        return units[0] if len(units) == 1 else " + ".join(units) + " (weighted)"
+
     def over_scatter(self, values: Any, xp: Any = np) -> Any:
         """The objective over the scatter from its value at each point `(S,)`: the
         greatest, or the `quantile`."""

@@ -183,7 +183,8 @@ class History(eqx.Module):
     """Time histories on the save grid `ts` (shape `(n,)`, s); each field has shape `(n,)`.
 
     - `x_M, v_M, x_m, v_m` (m, m/s): the state.
-    - `anchoring_force` F_AN (N), `contact_force` F_ct (N).
+    - `anchoring_force` (N), `contact_force` (N); also by the paper's symbols (the
+      names of traces, `SIGNALS`), `F_AN` and `F_ct` (`SIGNAL_ALIASES`).
     - `forces`: every force of the design (`Forces`: spring, damper, buffer, recuperator,
       breech, coupling, contact; `None` for elements it does not have), shape `(n,)` each.
     - `peaks`: the `Peaks` of the same solve, over all of `[0, t1]`.
@@ -201,6 +202,16 @@ class History(eqx.Module):
     forces: Forces
     peaks: Peaks
     status: Any
+
+    @property
+    def F_AN(self) -> jax.Array:
+        """`anchoring_force` by its symbol."""
+        return self.anchoring_force
+
+    @property
+    def F_ct(self) -> jax.Array:
+        """`contact_force` by its symbol."""
+        return self.contact_force
 
 
 @structure_jit

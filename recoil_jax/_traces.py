@@ -17,15 +17,17 @@ from typing import Any
 
 import numpy as np
 
-from ._gradients import SIGNAL_ALIASES, SIGNALS
+from ._gradients import ABSORBER_SIGNALS, SIGNAL_ALIASES, SIGNALS
 from ._params import (
     ForceTable,
     Limits,
     ParameterError,
+    RecoilParams,
     check_value,
     params_from_values,
     read_text,
 )
+from ._solve import History
 
 __all__ = [
     "TIME_COLUMNS",
@@ -88,6 +90,28 @@ class Trace:
                 )
         skipped = {name: int(np.sum(~np.isfinite(v))) for name, v in columns.items()}
         return _checked(source, t, columns, skipped)
+
+    @classmethod
+    def of_history(
+        cls, history: History, params: RecoilParams, source: str = "<simulated>"
+    ) -> Trace:
+        """The trace of a simulated `history` of `params` (`simulate`): its times, and
+        every signal (`SIGNALS`) the design has (without an absorber, not those only an
+        absorber has)."""
+        names = [n for n in SIGNALS if params.absorber is not None or n not in ABSORBER_SIGNALS]
+        return cls.of(history.ts, source, **{n: getattr(history, n) for n in names})
+
+    def to_csv(self, path) -> Path:
+        """Write the trace as `read_trace` reads it: the header `t` and the signals by the
+        paper's symbols, every value as exactly as a float64 is written (a missing sample
+        empty). Returns the path."""
+        path = Path(path)
+        names = list(self.signals)
+        rows = zip(self.t.tolist(), *(self.signals[n].tolist() for n in names), strict=True)
+        lines = [",".join(["t", *names])]
+        lines += [",".join(repr(v) if math.isfinite(v) else "" for v in row) for row in rows]
+        path.write_text("\n".join(lines) + "\n")
+        return path
 
     def within(self, start: float, end: float) -> Trace:
         """The samples with `start <= t <= end` (s)."""

@@ -818,3 +818,19 @@ def test_a_stored_calibration_resumes_to_the_same_result(tmp_path, monkeypatch, 
     other = dataclasses.replace(calibration, fit={"k": (1e4, 1e5), "c_out": (1e3, 3e4)})
     with pytest.raises(rj.ParameterError, match="holds the results of a different calibration"):
         rj.calibrate(other, starts=12, store=store, progress=False)
+
+
+def test_a_prediction_names_the_design_it_predicts():
+    """The values given to `predict` (not only every value merged) are in its JSON, and
+    the command's text report says them."""
+    from recoil_jax.apps._calibration import prediction_report
+
+    hardware = rjx.FittedParameters(("k",), np.array([28000.0]), np.array([[1e4]]),
+                                    np.array([1e4]), np.array([1e5]), np.array([True]),
+                                    {"m": 1500.0, "gap": 0.062})  # fmt: skip
+    report = rj.predict(hardware, {"m": 800.0, "gap": 0.05}, samples=8).to_json()
+    assert report["given"] == {"m": 800.0, "gap": 0.05}
+    assert report["design"] == {"m": 800.0, "gap": 0.05, "k": 28000.0}
+    assert prediction_report(report).startswith("prediction for m=800, gap=0.05 (8 samples")
+    alone = rj.predict(hardware, samples=8).to_json()
+    assert prediction_report(alone).startswith("prediction for the design of the calibration")

@@ -1,5 +1,6 @@
 """The `recoil-jax` command line."""
 
+import argparse
 import csv
 import json
 import os
@@ -8,10 +9,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import recoil_jax as rj
+import recoil_jax.extend as rjx
 from recoil_jax.apps import main
+from recoil_jax.apps._cli import build_parser
 
 REQUIRED_KEYS = {
     "peak_displacement_m",
@@ -60,6 +64,58 @@ def test_simulate_table_and_plot(capsys, tmp_path):
     out = capsys.readouterr().out
     assert "peak anchoring force" in out and "5514" in out
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_simulate_csv_is_a_trace_that_reads_back_and_calibrates(capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(["simulate", "--csv", "firing.csv"]) == 0  # the paper's best design
+    assert "wrote firing.csv" in capsys.readouterr().err
+    trace = rj.read_trace("firing.csv")
+    params = rj.RecoilParams()
+    ts = np.linspace(0.0, float(rjx.end_time(params, rj.SolverOptions())), 20001)
+    history = rj.simulate(params, ts=ts)
+    np.testing.assert_array_equal(trace.t, ts)
+    assert list(trace.signals) == list(rjx.SIGNALS) and trace.skipped == dict.fromkeys(
+        rjx.SIGNALS, 0
+    )
+    for name, values in trace.signals.items():
+        np.testing.assert_allclose(values, getattr(history, name), rtol=1e-12, atol=1e-12)
+    # calibrate fits it (the default folder named after the trace) to the true stiffness.
+    assert main(["calibrate", "firing.csv", "--fit", "k", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["fitted"]["k"]["value"] == pytest.approx(27500.0, rel=1e-5)
+    assert (tmp_path / "results" / "calibrate" / "firing" / "result.json").exists()
+    # Without an absorber, only the signals the design has.
+    assert main(["simulate", "m=0", "--csv", "plain.csv"]) == 0
+    assert (tmp_path / "plain.csv").read_text().splitlines()[0] == "t,x_M,v_M,F_AN"
+
+
+@pytest.mark.parametrize(
+    ("path", "message"),
+    [
+        ("{tmp}/file.txt/h.csv", "--csv's folder {tmp}/file.txt is a file, not a folder"),
+        ("/proc/recoil/h.csv", "--csv's folder /proc/recoil cannot be made"),
+        ("{tmp}", "--csv {tmp} is a folder: give a file"),
+    ],
+)
+def test_simulate_refuses_a_csv_it_cannot_write_before_solving(capsys, tmp_path, path, message):
+    (tmp_path / "file.txt").write_text("a file")
+    path, message = (x.replace("{tmp}", str(tmp_path)) for x in (path, message))
+    assert main(["simulate", "--csv", path, "--max-steps", "1"]) == 2  # 1 step would fail
+    err = capsys.readouterr().err
+    assert message in err and err.startswith("recoil-jax: error:") and err.count("\n") == 1
+
+
+def test_no_help_escapes_a_percent_sign(capsys):
+    # argparse expands % in an option's help, not in a description: "%%" there is printed.
+    parser = build_parser()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for command in [[], *([name] for name in commands.choices)]:
+        with pytest.raises(SystemExit):
+            main([*command, "--help"])
+        text = capsys.readouterr().out
+        assert "usage: recoil-jax" in text and "%%" not in text, command
+    assert "95% intervals" in commands.choices["calibrate"].format_help()
 
 
 @pytest.mark.parametrize(

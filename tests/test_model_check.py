@@ -32,12 +32,7 @@ def _trace(path, truth: dict, seed: int = 0, phi: float = 0.0, delay: float = 0.
     rng = np.random.default_rng(seed)
     columns = {s: np.where(TS < delay, 0.0, history[s]) + NOISE[s] * _coloured(rng, TS.size, phi)
                for s in NOISE}  # fmt: skip
-    rows = ["t,x_M,F_AN"] + [
-        f"{t!r},{x!r},{f!r}"
-        for t, x, f in zip(TS.tolist(), columns["x_M"].tolist(), columns["F_AN"].tolist())
-    ]
-    path.write_text("\n".join(rows) + "\n")
-    return path
+    return rjx.Trace.of(TS, **columns).to_csv(path)
 
 
 @pytest.mark.parametrize("phi", [0.0, 0.25, 0.5])

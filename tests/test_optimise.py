@@ -329,13 +329,25 @@ grid = { gap = [0.04, 0.08, 5] }
     assert agreement["reached"] == sum(
         g["count"] for g in groups if g["objective"] is not None and g["objective"] <= best * 1.001
     )
-    assert rj.Agreement(**agreement).line() in capsys.readouterr().out
+    summary = capsys.readouterr().out
+    assert rj.Agreement(**agreement).line() in summary
+    # The objective and the limits with their units.
+    assert result["objective_unit"] == "N"
+    assert f"objective {result['objective']:.6g} N, " in summary
+    assert f"max_stroke (max): {stroke['value']:.6g} m (limit 0.13 m)" in summary
     assert result["hard_model"]["max_relative_difference"] < 1e-3
     # The reported metrics are those of the problem's own solver options (rtol 1e-7).
     best = rj.params_from_values(result["best"])
     assert result["metrics"] == rj.peaks(best, options=rj.GRADIENT_OPTIONS).to_dict()
     for name in ("convergence.png", "best_history.png"):
         assert (out / name).stat().st_size > 10_000
+
+
+def test_an_objective_has_its_metrics_unit():
+    assert rj.Objective({"peak_anchoring_force": 1.0}).unit == "N"
+    assert rj.Objective({"peak_displacement": 1.0, "max_stroke": 2.0}).unit == "m"
+    mixed = rj.Objective({"peak_anchoring_force": 1.0, "peak_displacement": 1e4})
+    assert mixed.unit == "N + m (weighted)"
 
 
 def test_bad_study_file_exits_with_a_message(tmp_path, capsys):

@@ -129,6 +129,16 @@ def test_batched_values_report_the_bad_index():
     assert ok.gap.shape == (5,)
 
 
+def test_an_absorber_without_mass_points_to_the_design_without_absorber():
+    with pytest.raises(rj.ParameterError, match=r"Absorber\.m = 0 kg: .*absorber=None.*m=0 in"):
+        rj.Absorber(m=0.0)
+    with pytest.raises(rj.ParameterError, match=r"Absorber\.m\[1\] = 0 kg: .*rj\.sweep"):
+        rj.Absorber(m=np.array([500.0, 0.0]))
+    with pytest.raises(rj.ParameterError, match=r"Absorber\.m = -1 kg is invalid"):
+        rj.Absorber(m=-1.0)  # a negative mass is only out of range
+    assert rj.RecoilParams(absorber=None).absorber is None  # what the message says works
+
+
 def test_not_a_number_and_unknown_names():
     with pytest.raises(rj.ParameterError, match="not a number"):
         rj.Barrel(M="heavy")

@@ -9,6 +9,7 @@ import dataclasses
 import json
 import math
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ import recoil_jax as rj
 import recoil_jax.extend as rjx
 from recoil_jax._sensitivity import _analysed, _problem
 from recoil_jax.apps._cli import main
+from recoil_jax.apps._inputs import results_folder
 from recoil_jax.apps._sensitivity import SHIPPED, load_sensitivity
 
 ABSORBER = {"m": 1500.0, "gap": 0.062}
@@ -388,6 +390,29 @@ def test_a_studys_objective_and_limits_screened_by_morris_from_the_command(tmp_p
     assert "objective" in header and "peak_anchoring_force" not in header
     assert effects["k"]["mu_star"] > 0
     assert (tmp_path / "out" / "morris.png").stat().st_size > 0
+
+
+def test_each_example_has_its_own_default_output_folder(tmp_path, monkeypatch, capsys):
+    """Without --out, a run on one input does not replace another's results."""
+    monkeypatch.chdir(tmp_path)
+    text = SMALL.replace('name = "sobol"\nsamples = 64', 'name = "morris"\ntrajectories = 4')
+    for name in ("first", "second"):
+        (tmp_path / f"{name}.toml").write_text(text.replace("two tolerances", name))
+        assert main(["sensitivity", f"{name}.toml", "--no-cache"]) == 0
+    for name in ("first", "second"):
+        report = json.loads(
+            (tmp_path / "results" / "sensitivity" / name / "result.json").read_text()
+        )
+        assert report["description"] == name
+    assert "wrote results/sensitivity/second/result.json" in capsys.readouterr().out
+    # The shipped examples by name, as the docs run them.
+    folders = {
+        results_folder(None, "sensitivity", name) for name in ("paper_absorber", "throttling")
+    }
+    assert folders == {
+        Path("results/sensitivity/paper_absorber"),
+        Path("results/sensitivity/throttling"),
+    }
 
 
 @pytest.mark.parametrize(

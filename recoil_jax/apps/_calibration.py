@@ -274,9 +274,11 @@ def _check_line(check: rjx.ModelCheck) -> str:
 
 
 def prediction_report(prediction: dict) -> str:
-    """The prediction's bands as text."""
+    """The prediction's bands as text, for the design it names."""
+    given = ", ".join(f"{k}={v:g}" for k, v in prediction["given"].items())
     lines = [
-        f"prediction ({prediction['count']} samples, {prediction['failed']} failed, "
+        f"prediction for {given or 'the design of the calibration'} "
+        f"({prediction['count']} samples, {prediction['failed']} failed, "
         f"{prediction['clipped']} moved to the bounds, {prediction['seconds']:.1f} s):"
     ]
     for name, sampled in prediction["sampled"].items():

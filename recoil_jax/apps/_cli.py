@@ -19,11 +19,13 @@ import recoil_jax.extend as rjx
 from ._inputs import (
     MADE_FOLDERS,
     check_figure_path,
+    check_output_file,
     design_warnings,
     names,
     output_folder,
     parse_assignments,
     remove_unused_folders,
+    results_folder,
     warn,
 )
 
@@ -58,6 +60,7 @@ def _simulate(args) -> int:
 
     values = parse_assignments(args.assignments)
     plot = check_figure_path(args.plot) if args.plot else None  # before the solve
+    trace = check_output_file(args.csv, "--csv") if args.csv else None
     options = rj.SolverOptions(t1=values.pop("t1", None), max_steps=args.max_steps)
     params = rj.params_from_values(values)
     table = rj.ForceTable.from_csv(args.force_table) if args.force_table else None
@@ -114,12 +117,16 @@ def _simulate(args) -> int:
         rows.append(("solver steps", f"{result['num_steps']}", ""))
         for name, value, when in rows:
             print(f"  {name:28s} {value:>22s}  {when}")
+    if plot is None and trace is None:
+        return 0
+    history = rj.simulate(params, smoothing, options, ts=np.linspace(0.0, t1, 20001))
     if plot is not None:
         from ._figures import plot_history
 
-        history = rj.simulate(params, smoothing, options, ts=np.linspace(0.0, t1, 20001))
         path = plot_history(history, plot, title=describe(used))
         print(f"wrote {path}", file=sys.stderr)
+    if trace is not None:
+        print(f"wrote {rjx.Trace.of_history(history, params).to_csv(trace)}", file=sys.stderr)
     return 0
 
 
@@ -197,7 +204,7 @@ def _sweep(args) -> int:
 
 
 def _optimise(args) -> int:
-    from ._studies import agreement_line, run_study
+    from ._studies import run_study, study_summary
 
     report = run_study(
         args.study,
@@ -214,22 +221,14 @@ def _optimise(args) -> int:
         print(f"recoil-jax: infeasible: {report['message']}", file=sys.stderr)
         return INFEASIBLE
     if not args.json:
-        print(
-            f"study {report['study']}: objective {report['objective']:.6g}, "
-            f"{report['simulations']} simulations, {report['seconds']:.1f} s"
-        )
-        print("  best: " + ", ".join(f"{k}={report['best'][k]:.6g}" for k in report["tuned"]))
-        for name, c in report["constraints"].items():
-            state = "ok" if c["satisfied"] else "VIOLATED"
-            print(f"  {name}: {c['value']:.6g} (limit {c['limit']:g}) {state}")
-        if line := agreement_line(report):
-            print(f"  {line}")
+        print(study_summary(report))
     return 0
 
 
 def _calibrate(args) -> int:
     from ._calibration import run_calibration
 
+    args.out = results_folder(args.out, "calibrate", args.source)
     return run_calibration(args)
 
 
@@ -316,6 +315,13 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--json", action="store_true", help="print one JSON object")
     sim.add_argument(
         "--plot", metavar="FILE.png", help="plot displacements and every force against time"
+    )
+    sim.add_argument(
+        "--csv",
+        metavar="FILE.csv",
+        help="write the histories as a trace (20001 times over [0, t1]; header t,x_M,v_M,"
+        "x_m,v_m,F_AN,F_ct, without x_m, v_m, F_ct for m=0), as calibrate and "
+        "rj.read_trace read it",
     )
     sim.add_argument(
         "--force-table", metavar="FILE.csv", help="breech force of one round (header t_s,F_N)"
@@ -509,7 +515,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="fit the model to measured firing traces",
         description="Fit parameters to measured traces: a calibration file (TOML: "
         "[design], [fit], [[experiment]]), or one trace (CSV: t and signal columns) with "
-        "--fit. Writes result.json (values, standard errors, 95%% intervals, "
+        "--fit. Writes result.json (values, standard errors, 95% intervals, "
         "correlation, identifiability, chi2, AIC, BIC), fit.png and correlation.png. "
         "Exit 0 fitted, 1 a solve failed, 2 bad input, 4 the fit did not converge, 5 the "
         "model does not explain the traces (residuals far above the traces' own noise, "
@@ -524,7 +530,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="with a trace: the parameters to fit, comma-separated (bounds: each one's "
         "documented range; t_shift: the trigger delay, -0.01 to 0.01 s)",
     )
-    calibrate.add_argument("--out", default="results/calibrate", help="output folder")
+    calibrate.add_argument(
+        "--out", help="output folder (default results/calibrate/<file name, no suffix>)"
+    )
     calibrate.add_argument(
         "--starts", type=int, metavar="N", help="fit from N starts (the given, then Sobol)"
     )
@@ -569,13 +577,15 @@ def build_parser() -> argparse.ArgumentParser:
         "[ranges], [metrics], [method]; or a shipped example's name: "
         "paper_absorber, throttling), solve every design through the sweep and rank "
         "the parameters: Sobol first-order and total indices (SALib), Morris "
-        "elementary effects, or DGSM from exact gradients, each with bootstrap 95%% "
+        "elementary effects, or DGSM from exact gradients, each with bootstrap 95% "
         "intervals. Writes result.json, samples.csv, indices.png, scatter.png (and "
         "morris.png). Failed solves are counted, and the indices say how many designs "
         "they rest on. Exit 0 done, 1 no design group solved, 2 bad input.",
     )
     sens.add_argument("source", help="a sensitivity file (.toml) or a shipped example's name")
-    sens.add_argument("--out", default="results/sensitivity", help="output folder")
+    sens.add_argument(
+        "--out", help="output folder (default results/sensitivity/<example or file name>)"
+    )
     sens.add_argument("--json", action="store_true", help="print result.json")
     sens.add_argument(
         "--store",

@@ -29,6 +29,7 @@ __all__ = [
     "MADE_FOLDERS",
     "SETTINGS",
     "check_figure_path",
+    "check_output_file",
     "design_warnings",
     "file_error",
     "file_number",
@@ -41,6 +42,7 @@ __all__ = [
     "read_toml",
     "remove_unused_folders",
     "resolve_shipped",
+    "results_folder",
     "split_assignment",
     "unknown_name",
     "warn",
@@ -170,6 +172,14 @@ def output_folder(path, option: str = "--out") -> Path:
     return path
 
 
+def results_folder(out, command: str, source) -> Path:
+    """A command's output folder: `out` (its `--out`) if given, else
+    `results/<command>/<name>`, `name` the stem of `source` (a file, or a shipped
+    example's name): each input its own folder, so that no run replaces the results of
+    a run on another input."""
+    return Path(out) if out is not None else Path("results") / command / Path(source).stem
+
+
 def remove_unused_folders() -> None:
     """Remove the folders `output_folder` made that are still empty (innermost first)."""
     while MADE_FOLDERS:
@@ -190,9 +200,16 @@ def check_figure_path(path) -> Path:
             f"cannot write a figure to {path}: give a file ending in one of "
             + ", ".join(f".{f}" for f in sorted(formats))
         )
+    return check_output_file(path, "--plot")
+
+
+def check_output_file(path, option: str) -> Path:
+    """`path` as a file the command will write (`option` names it in messages): not a
+    folder, its folder made if missing and writable; checked before any solve."""
+    path = Path(path)
     if path.is_dir():
-        raise rj.ParameterError(f"--plot {path} is a folder: give a file")
-    output_folder(path.parent, option="--plot's folder")  # made if missing, and writable
+        raise rj.ParameterError(f"{option} {path} is a folder: give a file")
+    output_folder(path.parent, option=f"{option}'s folder")  # made if missing, and writable
     return path
 
 

@@ -45,6 +45,7 @@ from ._inputs import (
     output_folder,
     read_toml,
     resolve_shipped,
+    results_folder,
 )
 
 __all__ = ["SHIPPED", "load_sensitivity", "resolve_sensitivity", "run_sensitivity"]
@@ -238,7 +239,7 @@ def summary(result: rj.SensitivityResult) -> str:
 def run_sensitivity(args) -> int:
     """The `sensitivity` command."""
     arguments, description = load_sensitivity(args.source)
-    out = output_folder(args.out)
+    out = output_folder(results_folder(args.out, "sensitivity", args.source))
     # The sweep's defaults (tighter with gradients), with the command's step limit.
     options = rj.GRADIENT_OPTIONS if arguments["method"].gradients else rj.SolverOptions()
     options = dataclasses.replace(options, max_steps=args.max_steps)

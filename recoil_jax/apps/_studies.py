@@ -80,6 +80,7 @@ __all__ = [
     "resolve_study",
     "run_study",
     "search_kwargs",
+    "study_summary",
 ]
 
 
@@ -566,6 +567,24 @@ def agreement_line(report: dict) -> str | None:
     return rj.Agreement(**agreement).line()
 
 
+def study_summary(report: dict) -> str:
+    """The command's summary of a feasible study's `result.json`: the objective and every
+    limit with their units, the best values, and how firmly it was found."""
+    lines = [
+        f"study {report['study']}: objective {report['objective']:.6g} "
+        f"{report['objective_unit']}, {report['simulations']} simulations, "
+        f"{report['seconds']:.1f} s",
+        "  best: " + ", ".join(f"{k}={report['best'][k]:.6g}" for k in report["tuned"]),
+    ]
+    for name, c in report["constraints"].items():
+        unit = _unit(name.rsplit(" (", 1)[0])
+        state = "ok" if c["satisfied"] else "VIOLATED"
+        lines.append(f"  {name}: {c['value']:.6g} {unit} (limit {c['limit']:g} {unit}) {state}")
+    if line := agreement_line(report):
+        lines.append(f"  {line}")
+    return "\n".join(lines)
+
+
 def _search_summary(result: rj.OptimiseResult, local: rjx.LocalMethod) -> dict:
     """What `result.json` says of a `search` run."""
     samples = result.samples
@@ -770,7 +789,11 @@ def run_study(
     phase = _Phases(study.name, progress)
     if progress is not False:
         print(f"study {study.name}: {study.description}", file=sys.stderr)
-    report: dict[str, Any] = {"study": study.name, "description": study.description}
+    report: dict[str, Any] = {
+        "study": study.name,
+        "description": study.description,
+        "objective_unit": study.problem.objective.unit,
+    }
     if study.optimiser["method"] == "search":
         result, simulations, report["optimiser"] = _run_search(
             study, out, phase, progress, store, workers, scheduler
@@ -1061,6 +1084,11 @@ def _force_stroke(problem: rj.DesignProblem, params, best: rj.Peaks, out: Path) 
 def _label(name: str) -> str:
     """An axis label with its unit, for a parameter or a metric."""
     return rj.PARAMETERS[name].label if name in rj.PARAMETERS else rj.METRICS[name].label
+
+
+def _unit(name: str) -> str:
+    """The unit of a parameter or a metric."""
+    return rj.PARAMETERS[name].unit if name in rj.PARAMETERS else rj.METRICS[name].unit
 
 
 def _plot_front(table: dict, out: Path) -> None:
