@@ -1410,8 +1410,10 @@ def validate(
     calibration: Calibration, result: CalibrationResult, experiment: Experiment
 ) -> dict[str, Any]:
     """Score the fitted model on an experiment the fit did not see: its RMS residual per
-    signal, and its reduced χ² under the noise it was given, else the fit's (the first
-    fitted experiment that measured the signal), else its own first guess.
+    signal, its reduced χ² under the noise it was given, else the fit's (the first
+    fitted experiment that measured the signal), else its own first guess, and its
+    `model_check` against its own noise (`ModelCheck.to_json`: does the fitted model
+    explain this trace too?).
 
     Each fitted name takes the experiment's own known value where it gives one (its
     `v0`, its `t_shift`), else the fitted shared value, else the mean of the fitted
@@ -1441,7 +1443,7 @@ def validate(
     r = np.asarray(evaluation.residuals)
     present = np.asarray(data.present)
     residual_si = r * sigma[..., None]
-    summary, *_ = _experiment_summary(
+    summary, t, measured, model = _experiment_summary(
         experiment,
         0,
         layout,
@@ -1451,6 +1453,12 @@ def validate(
         np.asarray(evaluation.signals),
     )
     summary["reduced_chi2"] = float(np.sum(r[present] ** 2) / max(int(present.sum()), 1))
+    # Held to its own noise as the fitted traces are (its own `sigma` where given).
+    summary["model_check"] = check_residuals(
+        [(experiment.label, t, measured, model, experiment.sigma)],
+        {name: SIGNALS[name][0] for name in layout.signals},
+        robust=calibration.loss != "linear",
+    ).to_json()
     summary["status"] = int(np.asarray(evaluation.codes)[0])
     return summary
 

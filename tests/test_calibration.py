@@ -238,13 +238,20 @@ def test_two_experiments_with_their_own_v0_and_trigger_delay():
         design={"v0": 0.72, "t_shift": 0.002},
         per_experiment=("v0",),
     )
+    # A fourth, of other hardware (a 60 mm gap, not the fitted 20 mm): the fitted model
+    # does not explain it, and its model check says so.
+    fourth = rjx.Experiment(trace(TRUTH | {"v0": 0.72, "gap": 0.06}, seed=15),
+                            design={"v0": 0.72}, per_experiment=("v0",))  # fmt: skip
     fit = BOX | {"v0": (0.5, 0.9), "t_shift": (-0.01, 0.01)}
-    calibration = rj.Calibration([first, second], fit=fit, validation=[third])
+    calibration = rj.Calibration([first, second], fit=fit, validation=[third, fourth])
     result = rj.calibrate(calibration, progress=False)
     assert set(result.fitted) == {"k", "c_out", "gap", "v0", "v0[2]", "t_shift", "t_shift[2]"}
     within(result, TRUTH | {"v0": 0.69, "v0[2]": 0.74, "t_shift": 0.0, "t_shift[2]": 0.003})
-    (validation,) = result.validation
+    assert result.explains
+    validation, other = result.validation
     assert validation["reduced_chi2"] == pytest.approx(1.0, abs=0.2)
+    assert validation["model_check"]["explains"]
+    assert not other["model_check"]["explains"] and other["model_check"]["failing"]
     # A validation trace is checked with the rest, before the fit.
     ts = np.linspace(0.0, 2.0, 21)
     late = rjx.Experiment(rjx.Trace.of(ts, x_M=ts), design={"t1": 1.0})
@@ -471,6 +478,9 @@ def test_a_value_pressed_against_its_bound_is_said_to_be_there(tmp_path, capsys)
         (["{toml}", "--fit", "k"], "--fit is for a trace"),
         (["{toml}", "--force-table", "{trace}"], "--force-table is for a trace"),
         (["{trace}", "--fit", "k", "--force-table", "none.csv"], "force table none.csv not found"),
+        # A known value is checked as simulate checks it, named as typed (not "t.csv.m").
+        (["{trace}", "--fit", "k", "m=-1"], "error: Absorber.m = -1 kg is invalid"),
+        (["{trace}", "--fit", "k", "m=0", "gap=0.05"], "m = 0 selects the simplified model"),
     ],
 )
 def test_bad_command_lines_exit_2(tmp_path, capsys, arguments, message):

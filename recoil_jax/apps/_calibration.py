@@ -357,4 +357,7 @@ def fit_report(result: rj.CalibrationResult) -> str:
             f"  validation {v['name']}: reduced chi2 {v['reduced_chi2']:.4g}, rms "
             + ", ".join(f"{k} {x:.4g}" for k, x in v["rms"].items())
         )
+        if not v["model_check"]["explains"]:
+            lines.append("    the fitted model does not explain this trace:")
+            lines.extend(f"      {reason}" for reason in v["model_check"]["failing"])
     return "\n".join(lines)
