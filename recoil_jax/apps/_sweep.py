@@ -14,6 +14,7 @@ import numpy as np
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
+from . import _json
 from ._cluster import dask_client
 from ._inputs import (
     design_warnings,
@@ -340,7 +341,7 @@ def run_sweep(args) -> int:
             )
             result.swept, result.grid_shape = tuple(axes), shape
     if args.json:
-        print(json.dumps(result.records()))
+        print(_json.dumps(result.records()))
     else:
         ok, solved = int(result.ok.sum()), len(result) - result.stored
         read = f" ({result.stored} read from the store)" if result.stored else ""
