@@ -14,9 +14,6 @@ import numpy as np
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-# The command line's JSON writer, under json's name: `json.dumps` below writes a number
-# that is not finite as null, with the reason beside it (never bare NaN or Infinity).
-from . import _json as json
 from ._inputs import (
     file_error as _error,
     file_number as _number,
@@ -25,6 +22,10 @@ from ._inputs import (
     read_toml,
     warn,
 )
+
+# The command line's JSON writer, under json's name: `json.dumps` below writes a number
+# that is not finite as null, with the reason beside it (never bare NaN or Infinity).
+from ._json import STRICT as json
 
 __all__ = [
     "MAX_EXPERIMENTS",

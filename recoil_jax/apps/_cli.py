@@ -16,7 +16,6 @@ import sys
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-from . import _json
 from ._inputs import (
     MADE_FOLDERS,
     check_figure_path,
@@ -27,6 +26,7 @@ from ._inputs import (
     remove_unused_folders,
     warn,
 )
+from ._json import dumps as json_dumps
 
 __all__ = ["INFEASIBLE", "INTERRUPTED", "build_parser", "describe", "main"]
 
@@ -212,7 +212,7 @@ def _optimise(args) -> int:
         scheduler=args.scheduler,
     )
     if args.json:
-        print(_json.dumps(report))
+        print(json_dumps(report))
     if not report["feasible"]:
         print(f"recoil-jax: infeasible: {report['message']}", file=sys.stderr)
         return INFEASIBLE

@@ -7,8 +7,8 @@ reason beside it: `"aic": null, "aic_null": "inf (not a finite number; JSON has 
 (for the values of a list, one note on its key: how many, and which). The text is then
 made with `allow_nan=False`, so that nothing non-finite can slip through.
 
-`_calibration.py` imports this module as `json` (`dumps` is a drop-in for
-`json.dumps`), so that its writes use it too.
+`_calibration.py` imports `STRICT` as `json` (its `dumps` is a drop-in for
+`json.dumps`), so that its writes use this writer too.
 """
 
 from __future__ import annotations
@@ -17,12 +17,13 @@ import contextlib
 import json as _json
 import math
 import os
+import types
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["dumps", "finite", "loads", "write", "write_text"]
+__all__ = ["STRICT", "dumps", "finite", "loads", "write", "write_text"]
 
 #: What is said beside a value written `null`.
 _REASON = "{} (not a finite number; JSON has none)"
@@ -103,3 +104,7 @@ def write_text(path, text: str) -> Path:
             raise OSError(error.errno, error.strerror, str(path)) from None
         raise
     return path
+
+
+#: `dumps` and `loads` under json's names, for a module that writes `json.dumps(...)`.
+STRICT = types.SimpleNamespace(dumps=dumps, loads=loads)

@@ -38,7 +38,6 @@ from typing import Any
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-from . import _json
 from ._cluster import dask_client
 from ._inputs import (
     file_error as _error,
@@ -47,6 +46,7 @@ from ._inputs import (
     read_toml,
     resolve_shipped,
 )
+from ._json import dumps as json_dumps, write as write_json, write_text
 
 __all__ = ["SHIPPED", "load_sensitivity", "resolve_sensitivity", "run_sensitivity"]
 
@@ -218,7 +218,7 @@ def write_samples(result: rj.SensitivityResult, path: Path) -> Path:
             ok = bool(result.ok[i])
             values = [f"{v:.10g}" if ok else "" for v in (o[i] for o in outputs)]
             writer.writerow([*(f"{v:.10g}" for v in row), *values, int(ok)])
-        return _json.write_text(path, file.getvalue())
+        return write_text(path, file.getvalue())
 
 
 def summary(result: rj.SensitivityResult) -> str:
@@ -256,9 +256,9 @@ def run_sensitivity(args) -> int:
     from ._figures import sensitivity_figures
 
     report["figures"] = [str(p) for p in sensitivity_figures(result, out)]
-    _json.write(out / "result.json", report)
+    write_json(out / "result.json", report)
     if args.json:
-        print(_json.dumps(report))
+        print(json_dumps(report))
     else:
         print(summary(result))
         print(f"  wrote {out / 'result.json'}, samples.csv and {len(report['figures'])} figures")

@@ -65,9 +65,9 @@ import numpy as np
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-from . import _json
 from ._cluster import check_cluster, dask_client
 from ._inputs import file_error as _error, output_folder, read_toml, resolve_shipped
+from ._json import write as write_json
 
 __all__ = [
     "LOCAL_METHODS",
@@ -793,7 +793,7 @@ def run_study(
     report["simulations_by_part"] = simulations
     report["seconds"] = round(time.perf_counter() - started, 2)
     report["seconds_by_part"] = phase.seconds
-    _json.write(out / "result.json", report)
+    write_json(out / "result.json", report)
     return report
 
 
