@@ -19,7 +19,9 @@ from __future__ import annotations
 import csv
 import dataclasses
 import math
+import os
 import re
+import stat
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, ClassVar
@@ -33,6 +35,7 @@ import numpy as np
 __all__ = [
     "MAX_KNOTS",
     "MAX_STEPS",
+    "MAX_TEXT_BYTES",
     "MIN_KNOTS",
     "PARAMETERS",
     "T1_LIMITS",
@@ -610,21 +613,51 @@ class Contact(_Validated):
     LIMITS: ClassVar[Mapping[str, Limits]] = _group_limits("contact")
 
 
+#: The most bytes a text file may hold (a trace, a force table, a TOML file, a points
+#: file, a calibration's result): 64 MiB, about 3 million rows of a two-signal trace,
+#: which read in about 1 GB. A larger file is refused before it is read.
+MAX_TEXT_BYTES = 64 * 2**20
+
+
 def read_text(path, what: str) -> str:
     """The text of the file `path` (`what` it should be, for messages): a missing file, a
-    folder or a file that is not text is a `ParameterError`; a byte-order mark (as
-    spreadsheets write) is dropped."""
+    folder, what is not a regular file (a pipe, a device: it could be read forever), a
+    file of more than `MAX_TEXT_BYTES` or one that is not text is a `ParameterError`; a
+    byte-order mark (as spreadsheets write) is dropped. Every file the command line reads
+    comes through here."""
     path = Path(path)
     try:
-        return path.read_text(encoding="utf-8-sig")
+        # Non-blocking: opening a pipe with no writer would otherwise wait forever.
+        descriptor = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
     except FileNotFoundError:
         raise ParameterError(f"{what} {path} not found") from None
     except IsADirectoryError:
         raise ParameterError(f"{what} {path} is a folder, not a file") from None
-    except UnicodeDecodeError:
-        raise ParameterError(f"{what} {path} is not a text file (UTF-8)") from None
     except OSError as error:
         raise ParameterError(f"{what} {path} cannot be read: {error.strerror}") from None
+    mode = os.fstat(descriptor).st_mode
+    if not stat.S_ISREG(mode):
+        os.close(descriptor)
+        if stat.S_ISDIR(mode):
+            raise ParameterError(f"{what} {path} is a folder, not a file")
+        raise ParameterError(
+            f"{what} {path} is not a regular file (a pipe, a device or a socket): give a file"
+        )
+    with os.fdopen(descriptor, "rb") as file:
+        try:
+            data = file.read(MAX_TEXT_BYTES + 1)
+        except OSError as error:
+            raise ParameterError(f"{what} {path} cannot be read: {error.strerror}") from None
+    if len(data) > MAX_TEXT_BYTES:
+        raise ParameterError(
+            f"{what} {path} is larger than {MAX_TEXT_BYTES / 2**20:g} MiB, the most a file "
+            "read whole may hold (MAX_TEXT_BYTES): give a shorter file (a trace: fewer "
+            "samples, e.g. every n-th row)"
+        )
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        raise ParameterError(f"{what} {path} is not a text file (UTF-8)") from None
 
 
 #: The spacing (s) of the zero-force points that pad a shorter table (`ForceTable.stacked`).
@@ -686,12 +719,7 @@ class ForceTable(eqx.Module):
     def from_csv(cls, path) -> ForceTable:
         """Read a table from a CSV file whose header is `t_s,F_N` (seconds, newtons)."""
         path = Path(path)
-        try:  # utf-8-sig: drops the byte-order mark that spreadsheets write
-            rows = list(csv.DictReader(path.read_text(encoding="utf-8-sig").splitlines()))
-        except FileNotFoundError:
-            raise ParameterError(f"force table {path} not found") from None
-        except (OSError, UnicodeDecodeError):  # a folder, a binary file
-            raise ParameterError(f"force table {path} is not a readable text file") from None
+        rows = list(csv.DictReader(read_text(path, "force table").splitlines()))
         if not rows:
             raise ParameterError(f"{path}: no rows of t_s,F_N values (a header alone, or empty)")
         if set(rows[0]) != {"t_s", "F_N"}:

@@ -99,7 +99,15 @@ class FittedParameters:
         if not (math.isfinite(sigmas) and sigmas > 0):
             raise ParameterError(f"sigmas = {sigmas!r}: give a number > 0")
         self.check_determined()
-        stderr = np.sqrt(np.diag(self.covariance)) * sigmas
+        variance = np.diag(self.covariance)
+        for name, v in zip(self.names, variance, strict=True):
+            if not (math.isfinite(v) and v > 0):
+                raise ParameterError(
+                    f"{name}: its variance in the calibration's covariance is {v:g}, not a "
+                    "positive number: the fit gives it no uncertainty to range over; fit "
+                    "again, or give its range yourself"
+                )
+        stderr = np.sqrt(variance) * sigmas
         lower = np.maximum(self.values - stderr, self.lower)
         upper = np.minimum(self.values + stderr, self.upper)
         return {

@@ -418,14 +418,17 @@ def _available_memory() -> int | None:
     return min(free) if free else None
 
 
-def check_memory(designs: int, bytes_per_design: int, what: str, advice: str) -> None:
-    """Refuse, before anything is allocated, `what` of `designs` designs whose arrays
-    (`bytes_per_design` each) would take more than half of the free memory."""
+def check_memory(
+    designs: int, bytes_per_design: int, what: str, advice: str, unit: str = "designs"
+) -> None:
+    """Refuse, before anything is allocated, `what` of `designs` designs (or other
+    `unit`s) whose arrays (`bytes_per_design` each) would take more than half of the free
+    memory."""
     available = _available_memory()
     need = designs * bytes_per_design
     if available is not None and need > available // 2:
         raise ParameterError(
-            f"{what} of {designs:,} designs needs about {need / 1e9:,.1f} GB in memory, more "
+            f"{what} of {designs:,} {unit} needs about {need / 1e9:,.1f} GB in memory, more "
             f"than half of the {available / 1e9:.1f} GB free here: {advice}"
         )
 

@@ -34,7 +34,8 @@ not need them; `docs/developers.md` shows how to plug a part in.
   `end_time`: a design's end time (refusing a load that does not
   fit); `Forces`: the model's forces; `StoredSweep`: a sweep read back from its store;
   `worst_case`: each metric's worst over a scatter of designs; `read_text`: a text
-  file, or one line saying why not.
+  file, or one line saying why not (`MAX_TEXT_BYTES`: the most it reads);
+  `check_memory`: refuse a count whose arrays would take over half the free memory.
 
 **Calibration's parts**
 
@@ -75,7 +76,7 @@ from ._local import LocalEvaluation, LocalMethod, LocalRun, MinimaxMethod, run_l
 from ._metrics import PEAK_FIELDS, Metric, gradient_key, worst_case
 from ._model import Forces
 from ._model_check import ModelCheck, SignalCheck, trace_noise
-from ._params import T1_LIMITS, Parameter, end_time, read_text
+from ._params import MAX_TEXT_BYTES, T1_LIMITS, Parameter, end_time, read_text
 from ._predict import FittedParameters, Prediction
 from ._problem import DesignEvaluation, evaluate_design
 from ._reference import reference_history
@@ -83,11 +84,19 @@ from ._result import RunRecord
 from ._search import GlobalPhase, default_local
 from ._sensitivity import SENSITIVITY_METHODS, SensitivityMethod, sensitivity_box
 from ._status import OK_CODE, status_codes, status_messages, status_table
-from ._sweep import Grid, StoredSweep, batch_params, default_workers, shard_batch
+from ._sweep import (
+    Grid,
+    StoredSweep,
+    batch_params,
+    check_memory,
+    default_workers,
+    shard_batch,
+)
 from ._traces import T_SHIFT, Experiment, Trace
 
 __all__ = [
     "LOSSES",
+    "MAX_TEXT_BYTES",
     "OK_CODE",
     "PEAK_FIELDS",
     "SENSITIVITY_METHODS",
@@ -122,6 +131,7 @@ __all__ = [
     "StoredSweep",
     "Trace",
     "batch_params",
+    "check_memory",
     "default_local",
     "default_workers",
     "end_time",

@@ -6,6 +6,8 @@ solved again, `progress` never writing; a refused run leaving no empty folder be
 from __future__ import annotations
 
 import errno
+import json
+import math
 import os
 import signal
 import socket
@@ -20,6 +22,7 @@ import pytest
 
 import recoil_jax as rj
 import recoil_jax._sweep as sweep_module
+import recoil_jax.extend as rjx
 from recoil_jax._store import _hold
 from recoil_jax.apps import _sweep as sweep_app, main
 
@@ -450,3 +453,312 @@ def test_loading_a_store_with_lost_rows_says_so(tmp_path):
         db.execute("DELETE FROM points WHERE point = 7")
     with pytest.raises(rj.ParameterError, match="39 distinct of its 40 designs"):
         rj.load_sweep(store)
+
+
+# --- calibrate, sensitivity and progress (issue 52, item 5) ----------------------------
+
+CALIBRATE_TOML = '[fit]\nk = [1e4, 1e5]\n[[experiment]]\ntrace = "t.csv"\n'
+
+
+class _Reached(BaseException):
+    """The fit (or the sensitivity run) was about to start: every check had passed."""
+
+
+def _not_reached(*args, **kwargs):
+    raise _Reached
+
+
+@pytest.fixture
+def traces(tmp_path, monkeypatch):
+    """A folder with a varying trace `t.csv` and a calibration file `c.toml` naming it;
+    the fit and the sensitivity run stubbed (these are checks made before them)."""
+    ts = np.linspace(0.0, 0.5, 51)
+    lines = ["t,x_M", *(f"{t:.4g},{0.01 * np.sin(9 * t):.6g}" for t in ts)]
+    (tmp_path / "t.csv").write_text("\n".join(lines) + "\n")
+    (tmp_path / "c.toml").write_text(CALIBRATE_TOML)
+    monkeypatch.setattr(rj, "calibrate", _not_reached)
+    monkeypatch.setattr(rj, "sensitivity", _not_reached)
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+def _refused(capsys, argv, fragment, status=2):
+    assert main(argv) == status
+    line = _one_line(capsys.readouterr().err)
+    assert line.startswith("recoil-jax: error:") and fragment in line, line
+    return line
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs here")
+def test_what_is_not_a_regular_file_is_refused_without_reading_it(traces, capsys):
+    """A FIFO would wait forever for a writer, /dev/zero be read until memory runs out:
+    every file the commands read is refused unless it is a regular file."""
+    fifo = traces / "fifo"
+    os.mkfifo(fifo)
+    started = time.perf_counter()
+    not_regular = "is not a regular file (a pipe, a device or a socket)"
+    for argv in (
+        ["calibrate", str(fifo), "--fit", "k"],
+        ["calibrate", "t.csv", "--fit", "k", "--validate", str(fifo)],
+        ["calibrate", "t.csv", "--fit", "k", "--force-table", str(fifo)],
+        ["calibrate", "/dev/zero", "--fit", "k"],
+        ["sensitivity", "/dev/urandom"],
+        ["sweep", "--points", str(fifo)],
+        ["optimise", str(fifo)],
+    ):
+        _refused(capsys, argv, not_regular)
+    (traces / "c.toml").write_text(CALIBRATE_TOML.replace("t.csv", "fifo"))
+    _refused(capsys, ["calibrate", "c.toml"], f"trace fifo {not_regular}")
+    assert time.perf_counter() - started < 10
+
+
+def test_a_file_over_the_byte_limit_is_refused_naming_the_limit(traces, capsys, monkeypatch):
+    import recoil_jax._params as params
+
+    assert rjx.MAX_TEXT_BYTES == 64 * 2**20
+    monkeypatch.setattr(params, "MAX_TEXT_BYTES", 500)
+    _refused(capsys, ["calibrate", "t.csv", "--fit", "k"],
+             "trace t.csv is larger than 0.000476837 MiB, the most a file read whole may "
+             "hold (MAX_TEXT_BYTES)")  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("argv", "toml", "fragment"),
+    [
+        (["--starts", "1000000000"], None, "--starts 1000000000: give an integer from 1 to 1,024"),
+        ([], "starts = 1000000000\n", "starts = 1000000000: give an integer from 1 to 1,024"),
+        ([], "fit_steps = 1000000000000\n", "fit_steps = 1000000000000: give an integer from 1"),
+        ([], "[[experiment]]\ntrace = 't.csv'\n" * 300, "301 experiments (fitted and valid"),
+        (["--validate", "t.csv"] * 60, None, "61 experiments (fitted and validation), more"),
+    ],
+)
+def test_every_count_of_a_calibration_is_bounded_before_it_starts(
+    traces, capsys, argv, toml, fragment
+):
+    if toml is None:
+        argv = ["calibrate", "t.csv", "--fit", "k", *argv]
+    else:
+        (traces / "c.toml").write_text(toml + CALIBRATE_TOML)
+        argv = ["calibrate", "c.toml", *argv]
+    started = time.perf_counter()
+    _refused(capsys, argv, fragment)
+    assert time.perf_counter() - started < 10
+
+
+def test_starts_that_would_not_fit_in_memory_are_refused(traces, capsys, monkeypatch):
+    monkeypatch.setattr(sweep_module, "_available_memory", lambda: 10**6)  # 1 MB free
+    line = _refused(capsys, ["calibrate", "t.csv", "--fit", "k", "--starts", "1000"],
+                    "a calibration of 1,000 starts at once needs about")  # fmt: skip
+    assert "--store FILE.sqlite" in line
+    # With a store, 8 at a time.
+    monkeypatch.setattr(sweep_module, "_available_memory", lambda: 10**7)
+    with pytest.raises(_Reached):
+        main(["calibrate", "t.csv", "--fit", "k", "--starts", "1000", "--store", "c.sqlite"])
+
+
+@pytest.mark.parametrize(
+    ("argv", "toml", "fragment"),
+    [
+        (["c.toml", "v0=0.5"], None,
+         "v0=0.5 is given on the command line beside the calibration file c.toml: give it "
+         "in one place"),
+        (["t.csv", "--fit", "k", "k=3e4"], None,
+         "k is given both on the command line (k=3e4) and in --fit k: give it in one place"),
+        (["c.toml"], "[design]\nk = 3e4\n",
+         "k is given both in [design] (k = 30000) and in [fit]: give it in one place"),
+        (["t.csv", "--fit", "k,c_out,k"], None, "--fit k,c_out,k: k is given twice"),
+        (["c.toml"], "description = [1, 2]\n", "description = [1, 2]: give a string"),
+        (["c.toml"], CALIBRATE_TOML + "per_experiment = ['v0', 'v0']\n",
+         "[[experiment]] 1.per_experiment: v0 is given twice"),
+        (["t.csv", "--fit", "k", "--predict", "bogus=1"], None,
+         "--predict: unknown parameter 'bogus'"),
+        (["t.csv", "--fit", "k", "v0=heavy"], None, "v0 = 'heavy' is not a number"),
+    ],
+)  # fmt: skip
+def test_conflicts_and_repeats_are_refused_before_the_fit(traces, capsys, argv, toml, fragment):
+    if toml is not None:
+        body = toml if toml.startswith("[fit]") else toml + CALIBRATE_TOML
+        (traces / "c.toml").write_text(body)
+    line = _refused(capsys, ["calibrate", *argv], fragment)
+    assert line.endswith(fragment) or "is not a number" not in fragment  # nothing glued on
+
+
+def test_a_non_integer_option_is_one_line(capsys):
+    with pytest.raises(SystemExit) as exit:
+        main(["calibrate", "t.csv", "--fit", "k", "--starts", "x"])
+    assert exit.value.code == 2
+    assert _one_line(capsys.readouterr().err) == (
+        "recoil-jax: error: calibrate: argument --starts: invalid int value: 'x' (see "
+        "recoil-jax calibrate --help)"
+    )
+
+
+@pytest.mark.parametrize(
+    ("signal_", "fragment"),
+    [
+        ("0.01", "t.csv, column x_M: every sample is 0.01; a signal with no variation cannot"),
+        ("0", "t.csv, column x_M: every sample is 0; a signal with no variation cannot"),
+        ("1e300 * t", "t.csv, column x_M: a value of 5e+299 is beyond 1e+150, where its"),
+    ],
+)
+def test_a_signal_the_fit_cannot_use_is_refused_naming_file_and_column(
+    traces, capsys, signal_, fragment
+):
+    ts = np.linspace(0.0, 0.5, 51)
+    rows = [f"{t:.4g},{eval(signal_, {'t': t}):.6g}" for t in ts]
+    (traces / "t.csv").write_text("t,x_M\n" + "\n".join(rows) + "\n")
+    _refused(capsys, ["calibrate", "t.csv", "--fit", "k"], fragment)
+    _refused(capsys, ["calibrate", "c.toml"], fragment)
+
+
+@pytest.mark.parametrize(
+    ("scale", "offset", "warning"),
+    [
+        (1000.0, 0.0, "t.csv spans 0 to 500 s, outside the documented range of t1 0.1 to 60 s"),
+        (1.0, 1.7e9, "t.csv starts at t = 1.7e+09 s: are its times epoch seconds?"),
+    ],
+)
+def test_a_trace_not_in_seconds_from_the_firing_is_warned_of(traces, capsys, scale, offset,
+                                                              warning):  # fmt: skip
+    ts = np.linspace(0.0, 0.5, 51)
+    rows = [f"{offset + scale * t:.12g},{0.01 * np.sin(9 * t):.6g}" for t in ts]
+    (traces / "t.csv").write_text("t,x_M\n" + "\n".join(rows) + "\n")
+    with pytest.raises(_Reached):
+        main(["calibrate", "t.csv", "--fit", "k"])
+    assert f"recoil-jax: warning: {warning}" in capsys.readouterr().err
+
+
+def test_the_sensitivity_file_refuses_repeated_metrics(tmp_path, capsys):
+    body = ('[ranges]\nk = { relative = 0.1 }\n[metrics]\nnames = ["max_stroke", '
+            '"max_stroke"]\n[method]\nname = "sobol"\nsamples = 64\n')  # fmt: skip
+    (tmp_path / "s.toml").write_text(body)
+    _refused(capsys, ["sensitivity", str(tmp_path / "s.toml")],
+             "[metrics] names: max_stroke is given twice")  # fmt: skip
+
+
+def test_ranges_from_a_covariance_that_is_not_positive_are_refused_naming_it(tmp_path):
+    hardware = {"names": ["k", "c_out"], "values": [28000.0, 6000.0],
+                "covariance": [[-4.0, 0.0], [0.0, 9.0]], "lower": [1e4, 1e3],
+                "upper": [1e5, 3e4], "identifiable": [True, True], "design": {}}  # fmt: skip
+    (tmp_path / "result.json").write_text(json.dumps({"hardware": hardware}))
+    fitted = rjx.FittedParameters.from_json(tmp_path / "result.json")
+    with pytest.raises(rj.ParameterError, match=r"^k: its variance in the calibration's "
+                       r"covariance is -4, not a positive number"):  # fmt: skip
+        fitted.box(2.0)
+    hardware["covariance"][1][1] = None  # as a result.json writes a NaN now
+    (tmp_path / "result.json").write_text(json.dumps({"hardware": hardware}))
+    with pytest.raises(rj.ParameterError, match=r"^k: "):
+        rjx.FittedParameters.from_json(tmp_path / "result.json").box(2.0)
+
+
+def test_every_result_json_writes_null_beside_its_reason_never_nan(tmp_path):
+    from recoil_jax.apps import _calibration, _json
+
+    report = {"aic": math.inf, "rms": {"x_M": np.float64("nan")}, "c": [[1.0, -math.inf]]}
+    text = _json.dumps(report)
+    assert json.loads(text) == {
+        "aic": None, "aic_null": "inf (not a finite number; JSON has none)",
+        "rms": {"x_M": None, "x_M_null": "nan (not a finite number; JSON has none)"},
+        "c": [[1.0, None]], "c_null": "1 values written null: -inf (not finite; JSON has none)",
+    }  # fmt: skip
+    assert "Infinity" not in text and "NaN" not in text
+    assert _calibration.json.dumps is _json.dumps  # calibrate's writes are this writer's
+    path = _json.write(tmp_path / "result.json", report)
+    assert json.loads(path.read_text())["aic"] is None
+    assert [p.name for p in tmp_path.iterdir()] == ["result.json"]
+
+
+def test_a_full_disk_names_the_file_and_leaves_no_truncated_one(tmp_path, monkeypatch, capsys):
+    from recoil_jax.apps import _json, _sensitivity as sensitivity_app
+
+    class Full:
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def write(self, text):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(_json, "open", Full, raising=False)
+    with pytest.raises(OSError) as error:
+        _json.write_text(tmp_path / "samples.csv", "a,b\n1,2\n")
+    assert error.value.filename == str(tmp_path / "samples.csv")
+    assert list(tmp_path.iterdir()) == []
+    # A library's write with no file name is said to be into the output folder.
+    monkeypatch.setattr(sensitivity_app, "run_sensitivity",
+                        _raising(OSError(errno.ENOSPC, "No space left on device")))  # fmt: skip
+    out = tmp_path / "out"
+    assert main(["sensitivity", "x.toml", "--out", str(out)]) == 1
+    assert _one_line(capsys.readouterr().err) == (
+        f"recoil-jax: error: writing into {out}: No space left on device"
+    )
+
+
+@pytest.mark.parametrize("command", ["calibrate", "sensitivity", "progress"])
+def test_a_damaged_store_is_named_with_what_to_do(tmp_path, monkeypatch, capsys, command):
+    from recoil_jax.apps import _calibration, _sensitivity as sensitivity_app
+
+    damaged = sqlite3.DatabaseError("database disk image is malformed")
+    monkeypatch.setattr(_calibration, "run_calibration", _raising(damaged))
+    monkeypatch.setattr(sensitivity_app, "run_sensitivity", _raising(damaged))
+    monkeypatch.setattr(rj, "campaign_progress", _raising(damaged))
+    store = str(tmp_path / "s.sqlite")
+    argv = {"calibrate": ["calibrate", "t.csv", "--fit", "k", "--store", store],
+            "sensitivity": ["sensitivity", "x.toml", "--store", store],
+            "progress": ["progress", store]}[command]  # fmt: skip
+    assert main(argv) == 2
+    assert _one_line(capsys.readouterr().err) == (
+        f"recoil-jax: error: store {store} is damaged (database disk image is malformed): "
+        "move it aside to keep it, or delete it to start again"
+    )
+
+
+def test_a_store_damaged_inside_is_named_in_a_real_run(tmp_path, capsys):
+    store = tmp_path / "s.sqlite"
+    argv = ["sweep", "m=200:2000:4000", "--store", str(store), "--out", str(tmp_path / "o")]
+    assert main(argv) == 0
+    capsys.readouterr()
+    data = bytearray(store.read_bytes())
+    data[len(data) // 2 : len(data) // 2 + 5000] = b"\x07" * 5000
+    store.write_bytes(bytes(data))
+    assert main(argv) == 2
+    assert f"store {store} is damaged" in _one_line(capsys.readouterr().err)
+
+
+ENTRY = [sys.executable, "-m", "recoil_jax_entry"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("delay", [0.05, 0.3, 0.8])
+def test_real_processes_ctrl_c_while_starting_and_again_is_one_line(tmp_path, delay):
+    """Ctrl-C during the imports, and three in a row: one line, status 130, never a
+    traceback, an atexit KeyboardInterrupt or an abort (134)."""
+    root = Path(__file__).resolve().parents[1]
+    env = os.environ | {"RECOIL_JAX_CACHE": str(tmp_path / "cache"), "PYTHONPATH": str(root)}
+    argv = [*ENTRY, "sweep", "m=100:3000:300", "gap=0:0.1:300"]
+    process = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                               text=True, env=env)  # fmt: skip
+    time.sleep(delay)
+    for _ in range(3):
+        process.send_signal(signal.SIGINT)
+        time.sleep(0.02)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 130, err
+    assert _one_line(err).startswith("recoil-jax: interrupted")
+
+
+@pytest.mark.slow
+def test_real_processes_a_closed_standard_output_is_no_traceback(tmp_path):
+    root = Path(__file__).resolve().parents[1]
+    env = os.environ | {"RECOIL_JAX_CACHE": str(tmp_path / "cache"), "PYTHONPATH": str(root)}
+    store = tmp_path / "s.sqlite"
+    rj.sweep_to_store({"m": np.linspace(200.0, 2000.0, 4)}, store, progress=False)
+    for argv in (ENTRY, CLI):
+        done = subprocess.run(["sh", "-c", '"$@" >&-', "sh", *argv, "progress", str(store)],
+                              capture_output=True, text=True, env=env, timeout=120)  # fmt: skip
+        assert done.returncode == 0 and done.stderr == "", done.stderr

@@ -56,10 +56,10 @@ def _refused(capsys, argv, fragment, status=2):
 @pytest.mark.parametrize(
     "argv, fragment",
     [
-        (["simulate", "--force-table", "binary.csv"], "is not a readable text file"),
-        (["simulate", "--force-table", "folder"], "is not a readable text file"),
+        (["simulate", "--force-table", "binary.csv"], "is not a text file (UTF-8)"),
+        (["simulate", "--force-table", "folder"], "is a folder, not a file"),
         (["simulate", "--force-table", "missing.csv"], "force table"),
-        (["sweep", "m=0,100", "--force-table", "binary.csv"], "is not a readable text file"),
+        (["sweep", "m=0,100", "--force-table", "binary.csv"], "is not a text file (UTF-8)"),
         (["sweep", "--points", "missing.csv"], "points file"),
         (["sweep", "--points", "binary.csv"], "is not a text file"),
         (["sweep", "--points", "folder"], "is a folder"),

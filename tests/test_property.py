@@ -118,6 +118,20 @@ sensitivity_files = st.one_of(
                SENSITIVITY_KEYS),
     _mutated("sensitivity"),
 )  # fmt: skip
+CALIBRATION_KEYS = [*rj.PARAMETERS, "trace", "sigma", "per_experiment", "window", "name",
+                    "starts", "seed", "fit_steps", "description", "loss", "f_scale",
+                    "force_table"]  # fmt: skip
+calibration_files = st.one_of(
+    _toml_file(["design", "fit", "[experiment]", "[validation]", "bogus"], CALIBRATION_KEYS),
+    st.builds(
+        lambda top, fit, count: f"{top}\n[fit]\n{fit}\n"
+        + '[[experiment]]\ntrace = "trace.csv"\n' * count,
+        st.sampled_from(["", "starts = 1000000000", "fit_steps = 1000000000000",
+                         "description = [1, 2]", "[design]\nk = 3e4", "starts = 4"]),
+        st.sampled_from(["k = [1e4, 1e5]", "k = [1e5, 1e4]", "v0 = [0.5, 0.8]"]),
+        st.sampled_from([0, 1, 2, 300]),
+    ),
+)  # fmt: skip
 csv_files = st.one_of(
     junk,
     st.builds(
@@ -141,9 +155,17 @@ def command_lines(draw, folder: Path):
         path.write_bytes(data.encode("utf-8", "surrogatepass"))
         return str(path)
 
-    paths = st.sampled_from([str(folder), str(folder / "missing" / "x"), "/proc/x",
-                             str(folder / "f.txt"), "", str(folder / "out")])  # fmt: skip
     (folder / "f.txt").write_text("a file")
+    # What is not a regular file: read, each would never end (a FIFO without a writer
+    # waits forever; /dev/zero and /dev/urandom never run out).
+    specials = ["/dev/zero", "/dev/urandom"]
+    if hasattr(os, "mkfifo"):
+        os.mkfifo(folder / "fifo")
+        specials.append(str(folder / "fifo"))
+    paths = st.sampled_from([str(folder), str(folder / "missing" / "x"), "/proc/x",
+                             str(folder / "f.txt"), "", str(folder / "out"),
+                             *specials])  # fmt: skip
+    inputs = st.sampled_from(specials)
     command = draw(st.sampled_from(["simulate", "sweep", "optimise", "sensitivity",
                                     "calibrate", "progress"]))  # fmt: skip
     argv = [command, "--no-cache"]
@@ -172,11 +194,27 @@ def command_lines(draw, folder: Path):
         if draw(st.booleans()):
             argv += ["--seed", draw(number_texts)]
     elif command == "sensitivity":
-        argv += [file("s.toml", sensitivity_files), "--out", str(folder / "out")]
+        source = st.one_of(st.just(file("s.toml", sensitivity_files)), inputs)
+        argv += [draw(source), "--out", str(folder / "out")]
+        if draw(st.booleans()):
+            argv += ["--store", draw(st.one_of(paths, st.just(file("c.sqlite", junk))))]
+    elif command == "calibrate" and draw(st.booleans()):  # a calibration file
+        file("trace.csv", csv_files)
+        argv += [file("c.toml", calibration_files)]
+        argv += draw(st.lists(assignments, max_size=1))
+        if draw(st.booleans()):
+            argv += ["--starts", draw(number_texts)]
     elif command == "calibrate":
-        argv += [file("trace.csv", csv_files)]
-        argv += ["--fit", draw(st.sampled_from(["k", "k,c_out", "", "bogus", "t_shift,k"]))]
+        argv += [draw(st.one_of(st.just(file("trace.csv", csv_files)), inputs))]
+        argv += ["--fit", draw(st.sampled_from(["k", "k,c_out", "", "bogus", "t_shift,k",
+                                                "k,k", "k,v0"]))]  # fmt: skip
         argv += draw(st.lists(assignments, max_size=2))
+        if draw(st.booleans()):
+            argv += ["--starts", draw(number_texts)]
+        if draw(st.booleans()):
+            argv += ["--validate", draw(st.one_of(paths, st.just(file("v.csv", csv_files))))]
+        if draw(st.booleans()):
+            argv += ["--predict", *draw(st.lists(assignments, min_size=1, max_size=2))]
         if draw(st.booleans()):
             argv += ["--store", draw(st.one_of(paths, st.just(file("c.sqlite", junk))))]
         if draw(st.booleans()):

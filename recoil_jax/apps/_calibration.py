@@ -4,11 +4,12 @@ file (TOML) or one trace with `--fit`; the report, `result.json` and the figures
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import sys
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
@@ -19,9 +20,23 @@ from ._inputs import (
     output_folder,
     parse_assignments,
     read_toml,
+    warn,
 )
 
-__all__ = ["MODEL_MISFIT", "NOT_CONVERGED", "load_calibration", "run_calibration"]
+# The command line's JSON writer, under json's name: `json.dumps` below writes a number
+# that is not finite as null, with the reason beside it (never bare NaN or Infinity).
+from ._json import STRICT as json
+
+__all__ = [
+    "MAX_EXPERIMENTS",
+    "MAX_FIT_STEPS",
+    "MAX_SIGNAL",
+    "MAX_STARTS",
+    "MODEL_MISFIT",
+    "NOT_CONVERGED",
+    "load_calibration",
+    "run_calibration",
+]
 
 #: The exit status when the fit did not converge (0 fitted, 1 a solve failed, 2 bad
 #: input).
@@ -29,6 +44,18 @@ NOT_CONVERGED = 4
 #: The exit status when the fit converged but the model does not explain the traces:
 #: residuals far above the traces' own noise, or far from white (`rj.ModelCheck`).
 MODEL_MISFIT = 5
+
+#: The most starts a calibration may have (`--starts`, `starts`): each is a fit.
+MAX_STARTS = 1024
+#: The most Levenberg–Marquardt steps per fit (`fit_steps`; the default is 200, and a
+#: fit converges in under 50).
+MAX_FIT_STEPS = 10_000
+#: The most experiments, fitted and validation together (each has its panels in the
+#: figures).
+MAX_EXPERIMENTS = 50
+#: The largest magnitude a measured value may have: beyond it the squares of the
+#: residuals overflow (a unit mistake, or a broken export).
+MAX_SIGNAL = 1e150
 
 #: The keys of a calibration file, and of one `[[experiment]]` besides design values.
 _FILE_KEYS = {"description", "design", "fit", "experiment", "validation", "loss", "f_scale",
@@ -82,6 +109,9 @@ def _experiment(where: str, entry: Any, folder: Path) -> rjx.Experiment:
     per = entry.get("per_experiment", [])
     if not isinstance(per, list) or not all(isinstance(n, str) for n in per):
         raise _error(f"{where}.per_experiment", "give a list of parameter names")
+    twice = sorted({n for n in per if per.count(n) > 1})
+    if twice:
+        raise _error(f"{where}.per_experiment", f"{twice[0]} is given twice")
     return rjx.Experiment(
         trace,
         design=design,
@@ -102,6 +132,9 @@ def load_calibration(path) -> tuple[rj.Calibration, dict[str, Any]]:
     if unknown:
         raise _error(str(path), f"unknown key {sorted(unknown)[0]!r}; known: "
                      f"{', '.join(sorted(_FILE_KEYS))}")  # fmt: skip
+    description = config.get("description", "")
+    if not isinstance(description, str):
+        raise _error(str(path), f"description = {description!r}: give a string")
     design = config.get("design", {})
     for name in design:
         if name not in rj.PARAMETERS and name != "t1":
@@ -112,14 +145,26 @@ def load_calibration(path) -> tuple[rj.Calibration, dict[str, Any]]:
         fit[name], s = _bounds(f"[fit] {name}", value)
         if s is not None:
             start[name] = s
+        if name in design:
+            raise _error(str(path), f"{name} is given both in [design] ({name} = "
+                         f"{design[name]:g}) and in [fit]: give it in one place")  # fmt: skip
     experiments = config.get("experiment", [])
     if not isinstance(experiments, list):
         raise _error(str(path), "write each experiment as [[experiment]]")
+    validations = config.get("validation", [])
+    if not isinstance(validations, list):
+        raise _error(str(path), "write each validation experiment as [[validation]]")
+    _check_experiments(len(experiments) + len(validations), str(path))
+    for key, least, most in (("starts", 1, MAX_STARTS), ("seed", 0, 2**63 - 1),
+                             ("fit_steps", 1, MAX_FIT_STEPS)):  # fmt: skip
+        value = config.get(key, least)
+        if isinstance(value, bool) or not isinstance(value, int) or not least <= value <= most:
+            raise _error(str(path), f"{key} = {value!r}: give an integer from {least} to "
+                         f"{most:,}")  # fmt: skip
     folder = path.parent
     fitted = [_experiment(f"[[experiment]] {i}", e, folder) for i, e in enumerate(experiments, 1)]
     validation = [
-        _experiment(f"[[validation]] {i}", e, folder)
-        for i, e in enumerate(config.get("validation", []), 1)
+        _experiment(f"[[validation]] {i}", e, folder) for i, e in enumerate(validations, 1)
     ]
     calibration = rj.Calibration(
         fitted,
@@ -135,12 +180,8 @@ def load_calibration(path) -> tuple[rj.Calibration, dict[str, Any]]:
         "starts": config.get("starts", 1),
         "seed": config.get("seed", 0),
         "fit_steps": config.get("fit_steps", 200),
-        "description": str(config.get("description", "")),
+        "description": description,
     }
-    for key, least in (("starts", 1), ("seed", 0), ("fit_steps", 1)):
-        value = settings[key]
-        if isinstance(value, bool) or not isinstance(value, int) or value < least:
-            raise _error(str(path), f"{key} = {value!r}: give an integer >= {least}")
     return calibration, settings
 
 
@@ -168,12 +209,95 @@ def _quick(trace_path, fit_names: str | None, assignments, validate, force_table
     return rj.Calibration([experiment], fit=fit, validation=validation, force_table=table)
 
 
+def _check_experiments(count: int, where: str) -> None:
+    if count > MAX_EXPERIMENTS:
+        raise _error(where, f"{count:,} experiments (fitted and validation), more than "
+                     f"{MAX_EXPERIMENTS}: fit fewer at a time")  # fmt: skip
+
+
+def _check_fit_names(fit_names: str | None, assignments) -> None:
+    """`--fit a,b`: each name once, and none also given as a known value (`name=value`)."""
+    names = [n.strip() for n in (fit_names or "").split(",")]
+    twice = sorted({n for n in names if n and names.count(n) > 1})
+    if twice:
+        raise rj.ParameterError(f"--fit {fit_names}: {twice[0]} is given twice")
+    for item in assignments:
+        name = item.partition("=")[0]
+        if name in names:
+            raise rj.ParameterError(
+                f"{name} is given both on the command line ({item}) and in --fit "
+                f"{fit_names}: give it in one place"
+            )
+
+
+def _check_before_fit(calibration: rj.Calibration, starts, store) -> None:
+    """What the fit cannot use or would not survive, refused (or warned of) before it
+    starts: a signal with no variation or out of range, times that are probably not
+    seconds from the firing, and starts whose arrays would not fit in memory."""
+    experiments = [*calibration.experiments, *calibration.validation]
+    fitted_ids = {id(e) for e in calibration.experiments}
+    low, high = rjx.T1_LIMITS.documented or (0.1, 60.0)
+    for e in experiments:
+        t = e.trace.t
+        if t[0] > high:
+            warn([f"{e.trace.source} starts at t = {t[0]:g} s: are its times epoch seconds? "
+                  "The model's t = 0 is the firing: give times from it (the documented "
+                  f"range of t1 is {low:g} to {high:g} s)"])  # fmt: skip
+        elif t[-1] - t[0] > high:
+            warn([f"{e.trace.source} spans {t[0]:g} to {t[-1]:g} s, outside the documented "
+                  f"range of t1 {low:g} to {high:g} s, where the model's accuracy is tested: "
+                  "are its times in seconds (not milliseconds)?"])  # fmt: skip
+        for name, values in e.trace.signals.items():
+            present = values[np.isfinite(values)]
+            if not present.size:
+                continue
+            largest = float(np.max(np.abs(present)))
+            if largest > MAX_SIGNAL:
+                raise rj.ParameterError(
+                    f"{e.trace.source}, column {name}: a value of {largest:.3g} is beyond "
+                    f"{MAX_SIGNAL:g}, where its square overflows: check the column's unit"
+                )
+            if id(e) in fitted_ids and name not in e.sigma and np.ptp(present) == 0:
+                raise rj.ParameterError(
+                    f"{e.trace.source}, column {name}: every sample is {present[0]:g}; a "
+                    "signal with no variation cannot be fitted (its noise would be "
+                    "estimated as zero): leave the column out, or give its sigma"
+                )
+    samples = sum(len(e.trace.t) * len(e.trace.signals) for e in calibration.experiments)
+    count = starts if isinstance(starts, int) else len(starts)
+    fitted = len(calibration.fit) + sum(
+        len(e.per_experiment) for e in calibration.experiments
+    )  # fmt: skip
+    # Per start, one program holds about the residuals, their Jacobian and its workspace.
+    rjx.check_memory(
+        min(count, 8) if store else count, 8 * samples * (fitted + 8), "a calibration",
+        "give fewer starts or shorter traces, or --store FILE.sqlite (its starts are "
+        "fitted 8 at a time)", unit="starts at once",
+    )  # fmt: skip
+
+
 def run_calibration(args) -> int:
     """The `calibrate` command."""
     source = Path(args.source)
+    # Every check of the command line before any file is read, and of what was read
+    # before anything is fitted (`_check_before_fit`).
+    if args.predict is not None:
+        try:  # its names and numbers, not after the whole fit
+            parse_assignments(args.predict)
+        except rj.ParameterError as error:
+            raise rj.ParameterError(f"--predict: {error}") from None
+    if args.starts is not None and not 1 <= args.starts <= MAX_STARTS:
+        raise rj.ParameterError(f"--starts {args.starts}: give an integer from 1 to {MAX_STARTS:,}")
+    _check_experiments(1 + len(args.validate or []), "the command line")
     if source.suffix.lower() == ".toml":
         if args.fit:
             raise rj.ParameterError("--fit is for a trace (.csv); a calibration file has [fit]")
+        if args.assignments:
+            item = args.assignments[0]
+            raise rj.ParameterError(
+                f"{item} is given on the command line beside the calibration file {source}: "
+                "give it in one place (its [design], or an experiment's table)"
+            )
         calibration, settings = load_calibration(source)
         if args.force_table:
             raise rj.ParameterError(
@@ -185,11 +309,13 @@ def run_calibration(args) -> int:
                 calibration, validation=(*calibration.validation, *extra)
             )
     else:
+        _check_fit_names(args.fit, args.assignments)
         calibration = _quick(
             source, args.fit, args.assignments, args.validate or [], args.force_table
         )
         settings = {"starts": 1, "seed": 0, "fit_steps": 200, "description": ""}
     starts = args.starts if args.starts is not None else settings["starts"]
+    _check_before_fit(calibration, starts, args.store)
     out = output_folder(args.out)
     calibration = dataclasses.replace(
         calibration, options=dataclasses.replace(calibration.options, max_steps=args.max_steps)

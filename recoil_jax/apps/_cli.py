@@ -28,6 +28,7 @@ from ._inputs import (
     results_folder,
     warn,
 )
+from ._json import dumps as json_dumps
 
 __all__ = ["INFEASIBLE", "INTERRUPTED", "build_parser", "describe", "main"]
 
@@ -53,6 +54,8 @@ _ENVIRONMENT_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, er
 #: SQLite's messages for the same faults, on a store.
 _SQLITE_ENVIRONMENT = ("database or disk is full", "readonly database", "unable to open",
                        "disk I/O error")  # fmt: skip
+#: SQLite's messages for a store whose file is damaged (garbage bytes, cut short).
+_SQLITE_DAMAGED = ("malformed", "not a database", "corrupt")
 
 
 def _simulate(args) -> int:
@@ -216,7 +219,7 @@ def _optimise(args) -> int:
         scheduler=args.scheduler,
     )
     if args.json:
-        print(json.dumps(report))
+        print(json_dumps(report))
     if not report["feasible"]:
         print(f"recoil-jax: infeasible: {report['message']}", file=sys.stderr)
         return INFEASIBLE
@@ -285,14 +288,25 @@ def _add_max_steps(parser: argparse.ArgumentParser) -> None:
     )
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, whose errors (an unknown option, `--starts x`) are one line like
+    every other refusal: `recoil-jax: error: ...`, status 2 (its subcommands' parsers are
+    of this class too)."""
+
+    def error(self, message: str):  # pyright: ignore[reportIncompatibleMethodOverride]
+        command = self.prog.removeprefix("recoil-jax").strip()
+        where = f"{command}: " if command else ""
+        self.exit(2, f"recoil-jax: error: {where}{message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="recoil-jax",
         description="Differentiable recoil-system models: gun barrel with an impact absorber.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {rj.__version__}")
     # Every command takes --no-cache.
-    common = argparse.ArgumentParser(add_help=False)
+    common = _Parser(add_help=False)
     common.add_argument(
         "--no-cache",
         action="store_true",
@@ -732,16 +746,27 @@ def _run(args) -> int:
     except OSError as error:
         if error.errno not in _ENVIRONMENT_ERRORS:
             raise
-        where = f"{error.filename}: " if error.filename else ""
+        # A write that failed inside a library (no file name) was into the output folder.
+        out = getattr(args, "out", None)
+        where = (
+            f"{error.filename}: " if error.filename else (f"writing into {out}: " if out else "")
+        )
         print(f"recoil-jax: error: {where}{error.strerror}", file=sys.stderr)
         return 1
-    except sqlite3.OperationalError as error:
-        if not any(text in str(error) for text in _SQLITE_ENVIRONMENT):
-            raise
+    except sqlite3.DatabaseError as error:  # OperationalError is one too
         store = getattr(args, "store", None)
+        if any(text in str(error) for text in _SQLITE_DAMAGED) and store:
+            print(f"recoil-jax: error: store {store} is damaged ({error}): move it aside to "
+                  "keep it, or delete it to start again", file=sys.stderr)  # fmt: skip
+            return 2
+        if not (isinstance(error, sqlite3.OperationalError) and
+                any(text in str(error) for text in _SQLITE_ENVIRONMENT)):  # fmt: skip
+            raise
         where = f"store {store}: " if store else ""
         print(f"recoil-jax: error: {where}{error}", file=sys.stderr)
         return 1
+    if sys.stdout is None:  # closed before the start (`recoil-jax ... >&-`)
+        return status
     try:  # a full disk or a closed pipe on stdout shows here, not at exit
         sys.stdout.flush()
     except BrokenPipeError:

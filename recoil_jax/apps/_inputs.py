@@ -28,6 +28,7 @@ else:  # pragma: no cover
 __all__ = [
     "MADE_FOLDERS",
     "SETTINGS",
+    "TooLarge",
     "check_figure_path",
     "check_output_file",
     "design_warnings",
@@ -132,16 +133,21 @@ def parse_assignments(items: list[str]) -> dict[str, float]:
         try:
             values[name] = number(text)
         except ValueError as error:
-            raise rj.ParameterError(f"{name} = {text!r} is not a number{error}") from None
+            why = str(error) if isinstance(error, TooLarge) else ""
+            raise rj.ParameterError(f"{name} = {text!r} is not a number{why}") from None
     return values
 
 
+class TooLarge(ValueError):
+    """A number beyond the largest float64: its message (from ": ") says so."""
+
+
 def number(text: str) -> float:
-    """A number as typed; `ValueError` for none, and for one beyond the largest float64
-    (which `float` would read as inf), its message then saying so."""
+    """A number as typed; `ValueError` for none, and `TooLarge` (a `ValueError`) for one
+    beyond the largest float64 (which `float` would read as inf), its message saying so."""
     value = float(text)
     if math.isinf(value) and "inf" not in text.lower():
-        raise ValueError(": beyond the largest float64 (about 1.8e308)")
+        raise TooLarge(": beyond the largest float64 (about 1.8e308)")
     return value
 
 

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import json
+import io
 import sys
 from pathlib import Path
 from typing import Any
@@ -47,6 +47,7 @@ from ._inputs import (
     resolve_shipped,
     results_folder,
 )
+from ._json import dumps as json_dumps, write as write_json, write_text
 
 __all__ = ["SHIPPED", "load_sensitivity", "resolve_sensitivity", "run_sensitivity"]
 
@@ -91,6 +92,9 @@ def _metrics(path, section: dict) -> tuple[list[str], rj.Objective | None]:
     names = section.get("names", [])
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise _error(path, f"[metrics] names = {names!r}: give a list of metric names")
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise _error(path, f"[metrics] names: {twice[0]} is given twice")
     for name in names:
         if name not in rj.METRICS:
             known = ", ".join(rj.METRICS)
@@ -205,8 +209,9 @@ def load_sensitivity(source) -> tuple[dict[str, Any], str]:
 
 def write_samples(result: rj.SensitivityResult, path: Path) -> Path:
     """Every design's ranged values and metrics (empty where its solve failed), and
-    whether its solve succeeded."""
-    with path.open("w", newline="") as file:
+    whether its solve succeeded; written whole or not at all (a full disk leaves no
+    truncated file)."""
+    with io.StringIO(newline="") as file:
         writer = csv.writer(file)
         writer.writerow([*result.parameters, *result.metrics, "ok"])
         outputs = [result.outputs[m] for m in result.metrics]
@@ -214,7 +219,7 @@ def write_samples(result: rj.SensitivityResult, path: Path) -> Path:
             ok = bool(result.ok[i])
             values = [f"{v:.10g}" if ok else "" for v in (o[i] for o in outputs)]
             writer.writerow([*(f"{v:.10g}" for v in row), *values, int(ok)])
-    return path
+        return write_text(path, file.getvalue())
 
 
 def summary(result: rj.SensitivityResult) -> str:
@@ -252,9 +257,9 @@ def run_sensitivity(args) -> int:
     from ._figures import sensitivity_figures
 
     report["figures"] = [str(p) for p in sensitivity_figures(result, out)]
-    (out / "result.json").write_text(json.dumps(report, indent=2) + "\n")
+    write_json(out / "result.json", report)
     if args.json:
-        print(json.dumps(report))
+        print(json_dumps(report))
     else:
         print(summary(result))
         print(f"  wrote {out / 'result.json'}, samples.csv and {len(report['figures'])} figures")

@@ -53,7 +53,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 import sys
 import time
 from dataclasses import dataclass, field
@@ -68,6 +67,7 @@ import recoil_jax.extend as rjx
 
 from ._cluster import check_cluster, dask_client
 from ._inputs import file_error as _error, output_folder, read_toml, resolve_shipped
+from ._json import write as write_json
 
 __all__ = [
     "LOCAL_METHODS",
@@ -816,7 +816,7 @@ def run_study(
     report["simulations_by_part"] = simulations
     report["seconds"] = round(time.perf_counter() - started, 2)
     report["seconds_by_part"] = phase.seconds
-    (out / "result.json").write_text(json.dumps(report, indent=2) + "\n")
+    write_json(out / "result.json", report)
     return report
 
 

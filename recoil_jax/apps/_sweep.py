@@ -25,6 +25,7 @@ from ._inputs import (
     unknown_name,
     warn,
 )
+from ._json import dumps as json_dumps
 
 __all__ = ["MAX_AXIS", "parse_axis", "read_points", "run_sweep", "write_figures", "write_results"]
 
@@ -340,7 +341,7 @@ def run_sweep(args) -> int:
             )
             result.swept, result.grid_shape = tuple(axes), shape
     if args.json:
-        print(json.dumps(result.records()))
+        print(json_dumps(result.records()))
     else:
         ok, solved = int(result.ok.sum()), len(result) - result.stored
         read = f" ({result.stored} read from the store)" if result.stored else ""
