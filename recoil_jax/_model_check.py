@@ -98,7 +98,11 @@ def trace_noise(values) -> NoiseEstimate:
         return NoiseEstimate(math.nan, math.nan)
     width = min(_WIDTH, 2 * (y.size // 6) + 1)
     power_of, correlation_of = _high_pass_tables(width)
-    e = np.convolve(y, _high_pass(width), mode="valid")
+    size = float(np.max(np.abs(y)))
+    if size == 0.0:
+        return NoiseEstimate(0.0, 0.0)
+    e = np.convolve(y / size, _high_pass(width), mode="valid")  # in units of its size:
+    # squares of a signal near the largest float64 would overflow
     centre = float(np.median(e))
     scale = 1.4826 * float(np.median(np.abs(e - centre)))
     if scale == 0.0:  # constant, or quantised below its step: no noise to read
@@ -111,7 +115,7 @@ def trace_noise(values) -> NoiseEstimate:
     )
     # ρ(φ) rises with φ: the φ whose high-pass has this lag-1 correlation.
     i = int(np.clip(np.searchsorted(correlation_of, rho), 0, _PHIS.size - 1))
-    return NoiseEstimate(math.sqrt(power / power_of[i]), float(_PHIS[i]))
+    return NoiseEstimate(size * math.sqrt(power / power_of[i]), float(_PHIS[i]))
 
 
 #: The correlations φ the tables hold (`trace_noise` reads φ to 0.001).

@@ -36,13 +36,14 @@ __all__ = [
     "NOT_CONVERGED",
     "load_calibration",
     "run_calibration",
+    "structure_line",
 ]
 
 #: The exit status when the fit did not converge (0 fitted, 1 a solve failed, 2 bad
 #: input).
 NOT_CONVERGED = 4
 #: The exit status when the fit converged but the model does not explain the traces:
-#: residuals far above the traces' own noise, or far from white (`rj.ModelCheck`).
+#: residuals far above the traces' own noise, or far from white (`rjx.ModelCheck`).
 MODEL_MISFIT = 5
 
 #: The most starts a calibration may have (`--starts`, `starts`): each is a fit.
