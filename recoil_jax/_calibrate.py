@@ -42,7 +42,7 @@ from ._gradients import (
     SIGNALS,
     signal_sensitivities,
 )
-from ._model_check import ModelCheck, check_residuals, trace_noise
+from ._model_check import ModelCheck, check_residuals, finite, trace_noise
 from ._params import (
     PARAMETERS,
     ForceTable,
@@ -463,11 +463,16 @@ def _estimates_noise(data: _Data) -> bool:
 
 def _noise_guess(values) -> float:
     """A first guess of a signal's noise from its samples alone (`trace_noise`: robust,
-    allowing for coloured noise); at least 1e-9 of the signal's size."""
-    finite = values[np.isfinite(values)]
-    size = float(np.max(np.abs(finite))) if finite.size else 1.0
-    own = trace_noise(finite).sigma
-    return max(own if math.isfinite(own) else 0.0, 1e-9 * size, 1e-300)
+    allowing for coloured noise; on a trace too short for it, the spread (MAD) of its
+    successive differences over √2); at least 1e-9 of the signal's size."""
+    present = values[np.isfinite(values)]
+    size = float(np.max(np.abs(present))) if present.size else 1.0
+    own = trace_noise(present).sigma
+    if not math.isfinite(own):
+        steps = np.diff(present)
+        own = 1.4826 * float(np.median(np.abs(steps - np.median(steps)))) / math.sqrt(2)
+        own = own if steps.size else 0.0
+    return max(own, 1e-9 * size, 1e-300)
 
 
 def _experiment_signals(theta_e, params, times, t1, data: _Data, static: _Static):
@@ -884,7 +889,7 @@ class CalibrationResult:
         return {
             "fitted": {k: f.to_json() for k, f in self.fitted.items()},
             "correlation": {
-                a: {b: _finite(self.correlation[i, j]) for j, b in enumerate(names)}
+                a: {b: finite(self.correlation[i, j]) for j, b in enumerate(names)}
                 for i, a in enumerate(names)
             },
             "unidentifiable": self.unidentifiable,
@@ -915,10 +920,6 @@ class CalibrationResult:
             if any(n in PARAMETERS for n in self.fitted)
             else None,
         }
-
-
-def _finite(x: float) -> float | None:
-    return float(x) if math.isfinite(float(x)) else None
 
 
 def _starts(layout: _Layout, starts: int, seed: int) -> np.ndarray:
@@ -1356,7 +1357,8 @@ def _report(calibration, layout, data, evaluation, theta, *, converged, starts, 
 
 def _structure(calibration: Calibration) -> dict[str, Any]:
     """The model a calibration fits (`CalibrationResult.structure`), from its first
-    experiment (they share one structure), and the values it took from the defaults."""
+    experiment (they share one structure), and the values that experiment took from the
+    defaults (those that act: not the contact's without an absorber)."""
     experiment = calibration.experiments[0]
     values = _design_of(calibration, experiment)
     groups = {PARAMETERS[name].group for name in values}
@@ -1364,8 +1366,9 @@ def _structure(calibration: Calibration) -> dict[str, Any]:
         load = "force table"
     else:
         load = "pulse" if values.get("pulse_time", 0.0) > 0 else "impulse"
-    given = {*calibration.fit, *(k for x in calibration.experiments for k in x.design),
-             *calibration.design}  # fmt: skip
+    given = {*calibration.fit, *experiment.design, *calibration.design}
+    if values.get("m", 0.0) == 0:  # no absorber: its contact's values have no effect
+        given |= {name for name in values if PARAMETERS[name].group == "contact"}
     structure = {
         "absorber": values.get("m", 0.0) > 0,
         "load": load,

@@ -61,7 +61,8 @@ WHITENESS_RATIO = 1.25
 #: `MAX_WINDOWS` of them.
 WINDOW_SAMPLES = 200
 MAX_WINDOWS = 10
-#: Fewer samples than this: the noise cannot be estimated, the signal is not tested.
+#: Fewer samples than this: the noise cannot be estimated, the signal is not tested (the
+#: command line's report says 20).
 MIN_SAMPLES = 20
 #: The noise a signal is tested against is at least this fraction of its range (peak to
 #: peak): a noise-free trace is not held to rounding.
@@ -105,8 +106,11 @@ def trace_noise(values) -> NoiseEstimate:
     # squares of a signal near the largest float64 would overflow
     centre = float(np.median(e))
     scale = 1.4826 * float(np.median(np.abs(e - centre)))
-    if scale == 0.0:  # constant, or quantised below its step: no noise to read
-        return NoiseEstimate(0.0, 0.0)
+    if scale == 0.0:  # constant, or quantised coarser than its noise: then the rounding,
+        # a step over √12, is the noise (a logger's smallest step is its quantum)
+        steps = np.abs(np.diff(y))
+        steps = steps[steps > 0]
+        return NoiseEstimate(float(np.min(steps)) / math.sqrt(12.0) if steps.size else 0.0, 0.0)
     keep = np.abs(e - centre) <= _TRIM * scale
     pairs = keep[1:] & keep[:-1]
     power = float(np.mean(e[keep] ** 2))
@@ -201,7 +205,7 @@ class SignalCheck:
         white = (
             f"not white (lag-1 autocorrelation {self.correlation:.2f}; the trace's noise "
             f"{self.trace_correlation:.2f})"
-            if self.correlation > CORRELATION_LIMIT
+            if self.correlation > _correlation_limit(self.trace_correlation)
             else f"lag-1 autocorrelation {self.correlation:.2f}"
         )
         return (
@@ -213,12 +217,18 @@ class SignalCheck:
     def to_json(self) -> dict[str, Any]:
         out = {k: v for k, v in dataclasses.asdict(self).items() if k != "windows"}
         out["fails"] = self.fails
-        out["windows"] = [dataclasses.asdict(w) for w in self.windows]
-        return {k: _finite(v) for k, v in out.items()}
+        out["windows"] = [
+            {k: finite(v) for k, v in dataclasses.asdict(w).items()} for w in self.windows
+        ]
+        return {k: finite(v) for k, v in out.items()}
 
 
-def _finite(value):
-    return None if isinstance(value, float) and not math.isfinite(value) else value
+def finite(value):
+    """A number as a float, None (JSON's null) where it is not finite; anything else as
+    it is."""
+    if isinstance(value, float | np.floating):
+        return float(value) if math.isfinite(value) else None
+    return value
 
 
 def _spans(windows: tuple[Window, ...]) -> list[tuple[float, float]]:
@@ -246,12 +256,18 @@ class ModelCheck:
         return not self.failing
 
     @property
+    def tested(self) -> bool:
+        """Some signal had the `MIN_SAMPLES` a test needs."""
+        return bool(self.signals)
+
+    @property
     def failing(self) -> tuple[SignalCheck, ...]:
         return tuple(s for s in self.signals if s.fails)
 
     def to_json(self) -> dict[str, Any]:
         return {
             "explains": self.explains,
+            "tested": self.tested,
             "limits": {
                 "ratio": RATIO_LIMIT,
                 "correlation": CORRELATION_LIMIT,
@@ -263,6 +279,13 @@ class ModelCheck:
         }
 
 
+def _correlation_limit(trace_correlation: float) -> float:
+    """The lag-1 autocorrelation over which residuals are far from white, for a trace
+    whose own noise has `trace_correlation` (NaN: unknown)."""
+    own = trace_correlation if math.isfinite(trace_correlation) else 0.0
+    return max(CORRELATION_LIMIT, own + CORRELATION_MARGIN)
+
+
 def _window(t, r, noise: float, trace_correlation: float, robust: bool) -> Window:
     # A fit with a robust loss is judged as it fitted: by a scale a few outliers do not
     # move (a model error moves it: it shifts most residuals of a window).
@@ -270,8 +293,9 @@ def _window(t, r, noise: float, trace_correlation: float, robust: bool) -> Windo
     power = float(np.sum(r * r))
     correlation = float(np.sum(r[1:] * r[:-1]) / power) if power > 0 else 0.0
     ratio = rms / noise
-    limit = max(CORRELATION_LIMIT, trace_correlation + CORRELATION_MARGIN)
+    limit = _correlation_limit(trace_correlation)
     fails = ratio > RATIO_LIMIT or (correlation > limit and ratio > WHITENESS_RATIO)
+    fails = fails or not math.isfinite(rms)  # a failed solve explains nothing
     return Window(float(t[0]), float(t[-1]), rms, ratio, correlation, bool(fails))
 
 

@@ -635,7 +635,8 @@ def read_text(path, what: str) -> str:
         raise ParameterError(f"{what} {path} is a folder, not a file") from None
     except OSError as error:
         raise ParameterError(f"{what} {path} cannot be read: {error.strerror}") from None
-    mode = os.fstat(descriptor).st_mode
+    status = os.fstat(descriptor)
+    mode = status.st_mode
     if not stat.S_ISREG(mode):
         os.close(descriptor)
         if stat.S_ISDIR(mode):
@@ -643,17 +644,21 @@ def read_text(path, what: str) -> str:
         raise ParameterError(
             f"{what} {path} is not a regular file (a pipe, a device or a socket): give a file"
         )
+    too_large = ParameterError(
+        f"{what} {path} is larger than {MAX_TEXT_BYTES / 2**20:g} MiB, the most a file "
+        "read whole may hold (MAX_TEXT_BYTES): give a shorter file (a trace: fewer "
+        "samples, e.g. every n-th row)"
+    )
+    if status.st_size > MAX_TEXT_BYTES:  # refused before a byte is read
+        os.close(descriptor)
+        raise too_large
     with os.fdopen(descriptor, "rb") as file:
         try:
-            data = file.read(MAX_TEXT_BYTES + 1)
+            data = file.read(MAX_TEXT_BYTES + 1)  # a file that grows as it is read
         except OSError as error:
             raise ParameterError(f"{what} {path} cannot be read: {error.strerror}") from None
     if len(data) > MAX_TEXT_BYTES:
-        raise ParameterError(
-            f"{what} {path} is larger than {MAX_TEXT_BYTES / 2**20:g} MiB, the most a file "
-            "read whole may hold (MAX_TEXT_BYTES): give a shorter file (a trace: fewer "
-            "samples, e.g. every n-th row)"
-        )
+        raise too_large
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError:

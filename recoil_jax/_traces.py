@@ -24,7 +24,7 @@ from ._params import (
     ParameterError,
     RecoilParams,
     check_value,
-    params_from_values,
+    parameter,
     read_text,
 )
 from ._solve import History
@@ -273,12 +273,14 @@ class Experiment:
         where = self.label
         sigma = {signal_name(k) or k: v for k, v in self.sigma.items()}
         object.__setattr__(self, "sigma", sigma)
-        if "t_shift" in self.design:
-            check_value(where, "t_shift", self.design["t_shift"], T_SHIFT)
-        try:  # the one check of a design's values (as `simulate`'s): m = 0, no absorber
-            params_from_values({k: v for k, v in self.design.items() if k not in ("t_shift", "t1")})
-        except ParameterError as error:
-            raise ParameterError(f"{where}: {error}") from None
+        for name, value in self.design.items():
+            if name == "t_shift":
+                check_value(where, name, value, T_SHIFT)
+            elif name == "m" and value == 0:  # the simplified model, as `simulate m=0`
+                continue
+            elif name != "t1":  # each value alone: the design, merged with the shared
+                # one, is checked whole as `simulate`'s is (`Calibration`)
+                check_value(where, name, value, parameter(name))
         for name, value in self.sigma.items():
             if name not in self.trace.signals:
                 raise ParameterError(

@@ -454,7 +454,7 @@ def test_a_value_pressed_against_its_bound_is_said_to_be_there(tmp_path, capsys)
     captured = capsys.readouterr()
     assert code == MODEL_MISFIT
     assert "    k            15000  (on its upper bound)" in captured.out
-    assert "k = 15000 ended on its upper bound: widen the bounds" in captured.err
+    assert "k = 15000 ended on its upper bound (bounds that leave out the true" in captured.err
     fitted = json.loads((tmp_path / "o" / "result.json").read_text())["fitted"]
     assert fitted["k"]["at_bound"] == "upper" and fitted["k"]["ci95"] is None
     assert fitted["k"]["value"] == pytest.approx(15000.0, rel=1e-6)

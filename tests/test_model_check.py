@@ -54,6 +54,20 @@ def test_a_traces_own_noise_is_read_from_its_samples_alone(phi):
 def test_a_trace_too_short_or_constant_has_no_noise_to_read():
     assert math.isnan(rjx.trace_noise(np.arange(5.0)).sigma)
     assert rjx.trace_noise(np.ones(100)).sigma == 0.0
+    # A trace quantised coarser than its noise (a 2 mm step on 0.3 mm noise): its noise
+    # reads as the rounding's, about a step over √12, and the right model passes; flat
+    # (the high-pass mostly 0), the rounding is taken as the noise.
+    t = np.linspace(0.0, 1.0, 1000)
+    step = 2e-3
+    clean = 0.2 * np.sin(3 * t)
+    measured = step * np.round(
+        (clean + 3e-4 * np.random.default_rng(0).standard_normal(t.size)) / step
+    )
+    assert rjx.trace_noise(measured).sigma == pytest.approx(step / math.sqrt(12), rel=0.2)
+    flat = step * np.round(3e-4 * np.random.default_rng(1).standard_normal(t.size) / step)
+    assert rjx.trace_noise(flat + 0.1).sigma == pytest.approx(step / math.sqrt(12))
+    check = check_signal("x", "x_M", "m", t, measured, clean, None)
+    assert check is not None and not check.fails, check
     # A noise-free trace is held to its range's 1e-4, not to rounding.
     t = np.linspace(0.0, 1.0, 500)
     exact = np.sin(t)
@@ -78,8 +92,9 @@ def test_a_window_fails_on_size_or_on_a_smooth_error_beyond_the_noise():
 
     assert not fails(noise)[0]
     assert fails(noise + 3 * math.sqrt(2) * smooth)[0]
-    failed, check = fails(0.5 * noise + 1.5 * math.sqrt(2) * smooth)
-    assert failed and check.ratio < 2.0 and check.correlation > 0.9
+    failed, check = fails(0.5 * noise + 1.2 * math.sqrt(2) * smooth)
+    assert failed and all(w.ratio < 2.0 for w in check.windows)  # not by size ...
+    assert all(w.correlation > 0.8 for w in check.failing)  # ... by whiteness
     assert not fails(1.5 * noise)[0]
 
 
@@ -124,7 +139,9 @@ def test_the_quick_form_fits_the_simplified_model_and_flags_it_fitted_with_an_ab
     assert "x_M in trace_simplified.csv: residual RMS" in out.out
     assert "F_AN in trace_simplified.csv: residual RMS" in out.out
     assert "the model does not explain the traces (x_M, F_AN)" in out.err
-    assert "widen its bounds" not in out.err  # the bound is not what is wrong
+    assert out.err.index("check what the design says") < out.err.find("ended on its") or (
+        "ended on its" not in out.err
+    )  # the design is said first: a bound is the lesser suspect
     text = (tmp_path / "wrong" / "result.json").read_text()
     report = json.loads(text)
     assert report["explains"] is False and report["model"]["defaults"]["m"] == 1500.0
@@ -162,12 +179,16 @@ def test_residuals_are_held_to_the_noise_the_user_gave():
 
 @pytest.mark.slow
 def test_wrong_models_are_caught_and_right_ones_are_not():
-    """Issue 52's goals: over 100 noise draws of each of four wrong models, at least 99
-    are flagged naming a signal; over 200 draws of right fits (white and AR(1) noise with
-    phi = 0.5), at most 5 % are flagged. Traces by the independent reference solver."""
+    """Issue 52's goals: over 100 noise draws of each of four wrong models (and 50 more of
+    each with AR(1) noise, phi = 0.5), at least 99 % are flagged naming a signal; over
+    200 draws of right fits (white and AR(1) noise with phi = 0.5), at most 5 % are
+    flagged, and no right fit's window comes near the size limit (under 1.5 times the
+    noise against 2). Traces by the independent reference solver."""
     rates = model_check_rates(100, 1001, log=lambda _: None)
+    assert len(rates["wrong"]) == 8
     for name, row in rates["wrong"].items():
-        assert row["named"] >= 99, (name, row)
+        assert row["named"] >= 0.99 * row["draws"], (name, row)
     right = rates["right"].values()
     assert sum(r["draws"] for r in right) == 200
     assert sum(r["flagged"] for r in right) <= 10, rates["right"]
+    assert max(r["window_ratio"][1] for r in right) < 1.5, rates["right"]

@@ -181,9 +181,11 @@ def _coloured(rng, samples: int, phi: float) -> np.ndarray:
 
 def model_check_rates(draws: int, samples: int, log, end: float = 1.0) -> dict:
     """How often the model check flags a fit, over `draws` noise draws of each wrong
-    model (`WRONG_MODELS`) and `draws // 2` of each right one (`RIGHT_MODELS`), each
-    trace made by the independent reference solver, fitted as one batch (`fit_many`):
-    flagged, and flagged naming a signal."""
+    model (`WRONG_MODELS`; white noise) and `draws // 2` with AR(1) noise (φ = 0.5), and
+    `draws // 2` of each right one (`RIGHT_MODELS`), each trace made by the independent
+    reference solver, fitted as one batch per case (`fit_many`): flagged, flagged naming
+    a signal, and the margins (each window's size over the noise, its lag-1
+    autocorrelation above the trace's own noise's)."""
     ts = np.linspace(0.0, end, samples)
 
     def flagged(truth: dict, design: dict, delay: float, phi: float, count: int, seed: int):
@@ -210,7 +212,8 @@ def model_check_rates(draws: int, samples: int, log, end: float = 1.0) -> dict:
         }
 
     cases = [
-        ("wrong", name, truth, design, delay, 0.0, draws)
+        ("wrong", name + colour, truth, design, delay, phi, count)
+        for phi, colour, count in ((0.0, "", draws), (0.5, ", AR(1) noise, phi 0.5", draws // 2))
         for name, (truth, design, delay) in WRONG_MODELS.items()
     ]
     cases += [("right", name, truth, truth, 0.0, phi, draws // 2)
@@ -364,8 +367,11 @@ def format_calibration_bench(result: dict) -> str:
     for kind, says in (("wrong", "flagged, naming a signal"), ("right", "flagged")):
         key = "named" if kind == "wrong" else "flagged"
         for name, row in check[kind].items():
+            low, high = row["window_ratio"]
             lines.append(f"model check, {kind} model ({name}): {row[key]} of {row['draws']} "
-                         f"{says}")  # fmt: skip
+                         f"{says}; windows {low:.2f}-{high:.3g} times the noise, lag-1 "
+                         f"correlation up to {row['correlation_above_noise']:.2f} above "
+                         "the noise's")  # fmt: skip
     right = check["right"].values()
     lines.append(f"model check, false alarms: {sum(r['flagged'] for r in right)} of "
                  f"{sum(r['draws'] for r in right)} right fits")  # fmt: skip

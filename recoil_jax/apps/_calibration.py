@@ -22,10 +22,7 @@ from ._inputs import (
     read_toml,
     warn,
 )
-
-# The command line's JSON writer, under json's name: `json.dumps` below writes a number
-# that is not finite as null, with the reason beside it (never bare NaN or Infinity).
-from ._json import STRICT as json
+from ._json import dumps, write as write_json
 
 __all__ = [
     "MAX_EXPERIMENTS",
@@ -326,7 +323,7 @@ def run_calibration(args) -> int:
         profiles=args.profile, progress=True, store=args.store,
     )  # fmt: skip
     report = {"source": str(source), "description": settings["description"], **result.to_json()}
-    (out / "result.json").write_text(json.dumps(report, indent=2) + "\n")
+    write_json(out / "result.json", report)
     from ._figures import calibration_figures
 
     report["figures"] = [str(p) for p in calibration_figures(result, out)]
@@ -339,9 +336,9 @@ def run_calibration(args) -> int:
         )  # fmt: skip
         report["prediction"] = prediction.to_json()
         report["figures"].append(str(plot_prediction(prediction, out / "prediction.png")))
-    (out / "result.json").write_text(json.dumps(report, indent=2) + "\n")
+    write_json(out / "result.json", report)
     if args.json:
-        print(json.dumps(report))
+        print(dumps(report))
     else:
         print(fit_report(result))
         if "prediction" in report:
@@ -367,7 +364,8 @@ def run_calibration(args) -> int:
         bounds = [f"{n} = {f.value:.6g} ended on its {f.at_bound} bound"
                   for n, f in result.fitted.items() if f.at_bound is not None]  # fmt: skip
         if bounds:  # the other way a fit fails to explain: bounds that leave out the truth
-            predicted += f"; {', '.join(bounds)}: widen the bounds if the hardware allows"
+            predicted += (f"; {', '.join(bounds)} (bounds that leave out the true values "
+                          "do this too)")  # fmt: skip
         print(f"recoil-jax: the model does not explain the traces ({failing}): its values "
               "are the best a wrong model gives, and have no intervals; check what the "
               "design says of the test (an absorber or none, the load, the trigger delay "
@@ -434,9 +432,11 @@ def fit_report(result: rj.CalibrationResult) -> str:
         lines.append("  defaults taken (not given, not fitted): " + ", ".join(
             f"{k} {v:g} {rj.PARAMETERS[k].unit}".rstrip() for k, v in result.defaults.items()
         ))  # fmt: skip
-    if result.check.signals:
+    if result.check.tested:
         lines.append(_check_line(result.check))
         lines.extend(f"    {c.reason()}" for c in result.check.failing)
+    else:
+        lines.append("  model check: not run (no signal has the 20 samples a test needs)")
     for experiment in result.experiments:  # empty or NaN samples, left out of the fit
         skipped = {k: n for k, n in experiment["skipped"].items() if n}
         if skipped:

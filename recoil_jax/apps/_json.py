@@ -6,9 +6,6 @@ which other readers refuse). A number that is not finite is written `null`, with
 reason beside it: `"aic": null, "aic_null": "inf (not a finite number; JSON has none)"`
 (for the values of a list, one note on its key: how many, and which). The text is then
 made with `allow_nan=False`, so that nothing non-finite can slip through.
-
-`_calibration.py` imports `STRICT` as `json` (its `dumps` is a drop-in for
-`json.dumps`), so that its writes use this writer too.
 """
 
 from __future__ import annotations
@@ -17,13 +14,12 @@ import contextlib
 import json as _json
 import math
 import os
-import types
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["STRICT", "dumps", "finite", "loads", "write", "write_text"]
+__all__ = ["dumps", "finite", "loads", "write", "write_text"]
 
 #: What is said beside a value written `null`.
 _REASON = "{} (not a finite number; JSON has none)"
@@ -104,7 +100,3 @@ def write_text(path, text: str) -> Path:
             raise OSError(error.errno, error.strerror, str(path)) from None
         raise
     return path
-
-
-#: `dumps` and `loads` under json's names, for a module that writes `json.dumps(...)`.
-STRICT = types.SimpleNamespace(dumps=dumps, loads=loads)
