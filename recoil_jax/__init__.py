@@ -6,8 +6,6 @@ The applications built on it (command line, studies, benchmarks, figures) live i
 specified in `docs/model.md`.
 """
 
-import importlib.metadata
-
 import jax as _jax
 
 # Physics needs float64: contact penetrations are ~1e-3 m against stiffness ~1e8.
@@ -126,8 +124,7 @@ from ._sweep import (
     with_table as with_table,
 )
 from ._traces import read_trace as read_trace
-
-__version__ = importlib.metadata.version("recoil-jax")
+from ._version import __version__ as __version__
 
 __all__ = [  # noqa: RUF022 (grouped by topic, as the docs)
     # Designs and parameters

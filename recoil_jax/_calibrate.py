@@ -60,7 +60,7 @@ from ._params import (
 from ._predict import FittedParameters
 from ._progress import Progress
 from ._status import OK_CODE
-from ._store import CalibrationStore, fingerprint
+from ._store import CalibrationStore, campaign_identity
 from ._sweep import batch_params, with_table
 from ._traces import T_SHIFT, Experiment, known_values
 
@@ -1037,9 +1037,7 @@ STARTS_PER_CHUNK = 8
 
 def _open_store(path, calibration, layout, data, static, z0, profiles):
     """The calibration's store at `path` (made, or checked to be this calibration's)."""
-    from . import __version__
-
-    identity = fingerprint("calibration", __version__, data, static, np.asarray(z0), bool(profiles))
+    identity = campaign_identity("calibration", data, static, np.asarray(z0), bool(profiles))
     total = len(z0) + (_PROFILE_POINTS * len(layout.labels) if profiles else 0)
     description = {
         "fit": list(layout.labels),

@@ -45,6 +45,7 @@ __all__ = [
     "SignalCheck",
     "Window",
     "check_residuals",
+    "finite",
     "trace_noise",
 ]
 

@@ -39,7 +39,7 @@ from ._problem import (
 from ._progress import Progress
 from ._result import Found, OptimiseResult, RunRecord, build_result
 from ._status import OK_CODE
-from ._store import StudyStore, evaluation_row, fingerprint, open_study
+from ._store import StudyStore, campaign_identity, evaluation_row, open_study
 
 __all__ = ["Stopping", "default_optimiser", "optimise"]
 
@@ -526,8 +526,6 @@ def _identity(problem, optimiser: optax.GradientTransformation, u0, *settings) -
     """A `fingerprint` of everything an optimisation's steps depend on. The optax
     transformation (functions, not data) is told apart by its updates over a fixed
     probe: eight steps from `u0` with gradients of fixed, varied signs and sizes."""
-    from . import __version__
-
     u: Any = jnp.asarray(u0)
     opt_state = jax.vmap(optimiser.init)(u)
     probe = []
@@ -536,7 +534,7 @@ def _identity(problem, optimiser: optax.GradientTransformation, u0, *settings) -
         updates, opt_state = jax.vmap(optimiser.update)(grad, opt_state, u)
         u = optax.apply_updates(u, updates)
         probe.append(np.asarray(updates))
-    return fingerprint("optimise", __version__, problem, np.asarray(u0), probe, settings)
+    return campaign_identity("optimise", problem, np.asarray(u0), probe, settings)
 
 
 def default_optimiser(learning_rate: float, steps: int) -> optax.GradientTransformation:

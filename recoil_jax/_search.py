@@ -66,7 +66,7 @@ from ._problem import (
 )
 from ._progress import Progress
 from ._result import Found, OptimiseResult, RunRecord, build_result
-from ._store import StudyStore, fingerprint, open_study
+from ._store import StudyStore, campaign_identity, open_study
 from ._sweep import default_workers
 
 __all__ = [
@@ -630,8 +630,6 @@ def _open_study_store(
 ) -> StudyStore:
     """The store at `path` for this search (created, or checked to be this search's);
     its plan's `workers` replaces `workers`."""
-    from . import __version__
-
     if isinstance(global_phase, SobolStarts):  # as before it was a class of its own:
         # (the spacing only when it is not the default: stores made before it was a
         # setting keep resuming)
@@ -639,8 +637,8 @@ def _open_study_store(
         phase = [global_phase.samples, global_phase.starts]
     else:
         phase, spacing = [global_phase], []
-    identity = fingerprint(
-        "search", __version__, problem, store_form(local), hopping, *phase, use_design, seed,
+    identity = campaign_identity(
+        "search", problem, store_form(local), hopping, *phase, use_design, seed,
         *spacing,
     )  # fmt: skip
     runs = global_phase.starts + int(use_design) + (0 if hopping is None else hopping.hops)

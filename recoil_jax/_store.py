@@ -50,12 +50,14 @@ import numpy as np
 from ._params import ParameterError
 from ._problem import DesignProblem, best_feasible_note, feasible, largest_violation
 from ._status import OK_CODE, status_messages
+from ._version import __version__
 
 __all__ = [
     "CalibrationStore",
     "CampaignProgress",
     "StudyStore",
     "SweepStore",
+    "campaign_identity",
     "campaign_progress",
     "evaluation_row",
     "fingerprint",
@@ -67,6 +69,12 @@ __all__ = [
 
 #: The layout of the tables; a store of another format is refused, not misread.
 STORE_FORMAT = 1
+
+
+def campaign_identity(kind: str, *parts: Any) -> str:
+    """A campaign's identity in its store: the `fingerprint` of its kind, the package's
+    version and `parts` (what makes its results: the problem, the settings)."""
+    return fingerprint(kind, __version__, *parts)
 
 
 def fingerprint(*parts: Any) -> str:

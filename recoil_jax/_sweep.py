@@ -43,7 +43,7 @@ from ._params import (
 from ._progress import Progress
 from ._solve import peaks_batch
 from ._status import Status, status_codes, status_item, status_messages
-from ._store import SweepStore, fingerprint, lowest_row, read_sweep_store, store_failures
+from ._store import SweepStore, campaign_identity, lowest_row, read_sweep_store, store_failures
 
 __all__ = [
     "CHUNK_SIZE",
@@ -861,10 +861,8 @@ def _plan(workers, lanes, chunk_size, sort_by_gap) -> dict:
 def _open_store(path, designs, smoothing, options, wrt, force_table, plan, bar_enabled):
     """The store at `path` for this sweep (created, or checked to be this sweep's); its
     plan replaces `plan`, so that the chunks are those of the run that made it."""
-    from . import __version__
-
-    identity = fingerprint(
-        "sweep", __version__, designs.identity(), smoothing, options, wrt or (), force_table
+    identity = campaign_identity(
+        "sweep", designs.identity(), smoothing, options, wrt or (), force_table
     )
     names = [*designs.names, *PEAK_FIELDS.values()]
     names += [gradient_key(m, w) for m in METRICS for w in wrt or ()]

@@ -80,11 +80,13 @@ def test_the_public_api_is_small_and_declared():
 @pytest.mark.parametrize("path", ENGINE + APPS, ids=lambda p: f"{p.parent.name}/{p.name}")
 def test_cross_module_imports_are_declared(path):
     """Between the package's own modules, only names in the source module's `__all__`
-    are imported, and never a private (underscored) name."""
+    are imported, and never a private (underscored) name (a dunder such as `__version__`
+    is public)."""
     for module, name in _imports(path):
         if not module.startswith("recoil_jax.") or name is None:
             continue
-        assert not name.startswith("_"), (path.name, module, name)
+        dunder = name.startswith("__") and name.endswith("__")
+        assert dunder or not name.startswith("_"), (path.name, module, name)
         source = importlib.import_module(module)
         declared = getattr(source, "__all__", None)
         assert declared is not None, f"{module} declares no __all__"
@@ -147,3 +149,187 @@ def test_parameter_names_derive_from_the_registry():
     knot = rj.PARAMETERS["orifice_7"]
     assert (knot.group, knot.index, knot.unit) == ("buffer", 7, "m^2")
     assert "orifice_32" not in rj.PARAMETERS and "orifice_07" not in rj.PARAMETERS
+
+
+#: The public API, name for name (issue 53: a layout change must keep it): the top level
+#: `rj`, `recoil_jax.extend` and `recoil_jax.apps`. A name added or removed is a change a
+#: user sees, and is made here on purpose.
+RJ_NAMES = (
+    "Absorber",
+    "Agreement",
+    "AugmentedLagrangian",
+    "Barrel",
+    "BasinHopping",
+    "Buffer",
+    "Calibration",
+    "CalibrationResult",
+    "CampaignProgress",
+    "Constraint",
+    "Contact",
+    "DESIGN_PARAMETERS",
+    "DGSM",
+    "DesignProblem",
+    "EpigraphMinimax",
+    "FEASIBILITY_TOLERANCE",
+    "ForceTable",
+    "GRADIENT_OPTIONS",
+    "History",
+    "Load",
+    "METRICS",
+    "MetricSeries",
+    "MorrisEffects",
+    "Objective",
+    "OptaxLocal",
+    "OptimiseResult",
+    "PARAMETERS",
+    "ParameterError",
+    "PeakGradients",
+    "Peaks",
+    "RecoilParams",
+    "Recuperator",
+    "SLSQP",
+    "SensitivityResult",
+    "SmoothMax",
+    "Smoothing",
+    "SobolIndices",
+    "SobolStarts",
+    "SolveError",
+    "SolverOptions",
+    "Status",
+    "Stopping",
+    "SweepResult",
+    "TrustRegionLP",
+    "calibrate",
+    "campaign_progress",
+    "case_params",
+    "closest_miss",
+    "constraint_report",
+    "default_optimiser",
+    "differentiable_peaks",
+    "enable_compilation_cache",
+    "failure_message",
+    "feasible",
+    "grid",
+    "load_sweep",
+    "metric_violations",
+    "minimise",
+    "optimise",
+    "paper_cases",
+    "parameter_scale",
+    "params_from_values",
+    "params_to_values",
+    "peak_gradients",
+    "peak_jacobian",
+    "peak_metrics",
+    "peaks",
+    "predict",
+    "read_trace",
+    "reference_peaks",
+    "search",
+    "sensitivity",
+    "simulate",
+    "sweep",
+    "sweep_grid",
+    "sweep_to_store",
+    "use_avx2_codegen",
+    "values_of",
+    "with_table",
+    "with_values",
+)
+RJX_NAMES = (
+    "BatchEvaluation",
+    "BatchEvaluator",
+    "DesignEvaluation",
+    "Experiment",
+    "Fitted",
+    "FittedParameters",
+    "Forces",
+    "GlobalPhase",
+    "GradientEvaluator",
+    "Grid",
+    "LOSSES",
+    "LocalEvaluation",
+    "LocalMethod",
+    "LocalRun",
+    "MAX_TEXT_BYTES",
+    "Metric",
+    "MinimaxEvaluator",
+    "MinimaxMethod",
+    "MinimaxWindow",
+    "ModelCheck",
+    "OK_CODE",
+    "PEAK_FIELDS",
+    "Parameter",
+    "Prediction",
+    "RunRecord",
+    "SENSITIVITY_METHODS",
+    "SIGNALS",
+    "SearchSpace",
+    "SensitivityMethod",
+    "SignalCheck",
+    "StoredEvaluator",
+    "StoredSweep",
+    "T1_LIMITS",
+    "T_SHIFT",
+    "Trace",
+    "batch_params",
+    "check_memory",
+    "default_local",
+    "default_workers",
+    "end_time",
+    "evaluate_design",
+    "fit_many",
+    "gradient_key",
+    "live_programs",
+    "log_coordinates",
+    "minimax_metric",
+    "read_text",
+    "reference_history",
+    "run_local",
+    "sensitivity_box",
+    "set_max_programs",
+    "shard_batch",
+    "signal_sensitivities",
+    "status_codes",
+    "status_messages",
+    "status_table",
+    "structure_jit",
+    "trace_noise",
+    "validate",
+    "worst_case",
+)
+APPS_NAMES = (
+    "READS_INTERNALS",
+    "explorer",
+    "load_study",
+    "main",
+    "plot_convergence",
+    "plot_heatmap",
+    "plot_history",
+    "plot_series",
+    "reproduce",
+    "resolve_study",
+    "run_bench",
+    "run_study",
+    "run_tuning_bench",
+)
+
+
+def test_the_public_api_is_what_it_was_name_for_name():
+    import recoil_jax.apps as apps
+
+    assert sorted(rj.__all__) == sorted(RJ_NAMES)
+    assert sorted(rjx.__all__) == sorted(RJX_NAMES)
+    assert sorted(apps.__all__) == sorted(APPS_NAMES)
+    for module, names in ((rj, RJ_NAMES), (rjx, RJX_NAMES)):
+        for name in names:
+            assert getattr(module, name) is not None, name
+
+
+def test_no_module_imports_the_version_from_the_top_level():
+    """The version has a module of its own (`_version`): a part of the package that took
+    it from the top level would import upward, against the layers."""
+    for path in [*ENGINE, *APPS]:
+        for module, name in _imports(path):
+            if name == "__version__":
+                assert module == "recoil_jax._version", (path.name, module)
