@@ -14,17 +14,55 @@ _jax.config.update("jax_enable_x64", True)
 
 # The lower-level interfaces (extension parts, batches, codes): `recoil_jax.extend`.
 from . import extend as extend
-from ._cache import (
-    enable_compilation_cache as enable_compilation_cache,
-    use_avx2_codegen as use_avx2_codegen,
-)
-from ._calibrate import (
+from ._calibration.calibrate import (
     Calibration as Calibration,
     CalibrationResult as CalibrationResult,
     calibrate as calibrate,
 )
-from ._design import differentiable_peaks as differentiable_peaks
-from ._gradients import (
+from ._calibration.predict import predict as predict
+from ._calibration.traces import read_trace as read_trace
+from ._campaigns.store import (
+    CampaignProgress as CampaignProgress,
+    campaign_progress as campaign_progress,
+)
+from ._design.lagrangian import AugmentedLagrangian as AugmentedLagrangian
+from ._design.local import (
+    SLSQP as SLSQP,
+    EpigraphMinimax as EpigraphMinimax,
+    OptaxLocal as OptaxLocal,
+    TrustRegionLP as TrustRegionLP,
+)
+from ._design.optimise import (
+    Stopping as Stopping,
+    default_optimiser as default_optimiser,
+    optimise as optimise,
+)
+from ._design.problem import (
+    FEASIBILITY_TOLERANCE as FEASIBILITY_TOLERANCE,
+    Agreement as Agreement,
+    Constraint as Constraint,
+    DesignProblem as DesignProblem,
+    Objective as Objective,
+    closest_miss as closest_miss,
+    constraint_report as constraint_report,
+    feasible as feasible,
+    metric_violations as metric_violations,
+)
+from ._design.result import OptimiseResult as OptimiseResult
+from ._design.search import (
+    BasinHopping as BasinHopping,
+    SobolStarts as SobolStarts,
+    minimise as minimise,
+    search as search,
+)
+from ._global_sensitivity.analysis import (
+    DGSM as DGSM,
+    MorrisEffects as MorrisEffects,
+    SensitivityResult as SensitivityResult,
+    SobolIndices as SobolIndices,
+    sensitivity as sensitivity,
+)
+from ._model.derivatives import (
     DESIGN_PARAMETERS as DESIGN_PARAMETERS,
     GRADIENT_OPTIONS as GRADIENT_OPTIONS,
     MetricSeries as MetricSeries,
@@ -33,27 +71,17 @@ from ._gradients import (
     peak_gradients as peak_gradients,
     peak_jacobian as peak_jacobian,
 )
-from ._local import (
-    SLSQP as SLSQP,
-    EpigraphMinimax as EpigraphMinimax,
-    OptaxLocal as OptaxLocal,
-    TrustRegionLP as TrustRegionLP,
-)
-from ._metrics import (
+from ._model.differentiable import differentiable_peaks as differentiable_peaks
+from ._model.metrics import (
     METRICS as METRICS,
     PeakGradients as PeakGradients,
     Peaks as Peaks,
 )
-from ._optimise import (
-    Stopping as Stopping,
-    default_optimiser as default_optimiser,
-    optimise as optimise,
-)
-from ._paper import (
+from ._model.paper import (
     case_params as case_params,
     paper_cases as paper_cases,
 )
-from ._params import (
+from ._model.params import (
     PARAMETERS as PARAMETERS,
     Absorber as Absorber,
     Barrel as Barrel,
@@ -71,50 +99,23 @@ from ._params import (
     values_of as values_of,
     with_values as with_values,
 )
-from ._parts import AugmentedLagrangian as AugmentedLagrangian
-from ._predict import predict as predict
-from ._problem import (
-    FEASIBILITY_TOLERANCE as FEASIBILITY_TOLERANCE,
-    Agreement as Agreement,
-    Constraint as Constraint,
-    DesignProblem as DesignProblem,
-    Objective as Objective,
-    closest_miss as closest_miss,
-    constraint_report as constraint_report,
-    feasible as feasible,
-    metric_violations as metric_violations,
+from ._model.programs import (
+    enable_compilation_cache as enable_compilation_cache,
+    use_avx2_codegen as use_avx2_codegen,
 )
-from ._reference import reference_peaks as reference_peaks
-from ._result import OptimiseResult as OptimiseResult
-from ._search import (
-    BasinHopping as BasinHopping,
-    SobolStarts as SobolStarts,
-    minimise as minimise,
-    search as search,
-)
-from ._sensitivity import (
-    DGSM as DGSM,
-    MorrisEffects as MorrisEffects,
-    SensitivityResult as SensitivityResult,
-    SobolIndices as SobolIndices,
-    sensitivity as sensitivity,
-)
-from ._solve import (
+from ._model.reference import reference_peaks as reference_peaks
+from ._model.solve import (
     History as History,
     peak_metrics as peak_metrics,
     peaks as peaks,
     simulate as simulate,
 )
-from ._status import (
+from ._model.status import (
     SolveError as SolveError,
     Status as Status,
     failure_message as failure_message,
 )
-from ._store import (
-    CampaignProgress as CampaignProgress,
-    campaign_progress as campaign_progress,
-)
-from ._sweep import (
+from ._sweeps.sweep import (
     SweepResult as SweepResult,
     grid as grid,
     load_sweep as load_sweep,
@@ -123,7 +124,6 @@ from ._sweep import (
     sweep_to_store as sweep_to_store,
     with_table as with_table,
 )
-from ._traces import read_trace as read_trace
 from ._version import __version__ as __version__
 
 __all__ = [  # noqa: RUF022 (grouped by topic, as the docs)

@@ -58,9 +58,11 @@ not need them; `docs/developers.md` shows how to plug a part in.
   `sensitivity_box` (the box of a design's ranges, absolute or relative, checked).
 """
 
-from ._cache import live_programs, set_max_programs, structure_jit
-from ._calibrate import LOSSES, Fitted, fit_many, validate
-from ._evaluators import (
+from ._calibration.calibrate import LOSSES, Fitted, fit_many, validate
+from ._calibration.model_check import ModelCheck, SignalCheck, trace_noise
+from ._calibration.predict import FittedParameters, Prediction
+from ._calibration.traces import T_SHIFT, Experiment, Trace
+from ._design.evaluators import (
     BatchEvaluation,
     BatchEvaluator,
     GradientEvaluator,
@@ -71,20 +73,19 @@ from ._evaluators import (
     log_coordinates,
     minimax_metric,
 )
-from ._gradients import SIGNALS, signal_sensitivities
-from ._local import LocalEvaluation, LocalMethod, LocalRun, MinimaxMethod, run_local
-from ._metrics import PEAK_FIELDS, Metric, gradient_key, worst_case
-from ._model import Forces
-from ._model_check import ModelCheck, SignalCheck, trace_noise
-from ._params import MAX_TEXT_BYTES, T1_LIMITS, Parameter, end_time, read_text
-from ._predict import FittedParameters, Prediction
-from ._problem import DesignEvaluation, evaluate_design
-from ._reference import reference_history
-from ._result import RunRecord
-from ._search import GlobalPhase, default_local
-from ._sensitivity import SENSITIVITY_METHODS, SensitivityMethod, sensitivity_box
-from ._status import OK_CODE, status_codes, status_messages, status_table
-from ._sweep import (
+from ._design.local import LocalEvaluation, LocalMethod, LocalRun, MinimaxMethod, run_local
+from ._design.problem import DesignEvaluation, evaluate_design
+from ._design.result import RunRecord
+from ._design.search import GlobalPhase, default_local
+from ._global_sensitivity.analysis import SENSITIVITY_METHODS, SensitivityMethod, sensitivity_box
+from ._model.derivatives import SIGNALS, signal_sensitivities
+from ._model.equations import Forces
+from ._model.metrics import PEAK_FIELDS, Metric, gradient_key, worst_case
+from ._model.params import MAX_TEXT_BYTES, T1_LIMITS, Parameter, end_time, read_text
+from ._model.programs import live_programs, set_max_programs, structure_jit
+from ._model.reference import reference_history
+from ._model.status import OK_CODE, status_codes, status_messages, status_table
+from ._sweeps.sweep import (
     Grid,
     StoredSweep,
     batch_params,
@@ -92,7 +93,6 @@ from ._sweep import (
     default_workers,
     shard_batch,
 )
-from ._traces import T_SHIFT, Experiment, Trace
 
 __all__ = [
     "LOSSES",

@@ -13,8 +13,14 @@ import pytest
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
-from recoil_jax._model import RECOIL_TERM, initial_state, model_args, tracked_metrics, vector_field
-from recoil_jax._stepping import integrate_peaks
+from recoil_jax._model.equations import (
+    RECOIL_TERM,
+    initial_state,
+    model_args,
+    tracked_metrics,
+    vector_field,
+)
+from recoil_jax._model.stepping import integrate_peaks
 from recoil_jax.apps._anchor import anchor_field, anchor_peaks
 from recoil_jax.apps._bench import (
     _host_label,

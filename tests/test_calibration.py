@@ -63,7 +63,7 @@ def test_the_fit_stops_within_a_thousandth_of_a_standard_error_of_the_optimum():
     stops it sooner than either."""
     import jax.numpy as jnp
 
-    from recoil_jax import _calibrate
+    from recoil_jax._calibration import calibrate as _calibrate
 
     calibration = rj.Calibration([rjx.Experiment(trace(TRUTH, seed=3))], fit=BOX)
     result = rj.calibrate(calibration, progress=False)
@@ -99,7 +99,7 @@ def test_the_fit_never_stops_where_an_experiment_failed():
     import jax.numpy as jnp
     import optimistix as optx
 
-    from recoil_jax._calibrate import _FAILED_RESIDUAL, _LevenbergMarquardt
+    from recoil_jax._calibration.calibrate import _FAILED_RESIDUAL, _LevenbergMarquardt
 
     class Data(eqx.Module):
         present: jax.Array
@@ -202,7 +202,7 @@ def test_each_experiment_fires_its_own_force_table():
 def test_the_profile_threshold_is_the_chi2_quantile():
     import scipy.stats
 
-    import recoil_jax._calibrate as calibrate_module
+    import recoil_jax._calibration.calibrate as calibrate_module
 
     threshold = calibrate_module._PROFILE_THRESHOLD
     assert threshold == pytest.approx(scipy.stats.chi2.ppf(0.95, 1), rel=1e-14)
@@ -544,7 +544,7 @@ def test_traces_from_the_independent_reference_solver_are_fitted():
     """A firing test made by the hard-switch scipy solver (no model code shared), with
     noise, fitted by the library's smoothed model: every parameter within 2.5 standard
     errors (inside its 95 % interval at this seed: at most 1.7)."""
-    from recoil_jax._reference import reference_history
+    from recoil_jax._model.reference import reference_history
 
     truth = TRUTH | {"c_ret": 14000.0, "m": 1000.0}
     ts = np.linspace(0.0, 1.0, 1001)
@@ -798,7 +798,7 @@ def test_a_stored_calibration_resumes_to_the_same_result(tmp_path, monkeypatch, 
     stopped after its first part resumes with it (not fitted again) to the result of an
     uninterrupted run, bit for bit, which is that of one program without a store; a
     store of another calibration is refused; `progress` reads it."""
-    import recoil_jax._calibrate as calibrate_module
+    import recoil_jax._calibration.calibrate as calibrate_module
 
     calibration = rj.Calibration([rjx.Experiment(trace(TRUTH, n=201))], fit=BOX)
     plain = rj.calibrate(calibration, starts=12, progress=False)

@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 
 import recoil_jax as rj
-import recoil_jax._sweep as sweep_module
+import recoil_jax._sweeps.sweep as sweep_module
 import recoil_jax.extend as rjx
-from recoil_jax._store import _hold
+from recoil_jax._campaigns.store import _hold
 from recoil_jax.apps import _sweep as sweep_app, main
 
 CLI = [sys.executable, "-m", "recoil_jax.apps._cli"]
@@ -185,7 +185,7 @@ def test_a_refused_huge_sweep_stays_small_in_a_real_process(tmp_path):
     # VmHWM, this program's own peak: ru_maxrss would carry over the forked parent's.
     script = (
         "import re\n"
-        "import recoil_jax._sweep as sweep\n"
+        "import recoil_jax._sweeps.sweep as sweep\n"
         "sweep._available_memory = lambda: 10**9  # as on a machine with 1 GB free\n"
         "from recoil_jax.apps import main\n"
         "status = main(['sweep', 'm=10:2000:100000', 'gap=0:0.1:100000', '--json'])\n"
@@ -210,7 +210,7 @@ def test_a_streamed_grid_keeps_its_memory_whatever_its_size(tmp_path):
         "import re, sys\n"
         "import numpy as np\n"
         "import recoil_jax as rj, recoil_jax.extend as rjx\n"
-        "import recoil_jax._sweep as sweep\n"
+        "import recoil_jax._sweeps.sweep as sweep\n"
         "solved = []\n"
         "def stub(batch, t1, count, *args):\n"
         "    solved.append(count)\n"
@@ -513,7 +513,7 @@ def test_what_is_not_a_regular_file_is_refused_without_reading_it(traces, capsys
 
 
 def test_a_file_over_the_byte_limit_is_refused_naming_the_limit(traces, capsys, monkeypatch):
-    import recoil_jax._params as params
+    import recoil_jax._model.params as params
 
     assert rjx.MAX_TEXT_BYTES == 64 * 2**20
     monkeypatch.setattr(params, "MAX_TEXT_BYTES", 500)

@@ -175,7 +175,7 @@ def test_smooth_maximum_stops_early_without_changing_value_or_gradient(monkeypat
     """The smooth maximum stops once the energy bound says the rest of the run can add
     less than 1e-12 to its log-integral: fewer steps than integrating to t1, the same
     value and gradient (a throttling buffer at T = 10 N, where the stop saves most)."""
-    from recoil_jax import _gradients
+    from recoil_jax._model import derivatives as _gradients
 
     knots = {f"orifice_{i}": 5e-4 * (1.0 - 0.04 * i) for i in range(8)}
     params = rj.params_from_values(
@@ -207,7 +207,7 @@ def test_metric_series_matches_the_history_and_finite_differences():
     """The anchoring force on a `MetricSeries` equals `simulate`'s at the same times, its
     gradients equal central differences of `simulate` (tight tolerance), and save times
     after the run stopped (its peaks certain) are NaN."""
-    from recoil_jax import _gradients
+    from recoil_jax._model import derivatives as _gradients
 
     knots = {f"orifice_{i}": 4e-4 * (1.0 - 0.1 * i) for i in range(4)}
     values = dict(
@@ -250,7 +250,7 @@ def test_the_sensitivity_system_is_traced_once(hardware):
     program. Its vector field is traced once, inside diffrax's stage loop: not again for
     the first step's size, at t = 0, or after a load's stops, each of which was a whole
     further copy for XLA to compile (4 and 5 traces before)."""
-    from recoil_jax import _gradients
+    from recoil_jax._model import derivatives as _gradients
     from recoil_jax.apps._bench import hardware_designs
 
     traces = []

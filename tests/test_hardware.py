@@ -14,7 +14,7 @@ import pytest
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
-from recoil_jax._model import (
+from recoil_jax._model.equations import (
     forces,
     initial_state,
     load_jump,
@@ -24,7 +24,7 @@ from recoil_jax._model import (
     restart_step,
     vector_field,
 )
-from recoil_jax._stepping import Events, integrate_peaks
+from recoil_jax._model.stepping import Events, integrate_peaks
 
 # Structure classes (one compilation each): with and without an absorber, 1 to 5
 # rounds, 2 to 16 orifice knots, with and without a recuperator, impulse, pulse or table.

@@ -16,7 +16,7 @@ import pytest
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
-from recoil_jax._model_check import check_signal
+from recoil_jax._calibration.model_check import check_signal
 from recoil_jax.apps._bench_calibration import _coloured, model_check_rates
 from recoil_jax.apps._calibration import MODEL_MISFIT
 from recoil_jax.apps._cli import main

@@ -10,7 +10,7 @@ from scipy.integrate import quad
 from scipy.optimize import brentq
 
 import recoil_jax as rj
-from recoil_jax._model import (
+from recoil_jax._model.equations import (
     contact_width,
     forces,
     future_metric_bounds,

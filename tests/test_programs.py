@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import pytest
 
 import recoil_jax as rj
-import recoil_jax._cache as cache
+import recoil_jax._model.programs as cache
 import recoil_jax.extend as rjx
 
 

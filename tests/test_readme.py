@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import recoil_jax as rj
-from recoil_jax._gradients import SIGNAL_ALIASES, SIGNALS
+from recoil_jax._model.derivatives import SIGNAL_ALIASES, SIGNALS
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"

@@ -11,7 +11,7 @@ from scipy.optimize import brentq
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
-from recoil_jax._evaluators import minimax_metric
+from recoil_jax._design.evaluators import minimax_metric
 
 PAPER_LIMIT = 8910.4  # E0 / L of the throttling problem (extensions note)
 
@@ -500,7 +500,7 @@ def test_local_maxima_are_refined_onto_the_peaks():
     # rising with t), the samples in no order and some NaN (after a solve's end): the
     # three maxima, in time order, each refined to 1 % of the sample spacing; `fill` for
     # slots beyond the maxima found.
-    from recoil_jax._evaluators import _local_maxima
+    from recoil_jax._design.evaluators import _local_maxima
 
     t = np.linspace(0.0, 1.0, 101)  # spacing 0.01
     values = np.sin(20 * t) * (1 + t)

@@ -16,7 +16,7 @@ import pytest
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
-from recoil_jax._sensitivity import _analysed, _problem
+from recoil_jax._global_sensitivity.analysis import _analysed, _problem
 from recoil_jax.apps._cli import main
 from recoil_jax.apps._inputs import results_folder
 from recoil_jax.apps._sensitivity import SHIPPED, load_sensitivity

@@ -11,8 +11,8 @@ from conftest import all_ok, batch_params, batch_peaks, compiled_programs
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
-from recoil_jax._dense import hermite_max
-from recoil_jax._model import (
+from recoil_jax._model.dense import hermite_max
+from recoil_jax._model.equations import (
     RECOIL_TERM,
     future_metric_bounds,
     initial_state,
@@ -27,7 +27,7 @@ def test_error_norm_is_the_root_mean_square_either_way(size):
     """The step-size controller's norm: a chain of adds up to 20 components, a sum above
     (the sensitivities of many parameters); the same root mean square, zero at zero with
     a finite gradient there."""
-    from recoil_jax._stepping import _rms_norm
+    from recoil_jax._model.stepping import _rms_norm
 
     x = jnp.asarray(np.random.default_rng(size).normal(size=size))
     np.testing.assert_allclose(
@@ -273,8 +273,8 @@ def test_vmap_over_smoothing_and_tolerance_leaves():
 def test_stopping_when_the_peaks_are_certain_changes_no_peak():
     """The loop stops once the energy bounds show no metric can rise again: the peaks
     and their times are exactly those of the run to t1, in far fewer steps."""
-    from recoil_jax._solve import peaks_of_run
-    from recoil_jax._stepping import integrate_peaks
+    from recoil_jax._model.solve import peaks_of_run
+    from recoil_jax._model.stepping import integrate_peaks
 
     rng = np.random.default_rng(7)
     designs = [
@@ -327,8 +327,8 @@ def test_testing_the_bounds_every_few_iterations_changes_no_peak_or_failure(monk
     `BOUNDS_EVERY` only: against the same scheduler testing at every iteration, the same
     designs succeed under a tight `max_steps` (one that became certain between tests is
     not reported as out of steps), with the same peaks, a few steps later."""
-    import recoil_jax._queue as queue
-    from recoil_jax._solve import _peaks_batch
+    import recoil_jax._model.lanes as queue
+    from recoil_jax._model.solve import _peaks_batch
 
     rng = np.random.default_rng(11)
     designs = {

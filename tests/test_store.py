@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 
 import recoil_jax as rj
-import recoil_jax._sweep as sweep_module
+import recoil_jax._sweeps.sweep as sweep_module
 import recoil_jax.extend as rjx
-from recoil_jax._store import StudyStore
+from recoil_jax._campaigns.store import StudyStore
 from recoil_jax.apps import main
 from recoil_jax.apps._bench import bench_designs
 
@@ -616,8 +616,8 @@ NAMES_BEFORE = {
 def test_a_store_names_a_local_method_as_before_its_settings_moved():
     # The minimax's settings live on the minimax methods now; a store still names a
     # search by the layout it had, so every store written before resumes.
-    from recoil_jax._local import store_form
-    from recoil_jax._store import fingerprint
+    from recoil_jax._campaigns.store import fingerprint
+    from recoil_jax._design.local import store_form
 
     methods = {
         "SLSQP()": rj.SLSQP(),
@@ -644,7 +644,7 @@ def test_stored_outputs_are_unpacked_one_header_at_a_time(monkeypatch):
     `unpack` must never run two loads at once, and must return the arrays it packed."""
     import threading
 
-    import recoil_jax._store as store_module
+    import recoil_jax._campaigns.store as store_module
 
     real_load, inside, most = np.load, [0], [0]
     count_lock = threading.Lock()

@@ -93,7 +93,7 @@ def test_a_grid_made_a_chunk_at_a_time_equals_its_columns(tmp_path):
 def test_a_resumed_grid_does_not_rebuild_the_blocks_it_has(tmp_path, monkeypatch):
     """A grid stopped after two of its five blocks resumes with the other three: the
     stored blocks are not made, grouped or checked again (the solves stubbed)."""
-    import recoil_jax._sweep as sweep_module
+    import recoil_jax._sweeps.sweep as sweep_module
 
     solved, grouped, stop = [], [], [True]
 
@@ -268,7 +268,7 @@ def test_padding_is_never_solved_and_small_sweeps_share_one_program():
     (widths and tolerances are values)."""
     import jax
 
-    from recoil_jax._solve import peaks_batch
+    from recoil_jax._model.solve import peaks_batch
 
     designs = [{"m": 1000.0, "gap": g, "c_r": 500.0} for g in np.linspace(0.01, 0.1, 8)]
     params, _ = rjx.batch_params(designs)

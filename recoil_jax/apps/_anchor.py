@@ -166,7 +166,7 @@ _FUNCTIONS = None
 
 def _rows(columns: dict[str, np.ndarray], smoothing: rj.Smoothing):
     """Each design's parameter row (`ANCHOR_PARAMETERS`, then the two widths) and `v0`."""
-    from recoil_jax._model import contact_width
+    from recoil_jax._model.equations import contact_width
 
     params, _ = rjx.batch_params(columns)
     values = np.stack([np.asarray(v) for v in rj.values_of(params, ANCHOR_PARAMETERS)], axis=-1)
@@ -180,9 +180,9 @@ def _settings(options: rj.SolverOptions):
     """The loop's step-size rule and tableau, from the library and diffrax."""
     import diffrax
 
-    from recoil_jax._model import RECOIL_TERM
-    from recoil_jax._params import with_default_tolerances
-    from recoil_jax._stepping import PeakLoop, make_controller
+    from recoil_jax._model.equations import RECOIL_TERM
+    from recoil_jax._model.params import with_default_tolerances
+    from recoil_jax._model.stepping import PeakLoop, make_controller
 
     options = with_default_tolerances(rj.RecoilParams(absorber=rj.Absorber()), options)
     controller = make_controller(options)

@@ -21,10 +21,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._design import design_metrics
-from ._gradients import GRADIENT_OPTIONS, MetricSeries, SmoothMax, check_wrt, smooth_name
-from ._metrics import METRICS, metric, worst_case
-from ._params import (
+from .._model.derivatives import GRADIENT_OPTIONS, MetricSeries, SmoothMax, check_wrt, smooth_name
+from .._model.differentiable import design_metrics
+from .._model.metrics import METRICS, metric, worst_case
+from .._model.params import (
     PARAMETERS,
     ParameterError,
     RecoilParams,
@@ -35,7 +35,7 @@ from ._params import (
     values_of,
     with_values,
 )
-from ._status import status_item
+from .._model.status import status_item
 
 __all__ = [
     "FEASIBILITY_TOLERANCE",

@@ -19,9 +19,9 @@ import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 
-from ._dense import hermite_max, placeholder_steps, polish
-from ._params import SolverOptions
-from ._status import Status
+from .._model.dense import hermite_max, placeholder_steps, polish
+from .._model.params import SolverOptions
+from .._model.status import Status
 
 __all__ = [
     "Events",

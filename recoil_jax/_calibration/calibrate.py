@@ -34,16 +34,19 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ._cache import structure_jit
-from ._evaluators import SearchSpace, log_coordinates
-from ._gradients import (
+from .._calibration.model_check import ModelCheck, check_residuals, finite, trace_noise
+from .._calibration.predict import FittedParameters
+from .._calibration.traces import T_SHIFT, Experiment, known_values
+from .._campaigns.progress import Progress
+from .._campaigns.store import CalibrationStore, campaign_identity
+from .._design.evaluators import SearchSpace, log_coordinates
+from .._model.derivatives import (
     ABSORBER_SIGNALS,
     GRADIENT_OPTIONS,
     SIGNALS,
     signal_sensitivities,
 )
-from ._model_check import ModelCheck, check_residuals, finite, trace_noise
-from ._params import (
+from .._model.params import (
     PARAMETERS,
     ForceTable,
     ParameterError,
@@ -57,12 +60,9 @@ from ._params import (
     with_default_tolerances,
     with_values,
 )
-from ._predict import FittedParameters
-from ._progress import Progress
-from ._status import OK_CODE
-from ._store import CalibrationStore, campaign_identity
-from ._sweep import batch_params, with_table
-from ._traces import T_SHIFT, Experiment, known_values
+from .._model.programs import structure_jit
+from .._model.status import OK_CODE
+from .._sweeps.sweep import batch_params, with_table
 
 __all__ = [
     "LOSSES",

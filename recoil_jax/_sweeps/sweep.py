@@ -21,10 +21,17 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from ._cache import avx2_codegen_set
-from ._gradients import GRADIENT_OPTIONS, check_wrt, peak_gradients_batch
-from ._metrics import METRICS, PEAK_FIELDS, gradient_key
-from ._params import (
+from .._campaigns.progress import Progress
+from .._campaigns.store import (
+    SweepStore,
+    campaign_identity,
+    lowest_row,
+    read_sweep_store,
+    store_failures,
+)
+from .._model.derivatives import GRADIENT_OPTIONS, check_wrt, peak_gradients_batch
+from .._model.metrics import METRICS, PEAK_FIELDS, gradient_key
+from .._model.params import (
     PARAMETERS,
     T1_LIMITS,
     ForceTable,
@@ -40,10 +47,9 @@ from ._params import (
     params_to_values,
     with_default_tolerances,
 )
-from ._progress import Progress
-from ._solve import peaks_batch
-from ._status import Status, status_codes, status_item, status_messages
-from ._store import SweepStore, campaign_identity, lowest_row, read_sweep_store, store_failures
+from .._model.programs import avx2_codegen_set
+from .._model.solve import peaks_batch
+from .._model.status import Status, status_codes, status_item, status_messages
 
 __all__ = [
     "CHUNK_SIZE",
@@ -693,7 +699,7 @@ def _solve_chunk_on_worker(
     compilation cache of the process that made the sweep (so each structure compiles
     once for all workers), and its AVX2 code if it has it (`use_avx2_codegen`; a worker
     that has computed already keeps its own)."""
-    from ._cache import enable_compilation_cache, use_avx2_codegen
+    from .._model.programs import enable_compilation_cache, use_avx2_codegen
 
     if avx2:
         use_avx2_codegen()

@@ -47,10 +47,10 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
-from ._params import ParameterError
-from ._problem import DesignProblem, best_feasible_note, feasible, largest_violation
-from ._status import OK_CODE, status_messages
-from ._version import __version__
+from .._design.problem import DesignProblem, best_feasible_note, feasible, largest_violation
+from .._model.params import ParameterError
+from .._model.status import OK_CODE, status_messages
+from .._version import __version__
 
 __all__ = [
     "CalibrationStore",

@@ -13,9 +13,9 @@ from typing import Any
 
 import numpy as np
 
-from ._gradients import GRADIENT_OPTIONS, peak_jacobian
-from ._metrics import METRICS
-from ._params import (
+from .._model.derivatives import GRADIENT_OPTIONS, peak_jacobian
+from .._model.metrics import METRICS
+from .._model.params import (
     PARAMETERS,
     ParameterError,
     Smoothing,
@@ -23,8 +23,8 @@ from ._params import (
     params_from_values,
     read_text,
 )
-from ._solve import peaks
-from ._sweep import sweep
+from .._model.solve import peaks
+from .._sweeps.sweep import sweep
 
 __all__ = ["FittedParameters", "Prediction", "predict"]
 

@@ -4,7 +4,7 @@ solver, then a local method with exact gradients from the best few of them.
 - `minimise`: the method on any box-bounded problem with inequality constraints, given
   a batched evaluator (the global phase) and a value-and-Jacobian function (the local
   phase). Works in normalised coordinates `z ∈ [0, 1]^P`. The local method is an object
-  the caller passes in (`SLSQP`, `EpigraphMinimax`, `TrustRegionLP`, see `_local.py`);
+  the caller passes in (`SLSQP`, `EpigraphMinimax`, `TrustRegionLP`, see `local.py`);
   `BasinHopping` spends what is left of a budget near the best point found.
 - `search`: `minimise` on a `DesignProblem`. The global phase runs plain solves
   through `sweep`; the local phase differentiates `evaluate_design` through its custom
@@ -37,7 +37,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._evaluators import (
+from .._campaigns.progress import Progress
+from .._campaigns.store import StudyStore, campaign_identity, open_study
+from .._design.evaluators import (
     BatchEvaluation,
     BatchEvaluator,
     GradientEvaluator,
@@ -48,7 +50,7 @@ from ._evaluators import (
     gradient_traces,
     minimax_metric,
 )
-from ._local import (
+from .._design.local import (
     SLSQP,
     EpigraphMinimax,
     LocalMethod,
@@ -56,18 +58,16 @@ from ._local import (
     run_local,
     store_form,
 )
-from ._params import ParameterError, values_of
-from ._problem import (
+from .._design.problem import (
     DesignProblem,
     best_feasible_note,
     closest_index,
     feasible,
     largest_violation,
 )
-from ._progress import Progress
-from ._result import Found, OptimiseResult, RunRecord, build_result
-from ._store import StudyStore, campaign_identity, open_study
-from ._sweep import default_workers
+from .._design.result import Found, OptimiseResult, RunRecord, build_result
+from .._model.params import ParameterError, values_of
+from .._sweeps.sweep import default_workers
 
 __all__ = [
     "BasinHopping",

@@ -20,7 +20,7 @@ from collections.abc import Callable, Mapping
 
 import numpy as np
 
-from ._params import params_from_values, params_to_values
+from .._model.params import params_from_values, params_to_values
 
 __all__ = ["reference_history", "reference_peaks"]
 

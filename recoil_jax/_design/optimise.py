@@ -25,10 +25,11 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ._evaluators import SearchSpace
-from ._params import ParameterError, RecoilParams, values_of
-from ._parts import AugmentedLagrangian, LagrangianState, cosine_decayed
-from ._problem import (
+from .._campaigns.progress import Progress
+from .._campaigns.store import StudyStore, campaign_identity, evaluation_row, open_study
+from .._design.evaluators import SearchSpace
+from .._design.lagrangian import AugmentedLagrangian, LagrangianState, cosine_decayed
+from .._design.problem import (
     DesignProblem,
     best_feasible_note,
     closest_index,
@@ -36,10 +37,9 @@ from ._problem import (
     feasible,
     largest_violation,
 )
-from ._progress import Progress
-from ._result import Found, OptimiseResult, RunRecord, build_result
-from ._status import OK_CODE
-from ._store import StudyStore, campaign_identity, evaluation_row, open_study
+from .._design.result import Found, OptimiseResult, RunRecord, build_result
+from .._model.params import ParameterError, RecoilParams, values_of
+from .._model.status import OK_CODE
 
 __all__ = ["Stopping", "default_optimiser", "optimise"]
 

@@ -17,8 +17,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from ._params import ParameterError
-from ._status import Status
+from .._model.params import ParameterError
+from .._model.status import Status
 
 __all__ = [
     "METRICS",

@@ -23,7 +23,7 @@ import equinox as eqx
 import jax
 from jax.experimental.compilation_cache import compilation_cache
 
-from ._params import ParameterError, is_concrete
+from .._model.params import ParameterError, is_concrete
 
 __all__ = [
     "CACHE_ENVIRONMENT",
@@ -213,7 +213,7 @@ def structure_jit(fn, *, exported=None):
 
 def _source_digest() -> str:
     digest = hashlib.sha256()
-    for path in sorted(Path(__file__).parent.rglob("*.py")):
+    for path in sorted(Path(__file__).parents[1].rglob("*.py")):  # the whole package
         digest.update(path.read_bytes())
     return digest.hexdigest()
 

@@ -24,10 +24,10 @@ from typing import Any, NamedTuple, final
 import equinox as eqx
 import numpy as np
 
-from ._params import ParameterError
-from ._parts import AugmentedLagrangian, cosine_decayed
-from ._problem import feasible, largest_violation
-from ._result import RunRecord
+from .._design.lagrangian import AugmentedLagrangian, cosine_decayed
+from .._design.problem import feasible, largest_violation
+from .._design.result import RunRecord
+from .._model.params import ParameterError
 
 __all__ = [
     "SLSQP",

@@ -7,7 +7,7 @@ import json
 from importlib import resources
 from typing import Any
 
-from ._params import params_from_values
+from .._model.params import params_from_values
 
 __all__ = ["case_params", "paper_cases"]
 

@@ -13,8 +13,8 @@ import diffrax
 import jax
 import jax.numpy as jnp
 
-from ._metrics import METRICS
-from ._params import Buffer, Load, RecoilParams, Recuperator, Smoothing
+from .._model.metrics import METRICS
+from .._model.params import Buffer, Load, RecoilParams, Recuperator, Smoothing
 
 __all__ = [
     "BOTTOM",

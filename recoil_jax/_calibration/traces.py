@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from ._gradients import ABSORBER_SIGNALS, SIGNAL_ALIASES, SIGNALS
-from ._params import (
+from .._model.derivatives import ABSORBER_SIGNALS, SIGNAL_ALIASES, SIGNALS
+from .._model.params import (
     ForceTable,
     Limits,
     ParameterError,
@@ -27,7 +27,7 @@ from ._params import (
     parameter,
     read_text,
 )
-from ._solve import History
+from .._model.solve import History
 
 __all__ = [
     "TIME_COLUMNS",

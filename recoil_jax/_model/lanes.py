@@ -9,7 +9,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._stepping import PeakLoop
+from .._model.stepping import PeakLoop
 
 __all__ = ["queued_map"]
 

@@ -11,8 +11,8 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
-from ._params import ParameterError, RecoilParams, params_to_values, with_values
-from ._problem import Agreement, DesignProblem
+from .._design.problem import Agreement, DesignProblem
+from .._model.params import ParameterError, RecoilParams, params_to_values, with_values
 
 __all__ = ["Found", "OptimiseResult", "RunRecord", "build_result"]
 

@@ -22,8 +22,9 @@ from typing import Any, ClassVar, final
 import equinox as eqx
 import numpy as np
 
-from ._metrics import METRICS, metric
-from ._params import (
+from .._design.problem import Objective
+from .._model.metrics import METRICS, metric
+from .._model.params import (
     PARAMETERS,
     ParameterError,
     RecoilParams,
@@ -32,9 +33,8 @@ from ._params import (
     params_from_values,
     params_to_values,
 )
-from ._problem import Objective
-from ._status import SolveError
-from ._sweep import sweep
+from .._model.status import SolveError
+from .._sweeps.sweep import sweep
 
 __all__ = [
     "DGSM",

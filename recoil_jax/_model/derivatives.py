@@ -25,9 +25,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._cache import structure_jit
-from ._metrics import METRICS, PeakGradients, Peaks
-from ._model import (
+from .._model.equations import (
     contact_width,
     forces,
     future_metric_bounds,
@@ -39,7 +37,9 @@ from ._model import (
     tracked_metrics,
     vector_field,
 )
-from ._params import (
+from .._model.lanes import queued_map
+from .._model.metrics import METRICS, PeakGradients, Peaks
+from .._model.params import (
     PARAMETERS,
     ParameterError,
     RecoilParams,
@@ -51,10 +51,10 @@ from ._params import (
     with_default_tolerances,
     with_values,
 )
-from ._queue import queued_map
-from ._solve import model_ceilings, model_samples, peaks_of_run
-from ._status import raise_on_failure
-from ._stepping import Events, PeakLoop, PeakRun
+from .._model.programs import structure_jit
+from .._model.solve import model_ceilings, model_samples, peaks_of_run
+from .._model.status import raise_on_failure
+from .._model.stepping import Events, PeakLoop, PeakRun
 
 __all__ = [
     "ABSORBER_SIGNALS",

@@ -10,9 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._cache import structure_jit
-from ._metrics import METRICS, Peaks
-from ._model import (
+from .._model.equations import (
     RECOIL_TERM,
     Forces,
     forces,
@@ -26,7 +24,9 @@ from ._model import (
     restart_step,
     tracked_metrics,
 )
-from ._params import (
+from .._model.lanes import queued_map
+from .._model.metrics import METRICS, Peaks
+from .._model.params import (
     ParameterError,
     RecoilParams,
     Smoothing,
@@ -35,9 +35,9 @@ from ._params import (
     is_concrete,
     with_default_tolerances,
 )
-from ._queue import queued_map
-from ._status import raise_on_failure
-from ._stepping import Events, PeakLoop, PeakRun
+from .._model.programs import structure_jit
+from .._model.status import raise_on_failure
+from .._model.stepping import Events, PeakLoop, PeakRun
 
 __all__ = [
     "MODEL_EVENTS",

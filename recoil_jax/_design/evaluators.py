@@ -28,15 +28,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._cache import structure_jit
-from ._gradients import MetricSeries, series_name
-from ._local import LocalEvaluation
-from ._metrics import METRICS
-from ._params import end_time, params_to_values
-from ._problem import DesignProblem, evaluate_design, metric_violations
-from ._status import OK_CODE
-from ._store import StudyStore, evaluation_row, fingerprint
-from ._sweep import CHUNK_SIZE, sweep
+from .._campaigns.store import StudyStore, evaluation_row, fingerprint
+from .._design.local import LocalEvaluation
+from .._design.problem import DesignProblem, evaluate_design, metric_violations
+from .._model.derivatives import MetricSeries, series_name
+from .._model.metrics import METRICS
+from .._model.params import end_time, params_to_values
+from .._model.programs import structure_jit
+from .._model.status import OK_CODE
+from .._sweeps.sweep import CHUNK_SIZE, sweep
 
 __all__ = [
     "SERIES_POINTS",

@@ -15,7 +15,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._gradients import (
+from .._model.derivatives import (
     GRADIENT_OPTIONS,
     SmoothMax,
     check_wrt,
@@ -23,9 +23,9 @@ from ._gradients import (
     series_name,
     smooth_name,
 )
-from ._metrics import METRICS
-from ._params import RecoilParams, Smoothing, SolverOptions, values_of, with_values
-from ._status import status_item
+from .._model.metrics import METRICS
+from .._model.params import RecoilParams, Smoothing, SolverOptions, values_of, with_values
+from .._model.status import status_item
 
 __all__ = ["design_metrics", "differentiable_peaks"]
 

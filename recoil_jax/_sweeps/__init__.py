@@ -1,0 +1,4 @@
+"""Sweeps: designs as batches, grids streamed a chunk at a time, memory checks, chunks on
+threads or a Dask cluster, and a sweep kept in a store (`sweep`).
+
+May import: `_model`, `_campaigns`."""
