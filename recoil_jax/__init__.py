@@ -21,7 +21,7 @@ from ._calibration.calibrate import (
 )
 from ._calibration.predict import predict as predict
 from ._calibration.traces import read_trace as read_trace
-from ._campaigns.store import (
+from ._campaigns.progress import (
     CampaignProgress as CampaignProgress,
     campaign_progress as campaign_progress,
 )
