@@ -68,9 +68,7 @@ from ._design.evaluators import (
     GradientEvaluator,
     MinimaxEvaluator,
     MinimaxWindow,
-    SearchSpace,
     StoredEvaluator,
-    log_coordinates,
     minimax_metric,
 )
 from ._design.local import LocalEvaluation, LocalMethod, LocalRun, MinimaxMethod, run_local
@@ -85,6 +83,7 @@ from ._model.params import MAX_TEXT_BYTES, T1_LIMITS, Parameter, end_time, read_
 from ._model.programs import live_programs, set_max_programs, structure_jit
 from ._model.reference import reference_history
 from ._model.status import OK_CODE, status_codes, status_messages, status_table
+from ._sweeps.space import SearchSpace, log_coordinates
 from ._sweeps.sweep import (
     Grid,
     StoredSweep,

@@ -345,3 +345,11 @@ def test_no_module_imports_the_version_from_the_top_level():
         for module, name in _imports(path):
             if name == "__version__":
                 assert module == "recoil_jax._version", (path.name, module)
+
+
+def test_calibration_stands_without_the_optimiser():
+    """Calibration imports the model, the campaigns and the sweeps (the batches, the search
+    space), never the optimisation layer."""
+    for path in sorted((PACKAGE / "_calibration").glob("*.py")):
+        for module, _ in _imports(path):
+            assert not module.startswith("recoil_jax._design"), (path.name, module)

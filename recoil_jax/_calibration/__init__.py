@@ -2,5 +2,5 @@
 (`calibrate`), the test of whether the model explains the traces (`model_check`), and
 predictions from a fit's uncertainty (`predict`).
 
-May import: `_model`, `_campaigns`, `_sweeps`, and `_design.evaluators` for the search
-space (until it moves to `_sweeps`); never the optimiser."""
+May import: `_model`, `_campaigns`, `_sweeps` (the batches and the search space); never
+`_design`, the optimiser."""

@@ -39,7 +39,6 @@ from .._calibration.predict import FittedParameters
 from .._calibration.traces import T_SHIFT, Experiment, known_values
 from .._campaigns.progress import Progress
 from .._campaigns.store import CalibrationStore, campaign_identity
-from .._design.evaluators import SearchSpace, log_coordinates
 from .._model.derivatives import (
     ABSORBER_SIGNALS,
     GRADIENT_OPTIONS,
@@ -62,6 +61,7 @@ from .._model.params import (
 )
 from .._model.programs import structure_jit
 from .._model.status import OK_CODE
+from .._sweeps.space import SearchSpace, log_coordinates
 from .._sweeps.sweep import batch_params, with_table
 
 __all__ = [

@@ -27,7 +27,6 @@ import optax
 
 from .._campaigns.progress import Progress
 from .._campaigns.store import StudyStore, campaign_identity, evaluation_row, open_study
-from .._design.evaluators import SearchSpace
 from .._design.lagrangian import AugmentedLagrangian, LagrangianState, cosine_decayed
 from .._design.problem import (
     DesignProblem,
@@ -40,6 +39,7 @@ from .._design.problem import (
 from .._design.result import Found, OptimiseResult, RunRecord, build_result
 from .._model.params import ParameterError, RecoilParams, values_of
 from .._model.status import OK_CODE
+from .._sweeps.space import SearchSpace
 
 __all__ = ["Stopping", "default_optimiser", "optimise"]
 

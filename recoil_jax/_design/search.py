@@ -45,7 +45,6 @@ from .._design.evaluators import (
     GradientEvaluator,
     MinimaxEvaluator,
     MinimaxWindow,
-    SearchSpace,
     StoredEvaluator,
     gradient_traces,
     minimax_metric,
@@ -67,6 +66,7 @@ from .._design.problem import (
 )
 from .._design.result import Found, OptimiseResult, RunRecord, build_result
 from .._model.params import ParameterError, values_of
+from .._sweeps.space import SearchSpace
 from .._sweeps.sweep import default_workers
 
 __all__ = [
