@@ -38,14 +38,12 @@ from ._design.optimise import (
     optimise as optimise,
 )
 from ._design.problem import (
-    FEASIBILITY_TOLERANCE as FEASIBILITY_TOLERANCE,
     Agreement as Agreement,
     Constraint as Constraint,
     DesignProblem as DesignProblem,
     Objective as Objective,
     closest_miss as closest_miss,
     constraint_report as constraint_report,
-    feasible as feasible,
     metric_violations as metric_violations,
 )
 from ._design.result import OptimiseResult as OptimiseResult
@@ -72,6 +70,10 @@ from ._model.derivatives import (
     peak_jacobian as peak_jacobian,
 )
 from ._model.differentiable import differentiable_peaks as differentiable_peaks
+from ._model.feasibility import (
+    FEASIBILITY_TOLERANCE as FEASIBILITY_TOLERANCE,
+    feasible as feasible,
+)
 from ._model.metrics import (
     METRICS as METRICS,
     PeakGradients as PeakGradients,

@@ -72,7 +72,10 @@ from ._design.evaluators import (
     minimax_metric,
 )
 from ._design.local import LocalEvaluation, LocalMethod, LocalRun, MinimaxMethod, run_local
-from ._design.problem import DesignEvaluation, evaluate_design
+from ._design.problem import (
+    DesignEvaluation,
+    evaluate_design,
+)
 from ._design.result import RunRecord
 from ._design.search import GlobalPhase, default_local
 from ._global_sensitivity.analysis import SENSITIVITY_METHODS, SensitivityMethod, sensitivity_box

@@ -353,3 +353,31 @@ def test_calibration_stands_without_the_optimiser():
     for path in sorted((PACKAGE / "_calibration").glob("*.py")):
         for module, _ in _imports(path):
             assert not module.startswith("recoil_jax._design"), (path.name, module)
+
+
+#: The engine's folders from the bottom: each may import only those before it (and
+#: `_version`); `_design` and `_calibration` stand side by side.
+LAYERS = {
+    "_model": set(),
+    "_campaigns": {"_model"},
+    "_sweeps": {"_model", "_campaigns"},
+    "_design": {"_model", "_campaigns", "_sweeps"},
+    "_calibration": {"_model", "_campaigns", "_sweeps"},
+    "_global_sensitivity": {"_model", "_campaigns", "_sweeps", "_design"},
+}
+
+
+def test_no_engine_import_runs_up_a_layer():
+    """Each folder imports only the folders below it (module-level and in functions),
+    and its `__init__` names them on its `May import:` line."""
+    assert {p.name for p in PACKAGE.glob("_*/")} == set(LAYERS)
+    for folder, allowed in LAYERS.items():
+        for path in sorted((PACKAGE / folder).glob("*.py")):
+            for module, _ in _imports(path):
+                parts = module.split(".")
+                if parts[0] != "recoil_jax" or len(parts) < 2 or parts[1] == "_version":
+                    continue
+                assert parts[1] in allowed | {folder}, (folder, path.name, module)
+        doc = importlib.import_module(f"recoil_jax.{folder}").__doc__ or ""
+        line = doc[doc.index("May import:") :]
+        assert all(f"`{name}`" in line for name in allowed), (folder, line)

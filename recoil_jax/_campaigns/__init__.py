@@ -2,5 +2,4 @@
 calibrations, a campaign's identity, its lock (`store`), and the progress line and the
 reading of a campaign's progress (`progress`).
 
-May import: `_version`, `_model`, and (until the store's feasibility rules move down)
-`_design.problem`."""
+May import: `_version`, `_model`."""

@@ -11,7 +11,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .._design.problem import best_feasible_note
+from .._model.feasibility import best_feasible_note
 from .._model.params import ParameterError
 from .store import connect_read, read_meta
 

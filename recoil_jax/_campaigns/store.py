@@ -47,7 +47,10 @@ from typing import Any
 import jax
 import numpy as np
 
-from .._design.problem import DesignProblem, feasible, largest_violation
+from .._model.feasibility import (
+    feasible,
+    largest_violation,
+)
 from .._model.params import ParameterError
 from .._model.status import OK_CODE, status_messages
 from .._version import __version__
@@ -703,16 +706,18 @@ def open_study(
     path,
     *,
     label: str,
-    problem: DesignProblem,
+    problem,
     identity: str,
     total: int,
     plan: dict,
     description: dict,
     progress: bool | None,
 ) -> StudyStore:
-    """The store at `path` of the study `label` (`"search"`, `"optimise"`) of `problem`:
-    created, or checked to be this study's (`identity`), with one line on stderr when it
-    resumes one (unless `progress` is False)."""
+    """The store at `path` of the study `label` (`"search"`, `"optimise"`) of `problem` (a
+    `DesignProblem`: its `tune` and `metric_constraints` name the columns; the store
+    imports nothing of the design layer): created, or checked to be this study's
+    (`identity`), with one line on stderr when it resumes one (unless `progress` is
+    False)."""
     study = StudyStore(
         path,
         identity=identity,

@@ -25,8 +25,11 @@ import equinox as eqx
 import numpy as np
 
 from .._design.lagrangian import AugmentedLagrangian, cosine_decayed
-from .._design.problem import feasible, largest_violation
 from .._design.result import RunRecord
+from .._model.feasibility import (
+    feasible,
+    largest_violation,
+)
 from .._model.params import ParameterError
 
 __all__ = [

@@ -30,13 +30,15 @@ from .._campaigns.store import StudyStore, campaign_identity, evaluation_row, op
 from .._design.lagrangian import AugmentedLagrangian, LagrangianState, cosine_decayed
 from .._design.problem import (
     DesignProblem,
+    evaluate_design,
+)
+from .._design.result import Found, OptimiseResult, RunRecord, build_result
+from .._model.feasibility import (
     best_feasible_note,
     closest_index,
-    evaluate_design,
     feasible,
     largest_violation,
 )
-from .._design.result import Found, OptimiseResult, RunRecord, build_result
 from .._model.params import ParameterError, RecoilParams, values_of
 from .._model.status import OK_CODE
 from .._sweeps.space import SearchSpace

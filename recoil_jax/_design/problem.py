@@ -23,6 +23,7 @@ import numpy as np
 
 from .._model.derivatives import GRADIENT_OPTIONS, MetricSeries, SmoothMax, check_wrt, smooth_name
 from .._model.differentiable import design_metrics
+from .._model.feasibility import FEASIBILITY_TOLERANCE
 from .._model.metrics import METRICS, metric, worst_case
 from .._model.params import (
     PARAMETERS,
@@ -38,28 +39,16 @@ from .._model.params import (
 from .._model.status import status_item
 
 __all__ = [
-    "FEASIBILITY_TOLERANCE",
     "Agreement",
     "Constraint",
     "DesignEvaluation",
     "DesignProblem",
     "Objective",
-    "best_feasible_note",
-    "closest_index",
     "closest_miss",
     "constraint_report",
     "evaluate_design",
-    "feasible",
-    "largest_violation",
     "metric_violations",
 ]
-
-#: The one feasibility rule of every optimiser, study and benchmark (`feasible`): a
-#: design counts as feasible when its solve succeeded, its objective is finite and every
-#: normalised limit violation is at most `-FEASIBILITY_TOLERANCE`. The margin keeps the
-#: limits held on any re-solve of the design: a plain solve and a sensitivity solve of
-#: one design differ by ~5e-7 (relative) in a stroke.
-FEASIBILITY_TOLERANCE = 1e-6
 
 
 class Objective(eqx.Module):
@@ -428,39 +417,6 @@ def metric_violations(problem: DesignProblem, metrics: Mapping[str, Any], limits
         return xp.stack(out, axis=-1)
     shape = xp.shape(metrics[next(iter(metrics))]) if metrics else ()
     return xp.zeros((*shape, 0))
-
-
-def feasible(ok, objective, violations) -> np.ndarray:
-    """The one feasibility rule (`FEASIBILITY_TOLERANCE`): `ok (...)` whether each solve
-    succeeded, `objective (...)`, `violations (..., C)` from `metric_violations`.
-
-    **Returns:** `(...)` booleans (NumPy)."""
-    violations = np.asarray(violations, dtype=float)
-    held = np.all(violations <= -FEASIBILITY_TOLERANCE, axis=-1)
-    return np.asarray(ok, dtype=bool) & np.isfinite(np.asarray(objective, dtype=float)) & held
-
-
-def largest_violation(violations) -> np.ndarray:
-    """`violations (..., C)` → `(...)`: the largest normalised violation of each point
-    (`-inf` where there are no limits)."""
-    return np.max(np.asarray(violations, dtype=float), axis=-1, initial=-np.inf)
-
-
-def closest_index(ok, objective, violation) -> int | None:
-    """The index of the least violating point (`violation (n,)`, its largest normalised
-    violation) among those whose solve succeeded (`ok (n,)`) with a finite objective:
-    the first of equals; None if there is none."""
-    violation = np.asarray(violation, dtype=float)
-    valid = np.asarray(ok, dtype=bool) & np.isfinite(np.asarray(objective, dtype=float))
-    valid &= ~np.isnan(violation)
-    if not np.any(valid):
-        return None
-    return int(np.argmin(np.where(valid, violation, np.inf)))
-
-
-def best_feasible_note(best: float) -> str:
-    """How a progress line and a store's summary give the best feasible objective so far."""
-    return f"best feasible objective {best:.7g}" if np.isfinite(best) else "none feasible yet"
 
 
 def closest_miss(problem: DesignProblem, violations) -> dict[str, dict]:

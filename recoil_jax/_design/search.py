@@ -57,14 +57,14 @@ from .._design.local import (
     run_local,
     store_form,
 )
-from .._design.problem import (
-    DesignProblem,
+from .._design.problem import DesignProblem
+from .._design.result import Found, OptimiseResult, RunRecord, build_result
+from .._model.feasibility import (
     best_feasible_note,
     closest_index,
     feasible,
     largest_violation,
 )
-from .._design.result import Found, OptimiseResult, RunRecord, build_result
 from .._model.params import ParameterError, values_of
 from .._sweeps.space import SearchSpace
 from .._sweeps.sweep import default_workers

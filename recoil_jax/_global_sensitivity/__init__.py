@@ -2,4 +2,4 @@
 tolerances, solved through the sweep (`analysis`). Not the forward sensitivities, which
 are `_model.derivatives`.
 
-May import: `_model`, `_campaigns`, `_sweeps`, `_design.problem` (the objective)."""
+May import: `_model`, `_campaigns`, `_sweeps`, `_design` (only its problem's objective)."""
