@@ -712,7 +712,7 @@ def test_basin_hopping_finds_a_narrow_basin_beside_the_best_one_found():
         ('method = "search"\nhop_step = 2.0', r"BasinHopping: need hops >= 0 and 0 < step <= 1"),
         ('method = "search"\nmaxiter = 0', r"maxiter = 0: valid an integer >= 1"),
         ('method = "search"\nmax_seconds = -3.0', r"max_seconds = -3.0: valid a number > 0"),
-        ('method = "adam"\nstarts = 0', r"starts = 0 is invalid: valid an integer >= 1"),
+        ('method = "adam"\nstarts = 0', r"starts = 0: valid an integer >= 1"),
         ('method = "adam"\nsteps = 2.5', r"steps = 2.5: valid an integer >= 1"),
         ('method = "adam"\nupdate_every = 0', r"update_every = 0: valid an integer >= 1"),
         ('method = "adam"\nseed = -1', r"seed = -1: valid an integer >= 0"),

@@ -15,7 +15,9 @@ import recoil_jax as rj
 import recoil_jax.extend as rjx
 
 from ._inputs import (
+    check_keys,
     file_error as _error,
+    file_integer,
     file_number as _number,
     output_folder,
     parse_assignments,
@@ -126,10 +128,7 @@ def load_calibration(path) -> tuple[rj.Calibration, dict[str, Any]]:
     `description`). Every fault is a `ParameterError` naming the file and the key."""
     path = Path(path)
     config = read_toml(path, "calibration file")
-    unknown = set(config) - _FILE_KEYS
-    if unknown:
-        raise _error(str(path), f"unknown key {sorted(unknown)[0]!r}; known: "
-                     f"{', '.join(sorted(_FILE_KEYS))}")  # fmt: skip
+    check_keys(path, "", config, _FILE_KEYS)
     description = config.get("description", "")
     if not isinstance(description, str):
         raise _error(str(path), f"description = {description!r}: give a string")
@@ -155,10 +154,7 @@ def load_calibration(path) -> tuple[rj.Calibration, dict[str, Any]]:
     _check_experiments(len(experiments) + len(validations), str(path))
     for key, least, most in (("starts", 1, MAX_STARTS), ("seed", 0, 2**63 - 1),
                              ("fit_steps", 1, MAX_FIT_STEPS)):  # fmt: skip
-        value = config.get(key, least)
-        if isinstance(value, bool) or not isinstance(value, int) or not least <= value <= most:
-            raise _error(str(path), f"{key} = {value!r}: give an integer from {least} to "
-                         f"{most:,}")  # fmt: skip
+        file_integer(path, key, config.get(key, least), least, most)
     folder = path.parent
     fitted = [_experiment(f"[[experiment]] {i}", e, folder) for i, e in enumerate(experiments, 1)]
     validation = [

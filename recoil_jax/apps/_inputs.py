@@ -30,15 +30,18 @@ __all__ = [
     "SETTINGS",
     "TooLarge",
     "check_figure_path",
+    "check_keys",
     "check_output_file",
     "design_warnings",
     "file_error",
+    "file_integer",
     "file_number",
     "known",
     "names",
     "number",
     "output_folder",
     "parse_assignments",
+    "read_calibration_section",
     "read_text",
     "read_toml",
     "remove_unused_folders",
@@ -65,6 +68,61 @@ def read_toml(path, what: str) -> dict:
 def file_error(where, message: str) -> rj.ParameterError:
     """A fault in a file the command loads: `where` (the file, and the key) first."""
     return rj.ParameterError(f"{where}: {message}")
+
+
+def check_keys(where, section: str, table: Mapping, known_keys, *, kind: str = "key") -> None:
+    """The one refusal of keys a section does not take: `{where}: [section] unknown
+    key 'x'; known: a, b` (`section` empty: the file's top level; `kind`: what a key
+    is, "key" or "section")."""
+    unknown = sorted(set(table) - set(known_keys))
+    if unknown:
+        label = f"[{section}] " if section else ""
+        plural = "s" if len(unknown) > 1 else ""
+        raise file_error(
+            where,
+            f"{label}unknown {kind}{plural} {', '.join(map(repr, unknown))}; known: "
+            f"{', '.join(sorted(known_keys))}",
+        )
+
+
+def file_integer(where, key: str, value, least: int, most: int | None = None) -> int:
+    """An integer setting from a loaded file, at least `least` (at most `most`), or the
+    one refusal: `{where}: key = value: valid an integer >= least` (`from least to
+    most`; `where` None: no file to name)."""
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, int)
+        or value < least
+        or (most is not None and value > most)
+    ):
+        valid = f">= {least}" if most is None else f"from {least} to {most:,}"
+        message = f"{key} = {value!r}: valid an integer {valid}"
+        raise rj.ParameterError(message) if where is None else file_error(where, message)
+    return value
+
+
+def read_calibration_section(
+    path, section, known_keys, taken: Mapping[str, str]
+) -> rjx.FittedParameters:
+    """A `[calibration]` section (of a study or a sensitivity file): `from = "result.json"`
+    (a calibration's result, relative to the file at `path`) read as the fitted values
+    and their covariance, its keys among `known_keys` (`from` and the file's own), and
+    each fitted name in none of `taken` (`{name: "[design]", ...}`: where the file gives
+    it). A result whose model does not explain its traces, or leaves a value
+    undetermined, is refused. Every refusal names the file and `[calibration]`."""
+    if not isinstance(section, dict) or not isinstance(section.get("from"), str):
+        raise file_error(path, '[calibration] needs from = "result.json" (a calibration result)')
+    check_keys(path, "calibration", section, known_keys)
+    try:
+        fitted = rjx.FittedParameters.from_json(Path(path).parent / section["from"])
+        fitted.check_determined()
+    except rj.ParameterError as error:
+        raise file_error(path, f"[calibration] {error}") from None
+    for name in fitted.names:
+        if name in taken:
+            raise file_error(path, f"{taken[name]} {name} comes from the calibration: leave "
+                             "it out")  # fmt: skip
+    return fitted
 
 
 def file_number(where, value) -> float:

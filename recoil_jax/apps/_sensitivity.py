@@ -40,9 +40,11 @@ import recoil_jax.extend as rjx
 
 from ._cluster import dask_client
 from ._inputs import (
+    check_keys,
     file_error as _error,
     file_number as _number,
     output_folder,
+    read_calibration_section,
     read_toml,
     resolve_shipped,
     results_folder,
@@ -85,10 +87,7 @@ def _ranges(path, section: dict) -> dict[str, Any]:
 
 
 def _metrics(path, section: dict) -> tuple[list[str], rj.Objective | None]:
-    unknown = set(section) - {"names", "objective", "study"}
-    if unknown:
-        raise _error(path, f"[metrics] unknown key {sorted(unknown)[0]!r}; known: names, "
-                     "objective, study")  # fmt: skip
+    check_keys(path, "metrics", section, ("names", "objective", "study"))
     names = section.get("names", [])
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise _error(path, f"[metrics] names = {names!r}: give a list of metric names")
@@ -156,10 +155,7 @@ def load_sensitivity(source) -> tuple[dict[str, Any], str]:
     (design, ranges, metrics, method, objective), checked, and its description."""
     path = resolve_sensitivity(source)
     config = read_toml(path, "sensitivity file")
-    unknown = set(config) - _SECTIONS
-    if unknown:
-        raise _error(path, f"unknown section {sorted(unknown)[0]!r}; known: "
-                     f"{', '.join(sorted(_SECTIONS))}")  # fmt: skip
+    check_keys(path, "", config, _SECTIONS, kind="section")
     for section in ("metrics", "method"):
         if section not in config:
             raise _error(path, f"missing [{section}]")
@@ -177,21 +173,14 @@ def load_sensitivity(source) -> tuple[dict[str, Any], str]:
             raise _error(path, f"[design] {rj.PARAMETERS.unknown(name, also=('t1',))}")
     ranges = _ranges(path, _table(path, config, "ranges"))
     if "calibration" in config:
-        section = _table(path, config, "calibration")
-        if not isinstance(section.get("from"), str):
-            raise _error(path, '[calibration] needs from = "result.json" (a calibration result)')
-        if set(section) - {"from", "sigmas"}:
-            raise _error(path, "[calibration] takes from and sigmas")
+        section = config["calibration"]
+        taken = {name: "[design]" for name in design} | {name: "[ranges]" for name in ranges}
+        fitted = read_calibration_section(path, section, ("from", "sigmas"), taken)
         sigmas = _number(f"{path}: [calibration] sigmas", section.get("sigmas", 2.0))
         try:
-            fitted = rjx.FittedParameters.from_json(path.parent / section["from"])
             box = fitted.box(sigmas)
         except rj.ParameterError as error:
             raise _error(path, f"[calibration] {error}") from None
-        for name in fitted.names:
-            if name in design or name in ranges:
-                raise _error(path, f"{name} comes from the calibration; leave it out of "
-                             "[design] and [ranges]")  # fmt: skip
         design = fitted.fitted_design | design
         ranges = box | ranges
     if not ranges:

@@ -66,7 +66,15 @@ import recoil_jax as rj
 import recoil_jax.extend as rjx
 
 from ._cluster import check_cluster, dask_client
-from ._inputs import file_error as _error, output_folder, read_toml, resolve_shipped
+from ._inputs import (
+    check_keys,
+    file_error as _error,
+    file_integer,
+    output_folder,
+    read_calibration_section,
+    read_toml,
+    resolve_shipped,
+)
 from ._json import write as write_json
 
 __all__ = [
@@ -251,13 +259,7 @@ def load_study(path) -> Study:
 def _read_config(path: Path) -> dict:
     """The study file's TOML, its sections checked (known, and the required ones there)."""
     config = read_toml(path, "study file")
-    unknown = set(config) - _SECTIONS
-    if unknown:
-        raise _error(
-            path,
-            f"unknown section(s) {', '.join(sorted(unknown))}; known: "
-            f"{', '.join(sorted(_SECTIONS))}",
-        )
+    check_keys(path, "", config, _SECTIONS, kind="section")
     for section in ("tune", "objective"):
         if section not in config:
             raise _error(path, f"missing [{section}]")
@@ -293,29 +295,17 @@ def _parse_calibration(path, section, design: dict, tune, objective: rj.Objectiv
     from the fit, `points = "sigma"` (2k + 1 sigma points, default) or `"sample"`
     (`samples`, `seed`), or with `quantile = q` (sampled points only) the q-quantile
     towards the worst."""
-    if not isinstance(section, dict) or not isinstance(section.get("from"), str):
-        raise _error(path, '[calibration] needs from = "result.json" (a calibration result)')
-    unknown = set(section) - _CALIBRATION_KEYS
-    if unknown:
-        raise _error(path, f"[calibration] unknown key {sorted(unknown)[0]!r}; known: "
-                     f"{', '.join(sorted(_CALIBRATION_KEYS))}")  # fmt: skip
     if objective.scatter is not None:
         raise _error(path, "[calibration] and [objective.scatter] cannot both scatter the design")
-    fitted = rjx.FittedParameters.from_json(Path(path).parent / section["from"])
-    fitted.check_determined()
-    for name in fitted.names:
-        if name in tune:
-            raise _error(path, f"[tune] {name} is fitted by the calibration; it cannot be tuned")
-        if name in design:
-            raise _error(path, f"[design] {name} comes from the calibration; leave it out")
+    taken = {name: "[design]" for name in design} | {name: "[tune]" for name in tune}
+    fitted = read_calibration_section(path, section, _CALIBRATION_KEYS, taken)
     kind = section.get("points", "sigma")
     if kind == "sigma":
         points = fitted.sigma_points()
     elif kind == "sample":
         samples, seed = section.get("samples", 16), section.get("seed", 0)
         for key, value, least in (("samples", samples, 2), ("seed", seed, 0)):
-            if not isinstance(value, int) or isinstance(value, bool) or value < least:
-                raise _error(path, f"[calibration] {key} = {value!r}: an integer >= {least}")
+            file_integer(path, f"[calibration] {key}", value, least)
         draws, _ = fitted.sample(samples - 1, seed)
         points = np.concatenate([fitted.values[None], draws])
     else:
@@ -397,13 +387,7 @@ def _parse_design(path, design: dict, tune: list[str], bounds: dict) -> tuple[An
 def _parse_optimiser(path, optimiser: dict) -> dict:
     """`[optimiser]`: its method (default `"adam"`) and the settings that apply to it,
     each a value of the right kind."""
-    if set(optimiser) - _OPTIMISER_KEYS:
-        raise _error(
-            path,
-            f"[optimiser] unknown key(s) "
-            f"{', '.join(sorted(set(optimiser) - _OPTIMISER_KEYS))}; known: "
-            f"{', '.join(sorted(_OPTIMISER_KEYS))}",
-        )
+    check_keys(path, "optimiser", optimiser, _OPTIMISER_KEYS)
     method = optimiser.setdefault("method", "adam")
     if method not in ("adam", "search"):
         raise _error(path, f'[optimiser] method = {method!r}: valid "adam" or "search"')
@@ -437,10 +421,8 @@ def _check_setting(path, key: str, value) -> None:
     value; a positive setting positive."""
     if not _is_number(value) or not np.isfinite(value):
         raise _error(path, f"[optimiser] {key} = {value!r}: valid a finite number")
-    if key in _INTEGER_KEYS and (not isinstance(value, int) or value < _INTEGER_KEYS[key]):
-        raise _error(
-            path, f"[optimiser] {key} = {value!r}: valid an integer >= {_INTEGER_KEYS[key]}"
-        )
+    if key in _INTEGER_KEYS:
+        file_integer(path, f"[optimiser] {key}", value, _INTEGER_KEYS[key])
     if key in _POSITIVE_KEYS and not value > 0:
         raise _error(path, f"[optimiser] {key} = {value!r}: valid a number > 0")
 
@@ -463,8 +445,7 @@ MAX_GRID_CHECK = 100_000
 def _parse_check(path, check: dict) -> dict:
     """`[check]`: which checks of the best design to run, each setting checked here (a
     check runs after the optimiser: a bad one would lose the run)."""
-    if set(check) - _CHECK_KEYS:
-        raise _error(path, f"[check] unknown key(s) {', '.join(sorted(set(check) - _CHECK_KEYS))}")
+    check_keys(path, "check", check, _CHECK_KEYS)
     for key in ("hard", "nominal"):
         if key in check and not isinstance(check[key], bool):
             raise _error(path, f"[check] {key} = {check[key]!r}: give true or false")
@@ -537,8 +518,7 @@ def _part(cls, o: dict, **keys: str):
 def optimise_kwargs(study: Study, progress: bool | None) -> dict:
     """The keyword arguments of `rj.optimise` that the study's `[optimiser]` sets."""
     o = study.optimiser
-    if o.get("starts", 8) < 1:  # `load_study` checked it is an integer; adam needs one start
-        raise rj.ParameterError(f"starts = {o['starts']!r} is invalid: valid an integer >= 1")
+    file_integer(None, "starts", o.get("starts", 8), 1)  # adam needs one start
     steps = int(o.get("steps", 200))
     kwargs: dict[str, Any] = dict(
         starts=int(o.get("starts", 8)),
@@ -831,9 +811,7 @@ def _prepared(path, seed: int | None, workers, scheduler) -> Study:
             'method = "search"; this study uses method = "adam", which has none'
         )
     if seed is not None:
-        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-            raise rj.ParameterError(f"seed = {seed!r} is invalid: valid an integer >= 0")
-        study.optimiser["seed"] = seed
+        study.optimiser["seed"] = file_integer(None, "seed", seed, 0)
     return study
 
 
