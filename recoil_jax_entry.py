@@ -1,5 +1,5 @@
 """The `recoil-jax` command's entry point (pyproject's `[project.scripts]`): it runs
-`recoil_jax.apps._cli.main` (the same arguments, the same exit status) inside what only
+`recoil_jax.apps._cli.parser.main` (the same arguments, the same exit status) inside what only
 a process can do, before the heavy imports (JAX takes about a second):
 
 - Ctrl-C at any moment, the imports included, ends with one line and status 130, never
@@ -23,7 +23,7 @@ import time
 
 __all__ = ["main"]
 
-#: The exit status after Ctrl-C (the shell's 128 + SIGINT), as `recoil_jax.apps._cli`.
+#: The exit status after Ctrl-C (the shell's 128 + SIGINT), as `recoil_jax.apps._cli.boundary`.
 INTERRUPTED = 130
 
 #: Seconds after a first Ctrl-C during which further ones are ignored: the command is

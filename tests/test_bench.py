@@ -21,8 +21,8 @@ from recoil_jax._model.equations import (
     vector_field,
 )
 from recoil_jax._model.stepping import integrate_peaks
-from recoil_jax.apps._anchor import anchor_field, anchor_peaks
-from recoil_jax.apps._bench import (
+from recoil_jax.apps._bench.anchor import anchor_field, anchor_peaks
+from recoil_jax.apps._bench.speed import (
     _host_label,
     bench_designs,
     format_bench,
@@ -160,7 +160,7 @@ def test_bench_smoke():
 @pytest.mark.slow
 def test_calibration_bench_reports_both_fits():
     """`bench-calibration` fits the same tests both ways and reports every figure."""
-    from recoil_jax.apps._bench_calibration import (
+    from recoil_jax.apps._bench.calibration import (
         format_calibration_bench,
         run_calibration_bench,
     )
@@ -187,7 +187,7 @@ def test_calibration_bench_reports_both_fits():
 def test_sensitivity_bench_reports_every_figure():
     """`bench-sensitivity` runs both methods and the scipy loop on the same designs; the
     methods agree with SALib's finite differences and the scipy peaks with ours."""
-    from recoil_jax.apps._bench_sensitivity import (
+    from recoil_jax.apps._bench.sensitivity import (
         format_sensitivity_bench,
         run_sensitivity_bench,
     )

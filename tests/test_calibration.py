@@ -16,7 +16,7 @@ import pytest
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
-from recoil_jax.apps._calibration import MODEL_MISFIT
+from recoil_jax.apps._cli.calibrate import MODEL_MISFIT
 from recoil_jax.apps._cli import main
 
 TIGHT = rj.SolverOptions(t1=1.0, rtol=1e-10, atol=1e-13)
@@ -658,7 +658,7 @@ def test_a_sensitivity_run_ranges_the_fitted_values_over_their_uncertainty(
     """A sensitivity file's `[calibration] from = ...` on a real fit's `result.json`: each
     fitted value ranged over ± `sigmas` standard errors about its value (within its
     bounds), the values the fit held kept, and the run's indices over those ranges."""
-    from recoil_jax.apps._sensitivity import load_sensitivity
+    from recoil_jax.apps._cli.sensitivity import load_sensitivity
 
     (tmp_path / "fit.json").write_text(fitted_json.read_text())
     (tmp_path / "s.toml").write_text(
@@ -833,7 +833,7 @@ def test_a_stored_calibration_resumes_to_the_same_result(tmp_path, monkeypatch, 
 def test_a_prediction_names_the_design_it_predicts():
     """The values given to `predict` (not only every value merged) are in its JSON, and
     the command's text report says them."""
-    from recoil_jax.apps._calibration import prediction_report
+    from recoil_jax.apps._cli.calibrate import prediction_report
 
     hardware = rjx.FittedParameters(("k",), np.array([28000.0]), np.array([[1e4]]),
                                     np.array([1e4]), np.array([1e5]), np.array([True]),

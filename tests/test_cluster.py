@@ -15,7 +15,7 @@ import pytest
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 from recoil_jax.apps import main
-from recoil_jax.apps._bench import bench_designs
+from recoil_jax.apps._bench.speed import bench_designs
 
 distributed = pytest.importorskip("distributed")
 
@@ -118,7 +118,7 @@ def test_sweep_command_on_a_cluster(client, capsys):
 def test_a_search_and_the_tuning_baselines_on_a_cluster(client, tmp_path, capsys):
     """The optimiser's global phase and the benchmark's batched baselines go through the
     cluster: the same samples, the same best design, the same penalised objectives."""
-    from recoil_jax.apps._bench_tuning import _Evaluator
+    from recoil_jax.apps._bench.tuning import _Evaluator
 
     problem = rj.DesignProblem(
         params=rj.params_from_values(m=1500.0, gap=0.05),

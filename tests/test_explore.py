@@ -26,7 +26,7 @@ def _peak(**values):
 
 @pytest.mark.slow  # compiles the explorer's program
 def test_explorer_shows_simulate_numbers_and_errors():
-    from recoil_jax.apps._explore import Explorer, _tuned
+    from recoil_jax.apps._explore.explorer import Explorer, _tuned
 
     explorer = Explorer()
     # A measured trace is drawn over the histories, in their units (mm, kN).

@@ -24,7 +24,8 @@ import recoil_jax as rj
 import recoil_jax._sweeps.sweep as sweep_module
 import recoil_jax.extend as rjx
 from recoil_jax._campaigns.store import _hold
-from recoil_jax.apps import _sweep as sweep_app, main
+from recoil_jax.apps import main
+from recoil_jax.apps._cli import sweep as sweep_app
 
 CLI = [sys.executable, "-m", "recoil_jax.apps._cli"]
 
@@ -104,7 +105,7 @@ def test_optimise_refuses_its_cluster_options_before_it_starts(options, message,
 
 def test_more_workers_than_cores_are_capped_with_a_warning(monkeypatch, capsys):
     distributed = pytest.importorskip("distributed")
-    from recoil_jax.apps._cluster import _cores, dask_client
+    from recoil_jax.apps._files.cluster import _cores, dask_client
 
     made = {}
 
@@ -652,7 +653,8 @@ def test_ranges_from_a_covariance_that_is_not_positive_are_refused_naming_it(tmp
 
 
 def test_every_result_json_writes_null_beside_its_reason_never_nan(tmp_path):
-    from recoil_jax.apps import _calibration, _json
+    from recoil_jax.apps._cli import calibrate as _calibration
+    from recoil_jax.apps._files import json_writer as _json
 
     report = {"aic": math.inf, "rms": {"x_M": np.float64("nan")}, "c": [[1.0, -math.inf]]}
     text = _json.dumps(report)
@@ -670,7 +672,8 @@ def test_every_result_json_writes_null_beside_its_reason_never_nan(tmp_path):
 
 
 def test_a_full_disk_names_the_file_and_leaves_no_truncated_one(tmp_path, monkeypatch, capsys):
-    from recoil_jax.apps import _json, _sensitivity as sensitivity_app
+    from recoil_jax.apps._cli import sensitivity as sensitivity_app
+    from recoil_jax.apps._files import json_writer as _json
 
     class Full:
         def __init__(self, *args, **kwargs):
@@ -702,7 +705,7 @@ def test_a_full_disk_names_the_file_and_leaves_no_truncated_one(tmp_path, monkey
 
 @pytest.mark.parametrize("command", ["calibrate", "sensitivity", "progress"])
 def test_a_damaged_store_is_named_with_what_to_do(tmp_path, monkeypatch, capsys, command):
-    from recoil_jax.apps import _calibration, _sensitivity as sensitivity_app
+    from recoil_jax.apps._cli import calibrate as _calibration, sensitivity as sensitivity_app
 
     damaged = sqlite3.DatabaseError("database disk image is malformed")
     monkeypatch.setattr(_calibration, "run_calibration", _raising(damaged))

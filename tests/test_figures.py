@@ -5,26 +5,27 @@ heatmap's optimum starred, units on every axis, one style for all."""
 import numpy as np
 import pytest
 
-from recoil_jax.apps import _figures
+from recoil_jax.apps._figures import designs, histories
 
 
 @pytest.fixture
 def saved(monkeypatch):
-    """The figures `_figures` saves, kept open for inspection."""
+    """The figures the figure modules save, kept open for inspection."""
     figures = []
 
     def keep(fig, path):
         figures.append(fig)
         return path
 
-    monkeypatch.setattr(_figures, "_save", keep)
+    for module in (designs, histories):
+        monkeypatch.setattr(module, "save", keep)
     return figures
 
 
 def test_sweep_curves_mark_and_name_their_lowest_point(saved):
     gap = np.linspace(0.0, 0.12, 121)
     force = 5500.0 + 2e5 * (gap - 0.062) ** 2
-    _figures.plot_series(
+    histories.plot_series(
         {"m = 1500 kg": (gap, force)},
         "unused.png",
         xlabel="gap (mm)",
@@ -42,7 +43,7 @@ def test_sweep_curves_mark_and_name_their_lowest_point(saved):
 
 
 def test_front_points_carry_markers(saved):
-    _figures.plot_series(
+    histories.plot_series(
         {"best design": ([100.0, 500.0, 1500.0], [6900.0, 6500.0, 5324.0])},
         "unused.png",
         xlabel="m (kg)",
@@ -57,7 +58,7 @@ def test_heatmap_stars_the_lowest_point(saved):
     gap, mass = np.linspace(0.0, 0.12, 13), np.array([500.0, 1000.0, 1500.0])
     values = np.add.outer(-mass, 1e4 * (gap - 0.06) ** 2)  # lowest at m = 1500, gap = 0.06
     values[0, 0] = np.nan  # a failed point stays blank
-    _figures.plot_heatmap(
+    designs.plot_heatmap(
         gap, mass, values, "unused.png", xlabel="gap (m)", ylabel="m (kg)", label="F (N)"
     )
     ax = saved[0].axes[0]
@@ -70,7 +71,7 @@ def test_many_sweep_lines_are_told_apart_by_a_colour_scale(saved):
     gap = np.linspace(0.0, 0.12, 13)
     masses = np.linspace(500.0, 3000.0, 26)
     series = {f"m = {m:g} kg": (gap, 5000.0 + m * (gap - 0.06) ** 2) for m in masses}
-    _figures.plot_series(
+    histories.plot_series(
         series, "unused.png", xlabel="gap (mm)", ylabel="F (N)", colour_by=("m (kg)", masses)
     )
     ax, bar = saved[0].axes  # the plot and its colour bar, no legend
@@ -85,7 +86,7 @@ def test_heatmap_cells_are_the_swept_values(saved):
     last value."""
     gap, mass = np.linspace(0.0, 120.0, 13), np.array([100.0, 500.0, 1000.0, 1500.0])
     values = np.add.outer(-mass, (gap - 60.0) ** 2)
-    _figures.plot_heatmap(
+    designs.plot_heatmap(
         gap, mass, values, "unused.png", xlabel="gap (mm)", ylabel="m (kg)", label="F (N)"
     )
     ax = saved[0].axes[0]
@@ -104,7 +105,7 @@ def test_a_history_marks_its_peaks_and_shows_the_impact(saved):
     import recoil_jax as rj
 
     history = rj.simulate(rj.params_from_values(m=1500.0, gap=0.062))
-    _figures.plot_history(history, "unused.png")
+    histories.plot_history(history, "unused.png")
     top, middle, bottom = saved[0].axes[:3]
     names = " ".join(t.get_text() for ax in (top, middle, bottom) for t in ax.texts)
     p = history.peaks
@@ -116,7 +117,7 @@ def test_a_history_marks_its_peaks_and_shows_the_impact(saved):
     assert 100 < low < 128 < high < 160
     assert bottom.get_xlim()[1] < 10.0 and "of 10 s" in bottom.get_xlabel()
     plain = rj.simulate(rj.params_from_values(m=0.0))
-    _figures.plot_history(plain, "unused.png")
+    histories.plot_history(plain, "unused.png")
     axes = saved[1].axes
     assert len(axes) == 2
     assert [line.get_label() for line in axes[0].lines if line.get_marker() != "o"] == [
@@ -145,7 +146,7 @@ def test_convergence_axes_carry_the_unit_and_every_run_s_end(saved):
         "violations": np.zeros((steps, runs, 0)),
         "status": np.zeros((steps, runs), dtype=int),
     }
-    _figures.plot_convergence(SimpleNamespace(history=history, problem=problem), "unused.png")
+    designs.plot_convergence(SimpleNamespace(history=history, problem=problem), "unused.png")
     (ax,) = saved[0].axes
     assert ax.get_ylabel() == "best feasible: peak anchoring force (N)"
     assert ax.get_ylim()[0] < 5400.0 and ax.get_ylim()[1] > 7000.0  # every run's end

@@ -251,7 +251,7 @@ def test_the_sensitivity_system_is_traced_once(hardware):
     the first step's size, at t = 0, or after a load's stops, each of which was a whole
     further copy for XLA to compile (4 and 5 traces before)."""
     from recoil_jax._model import derivatives as _gradients
-    from recoil_jax.apps._bench import hardware_designs
+    from recoil_jax.apps._bench.speed import hardware_designs
 
     traces = []
     original = _gradients._sensitivity_vf

@@ -11,8 +11,8 @@ import pytest
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 from recoil_jax.apps import main
-from recoil_jax.apps._cli import describe
-from recoil_jax.apps._inputs import design_warnings
+from recoil_jax.apps._files.describe import describe
+from recoil_jax.apps._files.inputs import design_warnings
 
 
 @pytest.fixture
@@ -39,7 +39,7 @@ def no_solve(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("a bad input reached the solver")
 
-    monkeypatch.setattr("recoil_jax.apps._exported.exported_peaks", refuse)
+    monkeypatch.setattr("recoil_jax.apps._files.exported.exported_peaks", refuse)
     monkeypatch.setattr(rj, "sweep", refuse)
     monkeypatch.setattr(rj, "sweep_grid", refuse)
 
@@ -205,10 +205,10 @@ def test_a_missing_optional_dependency_is_named_with_its_extra(capsys, monkeypat
 def test_simulate_solves_in_process_without_flatbuffers(monkeypatch, tmp_path):
     """Without flatbuffers `simulate` cannot keep its exported program on disk: it solves
     in process (the same peaks) and writes no exported file."""
-    from recoil_jax.apps._exported import exported_peaks
+    from recoil_jax.apps._files.exported import exported_peaks
 
     monkeypatch.setitem(sys.modules, "flatbuffers", None)
-    monkeypatch.setattr("recoil_jax.apps._exported._folder", lambda: str(tmp_path))
+    monkeypatch.setattr("recoil_jax.apps._files.exported._folder", lambda: str(tmp_path))
     params = rj.params_from_values(m=0.0)
     peaks = exported_peaks(params, rj.Smoothing(), rj.SolverOptions())
     assert peaks.to_dict() == rj.peaks(params).to_dict()
@@ -265,6 +265,6 @@ def test_an_output_folder_that_cannot_be_written_is_refused_before_any_solve(tmp
             assert message in err and err.count("\n") == 1 and "Traceback" not in err, err
     # A missing folder is simply made.
     new = tmp_path / "new" / "deeper"
-    from recoil_jax.apps._inputs import output_folder
+    from recoil_jax.apps._files.inputs import output_folder
 
     assert output_folder(new) == new and new.is_dir()

@@ -6,6 +6,7 @@ parameter or metric name derives from its registry."""
 import ast
 import dataclasses
 import importlib
+import importlib.util
 import re
 from pathlib import Path
 
@@ -28,7 +29,10 @@ PACKAGE = Path(rj.__file__).parent
 ENGINE = sorted(
     p for p in [*PACKAGE.glob("_*.py"), *PACKAGE.glob("_*/*.py")] if p.name != "__init__.py"
 )
-APPS = sorted((PACKAGE / "apps").glob("_*.py"))
+#: The applications: every module of `apps/`'s folders (`_cli/`, `_files/`, ...).
+APPS = sorted(
+    p for p in (PACKAGE / "apps").glob("_*/*.py") if p.name not in ("__init__.py", "__main__.py")
+)
 
 
 def _module_name(path: Path) -> str:
@@ -72,7 +76,8 @@ def test_applications_use_only_the_public_api():
         for module, name in _imports(path):
             if module.startswith("recoil_jax") and not module.startswith("recoil_jax.apps"):
                 allowed = module in public and name is None
-                assert allowed or path.name in READS_INTERNALS, (path.name, module, name)
+                where = path.relative_to(PACKAGE / "apps").as_posix()
+                assert allowed or where in READS_INTERNALS, (where, module, name)
         # And every name they read from them is in its `__all__`.
         text = path.read_text()
         for prefix, source in (("rj", rj), ("rjx", rj.extend)):
@@ -90,6 +95,37 @@ def test_the_public_api_is_small_and_declared():
     assert not set(rj.__all__) & set(rj.extend.__all__)
 
 
+#: The applications' folders from the bottom, each importing only those before it. The
+#: one exception: the command line's parser (`_cli/parser.py`) collects every command,
+#: the benchmarks' (above the other commands) too.
+APP_LAYERS = {
+    "_files": set(),
+    "_figures": {"_files"},
+    "_studies": {"_files", "_figures"},
+    "_explore": {"_files", "_figures"},
+    "_cli": {"_files", "_figures", "_studies", "_explore"},
+    "_bench": {"_files", "_figures", "_studies", "_cli"},
+}
+
+
+def test_no_application_import_runs_up_a_layer():
+    """Each folder of `apps/` imports only the folders below it, and its `__init__` names
+    them on its `May import:` line."""
+    assert {p.name for p in (PACKAGE / "apps").glob("_*/")} == set(APP_LAYERS)
+    for folder, allowed in APP_LAYERS.items():
+        for path in sorted((PACKAGE / "apps" / folder).glob("*.py")):
+            top = path.name == "parser.py" and folder == "_cli"
+            for module, _ in _imports(path):
+                parts = module.split(".")
+                if parts[:2] != ["recoil_jax", "apps"] or len(parts) < 3:
+                    continue
+                ok = parts[2] in allowed | {folder} or (top and parts[2] == "_bench")
+                assert ok, (folder, path.name, module)
+        doc = importlib.import_module(f"recoil_jax.apps.{folder}").__doc__ or ""
+        line = doc[doc.index("May import:") :]
+        assert all(f"`{name}`" in line for name in allowed), (folder, line)
+
+
 @pytest.mark.parametrize("path", ENGINE + APPS, ids=lambda p: f"{p.parent.name}/{p.name}")
 def test_cross_module_imports_are_declared(path):
     """Between the package's own modules, only names in the source module's `__all__`
@@ -98,6 +134,10 @@ def test_cross_module_imports_are_declared(path):
     for module, name in _imports(path):
         if not module.startswith("recoil_jax.") or name is None:
             continue
+        if hasattr(importlib.import_module(module), "__path__") and importlib.util.find_spec(
+            f"{module}.{name}"
+        ):
+            continue  # a module of a folder (`from . import sweep`)
         dunder = name.startswith("__") and name.endswith("__")
         assert dunder or not name.startswith("_"), (path.name, module, name)
         source = importlib.import_module(module)

@@ -17,8 +17,8 @@ import pytest
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 from recoil_jax._calibration.model_check import check_signal
-from recoil_jax.apps._bench_calibration import _coloured, model_check_rates
-from recoil_jax.apps._calibration import MODEL_MISFIT
+from recoil_jax.apps._bench.calibration import _coloured, model_check_rates
+from recoil_jax.apps._cli.calibrate import MODEL_MISFIT
 from recoil_jax.apps._cli import main
 
 NOISE = {"x_M": 3e-4, "F_AN": 40.0}

@@ -363,7 +363,7 @@ def test_bad_study_file_exits_with_a_message(tmp_path, capsys):
 def test_tuning_benchmark_smoke(tmp_path):
     """Every method runs on the same problem within its budget and reports the keys of
     `bench-tuning --json`; the best known value is the best any of them found."""
-    from recoil_jax.apps._bench_tuning import METHODS, format_report, run_tuning_bench
+    from recoil_jax.apps._bench.tuning import METHODS, format_report, run_tuning_bench
 
     study = tmp_path / "tiny.toml"
     study.write_text("""
@@ -412,7 +412,7 @@ def test_tuning_benchmark_speedup_is_a_ratio_or_a_lower_bound(capsys):
     """Against the best other method that reached the target, a ratio; when none did
     within the budget, the budget over our time, marked as a lower bound."""
     from recoil_jax.apps import main
-    from recoil_jax.apps._bench_tuning import over_seeds, speedup
+    from recoil_jax.apps._bench.tuning import over_seeds, speedup
 
     def problem(ours, *others):
         methods = {"recoil-jax": {"to_target_s": ours}}
@@ -559,7 +559,7 @@ max_stroke = {{ max = 0.15 }}
 
 
 def test_study_axis_labels_carry_units():
-    from recoil_jax.apps._studies import _label
+    from recoil_jax.apps._studies.study import _label
 
     assert _label("k_r") == "k_r (N/m)" and _label("m") == "m (kg)"
     assert _label("gap") == "gap (m)" and _label("c_r") == "c_r (N*s/m)"

@@ -31,7 +31,8 @@ from hypothesis import (  # noqa: E402
 )
 
 import recoil_jax as rj  # noqa: E402
-from recoil_jax.apps import _exported, main  # noqa: E402
+from recoil_jax.apps import main
+from recoil_jax.apps._files import exported as _exported  # noqa: E402
 
 EXAMPLES = int(os.environ.get("RECOIL_JAX_EXAMPLES", "150"))
 #: CI: the same examples every run; on demand (RECOIL_JAX_EXAMPLES given), new ones.

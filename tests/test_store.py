@@ -22,7 +22,7 @@ import recoil_jax._sweeps.sweep as sweep_module
 import recoil_jax.extend as rjx
 from recoil_jax._campaigns.store import StudyStore
 from recoil_jax.apps import main
-from recoil_jax.apps._bench import bench_designs
+from recoil_jax.apps._bench.speed import bench_designs
 
 #: 1500 designs in chunks of 512 (3 chunks), two parts per chunk.
 PLAN = dict(chunk_size=512, workers=2)
@@ -244,8 +244,8 @@ def test_dask_is_imported_only_when_a_cluster_is_asked_for():
     code = textwrap.dedent(
         """
         import sys
-        import recoil_jax, recoil_jax.apps._cli, recoil_jax.apps._sweep
-        from recoil_jax.apps._cluster import dask_client
+        import recoil_jax, recoil_jax.apps._cli, recoil_jax.apps._cli.sweep
+        from recoil_jax.apps._files.cluster import dask_client
         with dask_client(None, None) as client:
             assert client is None
         print(sorted(m for m in sys.modules if m.split(".")[0] in ("dask", "distributed")))
@@ -260,7 +260,7 @@ _KILLED_SWEEP = textwrap.dedent(
     """
     import sys
     import recoil_jax as rj
-    from recoil_jax.apps._bench import bench_designs
+    from recoil_jax.apps._bench.speed import bench_designs
     designs = bench_designs(8192, seed=1)
     rj.sweep(designs, store=sys.argv[1], chunk_size=256, workers=2, progress=False)
     """
@@ -336,7 +336,7 @@ def test_the_guide_reads_a_store_with_pandas(uninterrupted, tmp_path):
 
 @pytest.mark.slow
 def test_bench_store_measures_each_way():
-    from recoil_jax.apps._bench_store import format_store_bench, run_store_bench
+    from recoil_jax.apps._bench.store import format_store_bench, run_store_bench
 
     result = run_store_bench(2048)
     for way in ("plain", "store", "cluster"):
@@ -552,7 +552,7 @@ def test_optimise_command_resumes_from_its_store(tmp_path, capsys):
 _KILLED_STUDY = textwrap.dedent(
     """
     import sys
-    from recoil_jax.apps._studies import run_study
+    from recoil_jax.apps._studies.study import run_study
     run_study(sys.argv[1], sys.argv[2], progress=False, store=sys.argv[3])
     """
 )
@@ -563,7 +563,7 @@ def test_kill_9_of_a_study_at_random_moments_resumes_to_the_same_design(tmp_path
     """A study killed with SIGKILL at random moments of its optimiser, three times, then
     resumed to the end: the store is always readable with each evaluation once, and the
     best design is an uninterrupted run's, bit for bit."""
-    from recoil_jax.apps._studies import run_study
+    from recoil_jax.apps._studies.study import run_study
 
     study = tmp_path / "gap.toml"
     # About 600 gradient solves: a few seconds of local runs, killed within the first.

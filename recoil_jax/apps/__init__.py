@@ -1,5 +1,7 @@
-"""Applications built on the recoil-jax engine: the `recoil-jax` command line, the
-optimisation studies, the benchmarks and the figures.
+"""Applications built on the recoil-jax engine, a folder each: the `recoil-jax` command
+line (`_cli`, a module a command), the optimisation studies (`_studies`), the files the
+commands read and write (`_files`), every figure (`_figures`), the explorer (`_explore`)
+and the benchmarks (`_bench`).
 
 They use the engine only through its public API (`import recoil_jax` and its lower-level
 interfaces, `recoil_jax.extend`); the engine never imports them. The one exception is
@@ -11,18 +13,17 @@ import importlib
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # what the lazy loader below provides, for type checkers
-    from ._bench import run_bench as run_bench
-    from ._bench_tuning import run_tuning_bench as run_tuning_bench
+    from ._bench.speed import run_bench as run_bench
+    from ._bench.tuning import run_tuning_bench as run_tuning_bench
     from ._cli import main as main
-    from ._explore import explorer as explorer
-    from ._figures import (
+    from ._cli.reproduce import reproduce as reproduce
+    from ._explore.explorer import explorer as explorer
+    from ._figures.designs import (
         plot_convergence as plot_convergence,
         plot_heatmap as plot_heatmap,
-        plot_history as plot_history,
-        plot_series as plot_series,
     )
-    from ._reproduce import reproduce as reproduce
-    from ._studies import (
+    from ._figures.histories import plot_history as plot_history, plot_series as plot_series
+    from ._studies.study import (
         load_study as load_study,
         resolve_study as resolve_study,
         run_study as run_study,
@@ -31,7 +32,7 @@ if TYPE_CHECKING:  # what the lazy loader below provides, for type checkers
 #: Applications that read the engine's private modules, and why: the benchmark's compiled
 #: scalar loop takes the loop's step-size rule and the model's contact width from where
 #: the engine keeps them, so that it cannot drift from them.
-READS_INTERNALS = {"_anchor.py"}
+READS_INTERNALS = {"_bench/anchor.py"}
 
 __all__ = [
     "READS_INTERNALS",
@@ -51,17 +52,17 @@ __all__ = [
 
 _HOMES = {
     "main": "._cli",
-    "explorer": "._explore",
-    "load_study": "._studies",
-    "resolve_study": "._studies",
-    "run_study": "._studies",
-    "run_bench": "._bench",
-    "run_tuning_bench": "._bench_tuning",
-    "reproduce": "._reproduce",
-    "plot_convergence": "._figures",
-    "plot_heatmap": "._figures",
-    "plot_history": "._figures",
-    "plot_series": "._figures",
+    "explorer": "._explore.explorer",
+    "load_study": "._studies.study",
+    "resolve_study": "._studies.study",
+    "run_study": "._studies.study",
+    "run_bench": "._bench.speed",
+    "run_tuning_bench": "._bench.tuning",
+    "reproduce": "._cli.reproduce",
+    "plot_convergence": "._figures.designs",
+    "plot_heatmap": "._figures.designs",
+    "plot_history": "._figures.histories",
+    "plot_series": "._figures.histories",
 }
 
 

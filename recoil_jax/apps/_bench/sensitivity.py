@@ -23,10 +23,11 @@ import numpy as np
 
 import recoil_jax as rj
 
-from ._bench import SCIPY_SETTINGS, host_description
-from ._sensitivity import load_sensitivity
+from .._cli.options import Commands
+from .._cli.sensitivity import load_sensitivity
+from .speed import SCIPY_SETTINGS, host_description
 
-__all__ = ["main_sensitivity_bench", "run_sensitivity_bench"]
+__all__ = ["add_command", "main_sensitivity_bench", "run_sensitivity_bench"]
 
 #: Indices below this are the solver's noise (rtol 1e-6 moves a peak by ~1e-6 of itself,
 #: which is ~(1e-6 · 5500 N / 250 N)² ≈ 5e-10 of the variance): left out of comparisons.
@@ -185,3 +186,20 @@ def main_sensitivity_bench(args) -> int:
     )
     print(json.dumps(result) if args.json else format_sensitivity_bench(result))
     return 0
+
+
+def add_command(commands: Commands) -> None:
+    """`recoil-jax bench-sensitivity`'s arguments."""
+    sensitivity_bench = commands.add(
+        "bench-sensitivity",
+        main_sensitivity_bench,
+        help="global sensitivity against SALib on a scipy solve_ivp loop",
+        description="On the paper's absorber (sensitivity/paper_absorber.toml, 8 "
+        "parameters): Sobol indices with second order from 2^12 base samples (73,728 "
+        "designs) and DGSM from exact gradients on 4,096 designs, cold and warm; SALib's "
+        "finite-difference DGSM on the same points through the sweep; and the scipy "
+        "solve_ivp loop a SALib user writes (one process per core) on a slice of the "
+        "same designs, its time for all of them and how far its peaks are from ours.",
+    )
+    sensitivity_bench.add_argument("--quick", action="store_true", help="small sizes")
+    sensitivity_bench.add_argument("--json", action="store_true", help="print JSON")

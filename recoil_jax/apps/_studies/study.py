@@ -65,8 +65,8 @@ import numpy as np
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-from ._cluster import check_cluster, dask_client
-from ._inputs import (
+from .._files.cluster import check_cluster, dask_client
+from .._files.inputs import (
     check_keys,
     file_error as _error,
     file_integer,
@@ -75,7 +75,7 @@ from ._inputs import (
     read_toml,
     resolve_shipped,
 )
-from ._json import write as write_json
+from .._files.json_writer import write as write_json
 
 __all__ = [
     "LOCAL_METHODS",
@@ -158,7 +158,7 @@ _POSITIVE_KEYS = {"hop_step", "max_seconds", "learning_rate", "anneal", "penalty
 
 #: Where the shipped studies live: `optimise/` beside the package, in a checkout or an
 #: editable install.
-SHIPPED = Path(__file__).resolve().parents[2] / "optimise"
+SHIPPED = Path(__file__).resolve().parents[3] / "optimise"
 
 
 @dataclass
@@ -789,7 +789,7 @@ def run_study(
             table, n = _run_front(study, front, kwargs)
         fronts.append(table)
         simulations[f"front_{front['vary']}"] = n
-        _plot_front(table, out)
+        _write_front(table, out)
     if fronts:
         report["fronts"] = fronts
     report["simulations"] = int(sum(simulations.values()))
@@ -818,7 +818,7 @@ def _prepared(path, seed: int | None, workers, scheduler) -> Study:
 def _run_search(study: Study, out: Path, phase, progress, store, workers, scheduler):
     """The `search` of a study: its result, simulations and `result.json`'s summary;
     the convergence figure."""
-    from ._figures import plot_search_convergence
+    from .._figures.designs import plot_search_convergence
 
     search = search_kwargs(study, progress)
     with (
@@ -836,7 +836,7 @@ def _run_search(study: Study, out: Path, phase, progress, store, workers, schedu
 def _run_adam(study: Study, out: Path, phase, kwargs: dict, store):
     """The `optimise` of a study: its result, simulations and `result.json`'s summary;
     the convergence figure."""
-    from ._figures import plot_convergence
+    from .._figures.designs import plot_convergence
 
     with phase("optimiser", f"optax from {kwargs['starts']} starts"):
         result = rj.optimise(study.problem, store=store, **kwargs)
@@ -912,7 +912,7 @@ def _percent(fraction: float) -> str:
 
 def _checks(study: Study, result, report: dict, simulations: dict, kwargs, out: Path, phase):
     """The best design's history figure and the study's `[check]`s, into `report`."""
-    from ._figures import plot_history
+    from .._figures.histories import plot_history
 
     problem = study.problem
     with phase("history", "the best design's history"):
@@ -1011,7 +1011,7 @@ def _force_stroke(problem: rj.DesignProblem, params, best: rj.Peaks, out: Path) 
     history's). Writes `force_stroke.png`."""
     from scipy.optimize import brentq
 
-    from ._figures import plot_series
+    from .._figures.studies import plot_force_stroke
 
     # Every solve here is a history on `_history`'s grid: the tuned design's runs the
     # program of the best design's history, and the damper's one program of its own.
@@ -1041,15 +1041,7 @@ def _force_stroke(problem: rj.DesignProblem, params, best: rj.Peaks, out: Path) 
         ),
         f"constant-force ideal E0/L = {ideal:.1f} N": ([0.0, stroke], [ideal, ideal]),
     }
-    plot_series(
-        curves,
-        out / "force_stroke.png",
-        xlabel="barrel travel x_M (mm)",
-        ylabel="anchoring force F_AN (kN)",
-        xscale=1e3,
-        yscale=1e-3,
-        title="anchoring force over the recoil stroke",
-    )
+    plot_force_stroke(curves, out)
     damper_peak = float(damper_peaks.peak_anchoring_force)
     return {
         "ideal_force_N": ideal,
@@ -1069,8 +1061,9 @@ def _unit(name: str) -> str:
     return rj.PARAMETERS[name].unit if name in rj.PARAMETERS else rj.METRICS[name].unit
 
 
-def _plot_front(table: dict, out: Path) -> None:
-    from ._figures import plot_series
+def _write_front(table: dict, out: Path) -> None:
+    """A front's feasible points: its figures, and `front_<vary>.csv`."""
+    from .._figures.studies import plot_front
 
     vary = table["vary"]
     rows = [r for r in table["points"] if r["feasible"]]
@@ -1081,23 +1074,7 @@ def _plot_front(table: dict, out: Path) -> None:
     x = [r[vary] for r in rows]
     force = [r["metrics"][force_key] for r in rows]
     displacement = [r["metrics"][displacement_key] for r in rows]
-    plot_series(
-        {"best design": (x, force)},
-        out / f"front_{vary}.png",
-        xlabel=_label(vary),
-        ylabel=rj.METRICS["peak_anchoring_force"].label,
-        title=f"Pareto front: peak anchoring force vs {vary}",
-        markers=True,
-    )
-    plot_series(
-        {"best design": (displacement, force)},
-        out / f"front_{vary}_force_vs_displacement.png",
-        xlabel="peak barrel displacement (mm)",
-        ylabel=rj.METRICS["peak_anchoring_force"].label,
-        xscale=1e3,
-        title="peak anchoring force vs peak displacement",
-        markers=True,
-    )
+    plot_front(vary, _label(vary), x, force, displacement, out)
     stroke_key = rj.METRICS["max_stroke"].key
     lines = [f"{vary},{force_key},{displacement_key},{stroke_key}," + ",".join(rows[0]["best"])]
     for r in rows:
@@ -1119,7 +1096,7 @@ def _plot_front(table: dict, out: Path) -> None:
 def _nominal_comparison(study: Study, result, kwargs: dict, out: Path) -> tuple[dict, int]:
     """Optimise the nominal problem (no scatter) and compare both designs over a fine
     scatter of the same range."""
-    from ._figures import plot_series
+    from .._figures.studies import plot_robust
 
     problem = study.problem
     names, offsets = problem.objective.scatter_points
@@ -1150,11 +1127,6 @@ def _nominal_comparison(study: Study, result, kwargs: dict, out: Path) -> tuple[
             "objective_nominal": objectives[at],
             "objective_worst": max(objectives),
         }
-    plot_series(
-        curves,
-        out / "robust_vs_nominal.png",
-        xlabel=f"{names[0]} offset (%)" if line else "scatter point (0: the fitted values)",
-        ylabel="objective",
-        title="objective under scatter",
-    )
+    xlabel = f"{names[0]} offset (%)" if line else "scatter point (0: the fitted values)"
+    plot_robust(curves, xlabel, out)
     return report, int(nominal.simulations) + 2 * len(fine)

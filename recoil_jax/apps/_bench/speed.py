@@ -17,10 +17,13 @@ import numpy as np
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
+from .._cli.options import Commands
+
 __all__ = [
     "CLI_COMMANDS",
     "GRADIENT_STUDY",
     "SCIPY_SETTINGS",
+    "add_command",
     "bench_designs",
     "cli_cache_timings",
     "format_bench",
@@ -90,7 +93,7 @@ def gradient_modes(
     relative difference between the two gradients."""
     import dataclasses
 
-    from ._studies import load_study
+    from .._studies.study import load_study
 
     log = log or (lambda msg: None)
     problem = load_study(study).problem
@@ -196,7 +199,7 @@ def host_description() -> dict:
     two 2-core AMD EPYC machines, one with AVX-512 and one with AVX2 only, nearly the same
     code ran the bench's largest batch at 29-31k and at 14.5-21.3k sims/s, and the
     compiled scalar loop led 3.9-4.4x and 4.4-5.6x per step."""
-    from ._anchor import cores
+    from .anchor import cores
 
     model, flags = platform.processor() or platform.machine(), set()
     try:
@@ -219,7 +222,7 @@ def anchor_comparison(designs, ours_seconds: float, ours_steps, log=None) -> dic
     sweep of the same designs (`ours_seconds`, `ours_steps` per design, on every core):
     each one's sims/s and accepted steps/s per core, and the anchor's lead per step and
     per design (a ratio > 1: the anchor is faster). None without numba."""
-    from ._anchor import anchor_peaks, cores
+    from .anchor import anchor_peaks, cores
 
     log = log or (lambda msg: None)
     try:
@@ -477,3 +480,26 @@ def main_bench(args) -> int:
     )
     print(json.dumps(result) if args.json else format_bench(result))
     return 0
+
+
+def add_command(commands: Commands) -> None:
+    """`recoil-jax bench`'s arguments."""
+    bench = commands.add(
+        "bench",
+        main_bench,
+        help="throughput and Jacobians/s against a compiled scalar loop and scipy",
+        description="Solves/s of sweeps of 1, 64, 1024 and 16384 random absorber designs; "
+        "a compiled scalar loop (numba, one core, the same smoothed model and step-size "
+        "rule, the bench extra) on the 16384 designs, and its lead per step and per design; "
+        "4-parameter Jacobians/s; the hardware designs; compile times; scipy's solve_ivp "
+        "(DOP853 at rtol 1e-6, the hard-switch model with events, one core) on the same "
+        "peaks, and the largest relative difference from it. About 3 minutes on 2 cores. "
+        "--full adds the cost of a gradient by forward sensitivities and by reverse mode "
+        "for 1 to 22 parameters, and the first and second run of simulate, sweep and "
+        "optimise (the compilation cache): about 10 minutes more.",
+    )
+    bench.add_argument("--json", action="store_true", help="print one JSON object")
+    bench.add_argument("--quick", action="store_true", help="small batches (a smoke run)")
+    bench.add_argument(
+        "--full", action="store_true", help="add the gradient modes and the CLI cache timings"
+    )

@@ -14,10 +14,11 @@ import numpy as np
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-from ._cluster import dask_client
-from ._inputs import (
+from .._files.cluster import dask_client
+from .._files.inputs import (
     design_warnings,
     known,
+    names,
     number,
     output_folder,
     read_text,
@@ -25,9 +26,17 @@ from ._inputs import (
     unknown_name,
     warn,
 )
-from ._json import dumps as json_dumps
+from .._files.json_writer import dumps as json_dumps
+from .options import Commands, add_max_steps
 
-__all__ = ["MAX_AXIS", "parse_axis", "read_points", "run_sweep", "write_figures", "write_results"]
+__all__ = [
+    "MAX_AXIS",
+    "add_command",
+    "parse_axis",
+    "read_points",
+    "run_sweep",
+    "write_results",
+]
 
 
 #: The most values one axis `start:stop:count` may have (800 MB of them).
@@ -157,115 +166,6 @@ def write_results(result: rj.SweepResult, out: Path, meta: dict) -> list[Path]:
     return [out / "sweep.csv", out / "sweep.npz"]
 
 
-def write_figures(result: rj.SweepResult, out: Path) -> list[Path]:
-    """The figures of a grid sweep (none for a list of points):
-
-    - gap swept (with at most one other parameter): Fig. 6 / Fig. 10 style lines of each
-      peak against the gap, one per value of the other parameter (a colour scale from
-      `LEGEND_LINES` values on), the lowest point of each marked;
-    - one parameter swept, not the gap: both peaks against it;
-    - two or more swept: heatmaps of both peaks over the first two (the others at their
-      first value), and the map of ∂(peak anchoring force)/∂gap when the gap is swept.
-
-    The gap is drawn in mm in every figure."""
-    from ._figures import LEGEND_LINES, plot_heatmap, plot_series
-
-    figures = []
-    if not result.grid_shape or not result.swept:
-        return figures
-    shape, swept = result.grid_shape, result.swept
-    grid_values = {n: result.values[n].reshape(shape) for n in swept}
-    plotted = {
-        "peak_displacement": "fig6_peak_displacement_vs_gap",
-        "peak_anchoring_force": "fig10_peak_anchoring_force_vs_gap",
-    }
-    if "gap" in swept and len(swept) <= 2:
-        other = [n for n in swept if n != "gap"]
-        for name, filename in plotted.items():
-            label = rj.METRICS[name].label
-            data = result.peaks[name].reshape(shape)
-            series, values = {}, []
-            if other:
-                o_axis = swept.index(other[0])
-                for k in range(shape[o_axis]):
-                    row = np.take(data, k, axis=o_axis)
-                    gaps = np.take(grid_values["gap"], k, axis=o_axis)
-                    value = np.take(grid_values[other[0]], k, axis=o_axis).flat[0]
-                    unit = _unit(other[0])
-                    series[f"{other[0]} = {value:g}{unit and ' ' + unit}"] = (gaps, row)
-                    values.append(float(value))
-            else:
-                series["design"] = (grid_values["gap"], data)
-            many = len(series) >= LEGEND_LINES
-            figures.append(
-                plot_series(
-                    series,
-                    out / f"{filename}.png",
-                    xlabel="gap (mm)",
-                    ylabel=label,
-                    xscale=1e3,
-                    title=label + " vs gap (▼ lowest of each line, gap in mm)",
-                    minima=rj.METRICS[name].unit,  # in the legend, or just marked
-                    colour_by=(_axis(other[0])[0], values) if many else None,
-                )
-            )
-    elif len(swept) == 1:
-        (name,) = swept
-        label, scale = _axis(name)
-        for metric in plotted:
-            figures.append(
-                plot_series(
-                    {f"{name} swept": (result.values[name], result.peaks[metric])},
-                    out / f"{rj.METRICS[metric].key}_vs_{name}.png",
-                    xlabel=label,
-                    ylabel=rj.METRICS[metric].label,
-                    xscale=scale,
-                    title=f"{rj.METRICS[metric].label} vs {name} (▼ lowest)",
-                    minima=rj.METRICS[metric].unit,
-                )
-            )
-    if len(swept) >= 2:
-        x_name, y_name = swept[1], swept[0]
-        (xlabel, xscale), (ylabel, yscale) = _axis(x_name), _axis(y_name)
-        # Heatmaps over the first two swept parameters (others at their first value).
-        index = tuple(slice(None) if i < 2 else 0 for i in range(len(shape)))
-        x = xscale * grid_values[x_name][index][0]
-        y = yscale * grid_values[y_name][index][:, 0]
-        maps: dict[str, tuple[str, str | None, bool]] = {
-            f"heatmap_{rj.METRICS[name].key}": (rj.METRICS[name].label, name, False)
-            for name in plotted
-        }
-        gradients = (result.gradients or {}).get("peak_anchoring_force", {})
-        if "gap" in gradients:
-            maps["map_dF_AN_dgap"] = ("∂(peak anchoring force)/∂gap (N/m)", None, True)
-        for filename, (label, name, diverging) in maps.items():
-            data = result.peaks[name] if name else gradients["gap"]
-            figures.append(
-                plot_heatmap(
-                    x,
-                    y,
-                    data.reshape(shape)[index],
-                    out / f"{filename}.png",
-                    xlabel=xlabel,
-                    ylabel=ylabel,
-                    label=label,
-                    diverging=diverging,
-                )
-            )
-    return figures
-
-
-def _unit(name: str) -> str:
-    return rj.PARAMETERS[name].unit if name in rj.PARAMETERS else "s"
-
-
-def _axis(name: str) -> tuple[str, float]:
-    """A swept name's axis label and the factor from SI units to it (the gap in mm)."""
-    if name == "gap":
-        return "gap (mm)", 1e3
-    return (rj.PARAMETERS[name].label if name in rj.PARAMETERS else f"{name} (s)"), 1.0
-
-
 def run_sweep(args) -> int:
     axes, fixed = {}, {}
     given: dict[str, str] = {}
@@ -361,7 +261,9 @@ def run_sweep(args) -> int:
     if args.out:
         out = Path(args.out)
         paths = write_results(result, out, {"command": " ".join(sys.argv)})
-        figures = write_figures(result, out)
+        from .._figures.sweeps import sweep_figures
+
+        figures = sweep_figures(result, out)
         for path in paths + figures:
             print(f"wrote {path}", file=sys.stderr)
         if not figures:
@@ -396,3 +298,46 @@ def _sweep_to_store(args, axes, designs, wrt, options, table) -> int:
             f" at {design}"
         )
     return 0
+
+
+def add_command(commands: Commands) -> None:
+    """`recoil-jax sweep`'s arguments."""
+    swp = commands.add(
+        "sweep",
+        run_sweep,
+        help="peaks over a grid or a list of designs",
+        description="Sweep designs: name=a,b,c (a list), name=start:stop:count (a range, "
+        "inclusive) or name=value (fixed), over the cartesian grid of the swept names; "
+        "or --points FILE (CSV with a header of names, or a JSON list of objects). "
+        "Names: " + names() + ". m=0 (no absorber) may be mixed with m > 0. "
+        "Writes sweep.csv, sweep.npz (arrays + metadata) and figures to --out.",
+    )
+    swp.add_argument("assignments", nargs="*", metavar="name=values")
+    swp.add_argument("--points", metavar="FILE", help="designs from CSV or JSON")
+    swp.add_argument(
+        "--json",
+        action="store_true",
+        help="print a JSON list, in input order (keys as simulate --json + status)",
+    )
+    swp.add_argument("--out", metavar="DIR", help="folder for sweep.csv, sweep.npz, figures")
+    swp.add_argument(
+        "--force-table", metavar="FILE.csv", help="breech force of one round (header t_s,F_N)"
+    )
+    swp.add_argument(
+        "--store",
+        metavar="FILE.sqlite",
+        help="commit each finished chunk to this SQLite file; the same command with the "
+        "same store resumes a stopped sweep (docs/campaigns.md)",
+    )
+    swp.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="run the chunks on a local Dask cluster of N worker processes",
+    )
+    swp.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="run the chunks on the running Dask cluster at ADDRESS (tcp://host:8786)",
+    )
+    add_max_steps(swp)

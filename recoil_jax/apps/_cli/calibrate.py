@@ -14,7 +14,8 @@ import numpy as np
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-from ._inputs import (
+from .._files.describe import structure_line
+from .._files.inputs import (
     check_keys,
     file_error as _error,
     file_integer,
@@ -22,9 +23,11 @@ from ._inputs import (
     output_folder,
     parse_assignments,
     read_toml,
+    results_folder,
     warn,
 )
-from ._json import dumps, write as write_json
+from .._files.json_writer import dumps, write as write_json
+from .options import Commands, add_max_steps
 
 __all__ = [
     "MAX_EXPERIMENTS",
@@ -33,9 +36,10 @@ __all__ = [
     "MAX_STARTS",
     "MODEL_MISFIT",
     "NOT_CONVERGED",
+    "add_command",
     "load_calibration",
+    "run_calibrate",
     "run_calibration",
-    "structure_line",
 ]
 
 #: The exit status when the fit did not converge (0 fitted, 1 a solve failed, 2 bad
@@ -320,11 +324,11 @@ def run_calibration(args) -> int:
     )  # fmt: skip
     report = {"source": str(source), "description": settings["description"], **result.to_json()}
     write_json(out / "result.json", report)
-    from ._figures import calibration_figures
+    from .._figures.calibration import calibration_figures
 
     report["figures"] = [str(p) for p in calibration_figures(result, out)]
     if args.predict is not None and result.explains:
-        from ._figures import plot_prediction
+        from .._figures.calibration import plot_prediction
 
         prediction = rj.predict(
             result.hardware(), parse_assignments(args.predict), seed=settings["seed"],
@@ -368,18 +372,6 @@ def run_calibration(args) -> int:
               f"t_shift){predicted}", file=sys.stderr)  # fmt: skip
         return MODEL_MISFIT
     return 0
-
-
-def structure_line(structure: dict) -> str:
-    """The model a calibration fitted, in words (`CalibrationResult.structure`)."""
-    if not structure:
-        return "unknown"
-    load = {"impulse": "an impulse (v0)", "pulse": "a pulse (pulse_time)",
-            "force table": "a measured force table"}[structure["load"]]  # fmt: skip
-    shots = structure["shots"]
-    hardware = " and ".join(structure["hardware"]) or "no buffer or recuperator"
-    absorber = "absorber" if structure["absorber"] else "no absorber (m = 0)"
-    return f"{absorber}; {shots} round{'s' if shots > 1 else ''} of {load}; {hardware}"
 
 
 def _check_line(check: rjx.ModelCheck) -> str:
@@ -484,3 +476,74 @@ def fit_report(result: rj.CalibrationResult) -> str:
             lines.append("    the fitted model does not explain this trace:")
             lines.extend(f"      {reason}" for reason in v["model_check"]["failing"])
     return "\n".join(lines)
+
+
+def run_calibrate(args) -> int:
+    """Run `recoil-jax calibrate` with the parsed `args`; its exit status."""
+    from .calibrate import run_calibration
+
+    args.out = results_folder(args.out, "calibrate", args.source)
+    return run_calibration(args)
+
+
+def add_command(commands: Commands) -> None:
+    """`recoil-jax calibrate`'s arguments."""
+    calibrate = commands.add(
+        "calibrate",
+        run_calibrate,
+        help="fit the model to measured firing traces",
+        description="Fit parameters to measured traces: a calibration file (TOML: "
+        "[design], [fit], [[experiment]]), or one trace (CSV: t and signal columns) with "
+        "--fit. Writes result.json (values, standard errors, 95% intervals, "
+        "correlation, identifiability, chi2, AIC, BIC), fit.png and correlation.png. "
+        "Exit 0 fitted, 1 a solve failed, 2 bad input, 4 the fit did not converge, 5 the "
+        "model does not explain the traces (residuals far above the traces' own noise, "
+        "or far from white).",
+    )
+    calibrate.add_argument("source", help="a calibration file (.toml) or a trace (.csv)")
+    calibrate.add_argument("assignments", nargs="*", metavar="name=value",
+                           help="known values, with a trace (e.g. v0=0.69)")  # fmt: skip
+    calibrate.add_argument(
+        "--fit",
+        metavar="NAMES",
+        help="with a trace: the parameters to fit, comma-separated (bounds: each one's "
+        "documented range; t_shift: the trigger delay, -0.01 to 0.01 s)",
+    )
+    calibrate.add_argument(
+        "--out", help="output folder (default results/calibrate/<file name, no suffix>)"
+    )
+    calibrate.add_argument(
+        "--starts", type=int, metavar="N", help="fit from N starts (the given, then Sobol)"
+    )
+    calibrate.add_argument(
+        "--validate",
+        action="append",
+        metavar="TRACE",
+        help="a trace to score the fit on, not fitted (repeatable)",
+    )
+    calibrate.add_argument(
+        "--profile",
+        action="store_true",
+        help="also profile-likelihood intervals: each value held at 12 points while the "
+        "others are refitted (profiles.png)",
+    )
+    calibrate.add_argument(
+        "--predict",
+        nargs="*",
+        metavar="name=value",
+        help="then predict this design's peaks with 95%% bands from the fitted "
+        "uncertainty (10,000 samples and linear propagation; prediction.png)",
+    )
+    calibrate.add_argument(
+        "--store",
+        metavar="FILE.sqlite",
+        help="commit each finished part of the fit (8 starts, the profiles) to this "
+        "SQLite file; the same command with the same store resumes a stopped calibration",
+    )
+    calibrate.add_argument(
+        "--force-table",
+        metavar="FILE.csv",
+        help="with a trace: the breech force of one round it fired (header t_s,F_N)",
+    )
+    calibrate.add_argument("--json", action="store_true", help="print result.json")
+    add_max_steps(calibrate)

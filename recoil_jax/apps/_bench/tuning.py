@@ -28,17 +28,17 @@ from pathlib import Path
 
 import jax
 import numpy as np
-from scipy.optimize import differential_evolution, minimize
-from scipy.stats import qmc
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-from ._cluster import dask_client
-from ._studies import load_study, search_kwargs
+from .._cli.options import Commands
+from .._files.cluster import dask_client
+from .._studies.study import load_study, search_kwargs
 
 __all__ = [
     "DEFAULT_PROBLEMS",
+    "add_command",
     "format_report",
     "main_tuning_bench",
     "over_seeds",
@@ -117,6 +117,9 @@ class _Evaluator:
 
 
 def _run_nelder_mead(evaluator: _Evaluator, dimension: int, seed: int) -> None:
+    from scipy.optimize import minimize  # here: the command line loads this module
+    from scipy.stats import qmc
+
     starts = qmc.Sobol(dimension, scramble=True, rng=np.random.default_rng(seed))
     while True:
         minimize(
@@ -129,6 +132,8 @@ def _run_nelder_mead(evaluator: _Evaluator, dimension: int, seed: int) -> None:
 
 
 def _run_differential_evolution(evaluator: _Evaluator, dimension: int, seed: int) -> None:
+    from scipy.optimize import differential_evolution  # here: the command line loads this
+
     while True:  # restarts with a new seed if it converges before the budget
         differential_evolution(
             lambda x: evaluator.batch(np.asarray(x).T),
@@ -342,7 +347,7 @@ def _seconds_to(trace: dict, target) -> float | None:
 
 
 def _plot(name: str, runs: dict, target, out: Path) -> None:
-    from ._figures import plot_series
+    from .._figures.histories import plot_series
 
     series = {}
     for method, run in runs.items():
@@ -450,3 +455,56 @@ def main_tuning_bench(args) -> int:
         )
     print(json.dumps(report) if args.json else format_report(report))
     return 0
+
+
+def add_command(commands: Commands) -> None:
+    """`recoil-jax bench-tuning`'s arguments."""
+    tuning = commands.add(
+        "bench-tuning",
+        main_tuning_bench,
+        help="our optimiser against Nelder-Mead, differential evolution and CMA-ES",
+        description="On each problem (shipped studies; default tuned_absorber, "
+        "tuned_absorber_global, throttling, burst, burst_recuperator), run recoil-jax's "
+        "search and, with the same solver and wall-time budget, scipy's Nelder-Mead "
+        "(multistart), scipy's differential_evolution (vectorized, batches through the "
+        "sweep) and CMA-ES (cmaes, batches through the sweep). Reports the best feasible "
+        "objective, solves, and wall seconds to within 0.1 % of the best known value.",
+    )
+    tuning.add_argument(
+        "problems", nargs="*", help="shipped study names (default: all five problems)"
+    )
+    tuning.add_argument("--json", action="store_true", help="print one JSON object")
+    tuning.add_argument("--seed", type=int, default=0, help="seed of every method (default 0)")
+    tuning.add_argument(
+        "--seeds",
+        type=int,
+        metavar="K",
+        help="run every method from seeds 0..K-1 (replaces --seed) and report, per "
+        "method, how many reach the target and the median and worst time to it, cold and "
+        "warm; the speedup is of the medians",
+    )
+    tuning.add_argument(
+        "--budget-scale",
+        type=float,
+        default=1.0,
+        help="multiply every problem's wall-time budget (default 1)",
+    )
+    tuning.add_argument(
+        "--methods",
+        nargs="+",
+        metavar="METHOD",
+        help="the methods to run: recoil-jax, nelder_mead, differential_evolution, "
+        "cma_es (default: all four)",
+    )
+    tuning.add_argument("--out", help="folder for the convergence figures (default: none)")
+    tuning.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="run every batch of plain solves on a local Dask cluster of N worker processes",
+    )
+    tuning.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="run every batch of plain solves on the running Dask cluster at ADDRESS",
+    )

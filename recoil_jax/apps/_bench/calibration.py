@@ -20,17 +20,25 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.optimize
-import scipy.stats
+
+if TYPE_CHECKING:
+    import scipy.optimize
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-from ._bench import host_description
+from .._cli.options import Commands
+from .speed import host_description
 
-__all__ = ["format_calibration_bench", "main_calibration_bench", "run_calibration_bench"]
+__all__ = [
+    "add_command",
+    "format_calibration_bench",
+    "main_calibration_bench",
+    "run_calibration_bench",
+]
 
 #: The firing test: the absorber model, 5 fitted parameters, x_M and F_AN measured.
 TRUTH = {"k": 28000.0, "c_out": 6000.0, "c_ret": 14000.0, "gap": 0.02, "m": 1000.0}
@@ -77,6 +85,8 @@ class ScipyFit:
         return np.concatenate([(history[s] - self.measured[s]) / NOISE[s] for s in NOISE])
 
     def fit(self, start) -> scipy.optimize.OptimizeResult:
+        import scipy.optimize  # here: the command line loads this module
+
         lower, upper = (np.asarray([BOX[n][i] for n in self.names]) for i in (0, 1))
         return scipy.optimize.least_squares(
             self.residuals, start, bounds=(lower, upper), x_scale="jac", method="trf"
@@ -397,3 +407,26 @@ def main_calibration_bench(args) -> int:
     )
     print(json.dumps(result) if args.json else format_calibration_bench(result))
     return 0
+
+
+def add_command(commands: Commands) -> None:
+    """`recoil-jax bench-calibration`'s arguments."""
+    calibration_bench = commands.add(
+        "bench-calibration",
+        main_calibration_bench,
+        help="calibration against scipy least_squares on solve_ivp",
+        description="On synthetic firing tests made by the independent scipy solver with "
+        "noise, compare recoil-jax's calibration with scipy's least_squares (finite "
+        "differences) on solve_ivp DOP853 with events: one fit, 100 fits (noise draws), "
+        "the fraction of 20 random starts reaching the best (absorber and 3-round burst "
+        "traces), the prediction band's time and the command line cold and cached.",
+    )
+    calibration_bench.add_argument("--quick", action="store_true", help="small sizes")
+    calibration_bench.add_argument(
+        "--burst-seeds",
+        type=int,
+        default=0,
+        metavar="K",
+        help="also the burst's random starts from K more traces and sets of starts",
+    )
+    calibration_bench.add_argument("--json", action="store_true", help="print JSON")

@@ -13,7 +13,9 @@ from pathlib import Path
 
 import recoil_jax as rj
 
-__all__ = ["format_store_bench", "main_store_bench", "run_store_bench"]
+from .._cli.options import Commands
+
+__all__ = ["add_command", "format_store_bench", "main_store_bench", "run_store_bench"]
 
 #: One measurement, in a fresh process: the program is compiled on one chunk of the
 #: designs first (not timed), then the whole sweep is timed, with or without a store.
@@ -21,8 +23,8 @@ _CHILD = textwrap.dedent(
     """
     import json, resource, sys, time
     import recoil_jax as rj
-    from recoil_jax.apps._bench import bench_designs
-    from recoil_jax.apps._cluster import dask_client
+    from recoil_jax.apps._bench.speed import bench_designs
+    from recoil_jax.apps._files.cluster import dask_client
 
     count, store, workers = int(sys.argv[1]), sys.argv[2] or None, int(sys.argv[3]) or None
     stream = sys.argv[4] == "stream"
@@ -129,3 +131,27 @@ def main_store_bench(args) -> int:
     result = run_store_bench(args.designs, ways, log=lambda m: print(m, file=sys.stderr))
     print(json.dumps(result) if args.json else format_store_bench(result))
     return 0
+
+
+def add_command(commands: Commands) -> None:
+    """`recoil-jax bench-store`'s arguments."""
+    store_bench = commands.add(
+        "bench-store",
+        main_store_bench,
+        help="what a store and a Dask cluster cost a sweep: time, memory, disk",
+        description="Sweep random absorber designs in several ways, each in a fresh process "
+        "(compiled on one chunk first, not timed): plain (no store), store (results kept "
+        "in memory and stored), stream (results only in the store: rj.sweep_to_store) and "
+        "cluster (streamed, on a local Dask cluster of 2 workers). Prints seconds, "
+        "designs/s, the peak memory of the process that sweeps, the overheads against "
+        "plain and a store's size on disk.",
+    )
+    store_bench.add_argument(
+        "--ways",
+        metavar="W,W",
+        help="which ways, comma-separated (default plain,store,stream,cluster)",
+    )
+    store_bench.add_argument(
+        "--designs", type=int, default=1_000_000, metavar="N", help="designs (default 1000000)"
+    )
+    store_bench.add_argument("--json", action="store_true", help="print one JSON object")

@@ -25,7 +25,7 @@ import numpy as np
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-from ._inputs import parse_assignments
+from .._files.inputs import parse_assignments
 
 __all__ = ["EXPLORER_KNOTS", "Explorer", "check_listen", "explorer", "main_explore"]
 

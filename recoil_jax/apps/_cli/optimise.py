@@ -1,0 +1,79 @@
+"""`recoil-jax optimise`: run an optimisation study (`_studies`) and say how it ended."""
+
+from __future__ import annotations
+
+import sys
+
+from .._files.json_writer import dumps as json_dumps
+from .options import Commands
+
+__all__ = ["INFEASIBLE", "add_command", "run_optimise"]
+
+#: The exit status of `optimise` when no design met every limit (0 done, 1 a solve
+#: failed, 2 bad input).
+INFEASIBLE = 3
+
+
+def run_optimise(args) -> int:
+    """Run `recoil-jax optimise` with the parsed `args`; its exit status."""
+    from .._studies.study import run_study, study_summary
+
+    report = run_study(
+        args.study,
+        args.out,
+        progress=True,
+        seed=args.seed,
+        store=args.store,
+        workers=args.workers,
+        scheduler=args.scheduler,
+    )
+    if args.json:
+        print(json_dumps(report))
+    if not report["feasible"]:
+        print(f"recoil-jax: infeasible: {report['message']}", file=sys.stderr)
+        return INFEASIBLE
+    if not args.json:
+        print(study_summary(report))
+    return 0
+
+
+def add_command(commands: Commands) -> None:
+    """`recoil-jax optimise`'s arguments."""
+    opt = commands.add(
+        "optimise",
+        run_optimise,
+        help="run an optimisation study (optimise/<study>.toml)",
+        description='Tune design parameters as the study file says (method "search": '
+        'global samples, then SLSQP with exact gradients; "adam": optax from many '
+        "starts); write result.json, convergence.png, best_history.png (and front/robust "
+        "figures). STUDY is a path, or the name of a study shipped in optimise/ (e.g. "
+        "paper_gap). Exit status: 0 done, 1 a solve failed, 2 bad input, 3 no design met "
+        "every limit (result.json then has feasible: false, best: null and the closest "
+        "design with the limits it misses).",
+    )
+    opt.add_argument("study", help="study file or name, e.g. optimise/paper_gap.toml")
+    opt.add_argument("--out", help="output folder (default results/<study name>)")
+    opt.add_argument("--json", action="store_true", help="print result.json to stdout")
+    opt.add_argument(
+        "--seed",
+        type=int,
+        metavar="N",
+        help="seed of the optimiser's samples and starts (default: the study's, else 0)",
+    )
+    opt.add_argument(
+        "--store",
+        metavar="FILE.sqlite",
+        help="commit every evaluation of the optimiser to this SQLite file; the same "
+        "command with the same store resumes a stopped study (docs/campaigns.md)",
+    )
+    opt.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help='run the global phase (method "search") on a local Dask cluster of N worker processes',
+    )
+    opt.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help='run the global phase (method "search") on the running Dask cluster at ADDRESS',
+    )

@@ -1,0 +1,171 @@
+"""Calibration figures: the fit over the traces, the correlation, the profiles, a
+prediction's bands."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib.pyplot as plt
+import numpy as np
+
+import recoil_jax as rj
+import recoil_jax.extend as rjx
+
+from .style import save, styled
+
+__all__ = [
+    "calibration_figures",
+    "plot_calibration_fit",
+    "plot_correlation",
+    "plot_prediction",
+    "plot_profiles",
+]
+
+
+@styled
+def plot_calibration_fit(result: rj.CalibrationResult, path) -> Path:
+    """Measured against fitted for each experiment (columns) and signal (rows), each
+    with its residual panel below (in the signal's unit)."""
+    from .._files.describe import structure_line
+
+    signals = list(dict.fromkeys(s for m in result.measured for s in m))
+    experiments = len(result.times)
+    checks = {(c.experiment, c.signal): c for c in result.check.signals}
+    fig, axes = plt.subplots(
+        2 * len(signals),
+        experiments,
+        figsize=(4.8 * experiments + 1, 3.4 * len(signals)),
+        squeeze=False,
+        gridspec_kw={"height_ratios": [3, 1] * len(signals)},
+        sharex="col",
+        layout="constrained",
+    )
+    for e, (t, measured, model) in enumerate(
+        zip(result.times, result.measured, result.model, strict=True)
+    ):
+        name = result.experiments[e]["name"]
+        for s, signal in enumerate(signals):
+            top, bottom = axes[2 * s, e], axes[2 * s + 1, e]
+            unit = rjx.SIGNALS[signal][0]
+            if signal not in measured:
+                top.set_visible(False)
+                bottom.set_visible(False)
+                continue
+            top.plot(t, measured[signal], ".", ms=2, color="0.55", label="measured")
+            top.plot(t, model[signal], color="C0", lw=1.4, label="fitted")
+            top.set_ylabel(f"{signal} ({unit})")
+            top.set_title(f"{name}: {rjx.SIGNALS[signal][1]}")
+            top.legend(loc="upper right")
+            residual = measured[signal] - model[signal]
+            bottom.plot(t, residual, ".", ms=2, color="C3")
+            bottom.axhline(0.0, color="k", lw=0.8)
+            bottom.set_ylabel(f"residual ({unit})")
+            check = checks.get((name, signal))
+            if check is not None:  # the noise the residuals are held to, and where they fail
+                for y in (-2 * check.noise, 2 * check.noise):
+                    bottom.axhline(y, color="k", lw=0.6, ls="--")
+                for start, end in check.failing_spans():
+                    for ax in (top, bottom):
+                        ax.axvspan(start, end, color="C3", alpha=0.12, lw=0)
+        axes[-1, e].set_xlabel("t (s)")
+    fitted = ", ".join(f"{k} = {v:.4g}" for k, v in result.values.items())
+    verdict = (
+        "the model explains the traces\n(dashed: twice the noise)"
+        if result.explains
+        else "the model does NOT explain the traces\n(shaded: where it fails; dashed: twice "
+        "the noise)"
+    )
+    fig.suptitle(
+        f"calibration of: {structure_line(result.structure)}\nreduced chi2 "
+        f"{result.reduced_chi2:.3g}; {fitted}\n{verdict}",
+        fontsize=9,
+        color="k" if result.explains else "C3",
+    )
+    return save(fig, path)
+
+
+@styled
+def plot_correlation(result: rj.CalibrationResult, path) -> Path:
+    """The fitted values' correlation matrix (blank where a value is not determined)."""
+    names = list(result.fitted)
+    n = len(names)
+    fig, ax = plt.subplots(figsize=(1.1 * n + 2.5, 1.0 * n + 1.8), layout="constrained")
+    image = ax.imshow(result.correlation, vmin=-1, vmax=1, cmap="RdBu_r")
+    ax.set_xticks(range(n), names, rotation=45, ha="right")
+    ax.set_yticks(range(n), names)
+    ax.grid(False)
+    for i in range(n):
+        for j in range(n):
+            c = result.correlation[i, j]
+            if np.isfinite(c):
+                ax.text(j, i, f"{c:+.2f}", ha="center", va="center", fontsize=8)
+    fig.colorbar(image, ax=ax, label="correlation")
+    ax.set_title("correlation of the fitted values")
+    return save(fig, path)
+
+
+@styled
+def plot_profiles(result: rj.CalibrationResult, path) -> Path:
+    """Each fitted value's profile (the refitted cost's rise, in units of the reduced
+    chi2) beside the linear approximation's parabola, with the 95 % threshold."""
+    names = list(result.profiles)
+    fig, axes = plt.subplots(1, len(names), figsize=(3.8 * len(names), 3.4), squeeze=False,
+                             layout="constrained")  # fmt: skip
+    threshold = 3.841
+    for ax, name in zip(axes[0], names, strict=True):
+        profile, fitted = result.profiles[name], result.fitted[name]
+        ax.plot(profile["values"], profile["delta_chi2"], "o-", ms=3, label="profile")
+        if fitted.stderr:
+            x = np.linspace(profile["values"].min(), profile["values"].max(), 200)
+            ax.plot(x, ((x - fitted.value) / fitted.stderr) ** 2, "--", color="C1",
+                    label="linear (stderr)")  # fmt: skip
+        ax.axhline(threshold, color="C3", lw=0.9, label="95 % threshold")
+        ax.set_ylim(0, max(3 * threshold, 1.05 * min(profile["delta_chi2"].max(), 40)))
+        ax.set_xlabel(name + ("" if fitted.identifiable else " (not determined)"))
+        ax.ticklabel_format(axis="x", useOffset=False)
+        ax.tick_params(axis="x", labelrotation=30)
+        ax.set_ylabel("rise of chi2 / reduced chi2")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle("profile likelihoods (the others refitted at each point)", fontsize=10)
+    return save(fig, path)
+
+
+def calibration_figures(result: rj.CalibrationResult, out) -> list[Path]:
+    """The calibration's figures in the folder `out`: `fit.png`, `correlation.png` and,
+    with profiles, `profiles.png`."""
+    out = Path(out)
+    figures = [
+        plot_calibration_fit(result, out / "fit.png"),
+        plot_correlation(result, out / "correlation.png"),
+    ]
+    if result.profiles:
+        figures.append(plot_profiles(result, out / "profiles.png"))
+    return figures
+
+
+@styled
+def plot_prediction(prediction: rjx.Prediction, path) -> Path:
+    """Each peak metric's sampled values under the fitted uncertainty (histogram), with
+    the nominal value and both 95 % bands (sampled percentiles, linear propagation)."""
+    shown = [n for n in ("peak_anchoring_force", "peak_displacement", "max_stroke")
+             if np.ptp(prediction.samples[n]) > 0]  # fmt: skip
+    fig, axes = plt.subplots(1, len(shown), figsize=(4.6 * len(shown), 3.6), squeeze=False,
+                             layout="constrained")  # fmt: skip
+    for ax, name in zip(axes[0], shown, strict=True):
+        ax.hist(prediction.samples[name], bins=60, color="0.75")
+        ax.axvline(prediction.nominal[name], color="k", lw=1.2, label="at the fitted values")
+        for i, x in enumerate(prediction.sampled[name]["ci95"]):
+            ax.axvline(x, color="C0", ls="--", label="95 %: samples" if i == 0 else None)
+        for i, x in enumerate(prediction.linear[name]["ci95"]):
+            ax.axvline(x, color="C3", ls=":", lw=1.6, label="95 %: linear" if i == 0 else None)
+        ax.set_xlabel(rj.METRICS[name].label)
+        ax.ticklabel_format(axis="x", useOffset=False)
+        ax.tick_params(axis="x", labelrotation=30)
+        ax.set_ylabel("samples")
+        ax.legend(loc="upper left", fontsize=7)
+    fig.suptitle(
+        f"prediction from the calibration's uncertainty ({prediction.count} samples, "
+        f"{prediction.failed} failed)",
+        fontsize=10,
+    )
+    return save(fig, path)
