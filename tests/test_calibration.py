@@ -16,8 +16,8 @@ import pytest
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
-from recoil_jax.apps._cli.calibrate import MODEL_MISFIT
 from recoil_jax.apps._cli import main
+from recoil_jax.apps._cli.calibrate import MODEL_MISFIT
 
 TIGHT = rj.SolverOptions(t1=1.0, rtol=1e-10, atol=1e-13)
 NOISE = {"x_M": 2e-4, "F_AN": 300.0}

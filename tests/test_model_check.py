@@ -18,8 +18,8 @@ import recoil_jax as rj
 import recoil_jax.extend as rjx
 from recoil_jax._calibration.model_check import check_signal
 from recoil_jax.apps._bench.calibration import _coloured, model_check_rates
-from recoil_jax.apps._cli.calibrate import MODEL_MISFIT
 from recoil_jax.apps._cli import main
+from recoil_jax.apps._cli.calibrate import MODEL_MISFIT
 
 NOISE = {"x_M": 3e-4, "F_AN": 40.0}
 TS = np.linspace(0.0, 1.0, 1001)

@@ -559,7 +559,7 @@ max_stroke = {{ max = 0.15 }}
 
 
 def test_study_axis_labels_carry_units():
-    from recoil_jax.apps._studies.study import _label
+    from recoil_jax.apps._studies.checks import _label
 
     assert _label("k_r") == "k_r (N/m)" and _label("m") == "m (kg)"
     assert _label("gap") == "gap (m)" and _label("c_r") == "c_r (N*s/m)"

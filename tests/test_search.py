@@ -531,7 +531,7 @@ def test_search_reports_an_unmeetable_limit_as_infeasible():
 
 @pytest.mark.slow
 def test_tuned_absorber_without_a_start_finds_the_optimum_for_every_seed():
-    from recoil_jax.apps._studies.study import load_study, search_kwargs
+    from recoil_jax.apps._studies.study_file import load_study, search_kwargs
 
     study = load_study("tuned_absorber_global")
     assert not study.has_start
@@ -553,7 +553,7 @@ def test_throttling_reaches_the_levelled_optimum_for_every_seed(tmp_path):
     the smoothed SLSQP route ended at 9226-9787 N for 2 of 6. One test, so that seed 0's
     search runs once."""
     from recoil_jax.apps import run_study
-    from recoil_jax.apps._studies.study import load_study, search_kwargs
+    from recoil_jax.apps._studies.study_file import load_study, search_kwargs
 
     with compiled_programs() as programs:
         report = run_study("throttling", out=tmp_path, progress=False)
@@ -597,7 +597,7 @@ def test_throttling_reaches_the_levelled_optimum_for_every_seed(tmp_path):
 
 
 def test_studies_choose_the_method_and_whether_the_design_is_a_start(tmp_path):
-    from recoil_jax.apps._studies.study import load_study, search_kwargs
+    from recoil_jax.apps._studies.study_file import load_study, search_kwargs
 
     assert load_study("tuned_absorber").has_start  # [design] gives gap and m
     assert not load_study("tuned_absorber_global").has_start
@@ -728,7 +728,7 @@ def test_a_bad_optimiser_setting_names_the_file_and_section(tmp_path, settings, 
         f"[tune]\ngap = [0.0, 0.1]\n[objective]\npeak_anchoring_force = 1.0\n"
         f"[optimiser]\n{settings}\n"
     )
-    from recoil_jax.apps._studies.study import load_study
+    from recoil_jax.apps._studies.study_file import load_study
 
     with pytest.raises(rj.ParameterError, match=r"bad\.toml: \[optimiser\] " + message):
         load_study(study)
@@ -746,7 +746,7 @@ def test_a_bad_optimiser_setting_names_the_file_and_section(tmp_path, settings, 
 def test_bad_bounds_name_the_file_and_the_bound(tmp_path, bound, message):
     """Bounds the box cannot have are refused as the study loads, by the bound the user
     wrote (not the midpoint a design without a start takes)."""
-    from recoil_jax.apps._studies.study import load_study
+    from recoil_jax.apps._studies.study_file import load_study
 
     study = tmp_path / "bad.toml"
     study.write_text(f"[tune]\ngap = {bound}\n[objective]\npeak_anchoring_force = 1.0\n")
@@ -790,7 +790,7 @@ def test_search_is_minimise_on_the_problems_evaluators():
 def test_an_objective_weight_that_is_not_a_number_names_the_file(tmp_path, objective, message):
     study = tmp_path / "bad.toml"
     study.write_text(f"[tune]\ngap = [0.0, 0.1]\n[objective]\n{objective}\n")
-    from recoil_jax.apps._studies.study import load_study
+    from recoil_jax.apps._studies.study_file import load_study
 
     with pytest.raises(rj.ParameterError, match=r"bad\.toml: " + message):
         load_study(study)
@@ -803,7 +803,7 @@ def test_an_unknown_name_in_the_design_is_the_designs_fault(tmp_path):
         "[design]\nmass = 1500.0\n[tune]\ngap = [0.0, 0.1]\n[objective]\n"
         "peak_anchoring_force = 1.0\n"
     )
-    from recoil_jax.apps._studies.study import load_study
+    from recoil_jax.apps._studies.study_file import load_study
 
     with pytest.raises(rj.ParameterError, match=r"bad\.toml: \[design\] unknown parameter 'mass'"):
         load_study(study)

@@ -23,11 +23,8 @@ if TYPE_CHECKING:  # what the lazy loader below provides, for type checkers
         plot_heatmap as plot_heatmap,
     )
     from ._figures.histories import plot_history as plot_history, plot_series as plot_series
-    from ._studies.study import (
-        load_study as load_study,
-        resolve_study as resolve_study,
-        run_study as run_study,
-    )
+    from ._studies.study import run_study as run_study
+    from ._studies.study_file import load_study as load_study, resolve_study as resolve_study
 
 #: Applications that read the engine's private modules, and why: the benchmark's compiled
 #: scalar loop takes the loop's step-size rule and the model's contact width from where
@@ -53,8 +50,8 @@ __all__ = [
 _HOMES = {
     "main": "._cli",
     "explorer": "._explore.explorer",
-    "load_study": "._studies.study",
-    "resolve_study": "._studies.study",
+    "load_study": "._studies.study_file",
+    "resolve_study": "._studies.study_file",
     "run_study": "._studies.study",
     "run_bench": "._bench.speed",
     "run_tuning_bench": "._bench.tuning",

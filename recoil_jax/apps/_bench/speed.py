@@ -93,7 +93,7 @@ def gradient_modes(
     relative difference between the two gradients."""
     import dataclasses
 
-    from .._studies.study import load_study
+    from .._studies.study_file import load_study
 
     log = log or (lambda msg: None)
     problem = load_study(study).problem

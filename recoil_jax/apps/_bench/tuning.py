@@ -34,7 +34,7 @@ import recoil_jax.extend as rjx
 
 from .._cli.options import Commands
 from .._files.cluster import dask_client
-from .._studies.study import load_study, search_kwargs
+from .._studies.study_file import load_study, search_kwargs
 
 __all__ = [
     "DEFAULT_PROBLEMS",

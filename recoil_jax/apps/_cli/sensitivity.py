@@ -110,7 +110,7 @@ def _metrics(path, section: dict) -> tuple[list[str], rj.Objective | None]:
         raise _error(path, "[metrics] give objective or study, not both")
     objective = None
     if "study" in section:
-        from .._studies.study import load_study
+        from .._studies.study_file import load_study
 
         study = section["study"]
         if not isinstance(study, str):

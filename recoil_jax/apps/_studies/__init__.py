@@ -1,5 +1,5 @@
-"""The optimisation studies: a study file read and checked, run through `rj.search` or
-`rj.optimise`, its best design checked and reported (`study`).
+"""The optimisation studies: a study file read and checked (`study_file`), run through
+`rj.search` or `rj.optimise` and reported (`study`), its best design checked (`checks`).
 
 May import: `_files`, `_figures`."""
 
