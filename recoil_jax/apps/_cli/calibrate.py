@@ -275,43 +275,9 @@ def _check_before_fit(calibration: rj.Calibration, starts, store) -> None:
 
 
 def run_calibration(args) -> int:
-    """The `calibrate` command."""
+    """The `calibrate` command: checked, fitted, written, reported; its exit status."""
     source = Path(args.source)
-    # Every check of the command line before any file is read, and of what was read
-    # before anything is fitted (`_check_before_fit`).
-    if args.predict is not None:
-        try:  # its names and numbers, not after the whole fit
-            parse_assignments(args.predict)
-        except rj.ParameterError as error:
-            raise rj.ParameterError(f"--predict: {error}") from None
-    if args.starts is not None and not 1 <= args.starts <= MAX_STARTS:
-        raise rj.ParameterError(f"--starts {args.starts}: give an integer from 1 to {MAX_STARTS:,}")
-    _check_experiments(1 + len(args.validate or []), "the command line")
-    if source.suffix.lower() == ".toml":
-        if args.fit:
-            raise rj.ParameterError("--fit is for a trace (.csv); a calibration file has [fit]")
-        if args.assignments:
-            item = args.assignments[0]
-            raise rj.ParameterError(
-                f"{item} is given on the command line beside the calibration file {source}: "
-                "give it in one place (its [design], or an experiment's table)"
-            )
-        calibration, settings = load_calibration(source)
-        if args.force_table:
-            raise rj.ParameterError(
-                "--force-table is for a trace (.csv); a calibration file has force_table"
-            )
-        if args.validate:
-            extra = [rjx.Experiment(rj.read_trace(v), design={}) for v in args.validate]
-            calibration = dataclasses.replace(
-                calibration, validation=(*calibration.validation, *extra)
-            )
-    else:
-        _check_fit_names(args.fit, args.assignments)
-        calibration = _quick(
-            source, args.fit, args.assignments, args.validate or [], args.force_table
-        )
-        settings = {"starts": 1, "seed": 0, "fit_steps": 200, "description": ""}
+    calibration, settings = _read_calibration(args, source)
     starts = args.starts if args.starts is not None else settings["starts"]
     _check_before_fit(calibration, starts, args.store)
     out = output_folder(args.out)
@@ -324,12 +290,10 @@ def run_calibration(args) -> int:
     )  # fmt: skip
     report = {"source": str(source), "description": settings["description"], **result.to_json()}
     write_json(out / "result.json", report)
-    from .._figures.calibration import calibration_figures
+    from .._figures.calibration import calibration_figures, plot_prediction
 
     report["figures"] = [str(p) for p in calibration_figures(result, out)]
     if args.predict is not None and result.explains:
-        from .._figures.calibration import plot_prediction
-
         prediction = rj.predict(
             result.hardware(), parse_assignments(args.predict), seed=settings["seed"],
             smoothing=calibration.smoothing, progress=True,
@@ -343,6 +307,48 @@ def run_calibration(args) -> int:
         print(fit_report(result))
         if "prediction" in report:
             print(prediction_report(report["prediction"]))
+    return _exit_status(result, args.predict is not None)
+
+
+def _read_calibration(args, source: Path) -> tuple[rj.Calibration, dict[str, Any]]:
+    """The calibration `args` ask for (a file, or the quick form on one trace) and its
+    settings. Every check of the command line before any file is read."""
+    if args.predict is not None:
+        try:  # its names and numbers, not after the whole fit
+            parse_assignments(args.predict)
+        except rj.ParameterError as error:
+            raise rj.ParameterError(f"--predict: {error}") from None
+    if args.starts is not None and not 1 <= args.starts <= MAX_STARTS:
+        raise rj.ParameterError(f"--starts {args.starts}: give an integer from 1 to {MAX_STARTS:,}")
+    _check_experiments(1 + len(args.validate or []), "the command line")
+    if source.suffix.lower() != ".toml":
+        _check_fit_names(args.fit, args.assignments)
+        calibration = _quick(
+            source, args.fit, args.assignments, args.validate or [], args.force_table
+        )
+        return calibration, {"starts": 1, "seed": 0, "fit_steps": 200, "description": ""}
+    if args.fit:
+        raise rj.ParameterError("--fit is for a trace (.csv); a calibration file has [fit]")
+    if args.assignments:
+        item = args.assignments[0]
+        raise rj.ParameterError(
+            f"{item} is given on the command line beside the calibration file {source}: "
+            "give it in one place (its [design], or an experiment's table)"
+        )
+    calibration, settings = load_calibration(source)
+    if args.force_table:
+        raise rj.ParameterError(
+            "--force-table is for a trace (.csv); a calibration file has force_table"
+        )
+    if args.validate:
+        extra = [rjx.Experiment(rj.read_trace(v), design={}) for v in args.validate]
+        calibration = dataclasses.replace(calibration, validation=(*calibration.validation, *extra))
+    return calibration, settings
+
+
+def _exit_status(result: rj.CalibrationResult, predicted: bool) -> int:
+    """The warnings of a fit (values on their bounds), and its exit status: 1 a failed
+    solve, `NOT_CONVERGED`, `MODEL_MISFIT`, else 0; each said on stderr."""
     for name, f in result.fitted.items():
         if f.at_bound is not None and result.explains:
             print(f"recoil-jax: warning: {name} = {f.value:.6g} ended on its {f.at_bound} "
@@ -360,16 +366,16 @@ def run_calibration(args) -> int:
         return NOT_CONVERGED
     if not result.explains:
         failing = ", ".join(dict.fromkeys(c.signal for c in result.check.failing))
-        predicted = "; no prediction was made" if args.predict is not None else ""
+        said = "; no prediction was made" if predicted else ""
         bounds = [f"{n} = {f.value:.6g} ended on its {f.at_bound} bound"
                   for n, f in result.fitted.items() if f.at_bound is not None]  # fmt: skip
         if bounds:  # the other way a fit fails to explain: bounds that leave out the truth
-            predicted += (f"; {', '.join(bounds)} (bounds that leave out the true values "
-                          "do this too)")  # fmt: skip
+            said += (f"; {', '.join(bounds)} (bounds that leave out the true values "
+                     "do this too)")  # fmt: skip
         print(f"recoil-jax: the model does not explain the traces ({failing}): its values "
               "are the best a wrong model gives, and have no intervals; check what the "
               "design says of the test (an absorber or none, the load, the trigger delay "
-              f"t_shift){predicted}", file=sys.stderr)  # fmt: skip
+              f"t_shift){said}", file=sys.stderr)  # fmt: skip
         return MODEL_MISFIT
     return 0
 

@@ -7,7 +7,7 @@ import dataclasses
 import json
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -166,7 +166,27 @@ def write_results(result: rj.SweepResult, out: Path, meta: dict) -> list[Path]:
     return [out / "sweep.csv", out / "sweep.npz"]
 
 
-def run_sweep(args) -> int:
+class _Designs(NamedTuple):
+    """What a sweep's command line asks for: the swept `axes` and `fixed` values (as
+    given, `given`), and either the `--points` designs or the `grid` (its `shape`), the
+    `columns` of either for the warnings, and the gradients to take (`wrt`)."""
+
+    axes: dict[str, np.ndarray]
+    fixed: dict[str, float]
+    points: list[dict] | None
+    grid: Any
+    shape: tuple[int, ...]
+    columns: dict[str, Any]
+    wrt: tuple[str, ...] | None
+
+    @property
+    def designs(self):
+        """The points, or the grid: what `rj.sweep` takes."""
+        return self.points if self.points is not None else self.grid
+
+
+def _read_designs(args) -> _Designs:
+    """The designs `args` name: `name=values` items (swept or fixed) and `--points`."""
     axes, fixed = {}, {}
     given: dict[str, str] = {}
     for item in args.assignments:
@@ -177,10 +197,6 @@ def run_sweep(args) -> int:
             fixed[name] = float(values[0])
         else:
             axes[name] = values
-    table = rj.ForceTable.from_csv(args.force_table) if args.force_table else None
-    designs: list[dict] = []  # from --points
-    grid = None  # or the grid
-    shape: tuple[int, ...] = ()  # the grid's
     if args.points:
         if axes:
             raise rj.ParameterError(
@@ -195,84 +211,90 @@ def run_sweep(args) -> int:
                 f"column of {args.points}: give it in one place"
             )
         designs = [fixed | design for design in points]
-        wrt = None
         columns = {n: [d.get(n, np.nan) for d in designs] for n in set().union(*designs)}
-    else:
-        if not axes:
-            raise rj.ParameterError(
-                "nothing to sweep: give at least one list a,b,c or "
-                "range start:stop:count, or --points FILE"
-            )
-        wrt = ("gap",) if "gap" in axes else None
-        # Its columns made a chunk at a time as it is swept: a streamed grid's memory
-        # does not grow with it.
-        grid = rjx.Grid(axes, fixed)
-        shape = grid.shape
-        columns = grid.axes | {name: np.array([value]) for name, value in fixed.items()}
-    warn(design_warnings({n: _given(c) for n, c in columns.items()}, table))
+        return _Designs(axes, fixed, designs, None, (), columns, None)
+    if not axes:
+        raise rj.ParameterError(
+            "nothing to sweep: give at least one list a,b,c or "
+            "range start:stop:count, or --points FILE"
+        )
+    # Its columns made a chunk at a time as it is swept: a streamed grid's memory
+    # does not grow with it.
+    grid = rjx.Grid(axes, fixed)
+    columns = grid.axes | {name: np.array([value]) for name, value in fixed.items()}
+    wrt = ("gap",) if "gap" in axes else None
+    return _Designs(axes, fixed, None, grid, grid.shape, columns, wrt)
+
+
+def run_sweep(args) -> int:
+    """Run `recoil-jax sweep` with the parsed `args`; its exit status (failed points are
+    reported per point, not as a failed command)."""
+    asked = _read_designs(args)
+    table = rj.ForceTable.from_csv(args.force_table) if args.force_table else None
+    warn(design_warnings({n: _given(c) for n, c in asked.columns.items()}, table))
     # The sweep's own options (tighter with gradients), with the step limit asked for.
-    options = rj.GRADIENT_OPTIONS if wrt else rj.SolverOptions()
+    options = rj.GRADIENT_OPTIONS if asked.wrt else rj.SolverOptions()
     options = dataclasses.replace(options, max_steps=args.max_steps)
-    progress = not args.json
     if args.out:
         output_folder(args.out)  # once the input is known good, before any solve
     if args.store and not args.out and not args.json:
         # Nothing asks for the results here: they stream to the store, not into memory.
-        return _sweep_to_store(args, axes, designs or grid, wrt, options, table)
+        return _sweep_to_store(args, asked.axes, asked.designs, asked.wrt, options, table)
     with dask_client(args.workers, args.scheduler) as client:
-        if args.points:
-            result = rj.sweep(
-                designs,
-                options=options,
-                progress=progress,
-                force_table=table,
-                store=args.store,
-                client=client,
-            )
-        else:
-            result = rj.sweep(
-                grid,
-                wrt=wrt,
-                options=options,
-                progress=progress,
-                force_table=table,
-                store=args.store,
-                client=client,
-            )
-            result.swept, result.grid_shape = tuple(axes), shape
+        result = rj.sweep(
+            asked.designs,
+            **({"wrt": asked.wrt} if asked.points is None else {}),
+            options=options,
+            progress=not args.json,
+            force_table=table,
+            store=args.store,
+            client=client,
+        )
+    if asked.points is None:
+        result.swept, result.grid_shape = tuple(asked.axes), asked.shape
     if args.json:
         print(json_dumps(result.records()))
     else:
-        ok, solved = int(result.ok.sum()), len(result) - result.stored
-        read = f" ({result.stored} read from the store)" if result.stored else ""
-        print(
-            f"swept {len(result)} designs{read}: {solved} solved in {result.seconds:.1f} s "
-            f"({solved / max(result.seconds, 1e-9):.0f}/s); {ok} ok, {len(result) - ok} failed"
-        )
-        force = result.peaks["peak_anchoring_force"]
-        best = int(np.nanargmin(np.where(result.ok, force, np.nan))) if ok else None
-        if best is not None:
-            design = ", ".join(
-                f"{k}={result.values[k][best]:g}"
-                for k in (result.swept or ("m", "gap"))
-                if k in result.values
-            )
-            print(f"lowest peak anchoring force: {force[best]:.2f} N at {design}")
+        _print_summary(result)
     if args.out:
-        out = Path(args.out)
-        paths = write_results(result, out, {"command": " ".join(sys.argv)})
-        from .._figures.sweeps import sweep_figures
+        _write_out(result, Path(args.out))
+    return 0
 
-        figures = sweep_figures(result, out)
-        for path in paths + figures:
-            print(f"wrote {path}", file=sys.stderr)
-        if not figures:
-            print(
-                "sweep: no figures for a list of points (--points); a grid "
-                "(name=a,b,c or start:stop:count) draws them",
-                file=sys.stderr,
-            )
-    return 0  # failed points are reported per point (status), not as a failed command
+
+def _print_summary(result: rj.SweepResult) -> None:
+    """How many designs were solved, how fast, how many failed, and the lowest peak
+    anchoring force."""
+    ok, solved = int(result.ok.sum()), len(result) - result.stored
+    read = f" ({result.stored} read from the store)" if result.stored else ""
+    print(
+        f"swept {len(result)} designs{read}: {solved} solved in {result.seconds:.1f} s "
+        f"({solved / max(result.seconds, 1e-9):.0f}/s); {ok} ok, {len(result) - ok} failed"
+    )
+    force = result.peaks["peak_anchoring_force"]
+    best = int(np.nanargmin(np.where(result.ok, force, np.nan))) if ok else None
+    if best is not None:
+        design = ", ".join(
+            f"{k}={result.values[k][best]:g}"
+            for k in (result.swept or ("m", "gap"))
+            if k in result.values
+        )
+        print(f"lowest peak anchoring force: {force[best]:.2f} N at {design}")
+
+
+def _write_out(result: rj.SweepResult, out: Path) -> None:
+    """The sweep's files and figures in `out`, each named on stderr."""
+    from .._figures.sweeps import sweep_figures
+
+    paths = write_results(result, out, {"command": " ".join(sys.argv)})
+    figures = sweep_figures(result, out)
+    for path in paths + figures:
+        print(f"wrote {path}", file=sys.stderr)
+    if not figures:
+        print(
+            "sweep: no figures for a list of points (--points); a grid "
+            "(name=a,b,c or start:stop:count) draws them",
+            file=sys.stderr,
+        )
 
 
 def _sweep_to_store(args, axes, designs, wrt, options, table) -> int:

@@ -120,7 +120,7 @@ def read_calibration_section(
         raise file_error(path, f"[calibration] {error}") from None
     for name in fitted.names:
         if name in taken:
-            raise file_error(path, f"{taken[name]} {name} comes from the calibration: leave "
+            raise file_error(path, f"{taken[name]} {name} is fitted by the calibration: leave "
                              "it out")  # fmt: skip
     return fitted
 
