@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 import time
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -40,17 +41,41 @@ def cores() -> int:
         return os.cpu_count() or 1
 
 
-def _compiled():
+class _Functions(NamedTuple):
+    """The compiled functions: the vector field (for the test that it is the library's)
+    and the loop that solves designs one after the other."""
+
+    field: Any
+    solve_all: Any
+
+
+_FUNCTIONS: _Functions | None = None
+
+
+def _compiled() -> _Functions:
     """The numba functions, compiled on first use (numba is imported only here)."""
     global _FUNCTIONS
-    if _FUNCTIONS is not None:
-        return _FUNCTIONS
+    if _FUNCTIONS is None:
+        numba = _numba()
+        field = _field_kernel(numba)
+        solve = _solve_kernel(numba, field, _rms_kernel(numba))
+        _FUNCTIONS = _Functions(field, _solve_all_kernel(numba, solve))
+    return _FUNCTIONS
+
+
+def _numba():
+    """The numba module, or `ParameterError` (saying how to install it) without it."""
     try:
         import numba
     except ImportError:
         raise rj.ParameterError(
             "the compiled scalar loop needs numba: pip install 'recoil-jax[bench]'"
         ) from None
+    return numba
+
+
+def _field_kernel(numba):
+    """The model's vector field, `field(y, p, out)`: dy/dt into `out`, returning F_AN."""
 
     @numba.njit(inline="always")
     def ramp(x, width):  # smooth_relu: the C² quartic inside the band, max(0, x) outside
@@ -77,12 +102,26 @@ def _compiled():
         out[3] = (coupling + contact) / m
         return anchoring
 
+    return field
+
+
+def _rms_kernel(numba):
+    """The root mean square of a vector, `rms(x)`."""
+
     @numba.njit
     def rms(x):
         total = 0.0
         for value in x:
             total += value * value
         return np.sqrt(total / x.shape[0])
+
+    return rms
+
+
+def _solve_kernel(numba, field, rms):
+    """One design's solve to `t1`, `solve(p, v0, t1, *settings)`: Tsit5 with diffrax's
+    initial step and PID step-size rule, returning the running maxima of x_M and F_AN
+    at the accepted steps' ends, the accepted steps and the attempts."""
 
     @numba.njit
     def solve(p, v0, t1, rtol, atol, order, pcoeff, icoeff, rule, a, b_error, max_steps):
@@ -149,6 +188,13 @@ def _compiled():
             dt = dt * factor
         return best_x, best_force, steps, attempts
 
+    return solve
+
+
+def _solve_all_kernel(numba, solve):
+    """The loop over designs, `solve_all(rows, v0, t1, *settings, out)`: each row's
+    `solve` in turn, its four results into its row of `out`."""
+
     @numba.njit
     def solve_all(rows, v0, t1, rtol, atol, order, pcoeff, icoeff, rule, a, b_error, limit, out):
         for i in range(rows.shape[0]):
@@ -157,14 +203,18 @@ def _compiled():
             )
             out[i, 0], out[i, 1], out[i, 2], out[i, 3] = x, force, steps, attempts
 
-    _FUNCTIONS = field, solve_all
-    return _FUNCTIONS
+    return solve_all
 
 
-_FUNCTIONS = None
+class _Rows(NamedTuple):
+    """The designs as the loop reads them: one parameter row each (`ANCHOR_PARAMETERS`,
+    then the two widths), and each one's `v0`."""
+
+    rows: np.ndarray
+    v0: np.ndarray
 
 
-def _rows(columns: dict[str, np.ndarray], smoothing: rj.Smoothing):
+def _rows(columns: dict[str, np.ndarray], smoothing: rj.Smoothing) -> _Rows:
     """Each design's parameter row (`ANCHOR_PARAMETERS`, then the two widths) and `v0`."""
     from recoil_jax._model.equations import contact_width
 
@@ -173,10 +223,28 @@ def _rows(columns: dict[str, np.ndarray], smoothing: rj.Smoothing):
     widths = np.asarray(contact_width(params, smoothing))
     damping = np.full(len(values), float(smoothing.damping_width))
     rows = np.column_stack([values, damping, np.broadcast_to(widths, damping.shape)])
-    return np.ascontiguousarray(rows), np.asarray(rj.values_of(params, ("v0",))[0], dtype=float)
+    return _Rows(
+        np.ascontiguousarray(rows), np.asarray(rj.values_of(params, ("v0",))[0], dtype=float)
+    )
 
 
-def _settings(options: rj.SolverOptions):
+class _Settings(NamedTuple):
+    """The loop's settings, in the order `solve` takes them after `t1`: the tolerances,
+    the error order, the PID coefficients, the rule (safety, smallest and largest
+    factor), Tsit5's tableau (`a`, the error weights) and the most attempts."""
+
+    rtol: float
+    atol: float
+    order: float
+    pcoeff: float
+    icoeff: float
+    rule: np.ndarray
+    a: np.ndarray
+    b_error: np.ndarray
+    max_steps: int
+
+
+def _settings(options: rj.SolverOptions) -> _Settings:
     """The loop's step-size rule and tableau, from the library and diffrax."""
     import diffrax
 
@@ -192,24 +260,24 @@ def _settings(options: rj.SolverOptions):
         a[i + 1, : len(row)] = np.asarray(row, dtype=float)
     order = float(PeakLoop(RECOIL_TERM, lambda y, args: {}, options).error_order)
     rule = np.array([controller.safety, controller.factormin, controller.factormax], float)
-    return (
-        float(options.rtol),
-        float(options.atol),
-        order,
-        float(controller.pcoeff),
-        float(controller.icoeff),
-        rule,
-        a,
-        np.asarray(tableau.b_error, dtype=float),
-        int(options.max_steps),
+    return _Settings(
+        rtol=float(options.rtol),
+        atol=float(options.atol),
+        order=order,
+        pcoeff=float(controller.pcoeff),
+        icoeff=float(controller.icoeff),
+        rule=rule,
+        a=a,
+        b_error=np.asarray(tableau.b_error, dtype=float),
+        max_steps=int(options.max_steps),
     )
 
 
 def anchor_field(y, columns: dict[str, np.ndarray], smoothing=rj.Smoothing()) -> np.ndarray:
     """The anchor's `dy/dt` at states `y` (shape `(n, 4)`) of designs `columns` (one row
     each; paper model with an absorber): for the test that it is the library's model."""
-    field, _ = _compiled()
-    rows, _ = _rows(columns, smoothing)
+    field = _compiled().field
+    rows = _rows(columns, smoothing).rows
     out = np.zeros((len(rows), 4))
     for i in range(len(rows)):
         field(np.asarray(y[i], dtype=float), rows[i], out[i])
@@ -231,7 +299,7 @@ def anchor_peaks(
 
     **Raises:** `ParameterError` if numba is not installed (the `bench` extra).
     """
-    _, solve_all = _compiled()
+    solve_all = _compiled().solve_all
     rows, v0 = _rows(columns, smoothing)
     settings = _settings(options)
     out = np.zeros((len(rows), 4))

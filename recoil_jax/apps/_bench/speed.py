@@ -9,6 +9,7 @@ import platform
 import sys
 import time
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -67,10 +68,12 @@ def hardware_designs(count: int, seed: int = 1) -> dict[str, np.ndarray]:
 
 
 def _take(columns, index):
+    """The designs at `index` of `columns`."""
     return {k: v[index] for k, v in columns.items()}
 
 
 def _timed(fn, *args):
+    """`fn(*args)`, waited for, and its wall seconds."""
     start = time.perf_counter()
     out = jax.block_until_ready(fn(*args))
     return out, time.perf_counter() - start
@@ -276,116 +279,46 @@ def run_bench(
     tuned parameters the gradient modes differentiate; `anchor`: the compiled scalar
     loop beside the largest batch (skipped without numba)."""
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
-    smoothing, options = rj.Smoothing(), rj.SolverOptions()
     largest = max(batch_sizes)
     columns = bench_designs(max(largest, jacobian_batch, scipy_designs))
-
-    def timed_sweep(designs, **kwargs):
-        start = time.perf_counter()
-        result = rj.sweep(designs, progress=False, **kwargs)
-        return result, time.perf_counter() - start
-
-    rows = []
-    timed = {}  # per batch size: the best seconds and each design's steps
-    compile_s = None
-    for size in batch_sizes:
-        # Evenly spread through the designs, so each batch has the same mix.
-        designs = _take(columns, np.linspace(0, len(columns["m"]) - 1, size).astype(int))
-        result, first = timed_sweep(designs)
-        repeats = max(2, min(5, int(2048 // size)))
-        run = min(timed_sweep(designs)[1] for _ in range(repeats))
-        timed[size] = (run, result.peaks["num_steps"])
-        if compile_s is None:  # the first sweep compiles (later sizes up to 1024 share it)
-            compile_s = max(first - run, 0.0)
-        rows.append({"batch_size": size, "seconds": run, "sims_per_s": size / run})
-        log(f"  batch {size:6d}: {size / run:9.0f} sims/s  ({run:.3f} s)")
+    batches = _batch_throughput(columns, batch_sizes, log)
 
     # The compiled scalar loop on the designs of the largest batch, beside our sweep.
-    designs = _take(columns, np.linspace(0, len(columns["m"]) - 1, largest).astype(int))
-    seconds, steps = timed[largest]
-    anchored = anchor_comparison(designs, seconds, steps, log) if anchor else None
+    designs = _spread(columns, largest)
+    ours = batches.timed[largest]
+    anchored = anchor_comparison(designs, ours.seconds, ours.steps, log) if anchor else None
 
-    # The same sweep in one part on one thread, for comparison.
-    timed_sweep(designs, workers=1)
-    one_worker_per_s = largest / min(timed_sweep(designs, workers=1)[1] for _ in range(2))
-    log(f"  one worker, batch {largest}: {one_worker_per_s:.0f} sims/s")
-
-    # The plain vmap of the stepping loop, on the 1024-design batch, for comparison.
-    designs = _take(columns, np.linspace(0, len(columns["m"]) - 1, 1024).astype(int))
-    designs = _take(designs, np.argsort(designs["gap"], kind="stable"))
-    params = rjx.batch_params(designs)[0]
-    if 1024 % jax.local_device_count() == 0:
-        params = rjx.shard_batch(params)
-    solve = eqx.filter_jit(jax.vmap(rj.peak_metrics, in_axes=(0, None, None)))
-    _timed(solve, params, smoothing, options)
-    vmap_per_s = 1024 / _timed(solve, params, smoothing, options)[1]
-    log(f"  plain vmap, batch 1024: {vmap_per_s:.0f} sims/s")
-
-    designs = _take(columns, np.linspace(0, len(columns["m"]) - 1, jacobian_batch).astype(int))
-    _, jac_first = timed_sweep(designs, wrt=rj.DESIGN_PARAMETERS)
-    jac_run = min(timed_sweep(designs, wrt=rj.DESIGN_PARAMETERS)[1] for _ in range(2))
-    jacobians_per_s = jacobian_batch / jac_run
-    log(f"  jacobians (4 parameters, batch {jacobian_batch}): {jacobians_per_s:.0f}/s")
-
-    # All the hardware on, at the largest batch (and its steps per design beside the
-    # paper model's).
-    hardware = hardware_designs(largest)
-    timed_sweep(hardware)
-    hardware_result, hardware_s = min((timed_sweep(hardware) for _ in range(2)), key=lambda r: r[1])
-    hardware_per_s = largest / hardware_s
-    log(
-        f"  hardware designs (3-round burst, 8 knots, recuperator), batch {largest}: "
-        f"{hardware_per_s:.0f} sims/s"
-    )
-
-    # The baseline, in its strongest form: scipy's best method for this model at our
-    # tolerances (`SCIPY_SETTINGS`), the hard switches and the peaks located as events,
-    # one design at a time on one core, on designs spread over the same set.
-    index = np.linspace(0, len(columns["m"]) - 1, scipy_designs).astype(int)
-    chosen = _take(columns, index)
-    # Warm: the first solve also imports scipy.integrate and fills its caches, which
-    # made a 20-design loop timed cold run at 0.6-0.7 times the rate.
-    rj.reference_peaks({k: float(v[0]) for k, v in chosen.items()}, t1=10.0, **SCIPY_SETTINGS)
-    start = time.perf_counter()
-    baseline = [
-        rj.reference_peaks({k: float(v[i]) for k, v in chosen.items()}, t1=10.0, **SCIPY_SETTINGS)
-        for i in range(scipy_designs)
-    ]
-    scipy_s = time.perf_counter() - start
-    scipy_per_s = scipy_designs / scipy_s
-    ours = rj.sweep(chosen, progress=False).peaks
-    errors = [
-        abs(float(ours[key][i]) / ref[key] - 1.0)
-        for i, ref in enumerate(baseline)
-        for key in ("peak_displacement", "peak_anchoring_force")
-    ]
-    log(f"  scipy solve_ivp ({_scipy_label()}, serial): {scipy_per_s:.1f} sims/s")
+    one_worker_per_s = _one_worker_throughput(designs, log)
+    vmap_per_s = _plain_vmap_throughput(columns, log)
+    jacobians = _jacobian_throughput(columns, jacobian_batch, log)
+    hardware = _hardware_throughput(largest, log)
+    baseline = _scipy_baseline(columns, scipy_designs, log)
 
     gradient_rows = (
         gradient_modes(gradient_sizes, log=log, study=gradient_study) if gradient_sizes else []
     )
     cli_rows = cli_cache_timings(cli_commands, log=log) if cli_commands else []
 
-    best = max(rows, key=lambda r: r["sims_per_s"])
+    best = max(batches.rows, key=lambda r: r["sims_per_s"])
     return {
         "sims_per_s": best["sims_per_s"],
         "batch_size": best["batch_size"],
-        "scipy_sims_per_s": scipy_per_s,
+        "scipy_sims_per_s": baseline.sims_per_s,
         "scipy_settings": SCIPY_SETTINGS,
-        "speedup_vs_scipy": best["sims_per_s"] / scipy_per_s,
+        "speedup_vs_scipy": best["sims_per_s"] / baseline.sims_per_s,
         "compiled_scalar_loop": anchored,
         "plain_vmap_sims_per_s": vmap_per_s,
         "one_worker_sims_per_s": one_worker_per_s,
         "workers": rjx.default_workers(jax.local_devices()),
-        "jacobians_per_s": jacobians_per_s,
-        "hardware_sims_per_s": hardware_per_s,
+        "jacobians_per_s": jacobians.per_s,
+        "hardware_sims_per_s": hardware.sims_per_s,
         "hardware_batch_size": largest,
-        "hardware_mean_steps": float(np.mean(hardware_result.peaks["num_steps"])),
-        "hardware_failed": len(hardware_result.failures()),
-        "jacobian_compile_s": max(jac_first - jac_run, 0.0),
-        "compile_s": compile_s,
-        "max_rel_error": max(errors),
-        "batches": rows,
+        "hardware_mean_steps": float(np.mean(hardware.result.peaks["num_steps"])),
+        "hardware_failed": len(hardware.result.failures()),
+        "jacobian_compile_s": jacobians.compile_s,
+        "compile_s": batches.compile_s,
+        "max_rel_error": baseline.max_rel_error,
+        "batches": batches.rows,
         "gradient_modes": gradient_rows,
         "gradient_study": gradient_study,
         "cli_cache": cli_rows,
@@ -396,7 +329,160 @@ def run_bench(
     }
 
 
+def _spread(columns: dict[str, np.ndarray], size: int) -> dict[str, np.ndarray]:
+    """`size` designs evenly spread through `columns`, so that each batch has the same
+    mix."""
+    return _take(columns, np.linspace(0, len(columns["m"]) - 1, size).astype(int))
+
+
+class _Sweep(NamedTuple):
+    """A timed sweep: its result and its wall seconds."""
+
+    result: Any
+    seconds: float
+
+
+def _timed_sweep(designs, **kwargs) -> _Sweep:
+    """`rj.sweep` of `designs` (no progress line) and its wall seconds."""
+    start = time.perf_counter()
+    result = rj.sweep(designs, progress=False, **kwargs)
+    return _Sweep(result, time.perf_counter() - start)
+
+
+class _BatchTiming(NamedTuple):
+    """One batch size's best wall seconds, and each of its designs' accepted steps."""
+
+    seconds: float
+    steps: Any
+
+
+class _Batches(NamedTuple):
+    """The sweep's throughput at each batch size: a row each (`batch_size`, `seconds`,
+    `sims_per_s`), the best seconds and each design's steps by batch size, and the
+    compilation's seconds (the first sweep's extra time)."""
+
+    rows: list[dict]
+    timed: dict[int, _BatchTiming]
+    compile_s: float | None
+
+
+def _batch_throughput(columns, batch_sizes, log) -> _Batches:
+    """Time the sweep at each batch size (the best of a few runs after a first one,
+    which compiles)."""
+    rows = []
+    timed = {}  # per batch size: the best seconds and each design's steps
+    compile_s = None
+    for size in batch_sizes:
+        designs = _spread(columns, size)
+        result, first = _timed_sweep(designs)
+        repeats = max(2, min(5, int(2048 // size)))
+        run = min(_timed_sweep(designs).seconds for _ in range(repeats))
+        timed[size] = _BatchTiming(run, result.peaks["num_steps"])
+        if compile_s is None:  # the first sweep compiles (later sizes up to 1024 share it)
+            compile_s = max(first - run, 0.0)
+        rows.append({"batch_size": size, "seconds": run, "sims_per_s": size / run})
+        log(f"  batch {size:6d}: {size / run:9.0f} sims/s  ({run:.3f} s)")
+    return _Batches(rows, timed, compile_s)
+
+
+def _one_worker_throughput(designs, log) -> float:
+    """Sims/s of the same sweep in one part on one thread, for comparison."""
+    _timed_sweep(designs, workers=1)
+    size = len(designs["m"])
+    per_s = size / min(_timed_sweep(designs, workers=1).seconds for _ in range(2))
+    log(f"  one worker, batch {size}: {per_s:.0f} sims/s")
+    return per_s
+
+
+def _plain_vmap_throughput(columns, log) -> float:
+    """Sims/s of the plain vmap of the stepping loop, on the 1024-design batch (sorted by
+    gap), for comparison."""
+    designs = _spread(columns, 1024)
+    designs = _take(designs, np.argsort(designs["gap"], kind="stable"))
+    params = rjx.batch_params(designs)[0]
+    if 1024 % jax.local_device_count() == 0:
+        params = rjx.shard_batch(params)
+    smoothing, options = rj.Smoothing(), rj.SolverOptions()
+    solve = eqx.filter_jit(jax.vmap(rj.peak_metrics, in_axes=(0, None, None)))
+    _timed(solve, params, smoothing, options)
+    per_s = 1024 / _timed(solve, params, smoothing, options)[1]
+    log(f"  plain vmap, batch 1024: {per_s:.0f} sims/s")
+    return per_s
+
+
+class _Jacobians(NamedTuple):
+    """The sweep's Jacobians per second, and the seconds their first run spent
+    compiling."""
+
+    per_s: float
+    compile_s: float
+
+
+def _jacobian_throughput(columns, jacobian_batch: int, log) -> _Jacobians:
+    """The sweep with the Jacobian of the design parameters, at `jacobian_batch`."""
+    designs = _spread(columns, jacobian_batch)
+    first = _timed_sweep(designs, wrt=rj.DESIGN_PARAMETERS).seconds
+    run = min(_timed_sweep(designs, wrt=rj.DESIGN_PARAMETERS).seconds for _ in range(2))
+    per_s = jacobian_batch / run
+    log(f"  jacobians (4 parameters, batch {jacobian_batch}): {per_s:.0f}/s")
+    return _Jacobians(per_s, max(first - run, 0.0))
+
+
+class _Hardware(NamedTuple):
+    """The all-hardware sweep: its sims/s and its (fastest run's) result."""
+
+    sims_per_s: float
+    result: Any
+
+
+def _hardware_throughput(size: int, log) -> _Hardware:
+    """All the hardware on, at batch `size` (its steps per design go beside the paper
+    model's)."""
+    hardware = hardware_designs(size)
+    _timed_sweep(hardware)
+    result, seconds = min((_timed_sweep(hardware) for _ in range(2)), key=lambda r: r.seconds)
+    per_s = size / seconds
+    log(
+        f"  hardware designs (3-round burst, 8 knots, recuperator), batch {size}: "
+        f"{per_s:.0f} sims/s"
+    )
+    return _Hardware(per_s, result)
+
+
+class _Baseline(NamedTuple):
+    """The scipy loop's sims/s, and the largest relative difference of our peaks from
+    its peaks."""
+
+    sims_per_s: float
+    max_rel_error: float
+
+
+def _scipy_baseline(columns, scipy_designs: int, log) -> _Baseline:
+    """The baseline, in its strongest form: scipy's best method for this model at our
+    tolerances (`SCIPY_SETTINGS`), the hard switches and the peaks located as events,
+    one design at a time on one core, on `scipy_designs` designs spread over the set."""
+    chosen = _spread(columns, scipy_designs)
+    # Warm: the first solve also imports scipy.integrate and fills its caches, which
+    # made a 20-design loop timed cold run at 0.6-0.7 times the rate.
+    rj.reference_peaks({k: float(v[0]) for k, v in chosen.items()}, t1=10.0, **SCIPY_SETTINGS)
+    start = time.perf_counter()
+    baseline = [
+        rj.reference_peaks({k: float(v[i]) for k, v in chosen.items()}, t1=10.0, **SCIPY_SETTINGS)
+        for i in range(scipy_designs)
+    ]
+    per_s = scipy_designs / (time.perf_counter() - start)
+    ours = rj.sweep(chosen, progress=False).peaks
+    errors = [
+        abs(float(ours[key][i]) / ref[key] - 1.0)
+        for i, ref in enumerate(baseline)
+        for key in ("peak_displacement", "peak_anchoring_force")
+    ]
+    log(f"  scipy solve_ivp ({_scipy_label()}, serial): {per_s:.1f} sims/s")
+    return _Baseline(per_s, max(errors))
+
+
 def format_bench(result: dict) -> str:
+    """The figures of `run_bench` as the lines `recoil-jax bench` prints."""
     lines = [f"{'batch size':>10s} {'sims/s':>10s} {'seconds':>9s}"]
     for row in result["batches"]:
         lines.append(f"{row['batch_size']:10d} {row['sims_per_s']:10.0f} {row['seconds']:9.3f}")
@@ -458,17 +544,21 @@ def format_bench(result: dict) -> str:
 
 
 def _host_label(host: dict) -> str:
+    """A host (`host_description`) in a few words: CPU, vector extension, cores."""
     extension = host["vector_extension"]
     extension = extension.upper() if extension else "vector extensions unknown"
     return f"{host['cpu']}, {extension}, {host['cores']} cores"
 
 
 def _scipy_label() -> str:
+    """The scipy baseline's method and tolerances, in a few words."""
     s = SCIPY_SETTINGS
     return f"{s['method']}, rtol {s['rtol']:g}, atol {s['atol']:g}"
 
 
 def main_bench(args) -> int:
+    """`recoil-jax bench`: run the benchmark at the sizes the options ask for, and print
+    its figures (as lines, or one JSON object)."""
     sizes = (1, 64, 1024) if args.quick else (1, 64, 1024, 16384)
     full = args.full and not args.quick
     result = run_bench(

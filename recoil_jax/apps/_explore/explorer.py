@@ -48,6 +48,17 @@ _SIDEBAR = 330
 # Drawn points per history: enough for the plots, few enough to send at once.
 _POINTS = 800
 
+#: The travel limits the peaks are held against: each one's field label and start value.
+_LIMITS = {
+    "peak_displacement": ("barrel travel limit (m)", 0.25),
+    "max_stroke": ("absorber travel limit (m)", 0.15),
+}
+
+#: The size and tools of each plot against time.
+_TIME_PLOT: dict[str, Any] = dict(
+    height=230, sizing_mode="stretch_width", tools="pan,wheel_zoom,reset"
+)
+
 
 @rjx.structure_jit
 def _compute(params, ts, wrt):
@@ -59,6 +70,28 @@ def _compute(params, ts, wrt):
     peaks = rj.peak_metrics(params)
     _, gradients = rj.peak_jacobian(params, wrt=wrt, throw=False)
     return history, peaks, gradients.peak_anchoring_force
+
+
+def _start_values(values: dict[str, float] | None) -> dict[str, float]:
+    """Every field's start value by flat name: the parameters' defaults (and the offered
+    orifice knots) overridden by the design `values` (validated, as `simulate` reads
+    them)."""
+    start = rj.params_to_values(rj.params_from_values(values or {}))
+    defaults = {name: float(p.default) for name, p in rj.PARAMETERS.items()}
+    defaults |= {f"orifice_{i}": 4e-4 for i in range(EXPLORER_KNOTS)}
+    defaults |= {k: float(np.asarray(v)) for k, v in start.items()}
+    return defaults
+
+
+def _time_plot(title: str, y_axis_label: str, x_range=None):
+    """An empty plot against time (s), on the time axis `x_range` where given (to pan and
+    zoom with the plot it comes from)."""
+    from bokeh.plotting import figure
+
+    shared = {} if x_range is None else {"x_range": x_range}
+    return figure(
+        title=title, x_axis_label="time (s)", y_axis_label=y_axis_label, **shared, **_TIME_PLOT
+    )
 
 
 def _tuned(values: dict[str, float]) -> tuple[str, ...]:
@@ -87,114 +120,31 @@ class Explorer:
         trace: rjx.Trace | None = None,
     ):
         import panel as pn
-        from bokeh.models import ColumnDataSource, FactorRange
-        from bokeh.plotting import figure
 
         self.pn = pn
-        start = rj.params_to_values(rj.params_from_values(values or {}))
-        defaults = {name: float(p.default) for name, p in rj.PARAMETERS.items()}
-        defaults |= {f"orifice_{i}": 4e-4 for i in range(EXPLORER_KNOTS)}
-        defaults |= {k: float(np.asarray(v)) for k, v in start.items()}
         self.fields: dict[str, Any] = {}
         self.field_errors: dict[str, Any] = {}
-        for name, value in defaults.items():
-            parameter = rj.PARAMETERS[name]
-            unit = f" ({parameter.unit})" if parameter.unit else ""
-            low, high = parameter.documented or (None, None)
-            text = f"{int(value)}" if parameter.integer else f"{value:.8g}"
-            widget = pn.widgets.TextInput(
-                label=name + unit, value=text, sizing_mode="stretch_width"
+        for name, value in _start_values(values).items():
+            self._add_field(name, value)
+        self.duration = self._watched(
+            pn.widgets.FloatInput(
+                label="shown time (s)", value=duration, start=0.01, sizing_mode="stretch_width"
             )
-            widget.description = f"{parameter.meaning}; documented {low:g} to {high:g}"
-            widget.css_classes = [f"field-{name}"]
-            widget.param.watch(lambda event: self.update(), "value")
-            self.fields[name] = widget
-            self.field_errors[name] = pn.pane.HTML(
-                "", css_classes=[f"error-{name}"], sizing_mode="stretch_width", margin=(0, 10)
-            )
-        self.duration = pn.widgets.FloatInput(
-            label="shown time (s)", value=duration, start=0.01, sizing_mode="stretch_width"
         )
-        self.duration.param.watch(lambda event: self.update(), "value")
         self.limits = {
-            "peak_displacement": pn.widgets.FloatInput(
-                label="barrel travel limit (m)", value=0.25, sizing_mode="stretch_width"
-            ),
-            "max_stroke": pn.widgets.FloatInput(
-                label="absorber travel limit (m)", value=0.15, sizing_mode="stretch_width"
-            ),
+            name: self._watched(
+                pn.widgets.FloatInput(label=label, value=value, sizing_mode="stretch_width")
+            )
+            for name, (label, value) in _LIMITS.items()
         }
-        for widget in self.limits.values():
-            widget.param.watch(lambda event: self.update(), "value")
-
-        self.motion = ColumnDataSource({"t": [], "x_M": [], "x_m": []})
-        self.force = ColumnDataSource({"t": [], "F_AN": [], "F_ct": []})
-        self.bars = ColumnDataSource({"name": [], "change": []})
-        plot: dict[str, Any] = dict(
-            height=230, sizing_mode="stretch_width", tools="pan,wheel_zoom,reset"
-        )
-        self.motion_plot = figure(
-            title="displacements", x_axis_label="time (s)", y_axis_label="displacement (mm)", **plot
-        )
-        self.motion_plot.line(
-            "t", "x_M", source=self.motion, legend_label="barrel x_M", line_width=2
-        )
-        self.motion_plot.line(
-            "t",
-            "x_m",
-            source=self.motion,
-            legend_label="absorber x_m",
-            color="darkorange",
-            line_width=2,
-        )
-        # The anchoring force (kN) and the contact force (tens of kN) each on its axis.
-        self.force_plot = figure(
-            title="anchoring force into the mounting",
-            x_axis_label="time (s)",
-            y_axis_label="F_AN (kN)",
-            x_range=self.motion_plot.x_range,
-            **plot,
-        )
-        self.force_plot.line("t", "F_AN", source=self.force, color="black", line_width=2)
-        self.contact_plot = figure(
-            title="contact force between barrel and absorber",
-            x_axis_label="time (s)",
-            y_axis_label="F_ct (kN)",
-            x_range=self.motion_plot.x_range,
-            **plot,
-        )
-        self.contact_plot.line("t", "F_ct", source=self.force, color="firebrick", line_width=2)
+        self._add_history_plots()
         self.measured = None if trace is None else self._overlay(trace)
-        self.bar_range = FactorRange()
-        self.bar_plot = figure(
-            title="peak anchoring force: change for +1 % of each parameter",
-            y_range=self.bar_range,
-            x_axis_label="change (N)",
-            height=320,
-            sizing_mode="stretch_width",
-            tools="",
-        )
-        self.bar_plot.hbar(
-            y="name", right="change", height=0.7, source=self.bars, color="steelblue"
-        )
+        self._add_bar_plot()
         self.peaks_pane = pn.pane.HTML("", css_classes=["peaks"])
         self.message = pn.pane.HTML("", css_classes=["message"])
         self.timing = pn.pane.HTML("", css_classes=["timing"])
         self.update_ms: float | None = None
-        groups: dict[str, list] = {}
-        for name, widget in self.fields.items():
-            groups.setdefault(rj.PARAMETERS[name].group, []).extend(
-                [widget, self.field_errors[name]]
-            )
-        self.cards = {
-            group: pn.Card(
-                *widgets,
-                title=_GROUPS[group][0],
-                collapsed=group not in ("barrel", "absorber"),
-                sizing_mode="stretch_width",
-            )
-            for group, widgets in groups.items()
-        }
+        self.cards = self._cards()
         self.views = pn.Column(
             self.message,
             self.peaks_pane,
@@ -207,6 +157,94 @@ class Explorer:
         )
         self._structure: tuple | None = None
         self._update(time.perf_counter())
+
+    def _watched(self, widget):
+        """`widget`, which now updates the views whenever its value changes."""
+        widget.param.watch(lambda event: self.update(), "value")
+        return widget
+
+    def _add_field(self, name: str, value: float) -> None:
+        """A parameter's text field (its unit in the label, its meaning and documented
+        range in the description) and the pane under it for its message."""
+        parameter = rj.PARAMETERS[name]
+        unit = f" ({parameter.unit})" if parameter.unit else ""
+        low, high = parameter.documented or (None, None)
+        text = f"{int(value)}" if parameter.integer else f"{value:.8g}"
+        widget = self.pn.widgets.TextInput(
+            label=name + unit, value=text, sizing_mode="stretch_width"
+        )
+        widget.description = f"{parameter.meaning}; documented {low:g} to {high:g}"
+        widget.css_classes = [f"field-{name}"]
+        self.fields[name] = self._watched(widget)
+        self.field_errors[name] = self.pn.pane.HTML(
+            "", css_classes=[f"error-{name}"], sizing_mode="stretch_width", margin=(0, 10)
+        )
+
+    def _add_history_plots(self) -> None:
+        """The histories' sources (and the bars'), and the plots against time: the
+        displacements, then the anchoring force (kN) and the contact force (tens of kN),
+        each on its axis, all three sharing the time axis."""
+        from bokeh.models import ColumnDataSource
+
+        self.motion = ColumnDataSource({"t": [], "x_M": [], "x_m": []})
+        self.force = ColumnDataSource({"t": [], "F_AN": [], "F_ct": []})
+        self.bars = ColumnDataSource({"name": [], "change": []})
+        self.motion_plot = _time_plot("displacements", "displacement (mm)")
+        self.motion_plot.line(
+            "t", "x_M", source=self.motion, legend_label="barrel x_M", line_width=2
+        )
+        self.motion_plot.line(
+            "t",
+            "x_m",
+            source=self.motion,
+            legend_label="absorber x_m",
+            color="darkorange",
+            line_width=2,
+        )
+        shared = self.motion_plot.x_range
+        self.force_plot = _time_plot("anchoring force into the mounting", "F_AN (kN)", shared)
+        self.force_plot.line("t", "F_AN", source=self.force, color="black", line_width=2)
+        self.contact_plot = _time_plot(
+            "contact force between barrel and absorber", "F_ct (kN)", shared
+        )
+        self.contact_plot.line("t", "F_ct", source=self.force, color="firebrick", line_width=2)
+
+    def _add_bar_plot(self) -> None:
+        """The gradient bars: the peak anchoring force's change for +1 % of each
+        parameter, one bar a parameter (their names the plot's range)."""
+        from bokeh.models import FactorRange
+        from bokeh.plotting import figure
+
+        self.bar_range = FactorRange()
+        self.bar_plot = figure(
+            title="peak anchoring force: change for +1 % of each parameter",
+            y_range=self.bar_range,
+            x_axis_label="change (N)",
+            height=320,
+            sizing_mode="stretch_width",
+            tools="",
+        )
+        self.bar_plot.hbar(
+            y="name", right="change", height=0.7, source=self.bars, color="steelblue"
+        )
+
+    def _cards(self) -> dict[str, Any]:
+        """One card a part, holding its fields (each with its message pane); the barrel's
+        and the absorber's open, the others collapsed."""
+        groups: dict[str, list] = {}
+        for name, widget in self.fields.items():
+            groups.setdefault(rj.PARAMETERS[name].group, []).extend(
+                [widget, self.field_errors[name]]
+            )
+        return {
+            group: self.pn.Card(
+                *widgets,
+                title=_GROUPS[group][0],
+                collapsed=group not in ("barrel", "absorber"),
+                sizing_mode="stretch_width",
+            )
+            for group, widgets in groups.items()
+        }
 
     def _overlay(self, trace: rjx.Trace):
         """A measured trace's signals as points over the live histories (the same units:
@@ -262,12 +300,15 @@ class Explorer:
             self._update(start)
 
     def _new_structure(self) -> bool:
+        """Whether the fields describe a design of another structure than the one shown
+        (False while a field is invalid: nothing will compile)."""
         try:
             return _structure(self.values()) != self._structure
         except rj.ParameterError:
             return False
 
     def _update(self, start: float) -> None:
+        """Compute and show, then take the spinner away."""
         # One message to the page for all the views' changes.
         with self.pn.io.hold():
             try:
@@ -276,6 +317,8 @@ class Explorer:
                 self.views.loading = False
 
     def _compute_and_show(self, start: float) -> None:
+        """Solve the fields' design and show its histories, peaks and gradient bars (or
+        why not); the time since `start` is the update's."""
         for pane in self.field_errors.values():
             pane.object = ""
         self.message.object = ""
@@ -354,6 +397,7 @@ class Explorer:
             card.title = title
 
     def _peaks_html(self, peaks: dict) -> str:
+        """The peaks as an HTML table, each travel held against its limit."""
         rows = []
         for name in (
             "peak_displacement",
