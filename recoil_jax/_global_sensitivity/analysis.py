@@ -24,15 +24,10 @@ import numpy as np
 
 from .._design.problem import Objective
 from .._model.metrics import METRICS, metric
-from .._model.params import (
-    PARAMETERS,
-    ParameterError,
-    RecoilParams,
-    Smoothing,
-    SolverOptions,
-    params_from_values,
-    params_to_values,
-)
+from .._model.parameter_table import PARAMETERS
+from .._model.params import RecoilParams, params_from_values, params_to_values
+from .._model.registry import ParameterError
+from .._model.settings import Smoothing, SolverOptions
 from .._model.status import SolveError
 from .._sweeps.sweep import sweep
 

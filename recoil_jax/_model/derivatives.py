@@ -39,19 +39,11 @@ from .._model.equations import (
 )
 from .._model.lanes import queued_map
 from .._model.metrics import METRICS, PeakGradients, Peaks
-from .._model.params import (
-    PARAMETERS,
-    ParameterError,
-    RecoilParams,
-    Smoothing,
-    SolverOptions,
-    end_time,
-    is_concrete,
-    values_of,
-    with_default_tolerances,
-    with_values,
-)
+from .._model.parameter_table import PARAMETERS
+from .._model.params import RecoilParams, values_of, with_values
 from .._model.programs import structure_jit
+from .._model.registry import ParameterError, is_concrete
+from .._model.settings import Smoothing, SolverOptions, end_time, with_default_tolerances
 from .._model.solve import model_ceilings, model_samples, peaks_of_run
 from .._model.status import raise_on_failure
 from .._model.stepping import Events, PeakLoop, PeakRun

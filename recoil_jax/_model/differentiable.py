@@ -24,7 +24,8 @@ from .._model.derivatives import (
     smooth_name,
 )
 from .._model.metrics import METRICS
-from .._model.params import RecoilParams, Smoothing, SolverOptions, values_of, with_values
+from .._model.params import RecoilParams, values_of, with_values
+from .._model.settings import Smoothing, SolverOptions
 from .._model.status import status_item
 
 __all__ = ["design_metrics", "differentiable_peaks"]

@@ -14,7 +14,8 @@ import jax
 import jax.numpy as jnp
 
 from .._model.metrics import METRICS
-from .._model.params import Buffer, Load, RecoilParams, Recuperator, Smoothing
+from .._model.params import Buffer, Load, RecoilParams, Recuperator
+from .._model.settings import Smoothing
 
 __all__ = [
     "BOTTOM",

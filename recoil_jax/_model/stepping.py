@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from .._model.dense import hermite_max, placeholder_steps, polish
-from .._model.params import SolverOptions
+from .._model.settings import SolverOptions
 from .._model.status import Status
 
 __all__ = [
