@@ -492,7 +492,7 @@ def with_values(params: RecoilParams, names: Sequence[str], values: Any) -> Reco
         else:
             knots[p.index] = value
     if knots:
-        # All knots in one update: this runs in every stage of a sensitivity solve, where
+        # All knots in one update: this runs in every stage of a tangent solve, where
         # a scatter per knot made the 22-parameter program larger and slower.
         assert params.buffer is not None  # (_check_present)
         orifice = jnp.asarray(params.buffer.orifice, dtype=float)

@@ -113,13 +113,14 @@ _KNOT_NAME = re.compile(r"orifice_(0|[1-9][0-9]?)")
 
 
 class ParameterRegistry(Mapping[str, Parameter]):
-    """The design parameters by flat name. Iterating gives the scalar parameters in the
-    order the command line lists them; the orifice knots `orifice_0` ... `orifice_31`
-    (`orifice_<i>`, each a copy of `knot` with its `index`) are looked up by name like the
-    others."""
+    """The design parameters by flat name, from the entries `scalars` and the entry `knot`
+    of the orifice knots. Iterating gives the scalar parameters in the order of `scalars`
+    (the order the command line lists them); the orifice knots `orifice_0` ...
+    `orifice_31` (`orifice_<i>`, each a copy of `knot` with its `index`) are looked up by
+    name like the others."""
 
-    def __init__(self, scalars: dict[str, Parameter], knot: Parameter):
-        self._scalars = scalars
+    def __init__(self, scalars: Sequence[Parameter], knot: Parameter):
+        self._scalars = {p.name: p for p in scalars}
         self._knot = knot
 
     def __getitem__(self, name: str) -> Parameter:

@@ -69,28 +69,24 @@ class Smoothing(Validated):
         "damping_width": Limits(
             unit="m/s",
             lower=0.0,
-            lower_open=False,
             documented=(1e-4, 1e-1),
             meaning="damping and clamp smoothing width; 0 is the exact switch",
         ),
         "contact_width": Limits(
             unit="m",
             lower=0.0,
-            lower_open=False,
             documented=(1e-6, 1e-3),
             meaning="contact onset smoothing width; 0 is the exact switch",
         ),
         "knot_width_fraction": Limits(
             unit="",
             lower=0.0,
-            lower_open=False,
             upper=0.5,
             meaning="orifice knot smoothing width / knot spacing",
         ),
         "contact_width_fraction": Limits(
             unit="",
             lower=0.0,
-            lower_open=False,
             upper=1.0,
             meaning="contact width / characteristic penetration",
         ),

@@ -120,8 +120,8 @@ def peak_metrics(
 
     `jax.vmap` applies, and so do `jax.jacfwd`/`jax.jvp` (default `autodiff="forward"`)
     and `jax.grad`/`jax.vjp` (`SolverOptions(autodiff="reverse")`); these differentiate
-    the discrete solver, whose step grid does not follow the sensitivities. For accurate
-    gradients use `peak_gradients` or `differentiable_peaks`.
+    the discrete solver, whose step grid does not follow the forward sensitivities. For
+    accurate gradients use `peak_gradients` or `differentiable_peaks`.
 
     **Arguments:**
 

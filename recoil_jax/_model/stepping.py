@@ -138,9 +138,9 @@ def _rms_norm(x):
     """Root mean square of the (1-D) scaled error. A short vector as a chain of adds:
     diffrax's default norm is a `dot`, which XLA:CPU sends to a library call per step,
     several times slower for a 4–20-element vector under `vmap`. A longer one (the
-    sensitivities of many parameters) as a sum: the chain of 115 adds was 14 % of the
-    22-parameter gradient program's operations, 2 s of its compile time, and made it run
-    1.25× slower. Zero at zero with finite derivatives."""
+    forward sensitivities of many parameters) as a sum: the chain of 115 adds was 14 % of
+    the 22-parameter gradient program's operations, 2 s of its compile time, and made it
+    run 1.25× slower. Zero at zero with finite derivatives."""
     if x.shape[0] > _CHAIN_NORM_MAX:
         total = jnp.sum(x * x)
     else:
@@ -197,9 +197,9 @@ class PeakLoop:
       times (`PeakRun.saved`), from the solver's dense polynomial.
     - `leading_term`, if given, `(term, size)`: a term for the first `size` components of
       the state alone (their derivatives do not depend on the rest, as the model's do
-      not on its sensitivities). The first step is then chosen on them: diffrax's
+      not on its forward sensitivities). The first step is then chosen on them: diffrax's
       initial-step rule evaluates the vector field twice, and a gradient program's
-      compile time grew by a whole copy of the sensitivity system for it.
+      compile time grew by a whole copy of the tangent system for it.
     """
 
     def __init__(
