@@ -83,19 +83,16 @@ from ._model.paper import (
     case_params as case_params,
     paper_cases as paper_cases,
 )
+from ._model.parameter_table import PARAMETERS as PARAMETERS
 from ._model.params import (
-    PARAMETERS as PARAMETERS,
     Absorber as Absorber,
     Barrel as Barrel,
     Buffer as Buffer,
     Contact as Contact,
     ForceTable as ForceTable,
     Load as Load,
-    ParameterError as ParameterError,
     RecoilParams as RecoilParams,
     Recuperator as Recuperator,
-    Smoothing as Smoothing,
-    SolverOptions as SolverOptions,
     params_from_values as params_from_values,
     params_to_values as params_to_values,
     values_of as values_of,
@@ -106,6 +103,8 @@ from ._model.programs import (
     use_avx2_codegen as use_avx2_codegen,
 )
 from ._model.reference import reference_peaks as reference_peaks
+from ._model.registry import ParameterError as ParameterError
+from ._model.settings import Smoothing as Smoothing, SolverOptions as SolverOptions
 from ._model.solve import (
     History as History,
     peak_metrics as peak_metrics,

@@ -82,10 +82,12 @@ from ._global_sensitivity.analysis import SENSITIVITY_METHODS, SensitivityMethod
 from ._model.derivatives import SIGNALS, signal_sensitivities
 from ._model.equations import Forces
 from ._model.metrics import PEAK_FIELDS, Metric, gradient_key, worst_case
-from ._model.params import MAX_TEXT_BYTES, T1_LIMITS, Parameter, end_time, read_text
 from ._model.programs import live_programs, set_max_programs, structure_jit
 from ._model.reference import reference_history
+from ._model.registry import Parameter
+from ._model.settings import T1_LIMITS, end_time
 from ._model.status import OK_CODE, status_codes, status_messages, status_table
+from ._model.text_files import MAX_TEXT_BYTES, read_text
 from ._sweeps.space import SearchSpace, log_coordinates
 from ._sweeps.sweep import (
     Grid,

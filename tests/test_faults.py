@@ -514,10 +514,10 @@ def test_what_is_not_a_regular_file_is_refused_without_reading_it(traces, capsys
 
 
 def test_a_file_over_the_byte_limit_is_refused_naming_the_limit(traces, capsys, monkeypatch):
-    import recoil_jax._model.params as params
+    import recoil_jax._model.text_files as text_files
 
     assert rjx.MAX_TEXT_BYTES == 64 * 2**20
-    monkeypatch.setattr(params, "MAX_TEXT_BYTES", 500)
+    monkeypatch.setattr(text_files, "MAX_TEXT_BYTES", 500)
     _refused(capsys, ["calibrate", "t.csv", "--fit", "k"],
              "trace t.csv is larger than 0.000476837 MiB, the most a file read whole may "
              "hold (MAX_TEXT_BYTES)")  # fmt: skip

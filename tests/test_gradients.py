@@ -111,9 +111,9 @@ def test_jacobian_api_and_single_design():
         rj.peak_jacobian(rj.params_from_values(m=0.0), wrt=("gap",))
 
 
-def test_sensitivity_gradients_agree_with_jacfwd_where_steps_resolve():
+def test_forward_sensitivity_gradients_agree_with_jacfwd_where_steps_resolve():
     """Away from contact (simplified model, barrel parameters) differentiating the loop
-    and integrating sensitivities agree: two independent derivative paths."""
+    and integrating forward sensitivities agree: two independent derivative paths."""
     params = rj.params_from_values(m=0.0)
     _, grads = rj.peak_jacobian(params, wrt=("k", "c_out", "v0"))
 
@@ -175,7 +175,7 @@ def test_smooth_maximum_stops_early_without_changing_value_or_gradient(monkeypat
     """The smooth maximum stops once the energy bound says the rest of the run can add
     less than 1e-12 to its log-integral: fewer steps than integrating to t1, the same
     value and gradient (a throttling buffer at T = 10 N, where the stop saves most)."""
-    from recoil_jax._model import derivatives as _gradients
+    from recoil_jax._model import derivatives
 
     knots = {f"orifice_{i}": 5e-4 * (1.0 - 0.04 * i) for i in range(8)}
     params = rj.params_from_values(
@@ -188,13 +188,11 @@ def test_smooth_maximum_stops_early_without_changing_value_or_gradient(monkeypat
     def solve():
         # A fresh function each time: the tail threshold is read when traced.
         return eqx.filter_jit(
-            lambda p: _gradients.sensitivity_solve(
-                p, rj.Smoothing(), rj.GRADIENT_OPTIONS, wrt, smooth
-            )
+            lambda p: derivatives.tangent_solve(p, rj.Smoothing(), rj.GRADIENT_OPTIONS, wrt, smooth)
         )(params)
 
     early = solve()
-    monkeypatch.setattr(_gradients, "_SMOOTH_TAIL", 0.0)  # never stops: integrates to t1
+    monkeypatch.setattr(derivatives, "_SMOOTH_TAIL", 0.0)  # never stops: integrates to t1
     full = solve()
     assert all_ok(early.peaks.status) and all_ok(full.peaks.status)
     assert int(early.peaks.num_steps) < 0.8 * int(full.peaks.num_steps)
@@ -207,7 +205,7 @@ def test_metric_series_matches_the_history_and_finite_differences():
     """The anchoring force on a `MetricSeries` equals `simulate`'s at the same times, its
     gradients equal central differences of `simulate` (tight tolerance), and save times
     after the run stopped (its peaks certain) are NaN."""
-    from recoil_jax._model import derivatives as _gradients
+    from recoil_jax._model import derivatives
 
     knots = {f"orifice_{i}": 4e-4 * (1.0 - 0.1 * i) for i in range(4)}
     values = dict(
@@ -218,7 +216,7 @@ def test_metric_series_matches_the_history_and_finite_differences():
     ts = np.concatenate([np.linspace(0.01, 0.3, 7), [9.9]])  # the last after the run
     series = rj.MetricSeries(("peak_anchoring_force",), ts)
     solve = eqx.filter_jit(
-        lambda p: _gradients.sensitivity_solve(
+        lambda p: derivatives.tangent_solve(
             p, rj.Smoothing(), rj.GRADIENT_OPTIONS, wrt, None, series
         )
     )
@@ -245,16 +243,16 @@ def test_metric_series_matches_the_history_and_finite_differences():
 
 
 @pytest.mark.parametrize("hardware", [False, True], ids=["paper", "burst"])
-def test_the_sensitivity_system_is_traced_once(hardware):
-    """The state with a sensitivity column per parameter is the largest part of a gradient
+def test_the_tangent_system_is_traced_once(hardware):
+    """The state with a tangent column per parameter is the largest part of a gradient
     program. Its vector field is traced once, inside diffrax's stage loop: not again for
     the first step's size, at t = 0, or after a load's stops, each of which was a whole
     further copy for XLA to compile (4 and 5 traces before)."""
-    from recoil_jax._model import derivatives as _gradients
+    from recoil_jax._model import derivatives
     from recoil_jax.apps._bench.speed import hardware_designs
 
     traces = []
-    original = _gradients._sensitivity_vf
+    original = derivatives._tangent_vf
 
     def counted(*args, **kwargs):
         traces.append(1)
@@ -264,14 +262,14 @@ def test_the_sensitivity_system_is_traced_once(hardware):
     if hardware:
         params = jax.tree.map(lambda x: x[0], rjx.batch_params(hardware_designs(1))[0])
         wrt = ("gap", "orifice_2", "recuperator_force")
-    _gradients._sensitivity_term.cache_clear()
-    _gradients._sensitivity_vf = counted
+    derivatives._tangent_term.cache_clear()
+    derivatives._tangent_vf = counted
     try:
         jax.eval_shape(
-            lambda p: _gradients.sensitivity_solve(p, rj.Smoothing(), rj.GRADIENT_OPTIONS, wrt),
+            lambda p: derivatives.tangent_solve(p, rj.Smoothing(), rj.GRADIENT_OPTIONS, wrt),
             params,
         )
     finally:
-        _gradients._sensitivity_vf = original
-        _gradients._sensitivity_term.cache_clear()
+        derivatives._tangent_vf = original
+        derivatives._tangent_term.cache_clear()
     assert len(traces) == 1

@@ -189,6 +189,7 @@ def test_parameter_names_derive_from_the_registry():
     }
     arrays = {"table", "orifice"}  # not scalar parameters: the force table, the knots
     assert {p.group for p in rj.PARAMETERS.values()} == set(groups)
+    assert all(p.owner == groups[p.group].__name__ for p in rj.PARAMETERS.values())
     for group, cls in groups.items():
         fields = [f.name for f in dataclasses.fields(cls) if f.name not in arrays]
         assert fields == [n for n, p in rj.PARAMETERS.items() if p.group == group], group

@@ -45,21 +45,17 @@ from .._model.derivatives import (
     SIGNALS,
     signal_sensitivities,
 )
+from .._model.parameter_table import PARAMETERS
 from .._model.params import (
-    PARAMETERS,
     ForceTable,
-    ParameterError,
     RecoilParams,
-    Smoothing,
-    SolverOptions,
-    check_value,
-    end_time,
     params_from_values,
     params_to_values,
-    with_default_tolerances,
     with_values,
 )
 from .._model.programs import structure_jit
+from .._model.registry import ParameterError, check_value
+from .._model.settings import Smoothing, SolverOptions, end_time, with_default_tolerances
 from .._model.status import OK_CODE
 from .._sweeps.space import SearchSpace, log_coordinates
 from .._sweeps.sweep import batch_params, with_table

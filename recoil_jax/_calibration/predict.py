@@ -15,15 +15,12 @@ import numpy as np
 
 from .._model.derivatives import GRADIENT_OPTIONS, peak_jacobian
 from .._model.metrics import METRICS
-from .._model.params import (
-    PARAMETERS,
-    ParameterError,
-    Smoothing,
-    SolverOptions,
-    params_from_values,
-    read_text,
-)
+from .._model.parameter_table import PARAMETERS
+from .._model.params import params_from_values
+from .._model.registry import ParameterError
+from .._model.settings import Smoothing, SolverOptions
 from .._model.solve import peaks
+from .._model.text_files import read_text
 from .._sweeps.sweep import sweep
 
 __all__ = ["FittedParameters", "Prediction", "predict"]

@@ -18,16 +18,11 @@ from typing import Any
 import numpy as np
 
 from .._model.derivatives import ABSORBER_SIGNALS, SIGNAL_ALIASES, SIGNALS
-from .._model.params import (
-    ForceTable,
-    Limits,
-    ParameterError,
-    RecoilParams,
-    check_value,
-    parameter,
-    read_text,
-)
+from .._model.parameter_table import parameter
+from .._model.params import ForceTable, RecoilParams
+from .._model.registry import Limits, ParameterError, check_value
 from .._model.solve import History
+from .._model.text_files import read_text
 
 __all__ = [
     "TIME_COLUMNS",

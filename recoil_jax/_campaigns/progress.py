@@ -12,7 +12,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .._model.feasibility import best_feasible_note
-from .._model.params import ParameterError
+from .._model.registry import ParameterError
 from .store import connect_read, read_meta
 
 __all__ = ["CampaignProgress", "Progress", "campaign_progress"]

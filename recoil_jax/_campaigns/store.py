@@ -51,7 +51,7 @@ from .._model.feasibility import (
     feasible,
     largest_violation,
 )
-from .._model.params import ParameterError
+from .._model.registry import ParameterError
 from .._model.status import OK_CODE, status_messages
 from .._version import __version__
 

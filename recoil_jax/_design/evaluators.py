@@ -33,8 +33,9 @@ from .._design.local import LocalEvaluation
 from .._design.problem import DesignProblem, evaluate_design, metric_violations
 from .._model.derivatives import MetricSeries, series_name
 from .._model.metrics import METRICS
-from .._model.params import end_time, params_to_values
+from .._model.params import params_to_values
 from .._model.programs import structure_jit
+from .._model.settings import end_time
 from .._model.status import OK_CODE
 from .._sweeps.space import SearchSpace
 from .._sweeps.sweep import CHUNK_SIZE, sweep

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .._model.params import ParameterError
+from .._model.registry import ParameterError
 
 __all__ = ["AugmentedLagrangian", "LagrangianState", "cosine_decayed"]
 

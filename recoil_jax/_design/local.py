@@ -30,7 +30,7 @@ from .._model.feasibility import (
     feasible,
     largest_violation,
 )
-from .._model.params import ParameterError
+from .._model.registry import ParameterError
 
 __all__ = [
     "SLSQP",

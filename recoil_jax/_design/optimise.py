@@ -39,7 +39,8 @@ from .._model.feasibility import (
     feasible,
     largest_violation,
 )
-from .._model.params import ParameterError, RecoilParams, values_of
+from .._model.params import RecoilParams, values_of
+from .._model.registry import ParameterError
 from .._model.status import OK_CODE
 from .._sweeps.space import SearchSpace
 

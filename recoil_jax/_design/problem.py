@@ -25,17 +25,10 @@ from .._model.derivatives import GRADIENT_OPTIONS, MetricSeries, SmoothMax, chec
 from .._model.differentiable import design_metrics
 from .._model.feasibility import FEASIBILITY_TOLERANCE
 from .._model.metrics import METRICS, metric, worst_case
-from .._model.params import (
-    PARAMETERS,
-    ParameterError,
-    RecoilParams,
-    Smoothing,
-    SolverOptions,
-    check_value,
-    parameter,
-    values_of,
-    with_values,
-)
+from .._model.parameter_table import PARAMETERS, parameter
+from .._model.params import RecoilParams, values_of, with_values
+from .._model.registry import ParameterError, check_value
+from .._model.settings import Smoothing, SolverOptions
 from .._model.status import status_item
 
 __all__ = [

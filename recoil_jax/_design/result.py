@@ -12,7 +12,8 @@ import jax
 import numpy as np
 
 from .._design.problem import Agreement, DesignProblem
-from .._model.params import ParameterError, RecoilParams, params_to_values, with_values
+from .._model.params import RecoilParams, params_to_values, with_values
+from .._model.registry import ParameterError
 
 __all__ = ["Found", "OptimiseResult", "RunRecord", "build_result"]
 

@@ -65,7 +65,8 @@ from .._model.feasibility import (
     feasible,
     largest_violation,
 )
-from .._model.params import ParameterError, values_of
+from .._model.params import values_of
+from .._model.registry import ParameterError
 from .._sweeps.space import SearchSpace
 from .._sweeps.sweep import default_workers
 

@@ -24,17 +24,12 @@ import numpy as np
 
 from .._design.problem import Objective
 from .._model.metrics import METRICS, metric
-from .._model.params import (
-    PARAMETERS,
-    ParameterError,
-    RecoilParams,
-    Smoothing,
-    SolverOptions,
-    params_from_values,
-    params_to_values,
-)
+from .._model.parameter_table import PARAMETERS
+from .._model.params import RecoilParams, params_from_values, params_to_values
+from .._model.registry import ParameterError
+from .._model.settings import Smoothing, SolverOptions
 from .._model.status import SolveError
-from .._sweeps.sweep import sweep
+from .._sweeps.sweep import SweepResult, sweep
 
 __all__ = [
     "DGSM",
@@ -517,13 +512,7 @@ def sensitivity(
         if shown:
             print(f"sensitivity: {line}", file=sys.stderr, flush=True)
 
-    count = method.designs(len(names))
-    if count > MAX_DESIGNS:
-        raise ParameterError(
-            f"{method.name}: {count:,} designs is more than {MAX_DESIGNS:,}; use fewer "
-            "samples or parameters"
-        )
-    x = method.sample(problem)
+    x = _samples(method, problem)
     say(f"{method.name} over {len(names)} parameters: {len(x):,} designs")
     columns = {name: np.full(len(x), value) for name, value in values.items()}
     columns |= {name: x[:, i] for i, name in enumerate(names)}
@@ -531,11 +520,45 @@ def sensitivity(
         columns, smoothing=smoothing, options=options, wrt=names if method.gradients else None,
         store=store, client=client, workers=workers, progress=shown,
     )  # fmt: skip
+    outputs, gradients = _outputs(swept, metrics, names, objective, method.gradients)
+    say(f"analysing ({method.name}, {getattr(method, 'resamples', 0)} bootstrap resamples)")
+    result = _analysed(method, problem, x, outputs, swept.ok, gradients)
+    return dataclasses.replace(
+        result,
+        design=values,
+        failures=_failures(swept, result.ok),
+        seconds=time.perf_counter() - start,
+        stored=swept.stored,
+    )
+
+
+def _samples(method: SensitivityMethod, problem: dict) -> np.ndarray:
+    """The method's samples of the box, `(n, d)`; `ParameterError` for more than
+    `MAX_DESIGNS`, before any is drawn."""
+    count = method.designs(problem["num_vars"])
+    if count > MAX_DESIGNS:
+        raise ParameterError(
+            f"{method.name}: {count:,} designs is more than {MAX_DESIGNS:,}; use fewer "
+            "samples or parameters"
+        )
+    return method.sample(problem)
+
+
+def _outputs(
+    swept: SweepResult,
+    metrics: tuple[str, ...],
+    names: tuple[str, ...],
+    objective: Objective | None,
+    gradients: bool,
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray] | None]:
+    """`(outputs, gradients)` of the sweep `swept` for the `metrics` (in their order):
+    metric → `(n,)`, the objective's the weighted sum of its metrics; with `gradients`,
+    metric → `(n, d)` with respect to the parameters `names` (else None)."""
     outputs = {m: swept.peaks[m] for m in metrics if m in METRICS}
     if objective is not None:
         outputs[OBJECTIVE] = np.asarray(objective(swept.peaks), dtype=float)
-    gradients = None
-    if method.gradients:
+    jacobians = None
+    if gradients:
         assert swept.gradients is not None
         by_metric = swept.gradients
 
@@ -546,23 +569,19 @@ def sensitivity(
                 return np.sum(terms, axis=0)
             return np.stack([by_metric[metric][p] for p in names], axis=1)
 
-        gradients = {m: jacobian(m) for m in metrics}
-    outputs = {m: outputs[m] for m in metrics}
-    say(f"analysing ({method.name}, {getattr(method, 'resamples', 0)} bootstrap resamples)")
-    result = _analysed(method, problem, x, outputs, swept.ok, gradients)
-    # A solve that succeeded with a non-finite output (never seen) is counted too.
+        jacobians = {m: jacobian(m) for m in metrics}
+    return {m: outputs[m] for m in metrics}, jacobians
+
+
+def _failures(swept: SweepResult, ok: np.ndarray) -> dict[str, int]:
+    """Why the designs not `ok` were left out: the sweep's message of each failed solve,
+    by count. A solve that succeeded with a non-finite output (never seen) is counted
+    too."""
     messages = swept.messages()
     failures = collections.Counter(
-        messages[i] if not swept.ok[i] else "a non-finite output"
-        for i in np.flatnonzero(~result.ok)
+        messages[i] if not swept.ok[i] else "a non-finite output" for i in np.flatnonzero(~ok)
     )
-    return dataclasses.replace(
-        result,
-        design=values,
-        failures=dict(failures),
-        seconds=time.perf_counter() - start,
-        stored=swept.stored,
-    )
+    return dict(failures)
 
 
 def _analysed(

@@ -1,8 +1,22 @@
-"""The model and its solver: the parameters and their registry (`params`), the equations
-of motion and the recoil hardware (`equations`), the step loop with its peaks and events
-(`stepping`, `dense`, `lanes`, `solve`), the status codes, the metrics, the forward
-sensitivities of peaks and signals (`derivatives`), differentiable peaks
-(`differentiable`), the compiled-program cache (`programs`), the paper's cases and the
-independent hard-switch reference solver (`reference`).
+"""The model and its solver, one concept a module:
+
+- `registry`: the registry's types (`Parameter`, `Limits`), `ParameterError`, and the
+  validation of a value against its limits;
+- `parameter_table`: the registry's data, every design parameter (`PARAMETERS`);
+- `params`: the parameter pytrees (`RecoilParams` and its parts) and the flat names;
+- `settings`: the smoothing widths, the solver options, a design's end time and the
+  check that its load fits;
+- `text_files`: the one reader of text files (`read_text`, `MAX_TEXT_BYTES`);
+- `metrics`: the metric registry (`METRICS`) and the containers of metrics by name;
+- `equations`: the equations of motion, the recoil hardware and the energy bounds;
+- `stepping`, `dense`, `lanes`, `solve`: the step loop with its peaks and events, the
+  maxima between steps, the lane scheduler, and solving one design or a batch;
+- `status`: how a solve ended (`Status`);
+- `derivatives`: the forward sensitivities (tangents) of peaks and signals;
+- `differentiable`: differentiable peaks;
+- `programs`: the compiled-program cache;
+- `feasibility`: the one feasibility rule;
+- `paper`, `reference`: the paper's cases and the independent hard-switch reference
+  solver.
 
 May import: nothing else of the package (the bottom layer)."""

@@ -2,16 +2,17 @@
 
 `jax.jacfwd` through the adaptive stepping loop differentiates the *discrete* solution
 on a step grid chosen for the state alone. Through a contact onset the state is smooth
-but its sensitivity to `gap` changes over microseconds, and a grid that does not see it
-gives gap gradients that are off by percents. So the Jacobian here integrates the
-forward sensitivities `S = ∂y/∂θ` alongside `y` (`dS/dt = ∂f/∂y S + ∂f/∂θ`), and the
-step-size controller sees both (as CVODES does with sensitivity error control). The
-gradient of a peak `g(y(t*), θ)` then follows from the envelope theorem,
-`dg/dθ = ∇_y g · S(t*) + ∂g/∂θ`, with `y(t*)` and `S(t*)` taken from the solver's dense
-polynomial at the located peak (`docs/model.md`, *Gradients*).
+but its forward sensitivity to `gap` changes over microseconds, and a grid that does not
+see it gives gap gradients that are off by percents. So the Jacobian here integrates the
+forward sensitivities `S = ∂y/∂θ` (the tangents) alongside `y` (`dS/dt = ∂f/∂y S +
+∂f/∂θ`), and the step-size controller sees both (as CVODES does with forward-sensitivity
+error control). The gradient of a peak `g(y(t*), θ)` then follows from the envelope
+theorem, `dg/dθ = ∇_y g · S(t*) + ∂g/∂θ`, with `y(t*)` and `S(t*)` taken from the
+solver's dense polynomial at the located peak (`docs/model.md`, *Gradients*).
 
 Each tangent direction is scaled by its parameter's documented range, so that all
-sensitivity columns have the size of the state and one error norm suits them all.
+tangent columns have the size of the state and one error norm suits them all. (The
+global sensitivity analysis over a box is another thing: `_global_sensitivity`.)
 """
 
 from __future__ import annotations
@@ -39,19 +40,11 @@ from .._model.equations import (
 )
 from .._model.lanes import queued_map
 from .._model.metrics import METRICS, PeakGradients, Peaks
-from .._model.params import (
-    PARAMETERS,
-    ParameterError,
-    RecoilParams,
-    Smoothing,
-    SolverOptions,
-    end_time,
-    is_concrete,
-    values_of,
-    with_default_tolerances,
-    with_values,
-)
+from .._model.parameter_table import PARAMETERS
+from .._model.params import RecoilParams, values_of, with_values
 from .._model.programs import structure_jit
+from .._model.registry import ParameterError, is_concrete
+from .._model.settings import Smoothing, SolverOptions, end_time, with_default_tolerances
 from .._model.solve import model_ceilings, model_samples, peaks_of_run
 from .._model.status import raise_on_failure
 from .._model.stepping import Events, PeakLoop, PeakRun
@@ -70,21 +63,21 @@ __all__ = [
     "peak_gradients",
     "peak_gradients_batch",
     "peak_jacobian",
-    "sensitivity_loop",
-    "sensitivity_solve",
     "series_name",
     "signal_sensitivities",
     "signal_values",
     "smooth_name",
+    "tangent_loop",
+    "tangent_solve",
 ]
 
 #: The default parameters to differentiate with respect to: the absorber design.
 DESIGN_PARAMETERS = ("gap", "m", "k_r", "c_r")
 
-#: Default solver options for gradients. With error control on the sensitivities the
-#: gradient error follows the tolerance, whatever the smoothing widths: measured against
-#: central differences (scaled by the parameter's range over the peak), rtol 1e-6 gave
-#: <= 1.8e-4 and rtol 1e-7 <= 8.2e-5 over 24 designs (tests/test_gradients.py).
+#: Default solver options for gradients. With error control on the forward sensitivities
+#: the gradient error follows the tolerance, whatever the smoothing widths: measured
+#: against central differences (scaled by the parameter's range over the peak), rtol 1e-6
+#: gave <= 1.8e-4 and rtol 1e-7 <= 8.2e-5 over 24 designs (tests/test_gradients.py).
 GRADIENT_OPTIONS = SolverOptions(rtol=1e-7, atol=1e-10)
 
 
@@ -239,10 +232,10 @@ def _state_size(smooth_max) -> int:
     return _N_STATE + (0 if smooth_max is None else len(smooth_max.metrics))
 
 
-def _sensitivity_vf(t, z, args, wrt):
+def _tangent_vf(t, z, args, wrt):
     params, smoothing, smooth_max, t1 = args
     n = _state_size(smooth_max)
-    y, sensitivities = z[:n], z[n:].reshape(-1, n)
+    y, tangents = z[:n], z[n:].reshape(-1, n)
     # Linearised in the parameters `wrt` only: the others are constants here, so no
     # tangent flows through them.
     f_y, f_jvp = jax.linearize(
@@ -252,26 +245,27 @@ def _sensitivity_vf(t, z, args, wrt):
         y,
         values_of(params, wrt),
     )
-    d_sensitivities = jax.vmap(f_jvp)(sensitivities, _directions(wrt))
-    return jnp.concatenate([f_y, d_sensitivities.reshape(-1)])
+    d_tangents = jax.vmap(f_jvp)(tangents, _directions(wrt))
+    return jnp.concatenate([f_y, d_tangents.reshape(-1)])
 
 
 @functools.cache
-def _sensitivity_term(wrt: tuple[str, ...]) -> diffrax.ODETerm:
-    """The state and its sensitivities to `wrt` as one diffrax term (one per `wrt`)."""
-    return diffrax.ODETerm(functools.partial(_sensitivity_vf, wrt=wrt))
+def _tangent_term(wrt: tuple[str, ...]) -> diffrax.ODETerm:
+    """The state and its tangents (forward sensitivities) to `wrt` as one diffrax term
+    (one per `wrt`)."""
+    return diffrax.ODETerm(functools.partial(_tangent_vf, wrt=wrt))
 
 
-#: The state (and smooth maxima) of the sensitivity system alone, with its `args`.
+#: The state (and smooth maxima) of the tangent system alone, with its `args`.
 _STATE_TERM = diffrax.ODETerm(lambda t, y, args: _augmented_vf(t, y, *args))
 
 
-def _sensitivity_metrics(z, args):
+def _tangent_metrics(z, args):
     params, smoothing, smooth_max, _ = args
     return _augmented_metrics(z[: _state_size(smooth_max)], params, smoothing, smooth_max)
 
 
-def _sensitivity_bounds(z, args, t, t1):
+def _tangent_bounds(z, args, t, t1):
     """`future_metric_bounds` of the state part of `z` (without smooth maxima)."""
     params, smoothing, _, _ = args
     return future_metric_bounds(z[:_N_STATE], model_args(params, smoothing), t, t1)
@@ -282,12 +276,12 @@ def _sensitivity_bounds(z, args, t, t1):
 _SMOOTH_TAIL = 1e-12
 
 
-def _smooth_sensitivity_bounds(z, args, t, t1):
-    """`_sensitivity_bounds`, and for each smooth maximum its log-integral `L` where the
+def _smooth_tangent_bounds(z, args, t, t1):
+    """`_tangent_bounds`, and for each smooth maximum its log-integral `L` where the
     rest of the run cannot raise it by `_SMOOTH_TAIL` (else `+inf`): with `B` bounding
     the metric from `t` on, `L(t1) <= L(t) + log(1 + (t1 - t)/t1 · exp(B/T - L(t)))`."""
     _, _, smooth_max, _ = args
-    bounds = _sensitivity_bounds(z, args, t, t1)
+    bounds = _tangent_bounds(z, args, t, t1)
     for j, name in enumerate(smooth_max.metrics):
         log_integral = z[_N_STATE + j]
         exponent = jnp.minimum(bounds[name] / smooth_max.temperatures[j] - log_integral, 700.0)
@@ -307,15 +301,15 @@ def _augmented_jump(t, y, params):
     return y.at[:_N_STATE].set(load_jump(t, y[:_N_STATE], params))
 
 
-def _sensitivity_jump(before, t, z, f_before, args, wrt):
-    """The state and its sensitivities right after the stop `t` (from `z` at `before`,
+def _tangent_jump(before, t, z, f_before, args, wrt):
+    """The state and its tangents right after the stop `t` (from `z` at `before`,
     one ULP earlier, where the system's vector field is `f_before`). For a jump
-    `y⁺ = g(y⁻, θ)` at a time `τ(θ)`, the sensitivities jump
+    `y⁺ = g(y⁻, θ)` at a time `τ(θ)`, the tangents jump
     by `S⁺ = g_y (S⁻ + f⁻ τ_θ) + g_θ − f⁺ τ_θ`: the round's firing time moves with
     `fire_interval`, and `f⁻ ≠ f⁺` where a force table starts or ends off zero."""
     params, smoothing, smooth_max, t1 = args
     n = _state_size(smooth_max)
-    y, sensitivities = z[:n], z[n:].reshape(-1, n)
+    y, tangents = z[:n], z[n:].reshape(-1, n)
     theta = values_of(params, wrt)
     index = jnp.argmin(jnp.abs(_stops(params) - t))
 
@@ -334,26 +328,26 @@ def _sensitivity_jump(before, t, z, f_before, args, wrt):
         jumped = jax.jvp(jump, (y, theta), (s + f_before * moved, d))[1]
         return jumped - f_after * moved
 
-    columns = jax.vmap(column)(sensitivities, _directions(wrt))
+    columns = jax.vmap(column)(tangents, _directions(wrt))
     return jnp.concatenate([after, columns.reshape(-1)])
 
 
 @functools.cache
-def _sensitivity_events(wrt: tuple[str, ...]) -> Events:
-    """The load's stops, jumps and restarts for the sensitivity system (one per `wrt`)."""
+def _tangent_events(wrt: tuple[str, ...]) -> Events:
+    """The load's stops, jumps and restarts for the tangent system (one per `wrt`)."""
     return Events(
         stops=lambda args: load_stops(args[0]),
-        jump=functools.partial(_sensitivity_jump, wrt=wrt),
+        jump=functools.partial(_tangent_jump, wrt=wrt),
         restart=lambda args: restart_step(args[0]),
     )
 
 
 def _events(params, wrt):
-    return None if params.load is None else _sensitivity_events(wrt)
+    return None if params.load is None else _tangent_events(wrt)
 
 
-def _sensitivity_setup(params, smoothing, wrt, smooth_max, t1):
-    """`(z0, args)` of the sensitivity system up to `t1`: the state, then one sensitivity
+def _tangent_setup(params, smoothing, wrt, smooth_max, t1):
+    """`(z0, args)` of the tangent system up to `t1`: the state, then one tangent
     column per parameter in `wrt` (scaled by its range)."""
 
     def initial(theta):
@@ -366,8 +360,8 @@ def _sensitivity_setup(params, smoothing, wrt, smooth_max, t1):
     return z0, (params, smoothing, smooth_max, t1)
 
 
-class Sensitivities(NamedTuple):
-    """What one solve of the state with its sensitivities gives (`sensitivity_solve`).
+class ForwardSensitivities(NamedTuple):
+    """What one solve of the state with its forward sensitivities gives (`tangent_solve`).
 
     - `peaks`: the `Peaks`; `gradients`: their `PeakGradients` with respect to `wrt`;
     - `smooth_values (k,)`, `smooth_gradients (k, len(wrt))`: the smooth maxima of a
@@ -385,9 +379,9 @@ class Sensitivities(NamedTuple):
     series_gradients: Any = None
 
 
-def _sensitivity_post(args, run: PeakRun, wrt, series: MetricSeries | None = None):
+def _tangent_post(args, run: PeakRun, wrt, series: MetricSeries | None = None):
     """Gradients at the located peaks by the envelope theorem: `∇_y g · S(t*) + ∂g/∂θ`,
-    as `Sensitivities`."""
+    as `ForwardSensitivities`."""
     params, smoothing, smooth_max, t1 = args
     n = _state_size(smooth_max)
     theta = values_of(params, wrt)
@@ -399,10 +393,10 @@ def _sensitivity_post(args, run: PeakRun, wrt, series: MetricSeries | None = Non
         return jnp.stack([values[name] for name in run.names])[i]
 
     def gradient_of_metric(i, state, time):
-        y, sensitivities = state[:n], state[n:].reshape(-1, n)
+        y, tangents = state[:n], state[n:].reshape(-1, n)
         directional = jax.vmap(
             lambda s, d: jax.jvp(lambda y_, th: metric(i, y_, th), (y, theta), (s, d))[1]
-        )(sensitivities, _directions(wrt))
+        )(tangents, _directions(wrt))
         if stops is None:
             return directional
         # A peak right after a round's firing (a velocity jump) stays at that instant,
@@ -432,7 +426,7 @@ def _sensitivity_post(args, run: PeakRun, wrt, series: MetricSeries | None = Non
             [grads[smooth_name(m)] for m in smooth_max.metrics]
         )
     if series is None:
-        return Sensitivities(peaks, gradients, smooth_values, smooth_grads)
+        return ForwardSensitivities(peaks, gradients, smooth_values, smooth_grads)
 
     def on_series(i):
         # The same envelope formula at each save time (a fixed time: no rate term).
@@ -448,32 +442,34 @@ def _sensitivity_post(args, run: PeakRun, wrt, series: MetricSeries | None = Non
     rows = [on_series(run.names.index(name)) for name in series.metrics]
     series_values = jnp.stack([r[0] for r in rows])
     series_grads = jnp.stack([r[1] for r in rows])
-    return Sensitivities(peaks, gradients, smooth_values, smooth_grads, series_values, series_grads)
+    return ForwardSensitivities(
+        peaks, gradients, smooth_values, smooth_grads, series_values, series_grads
+    )
 
 
-def sensitivity_solve(
+def tangent_solve(
     params, smoothing, options, wrt, smooth_max=None, series=None
-) -> Sensitivities:
+) -> ForwardSensitivities:
     """Peaks and their gradients with respect to `wrt`, with (given `smooth_max`) the
     smooth maxima and (given a `MetricSeries`) the signals at its save times, each with
-    its gradients: one solve of the state with its sensitivities (`Sensitivities`).
-    Unjitted; `wrt` and the metric names are static."""
+    its gradients: one solve of the state with its forward sensitivities
+    (`ForwardSensitivities`). Unjitted; `wrt` and the metric names are static."""
     t1 = end_time(params, options)
-    z0, args = _sensitivity_setup(params, smoothing, wrt, smooth_max, t1)
-    loop = sensitivity_loop(params, options, wrt, smooth_max)
+    z0, args = _tangent_setup(params, smoothing, wrt, smooth_max, t1)
+    loop = tangent_loop(params, options, wrt, smooth_max)
     run = loop.integrate(z0, args, t1, save_ts=None if series is None else series.ts)
-    return _sensitivity_post(args, run, wrt, series)
+    return _tangent_post(args, run, wrt, series)
 
 
-def sensitivity_loop(params, options, wrt, smooth_max=None, stop_early: bool = True) -> PeakLoop:
-    """The stepping loop of the state with its sensitivities to `wrt` (and the smooth
-    maxima of `smooth_max`) for the structure of `params`: the one place that wires the
-    sensitivity system into a solve (as `model_loop` for the model alone). `stop_early`:
+def tangent_loop(params, options, wrt, smooth_max=None, stop_early: bool = True) -> PeakLoop:
+    """The stepping loop of the state with its forward sensitivities to `wrt` (and the
+    smooth maxima of `smooth_max`) for the structure of `params`: the one place that wires
+    the tangent system into a solve (as `model_loop` for the model alone). `stop_early`:
     stop once the peaks are certain (a calibration's signals run to `t1`)."""
-    bounds = _sensitivity_bounds if smooth_max is None else _smooth_sensitivity_bounds
+    bounds = _tangent_bounds if smooth_max is None else _smooth_tangent_bounds
     return PeakLoop(
-        _sensitivity_term(wrt),
-        _sensitivity_metrics,
+        _tangent_term(wrt),
+        _tangent_metrics,
         with_default_tolerances(params, options),
         bounds if stop_early else None,
         _events(params, wrt),
@@ -484,14 +480,14 @@ def sensitivity_loop(params, options, wrt, smooth_max=None, stop_early: bool = T
 
 
 def _peak_gradients_batch(params, t1, smoothing, options, wrt, lanes, count):
-    loop = sensitivity_loop(params, options, wrt)
+    loop = tangent_loop(params, options, wrt)
 
     def setup(design):
         p, end = design
-        return *_sensitivity_setup(p, smoothing, wrt, None, end), end
+        return *_tangent_setup(p, smoothing, wrt, None, end), end
 
     def post(design, args, run):
-        solved = _sensitivity_post(args, run, wrt)
+        solved = _tangent_post(args, run, wrt)
         return solved.peaks, solved.gradients
 
     return queued_map(
@@ -512,7 +508,7 @@ peak_gradients_batch = structure_jit(_peak_gradients_batch)
 
 
 def _peaks_and_gradients(params, smoothing, options, wrt):
-    solved = sensitivity_solve(params, smoothing, options, wrt)
+    solved = tangent_solve(params, smoothing, options, wrt)
     return solved.peaks, solved.gradients
 
 
@@ -626,10 +622,8 @@ def signal_sensitivities(
     derivatives with respect to the parameters `wrt` and to time: one solve of the state
     with its forward sensitivities (error-controlled) run to `t1`, the same envelope
     formula as the peaks' at fixed times. Unjitted; `wrt` and `names` are static."""
-    z0, args = _sensitivity_setup(params, smoothing, wrt, None, t1)
-    run = sensitivity_loop(params, options, wrt, stop_early=False).integrate(
-        z0, args, t1, save_ts=ts
-    )
+    z0, args = _tangent_setup(params, smoothing, wrt, None, t1)
+    run = tangent_loop(params, options, wrt, stop_early=False).integrate(z0, args, t1, save_ts=ts)
     theta = values_of(params, wrt)
     scales = jnp.asarray([parameter_scale(name) for name in wrt])
 

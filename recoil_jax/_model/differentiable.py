@@ -1,8 +1,8 @@
 """Peak metrics as a differentiable function of a flat design vector.
 
-`differentiable_peaks` wraps the forward-sensitivity solve (`_gradients`) in a custom
-JVP: the primal solve also integrates the sensitivities, and the JVP is their Jacobian
-times the tangent. So `jax.grad`, `jax.value_and_grad`, `jax.jacfwd` and `jax.jacrev`
+`differentiable_peaks` wraps the forward-sensitivity solve (`tangent_solve`) in a
+custom JVP: the primal solve also integrates the forward sensitivities, and the JVP is
+their Jacobian times the tangent. So `jax.grad`, `jax.value_and_grad`, `jax.jacfwd` and `jax.jacrev`
 of *any* function built on the metrics (an objective, a penalty, a worst case over a
 batch) get the error-controlled gradients, not the derivative of the discrete solver.
 """
@@ -19,19 +19,20 @@ from .._model.derivatives import (
     GRADIENT_OPTIONS,
     SmoothMax,
     check_wrt,
-    sensitivity_solve,
     series_name,
     smooth_name,
+    tangent_solve,
 )
 from .._model.metrics import METRICS
-from .._model.params import RecoilParams, Smoothing, SolverOptions, values_of, with_values
+from .._model.params import RecoilParams, values_of, with_values
+from .._model.settings import Smoothing, SolverOptions
 from .._model.status import status_item
 
 __all__ = ["design_metrics", "differentiable_peaks"]
 
 
 def _solve(theta, params, wrt, smoothing, options, smooth_max, series):
-    solved = sensitivity_solve(
+    solved = tangent_solve(
         with_values(params, wrt, theta), smoothing, options, wrt, smooth_max, series
     )
     values = {name: getattr(solved.peaks, name) for name in METRICS}

@@ -14,7 +14,8 @@ import jax
 import jax.numpy as jnp
 
 from .._model.metrics import METRICS
-from .._model.params import Buffer, Load, RecoilParams, Recuperator, Smoothing
+from .._model.params import Buffer, Load, RecoilParams, Recuperator
+from .._model.settings import Smoothing
 
 __all__ = [
     "BOTTOM",
@@ -292,6 +293,40 @@ def future_metric_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
     smoothing)`.
     """
     params, smoothing, width_contact = args
+    width_v = smoothing.damping_width
+    energy, spread = _energy_ceiling(y, args, t, t1)
+    two_energy = 2.0 * energy
+    displacement, anchoring = _barrel_bounds(params, two_energy, spread, width_v)
+    if params.absorber is None:
+        zero = jnp.zeros_like(displacement)
+        return {
+            "peak_displacement": displacement,
+            "peak_anchoring_force": anchoring,
+            "peak_contact_force": zero,
+            "min_stroke": zero,
+            "max_stroke": zero,
+        }
+    relative_max, penetration, contact_force = _contact_bounds(
+        params, energy, two_energy, width_contact, width_v
+    )
+    # The no-pull clamp dissipates only while r(1) = 1, i.e. λ_c w < 1.
+    valid = params.contact.lambda_c * width_v < 1.0
+    inf = jnp.full_like(displacement, jnp.inf)
+    # x_M − x_m = gap + δ, and `penetration` already respects relative_max.
+    bounds = {
+        "peak_displacement": displacement,
+        "peak_anchoring_force": anchoring,
+        "peak_contact_force": contact_force,
+        "min_stroke": params.absorber.gap + penetration,
+        "max_stroke": relative_max,
+    }
+    return {name: jnp.where(valid, bound, inf) for name, bound in bounds.items()}
+
+
+def _energy_ceiling(y, args, t, t1):
+    """`(E*, spread)`: a bound on the mechanical energy from `t` to `t1` at state `y`
+    (J; see `future_metric_bounds`), and `|c_out − c_ret|` (N·s/m)."""
+    params, smoothing, width_contact = args
     barrel, absorber, contact = params.barrel, params.absorber, params.contact
     x_M, v_M, x_m, v_m = y[0], y[1], y[2], y[3]
     width_v = smoothing.damping_width
@@ -312,7 +347,13 @@ def future_metric_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
     if params.load is not None:
         root = jnp.sqrt(energy) + remaining_impulse(t, params) / jnp.sqrt(2.0 * barrel.M)
         energy = root**2
-    two_energy = 2.0 * energy
+    return energy, spread
+
+
+def _barrel_bounds(params: RecoilParams, two_energy, spread, width_v):
+    """`(x_M, F_AN)` bounds (m, N) from `2E*` (J): the spring's reach, and the spring,
+    damper, buffer and recuperator forces there (see `future_metric_bounds`)."""
+    barrel = params.barrel
     damper_offset = spread * 3.0 * width_v / 16.0
     displacement = jnp.sqrt(two_energy / barrel.k)
     anchoring = jnp.sqrt((barrel.k + barrel.c_out**2 / barrel.M) * two_energy) + damper_offset
@@ -325,15 +366,15 @@ def future_metric_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
         anchoring = anchoring + jnp.maximum(
             recuperator_force(displacement, params.recuperator), 0.0
         )
-    if absorber is None:
-        zero = jnp.zeros_like(displacement)
-        return {
-            "peak_displacement": displacement,
-            "peak_anchoring_force": anchoring,
-            "peak_contact_force": zero,
-            "min_stroke": zero,
-            "max_stroke": zero,
-        }
+    return displacement, anchoring
+
+
+def _contact_bounds(params: RecoilParams, energy, two_energy, width_contact, width_v):
+    """`(|x_M − x_m|, δ, F_ct)` bounds (m, m, N) from `E*` and `2E*` (J) for a design
+    with an absorber: the coupling spring's reach, the penetration the energy allows and
+    the contact force there (see `future_metric_bounds`)."""
+    barrel, absorber, contact = params.barrel, params.absorber, params.contact
+    assert absorber is not None
     relative_max = jnp.sqrt(two_energy / absorber.k_r)
     # U(δ) >= k_c δ₊^(n+1) / (n+1), since r(s) >= max(s, 0).
     penetration = positive_power(
@@ -345,18 +386,7 @@ def future_metric_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
     elastic = contact.k_c * positive_power(penetration + width_contact, contact.n_c)
     factor = 1.0 + contact.lambda_c * (rate + 3.0 * width_v / 16.0)
     contact_force = jnp.where(reachable, elastic * factor, 0.0)
-    # The no-pull clamp dissipates only while r(1) = 1, i.e. λ_c w < 1.
-    valid = contact.lambda_c * width_v < 1.0
-    inf = jnp.full_like(displacement, jnp.inf)
-    # x_M − x_m = gap + δ, and `penetration` already respects relative_max.
-    bounds = {
-        "peak_displacement": displacement,
-        "peak_anchoring_force": anchoring,
-        "peak_contact_force": contact_force,
-        "min_stroke": absorber.gap + penetration,
-        "max_stroke": relative_max,
-    }
-    return {name: jnp.where(valid, bound, inf) for name, bound in bounds.items()}
+    return relative_max, penetration, contact_force
 
 
 def knot_crossing(t0, dt, evaluate, y0, y1, params: RecoilParams):

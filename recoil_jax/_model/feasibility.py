@@ -19,8 +19,8 @@ __all__ = [
 #: The one feasibility rule of every optimiser, study and benchmark (`feasible`): a
 #: design counts as feasible when its solve succeeded, its objective is finite and every
 #: normalised limit violation is at most `-FEASIBILITY_TOLERANCE`. The margin keeps the
-#: limits held on any re-solve of the design: a plain solve and a sensitivity solve of
-#: one design differ by ~5e-7 (relative) in a stroke.
+#: limits held on any re-solve of the design: a plain solve and a forward-sensitivity
+#: solve of one design differ by ~5e-7 (relative) in a stroke.
 FEASIBILITY_TOLERANCE = 1e-6
 
 

@@ -50,32 +50,50 @@ def queued_map(loop: PeakLoop, setup, post, designs, lanes: int, count=None):
     n = jax.tree.leaves(designs)[0].shape[0]
     solved = n if count is None else jnp.minimum(count, n)
     lanes = min(lanes, n)
-    max_steps = loop.options.max_steps
-
-    def take(index):
-        return jax.tree.map(lambda x: x[index], designs)
-
-    def start(index):
-        z0, args, t1 = setup(take(index))
-        return loop.init(z0, args, t1), args
+    queue = _Queue(loop, setup, designs, n, solved, lanes)
 
     # Every lane starts idle; the first refill loads the first `lanes` designs (so the
     # setup is traced once, inside the refill).
     lane_state, lane_args = jax.tree.map(
-        lambda x: jnp.zeros((lanes, *x.shape), x.dtype), jax.eval_shape(start, 0)
+        lambda x: jnp.zeros((lanes, *x.shape), x.dtype), jax.eval_shape(queue.start, 0)
     )
     finals = jax.tree.map(lambda x: jnp.zeros((n, *x.shape[1:]), x.dtype), lane_state)
     zero = jnp.array(0)
     carry = _Lanes(lane_state, lane_args, jnp.full(lanes, -1), zero, finals, zero, zero)
-    threshold = max(1, lanes // 16)
+    finals = jax.lax.while_loop(lambda c: c.done < solved, queue.step, carry).finals
 
-    def running(c):
-        return loop.running(c) & (c.num_attempts < max_steps)
+    def finish(design, final):
+        _, args, _ = setup(design)
+        return post(design, args, loop.finish(final, args))
 
-    def cond(carry: _Lanes):
-        return carry.done < solved
+    return jax.vmap(finish)(designs, finals)
 
-    def refill(state, args, index, next_index, aligned):
+
+class _Queue:
+    """The designs of a `queued_map` waiting for the lanes, and the step of its while
+    loop (`step`): `N` designs (`n`), of which the first `solved` are solved by `loop`
+    from `setup(design)`, with lanes refilled in groups of at least `threshold`."""
+
+    def __init__(self, loop: PeakLoop, setup, designs, n: int, solved, lanes: int):
+        self.loop, self.setup, self.designs = loop, setup, designs
+        self.n, self.solved = n, solved
+        self.threshold = max(1, lanes // 16)
+
+    def start(self, index):
+        """The loop's first carry and the model arguments of the design `index`."""
+        z0, args, t1 = self.setup(jax.tree.map(lambda x: x[index], self.designs))
+        return self.loop.init(z0, args, t1), args
+
+    def running(self, c):
+        """Whether a lane's design is still running (within its attempts)."""
+        return self.loop.running(c) & (c.num_attempts < self.loop.options.max_steps)
+
+    def refill(self, state, args, index, next_index, aligned):
+        """Load the next designs into the idle lanes (`index < 0`), at a checking
+        iteration (`aligned`) only, so that each design's checks fall on its own attempts
+        0, 4, 8, … whatever shares the batch with it; and only once at least `threshold`
+        lanes are idle, or every lane is. Returns `(state, args, index, next_index)`."""
+        solved = self.solved
         idle = index < 0
         new_index = next_index + jnp.cumsum(idle) - 1
         fill = idle & (new_index < solved)
@@ -83,7 +101,7 @@ def queued_map(loop: PeakLoop, setup, post, designs, lanes: int, count=None):
 
         def load(operands):
             state, args, index, next_index = operands
-            fresh_state, fresh_args = jax.vmap(start)(jnp.where(fill, new_index, 0))
+            fresh_state, fresh_args = jax.vmap(self.start)(jnp.where(fill, new_index, 0))
 
             def pick(new, old):
                 return jnp.where(fill.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
@@ -92,38 +110,30 @@ def queued_map(loop: PeakLoop, setup, post, designs, lanes: int, count=None):
             args = jax.tree.map(pick, fresh_args, args)
             return state, args, jnp.where(fill, new_index, index), next_index + count
 
-        # Only at a checking iteration, so that each design's checks fall on its own
-        # attempts 0, 4, 8, … whatever shares the batch with it.
-        now = aligned & ((count >= threshold) | ((count > 0) & ~jnp.any(index >= 0)))
+        now = aligned & ((count >= self.threshold) | ((count > 0) & ~jnp.any(index >= 0)))
         return jax.lax.cond(now, load, lambda operands: operands, (state, args, index, next_index))
 
-    def body(carry: _Lanes) -> _Lanes:
+    def step(self, carry: _Lanes) -> _Lanes:
+        """One iteration: refill the idle lanes, attempt one step in every lane, and
+        move the designs that finished to `finals`, emptying their lanes."""
         state, args, index, next_index, finals, done, iteration = carry
         check = iteration % BOUNDS_EVERY == 0
-        state, args, index, next_index = refill(state, args, index, next_index, check)
+        state, args, index, next_index = self.refill(state, args, index, next_index, check)
         # Every lane holding a design is still running: a lane is emptied the moment its
         # design finishes, and a freshly loaded one starts at t = 0 < t1.
         active = index >= 0
         # An idle lane's `made_jump` (its design ended on a stop's step) would otherwise
         # make every lane evaluate a fresh first stage until the lane is loaded again.
         state = eqx.tree_at(lambda s: s.made_jump, state, state.made_jump & active)
-        stepped = jax.vmap(lambda s, a: loop.body(s, a, check_bounds=check))(state, args)
+        stepped = jax.vmap(lambda s, a: self.loop.body(s, a, check_bounds=check))(state, args)
         state = jax.tree.map(
             lambda new, old: jnp.where(active.reshape((-1,) + (1,) * (new.ndim - 1)), new, old),
             stepped,
             state,
         )
-        finished = active & ~jax.vmap(running)(state)
-        slot = jnp.where(finished, index, n)  # out of range: dropped
+        finished = active & ~jax.vmap(self.running)(state)
+        slot = jnp.where(finished, index, self.n)  # out of range: dropped
         finals = jax.tree.map(lambda buf, x: buf.at[slot].set(x, mode="drop"), finals, state)
         done = done + jnp.sum(finished)
         index = jnp.where(finished, -1, index)
         return _Lanes(state, args, index, next_index, finals, done, iteration + 1)
-
-    finals = jax.lax.while_loop(cond, body, carry).finals
-
-    def finish(design, final):
-        _, args, _ = setup(design)
-        return post(design, args, loop.finish(final, args))
-
-    return jax.vmap(finish)(designs, finals)

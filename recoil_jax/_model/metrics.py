@@ -17,7 +17,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from .._model.params import ParameterError
+from .._model.registry import ParameterError
 from .._model.status import Status
 
 __all__ = [

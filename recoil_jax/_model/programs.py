@@ -23,7 +23,7 @@ import equinox as eqx
 import jax
 from jax.experimental.compilation_cache import compilation_cache
 
-from .._model.params import ParameterError, is_concrete
+from .._model.registry import ParameterError, is_concrete
 
 __all__ = [
     "CACHE_ENVIRONMENT",

@@ -26,16 +26,10 @@ from .._model.equations import (
 )
 from .._model.lanes import queued_map
 from .._model.metrics import METRICS, Peaks
-from .._model.params import (
-    ParameterError,
-    RecoilParams,
-    Smoothing,
-    SolverOptions,
-    end_time,
-    is_concrete,
-    with_default_tolerances,
-)
+from .._model.params import RecoilParams
 from .._model.programs import structure_jit
+from .._model.registry import ParameterError, is_concrete
+from .._model.settings import Smoothing, SolverOptions, end_time, with_default_tolerances
 from .._model.status import raise_on_failure
 from .._model.stepping import Events, PeakLoop, PeakRun
 
@@ -126,8 +120,8 @@ def peak_metrics(
 
     `jax.vmap` applies, and so do `jax.jacfwd`/`jax.jvp` (default `autodiff="forward"`)
     and `jax.grad`/`jax.vjp` (`SolverOptions(autodiff="reverse")`); these differentiate
-    the discrete solver, whose step grid does not follow the sensitivities. For accurate
-    gradients use `peak_gradients` or `differentiable_peaks`.
+    the discrete solver, whose step grid does not follow the forward sensitivities. For
+    accurate gradients use `peak_gradients` or `differentiable_peaks`.
 
     **Arguments:**
 

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from .._model.dense import hermite_max, placeholder_steps, polish
-from .._model.params import SolverOptions
+from .._model.settings import SolverOptions
 from .._model.status import Status
 
 __all__ = [
@@ -80,6 +80,30 @@ class _Carry(eqx.Module):
     save_index: Any = None  # the first save time not yet written
 
 
+class _Attempt(NamedTuple):
+    """One attempted step of `PeakLoop.body`, from the carry's `t` to `t_end` (`dt`): its
+    end state `z1`, the solver's dense output and state, the controller's verdict `keep`
+    and next step (`t_prev`, `t_next`, `made_jump`, `controller_state`), the tracked
+    quantities and their rates at the step's start (`metric0`, `rate0`) and end
+    (`metric1`, `rate1`), and `f_end`, the vector field at the end."""
+
+    t_end: jax.Array
+    dt: jax.Array
+    z1: jax.Array
+    dense_info: dict
+    solver_state: Any
+    keep: jax.Array
+    t_prev: jax.Array
+    t_next: jax.Array
+    made_jump: jax.Array
+    controller_state: Any
+    metric0: jax.Array
+    rate0: jax.Array
+    f_end: jax.Array
+    metric1: jax.Array
+    rate1: jax.Array
+
+
 class PeakRun(eqx.Module):
     """What one run of the loop found: for each tracked quantity (in the order of
     `names`) its maximum `best`, the time `best_time` and the state `best_state` there
@@ -114,9 +138,9 @@ def _rms_norm(x):
     """Root mean square of the (1-D) scaled error. A short vector as a chain of adds:
     diffrax's default norm is a `dot`, which XLA:CPU sends to a library call per step,
     several times slower for a 4–20-element vector under `vmap`. A longer one (the
-    sensitivities of many parameters) as a sum: the chain of 115 adds was 14 % of the
-    22-parameter gradient program's operations, 2 s of its compile time, and made it run
-    1.25× slower. Zero at zero with finite derivatives."""
+    forward sensitivities of many parameters) as a sum: the chain of 115 adds was 14 % of
+    the 22-parameter gradient program's operations, 2 s of its compile time, and made it
+    run 1.25× slower. Zero at zero with finite derivatives."""
     if x.shape[0] > _CHAIN_NORM_MAX:
         total = jnp.sum(x * x)
     else:
@@ -173,9 +197,9 @@ class PeakLoop:
       times (`PeakRun.saved`), from the solver's dense polynomial.
     - `leading_term`, if given, `(term, size)`: a term for the first `size` components of
       the state alone (their derivatives do not depend on the rest, as the model's do
-      not on its sensitivities). The first step is then chosen on them: diffrax's
+      not on its forward sensitivities). The first step is then chosen on them: diffrax's
       initial-step rule evaluates the vector field twice, and a gradient program's
-      compile time grew by a whole copy of the sensitivity system for it.
+      compile time grew by a whole copy of the tangent system for it.
     """
 
     def __init__(
@@ -293,8 +317,57 @@ class PeakLoop:
     def body(self, c: _Carry, args, save_ts=None, check_bounds=None) -> _Carry:
         """One attempted step. `check_bounds` (a traced bool, the same for every lane
         under `vmap`; None: always): whether to test if the peaks are now certain."""
-        term, solver = self.term, self.solver
         t1, t1_floor = _end_times(c.t1)
+        t_end, stops, upcoming, landing = self._step_end(c, args, t1)
+        step = self._attempt(c, args, t_end, t1, t1_floor)
+        step_best, s = self._step_max(c, args, step)
+        keep = step.keep
+        improve = keep & (step_best > c.best)
+        best = jnp.where(improve, step_best, c.best)
+        settled = self._settled(c, args, step, t1, best, check_bounds)
+        best_step = _best_steps(c, step, improve)
+        status = self._status(c, args, step, t1, step_best)
+        saved, save_index = c.saved, c.save_index
+        if save_ts is not None:
+            interpolation = self.solver.interpolation_cls(t0=c.t, t1=step.t_end, **step.dense_info)
+            saved, save_index = _write_saves(
+                save_ts, saved, save_index, jnp.where(keep, step.t_end, c.t), interpolation.evaluate
+            )
+        if stops is not None:
+            step, saved, save_index = self._past_stop(
+                c, args, step, upcoming, landing, t1, save_ts, saved, save_index
+            )
+
+        def select(new, old):
+            return jax.tree.map(lambda a, b: jnp.where(keep, a, b), new, old)
+
+        return _Carry(
+            t=step.t_prev,
+            t_next=step.t_next,
+            t1=c.t1,
+            y=select(step.z1, c.y),
+            solver_state=select(step.solver_state, c.solver_state),
+            controller_state=step.controller_state,
+            made_jump=jnp.where(keep, step.made_jump, c.made_jump),
+            metric=select(step.metric1, c.metric),
+            metric_rate=select(step.rate1, c.metric_rate),
+            best=best,
+            best_time=jnp.where(improve, c.t + s * step.dt, c.best_time),
+            best_step=best_step,
+            num_steps=c.num_steps + jnp.asarray(keep, dtype=int),
+            num_attempts=c.num_attempts + 1,
+            status=status,
+            settled=settled,
+            names=c.names,
+            saved=saved,
+            save_index=save_index,
+        )
+
+    def _step_end(self, c: _Carry, args, t1):
+        """Where the step from `c.t` ends: at `c.t_next`, or one ULP before the next stop
+        of the load if the step would reach it. Returns `(t_end, stops, upcoming,
+        landing)`: the stops (None without events), the next stop and whether the step
+        lands before it."""
         t_end = c.t_next
         stops = self._stops(args)
         upcoming, landing = jnp.inf, jnp.array(False)  # (set below when there are stops)
@@ -304,9 +377,14 @@ class PeakLoop:
             before = _before(upcoming)
             landing = (upcoming < t1) & (c.t_next >= before)
             t_end = jnp.where(landing, before, c.t_next)
+        return t_end, stops, upcoming, landing
+
+    def _attempt(self, c: _Carry, args, t_end, t1, t1_floor) -> _Attempt:
+        """The solver's step from `c.t` to `t_end`, the controller's verdict on it, and
+        the tracked quantities with their rates at both ends of the step."""
         dt = t_end - c.t
-        z1, z_error, dense_info, solver_state, _ = solver.step(
-            term, c.t, t_end, c.y, args, c.solver_state, c.made_jump
+        z1, z_error, dense_info, solver_state, _ = self.solver.step(
+            self.term, c.t, t_end, c.y, args, c.solver_state, c.made_jump
         )
         keep, t_prev, t_next, made_jump, controller_state, _ = self.controller.adapt_step_size(
             c.t, t_end, c.y, z1, args, z_error, self.error_order, c.controller_state
@@ -319,107 +397,113 @@ class PeakLoop:
         # Tsit5 is FSAL: its last stage is dt * f(t + dt, z1).
         f_end = dense_info["k"][-1] / dt
         metric1, rate1 = self._metric_and_rate(c.names, z1, f_end, args)
-        if not self.samples:
-            step_best, s = hermite_max(metric0, rate0 * dt, metric1, rate1 * dt)
-        else:
-            interpolation = solver.interpolation_cls(t0=c.t, t1=t_end, **dense_info)
-            # Sampled on the dense polynomial instead: the end rates of a quantity that is
-            # far from cubic over the step can push the Hermite maximum far above (or
-            # below) the polynomial's, and the largest estimate would win the peak.
-            step_best, s = _sampled_max(
-                lambda t: self._vector(c.names, interpolation.evaluate(t), args),
-                c.t,
-                dt,
-                self.samples,
-                metric0,
-                metric1,
-            )
-            if self.kinks_fn is not None:
-                kinks = self.kinks_fn(c.t, dt, interpolation.evaluate, c.y, z1, args)
-                at_kinks = jax.vmap(
-                    lambda t: self._vector(c.names, interpolation.evaluate(t), args)
-                )(kinks)
-                j = jnp.argmax(at_kinks, axis=0)
-                higher = jnp.max(at_kinks, axis=0) > step_best
-                step_best = jnp.where(higher, jnp.max(at_kinks, axis=0), step_best)
-                s = jnp.where(higher, (kinks[j] - c.t) / dt, s)
-        improve = keep & (step_best > c.best)
-        best = jnp.where(improve, step_best, c.best)
-        settled = c.settled
-        if self.bounds_fn is not None:
-
-            def certain():
-                return settled | (keep & self._certain(c.names, z1, args, t_end, t1, best))
-
-            # A flag not batched keeps the `cond` a branch under `vmap`, not a select.
-            settled = (
-                certain()
-                if check_bounds is None
-                else jax.lax.cond(check_bounds, certain, lambda: settled)
-            )
-        step = dict(t0=c.t, t1=t_end, **dense_info)
-        best_step = jax.tree.map(
-            lambda new, old: jnp.where(
-                improve.reshape((-1,) + (1,) * (old.ndim - 1)), new[None], old
-            ),
-            step,
-            c.best_step,
+        return _Attempt(
+            t_end=t_end,
+            dt=dt,
+            z1=z1,
+            dense_info=dense_info,
+            solver_state=solver_state,
+            keep=keep,
+            t_prev=t_prev,
+            t_next=t_next,
+            made_jump=made_jump,
+            controller_state=controller_state,
+            metric0=metric0,
+            rate0=rate0,
+            f_end=f_end,
+            metric1=metric1,
+            rate1=rate1,
         )
-        finite = jnp.all(jnp.isfinite(z1)) & jnp.isfinite(dt)
+
+    def _step_max(self, c: _Carry, args, step: _Attempt):
+        """The largest value of each tracked quantity over the step and where it is,
+        `(values, s)` with `s` the position in the step (0 to 1): the cubic Hermite
+        maximum from the step's ends, or with `samples` the maximum sampled on the dense
+        polynomial, and at the `kinks_fn`'s corners."""
+        dt, metric0, metric1 = step.dt, step.metric0, step.metric1
+        if not self.samples:
+            return hermite_max(metric0, step.rate0 * dt, metric1, step.rate1 * dt)
+        interpolation = self.solver.interpolation_cls(t0=c.t, t1=step.t_end, **step.dense_info)
+        # Sampled on the dense polynomial instead: the end rates of a quantity that is
+        # far from cubic over the step can push the Hermite maximum far above (or
+        # below) the polynomial's, and the largest estimate would win the peak.
+        step_best, s = _sampled_max(
+            lambda t: self._vector(c.names, interpolation.evaluate(t), args),
+            c.t,
+            dt,
+            self.samples,
+            metric0,
+            metric1,
+        )
+        if self.kinks_fn is not None:
+            kinks = self.kinks_fn(c.t, dt, interpolation.evaluate, c.y, step.z1, args)
+            at_kinks = jax.vmap(lambda t: self._vector(c.names, interpolation.evaluate(t), args))(
+                kinks
+            )
+            j = jnp.argmax(at_kinks, axis=0)
+            higher = jnp.max(at_kinks, axis=0) > step_best
+            step_best = jnp.where(higher, jnp.max(at_kinks, axis=0), step_best)
+            s = jnp.where(higher, (kinks[j] - c.t) / dt, s)
+        return step_best, s
+
+    def _settled(self, c: _Carry, args, step: _Attempt, t1, best, check_bounds):
+        """Whether the peaks are certain after the step (with `bounds_fn`; tested only
+        where `check_bounds` is true, see `body`)."""
+        settled = c.settled
+        if self.bounds_fn is None:
+            return settled
+
+        def certain():
+            return settled | (
+                step.keep & self._certain(c.names, step.z1, args, step.t_end, t1, best)
+            )
+
+        # A flag not batched keeps the `cond` a branch under `vmap`, not a select.
+        return (
+            certain()
+            if check_bounds is None
+            else jax.lax.cond(check_bounds, certain, lambda: settled)
+        )
+
+    def _status(self, c: _Carry, args, step: _Attempt, t1, step_best):
+        """The `Status` after the step: a kept step that is not finite, a step size that
+        underflows, or a tracked quantity that reaches its ceiling (`ceilings_fn`) ends
+        the solve."""
+        keep, t_prev = step.keep, step.t_prev
+        finite = jnp.all(jnp.isfinite(step.z1)) & jnp.isfinite(step.dt)
         status = Status.where(keep & ~finite, Status.nonfinite, c.status)
-        status = Status.where((t_prev < t1) & (t_next <= t_prev), Status.step_underflow, status)
+        status = Status.where(
+            (t_prev < t1) & (step.t_next <= t_prev), Status.step_underflow, status
+        )
         ceilings = None if self.ceilings_fn is None else self.ceilings_fn(args)
         if ceilings is not None:
             limits = jnp.stack([ceilings.get(name, jnp.inf) for name in c.names])
             status = Status.where(keep & jnp.any(step_best >= limits), Status.bottomed_out, status)
-        saved, save_index = c.saved, c.save_index
+        return status
+
+    def _past_stop(
+        self, c: _Carry, args, step: _Attempt, upcoming, landing, t1, save_ts, saved, save_index
+    ):
+        """The step continued past the stop `upcoming` where it `landing` one ULP before
+        it: from the stop itself, with the state after any jump and a first step of at
+        most `restart`; `made_jump` makes that step evaluate its first stage afresh, and
+        the rates at its start (and the quantities, counted then as the step's start)
+        come from it. Returns `(step, saved, save_index)`, the jumped state also saved."""
+        assert self.events is not None
+        keep, t_next, t_prev = step.keep, step.t_next, step.t_prev
+        hit = keep & landing
+        jumped = self.events.jump(step.t_end, upcoming, step.z1, step.f_end, args)
+        restart = jnp.minimum(t_next - t_prev, self.events.restart(args))
+        t_next = jnp.where(hit, jnp.minimum(upcoming + restart, t1), t_next)
+        t_prev = jnp.where(hit, upcoming, t_prev)
+        z1 = jnp.where(hit, jumped, step.z1)
+        made_jump = step.made_jump | hit
         if save_ts is not None:
-            interpolation = solver.interpolation_cls(t0=c.t, t1=t_end, **dense_info)
             saved, save_index = _write_saves(
-                save_ts, saved, save_index, jnp.where(keep, t_end, c.t), interpolation.evaluate
+                save_ts, saved, save_index, jnp.where(hit, upcoming, c.t), lambda t: jumped
             )
-        if stops is not None:
-            # Landed one ULP before a stop: continue from the stop itself, with the state
-            # after any jump and a first step of at most `restart`; `made_jump` makes
-            # that step evaluate its first stage afresh, and the rates at its start
-            # (and the quantities, counted then as the step's start) come from it.
-            assert self.events is not None
-            hit = keep & landing
-            jumped = self.events.jump(t_end, upcoming, z1, f_end, args)
-            restart = jnp.minimum(t_next - t_prev, self.events.restart(args))
-            t_next = jnp.where(hit, jnp.minimum(upcoming + restart, t1), t_next)
-            t_prev = jnp.where(hit, upcoming, t_prev)
-            z1 = jnp.where(hit, jumped, z1)
-            made_jump = made_jump | hit
-            if save_ts is not None:
-                saved, save_index = _write_saves(
-                    save_ts, saved, save_index, jnp.where(hit, upcoming, c.t), lambda t: jumped
-                )
-
-        def select(new, old):
-            return jax.tree.map(lambda a, b: jnp.where(keep, a, b), new, old)
-
-        return _Carry(
-            t=t_prev,
-            t_next=t_next,
-            t1=c.t1,
-            y=select(z1, c.y),
-            solver_state=select(solver_state, c.solver_state),
-            controller_state=controller_state,
-            made_jump=jnp.where(keep, made_jump, c.made_jump),
-            metric=select(metric1, c.metric),
-            metric_rate=select(rate1, c.metric_rate),
-            best=best,
-            best_time=jnp.where(improve, c.t + s * dt, c.best_time),
-            best_step=best_step,
-            num_steps=c.num_steps + jnp.asarray(keep, dtype=int),
-            num_attempts=c.num_attempts + 1,
-            status=status,
-            settled=settled,
-            names=c.names,
-            saved=saved,
-            save_index=save_index,
-        )
+        step = step._replace(t_prev=t_prev, t_next=t_next, z1=z1, made_jump=made_jump)
+        return step, saved, save_index
 
     def finish(self, final: _Carry, args) -> PeakRun:
         settled = final.settled
@@ -475,6 +559,17 @@ def _sampled_max(vector_at, t0, dt, samples, first, last):
     s_best = grid[jnp.argmax(values, axis=0)]
     higher = at_vertex > best
     return jnp.where(higher, at_vertex, best), jnp.where(higher, vertex, s_best)
+
+
+def _best_steps(c: _Carry, step: _Attempt, improve):
+    """`c.best_step` with the attempted step (its ends, states and stages) written for
+    each quantity whose maximum it `improve`s."""
+    new_step = dict(t0=c.t, t1=step.t_end, **step.dense_info)
+    return jax.tree.map(
+        lambda new, old: jnp.where(improve.reshape((-1,) + (1,) * (old.ndim - 1)), new[None], old),
+        new_step,
+        c.best_step,
+    )
 
 
 def _write_saves(save_ts, saved, index, until, state_at):

@@ -31,23 +31,18 @@ from .._campaigns.store import (
 )
 from .._model.derivatives import GRADIENT_OPTIONS, check_wrt, peak_gradients_batch
 from .._model.metrics import METRICS, PEAK_FIELDS, gradient_key
-from .._model.params import (
-    PARAMETERS,
+from .._model.parameter_table import PARAMETERS
+from .._model.params import ForceTable, Load, RecoilParams, params_from_values, params_to_values
+from .._model.programs import avx2_codegen_set
+from .._model.registry import ParameterError, check_value
+from .._model.settings import (
     T1_LIMITS,
-    ForceTable,
-    Load,
-    ParameterError,
-    RecoilParams,
     Smoothing,
     SolverOptions,
     check_load_fits,
-    check_value,
     default_end_time,
-    params_from_values,
-    params_to_values,
     with_default_tolerances,
 )
-from .._model.programs import avx2_codegen_set
 from .._model.solve import peaks_batch
 from .._model.status import Status, status_codes, status_item, status_messages
 

@@ -249,7 +249,7 @@ def _settings(options: rj.SolverOptions) -> _Settings:
     import diffrax
 
     from recoil_jax._model.equations import RECOIL_TERM
-    from recoil_jax._model.params import with_default_tolerances
+    from recoil_jax._model.settings import with_default_tolerances
     from recoil_jax._model.stepping import PeakLoop, make_controller
 
     options = with_default_tolerances(rj.RecoilParams(absorber=rj.Absorber()), options)

@@ -1,0 +1,243 @@
+"""The types of the parameter registry and the validation of a value: `ParameterError`,
+`Limits` (a unit, a valid and a documented range) and the check of a value against them
+(`check_value`), `Validated` (a pytree whose fields are checked against their limits),
+`Parameter` (one registry entry) and `ParameterRegistry` (the flat names, with the family
+of orifice knots). The registry's data is in `parameter_table`.
+
+Values are validated whenever they are concrete (Python numbers, NumPy or JAX arrays),
+i.e. before anything is compiled. Tracers (values inside `jit`/`grad`/`vmap`) are not
+checked: they were checked when the concrete inputs were built.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from collections.abc import Mapping, Sequence
+from typing import Any, ClassVar
+
+import equinox as eqx
+import jax
+import jax.core
+import numpy as np
+
+__all__ = [
+    "GROUP_CLASSES",
+    "MAX_KNOTS",
+    "MIN_KNOTS",
+    "Limits",
+    "Parameter",
+    "ParameterError",
+    "ParameterRegistry",
+    "Validated",
+    "as_float_array",
+    "check_value",
+    "element_label",
+    "float_leaf",
+    "is_concrete",
+]
+
+
+class ParameterError(ValueError):
+    """An invalid parameter value. The message names the parameter, its value and the
+    valid range."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Limits:
+    """Unit, valid range and documented range of one scalar.
+
+    `lower`/`upper` bound the *valid* domain (values outside raise `ParameterError`);
+    `documented` is the range over which accuracy is tested (`docs/numerics.md`).
+    """
+
+    unit: str
+    lower: float
+    upper: float = math.inf
+    lower_open: bool = False  # True: the lower bound itself is invalid (> lower)
+    documented: tuple[float, float] | None = None
+    meaning: str = ""
+
+    def describe(self) -> str:
+        low = f"> {self.lower:g}" if self.lower_open else f">= {self.lower:g}"
+        valid = low if math.isinf(self.upper) else f"{low} and <= {self.upper:g}"
+        unit = f" {self.unit}" if self.unit else ""
+        return f"{valid}{unit}"
+
+
+#: The pytree of `RecoilParams` that holds each group of parameters (`Parameter.group`),
+#: by class name, in the order of `RecoilParams`'s fields (`params` defines the classes).
+GROUP_CLASSES: dict[str, str] = {
+    "barrel": "Barrel",
+    "absorber": "Absorber",
+    "contact": "Contact",
+    "load": "Load",
+    "buffer": "Buffer",
+    "recuperator": "Recuperator",
+}
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Parameter(Limits):
+    """A design parameter: its flat `name`, the `group` of `RecoilParams` holding it
+    (`barrel`, `absorber`, `contact`) and its `default` (SI units)."""
+
+    name: str
+    group: str
+    default: float
+    field: str = ""  # attribute in the group's pytree (default: the name)
+    index: int | None = None  # position in an array field (an orifice knot)
+    integer: bool = False  # an integer count (static: one compilation per value)
+
+    @property
+    def attribute(self) -> str:
+        return self.field or self.name
+
+    @property
+    def owner(self) -> str:
+        """The class holding it (`Barrel`, `Absorber`, `Contact`), for messages."""
+        return GROUP_CLASSES[self.group]
+
+    @property
+    def label(self) -> str:
+        """`name (unit)`, for axis labels."""
+        return f"{self.name} ({self.unit})" if self.unit else self.name
+
+
+#: Orifice knots: at least 2, at most this many (`orifice_0` ... `orifice_31`).
+MAX_KNOTS = 32
+MIN_KNOTS = 2
+#: The flat name of an orifice knot, `orifice_<i>` (its index without leading zeros).
+_KNOT_NAME = re.compile(r"orifice_(0|[1-9][0-9]?)")
+
+
+class ParameterRegistry(Mapping[str, Parameter]):
+    """The design parameters by flat name, from the entries `scalars` and the entry `knot`
+    of the orifice knots. Iterating gives the scalar parameters in the order of `scalars`
+    (the order the command line lists them); the orifice knots `orifice_0` ...
+    `orifice_31` (`orifice_<i>`, each a copy of `knot` with its `index`) are looked up by
+    name like the others."""
+
+    def __init__(self, scalars: Sequence[Parameter], knot: Parameter):
+        self._scalars = {p.name: p for p in scalars}
+        self._knot = knot
+
+    def __getitem__(self, name: str) -> Parameter:
+        if name in self._scalars:
+            return self._scalars[name]
+        match = _KNOT_NAME.fullmatch(name) if isinstance(name, str) else None
+        if match and int(match.group(1)) < MAX_KNOTS:
+            return dataclasses.replace(self._knot, name=name, index=int(match.group(1)))
+        raise KeyError(name)
+
+    def __iter__(self):
+        return iter(self._scalars)
+
+    def __len__(self) -> int:
+        return len(self._scalars)
+
+    def names(self) -> str:
+        """Every name, for messages: the scalars, then the knot family."""
+        return ", ".join([*self._scalars, "orifice_<i>"])
+
+    def unknown(self, name: str, also: Sequence[str] = ()) -> ParameterError:
+        """The error for a `name` that is not a parameter (`also`: other names the caller
+        takes, listed with the parameters); a knot past the last says how many there
+        may be."""
+        if isinstance(name, str) and re.fullmatch(r"orifice_[0-9]+", name):
+            return ParameterError(
+                f"unknown parameter {name!r}: the orifice has at most {MAX_KNOTS} knots "
+                f"(orifice_0 ... orifice_{MAX_KNOTS - 1})"
+            )
+        return ParameterError(
+            f"unknown parameter {name!r}; known: {', '.join([self.names(), *also])}"
+        )
+
+
+def is_concrete(value: Any) -> bool:
+    """No leaf of `value` is a tracer (so it can be checked now)."""
+    return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(value))
+
+
+def check_value(owner: str, name: str, value: Any, limits: Limits) -> None:
+    """Raise `ParameterError` if a concrete `value` (scalar or array) is not a finite
+    number inside `limits`; the message names `owner.name`, the bad value (and its index
+    in an array) and the valid range. Tracers and `None` pass."""
+    if value is None or not is_concrete(value):
+        return
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ParameterError(
+            f"{owner}.{name} = {value!r} is not a number; valid: {limits.describe()}"
+        ) from None
+    flat = array.reshape(-1)
+    bad_finite = ~np.isfinite(flat)
+    if limits.lower_open:
+        bad_range = flat <= limits.lower
+    else:
+        bad_range = flat < limits.lower
+    bad_range |= flat > limits.upper
+    bad = bad_finite | bad_range
+    if not bad.any():
+        return
+    index = int(np.argmax(bad))
+    where = element_label(array, index)
+    bad_value = flat[index]
+    unit = f" {limits.unit}" if limits.unit else ""
+    if bad_finite[index]:
+        reason = "must be finite (NaN and inf are not allowed)"
+    else:
+        reason = "out of range"
+    documented = ""
+    if limits.documented is not None:
+        lo, hi = limits.documented
+        documented = f"; documented range {lo:g} to {hi:g}{unit}"
+    raise ParameterError(
+        f"{owner}.{name}{where} = {bad_value:g}{unit} is invalid ({reason}): "
+        f"valid {name} {limits.describe()}{documented}"
+        + (f" ({limits.meaning})" if limits.meaning else "")
+    )
+
+
+def element_label(array: np.ndarray, index: int) -> str:
+    """How a message names the element at flat `index` of `array`: `[i, j]`, or nothing
+    for a scalar."""
+    if not array.ndim:
+        return ""
+    return "[" + ", ".join(str(int(i)) for i in np.unravel_index(index, array.shape)) + "]"
+
+
+def as_float_array(value: Any) -> Any:
+    """Leaves become float64 arrays so that `eqx.filter_jit` traces them (it would hold
+    Python floats static and recompile for every new value). Tracers and JAX arrays pass."""
+    if value is None or isinstance(value, jax.Array):
+        return value
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return value  # left for __check_init__ to report with the parameter's name
+
+
+def float_leaf(default: Any) -> Any:
+    """A pytree field of float64 values (`as_float_array`) with its `default`."""
+    return eqx.field(default=default, converter=as_float_array)
+
+
+class Validated(eqx.Module):
+    """Base class of the parameter and settings pytrees: checks every field listed in
+    `LIMITS` when values are concrete (`check_value`)."""
+
+    LIMITS: ClassVar[Mapping[str, Limits]] = {}
+
+    def __check_init__(self):
+        limits = type(self).LIMITS
+        for field in dataclasses.fields(self):
+            if field.name in limits:
+                check_value(
+                    type(self).__name__,
+                    field.name,
+                    getattr(self, field.name),
+                    limits[field.name],
+                )
