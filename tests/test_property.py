@@ -31,7 +31,7 @@ from hypothesis import (  # noqa: E402
 )
 
 import recoil_jax as rj  # noqa: E402
-from recoil_jax.apps import main
+from recoil_jax.apps import main  # noqa: E402
 from recoil_jax.apps._files import exported as _exported  # noqa: E402
 
 EXAMPLES = int(os.environ.get("RECOIL_JAX_EXAMPLES", "150"))
