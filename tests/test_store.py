@@ -2,10 +2,12 @@
 interruption (an exception here, a `kill -9` of a real process in the slow tier) with
 the bits of an uninterrupted run, each chunk stored once; foreign files are refused."""
 
+import importlib.util
 import json
 import os
 import random
 import re
+import shutil
 import signal
 import sqlite3
 import subprocess
@@ -678,3 +680,65 @@ def test_stored_outputs_are_unpacked_one_header_at_a_time(monkeypatch):
     for out in results:
         assert set(out) == set(arrays)
         np.testing.assert_array_equal(out["gradient"], arrays["gradient"])
+
+
+def _stores_script():
+    """`tests/data/stores/make_stores.py`, which made the stores read below."""
+    path = Path(__file__).parent / "data" / "stores" / "make_stores.py"
+    spec = importlib.util.spec_from_file_location("make_stores", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _resume(kind: str, made, store):
+    """The campaign `kind` of `make_stores.py` run on `store` (None: without one)."""
+    if kind == "sweep":
+        return rj.sweep(made.SWEEP, store=store, progress=False, **made.SWEEP_PLAN)
+    if kind == "search":
+        return rj.search(made.gap_problem(), store=store, progress=False, **made.SEARCH)
+    if kind == "optimise":
+        return rj.optimise(made.gap_problem(), store=store, progress=False, **made.OPTIMISE)
+    return rj.calibrate(made.calibration(), starts=2, store=store, progress=False)
+
+
+def _rows_kept(store) -> int:
+    """How many results a store holds: a sweep's designs, a study's evaluations, a
+    calibration's parts."""
+    with sqlite3.connect(store) as db:
+        tables = {row[0] for row in db.execute("SELECT name FROM sqlite_master")}
+        table = next(t for t in ("points", "evaluations", "chunks") if t in tables)
+        return db.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0]
+
+
+@pytest.mark.parametrize(
+    "kind",
+    [
+        "sweep",
+        pytest.param("search", marks=pytest.mark.slow),
+        pytest.param("optimise", marks=pytest.mark.slow),
+        pytest.param("calibration", marks=pytest.mark.slow),
+    ],
+)
+def test_stores_made_before_the_redraw_resume(kind, tmp_path):
+    """Stores made at 66a0bae, before issue 53 moved the package's modules and classes
+    (`tests/data/stores/make_stores.py`), are taken as the same campaigns: everything is
+    read back, nothing is solved again, and the result is a fresh run's, bit for bit."""
+    made = _stores_script()
+    store = tmp_path / f"{kind}.sqlite"
+    shutil.copy(Path(__file__).parent / "data" / "stores" / f"{kind}.sqlite", store)
+    kept = _rows_kept(store)
+    assert kept > 0
+    resumed, fresh = _resume(kind, made, store), _resume(kind, made, None)
+    assert _rows_kept(store) == kept  # nothing new: every result was read back
+    if kind == "sweep":
+        assert resumed.stored == len(resumed) == 8
+        _assert_same(resumed, fresh)
+    elif kind == "calibration":
+        assert resumed.to_json() | {"seconds": 0} == fresh.to_json() | {"seconds": 0}
+    else:
+        assert np.array_equal(resumed.best_theta, fresh.best_theta)
+        assert np.array_equal(resumed.best_objective, fresh.best_objective)
+        # The same evaluations (a resumed search's trace lists the stored ones first).
+        objectives = [np.sort(r.trace["objective"]) for r in (resumed, fresh)]
+        assert np.array_equal(*objectives)

@@ -1,0 +1,66 @@
+"""Make the stores `tests/test_store.py::test_stores_made_before_the_redraw_resume` reads:
+a sweep's, a search's, an optimisation's and a calibration's, each small and finished.
+They were made at 66a0bae, before issue 53 redrew the package, with
+
+    PYTHONPATH=<a checkout of 66a0bae> python tests/data/stores/make_stores.py tests/data/stores
+
+A store's identity holds the package's version: a release refuses older stores on
+purpose, and then these are made again with this script."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+import recoil_jax as rj
+import recoil_jax.extend as rjx
+
+#: The designs of the sweep: 2 chunks of 4.
+SWEEP = {"m": np.array([0.0, 500.0, 800.0, 1500.0] * 2), "gap": np.repeat([0.03, 0.06], 4)}
+SWEEP_PLAN = dict(chunk_size=4, workers=1)
+SEARCH = dict(global_phase=rj.SobolStarts(8, 1), workers=1)
+OPTIMISE = dict(starts=2, steps=6)
+TRUTH = {"k": 28000.0, "c_out": 6000.0, "v0": 0.69}
+
+
+def gap_problem() -> rj.DesignProblem:
+    return rj.DesignProblem(
+        params=rj.params_from_values(m=1500.0, gap=0.05),
+        objective=rj.Objective({"peak_anchoring_force": 1.0}),
+        tune=("gap",),
+        bounds={"gap": (0.0, 0.12)},
+        constraints=(rj.Constraint("max_stroke", upper=0.15),),
+    )
+
+
+def calibration() -> rj.Calibration:
+    """k and c_out fitted to a noisy firing (the noise drawn with a fixed seed)."""
+    ts = np.linspace(0.0, 0.6, 301)
+    history = rj.simulate(rj.params_from_values(TRUTH | {"m": 0.0}), ts=ts)
+    rng = np.random.default_rng(3)
+    trace = rjx.Trace.of(
+        ts,
+        x_M=np.asarray(history.x_M) + 2e-4 * rng.standard_normal(ts.size),
+        F_AN=np.asarray(history.anchoring_force) + 300.0 * rng.standard_normal(ts.size),
+    )
+    return rj.Calibration(
+        [rjx.Experiment(trace)],
+        fit={"k": (1e4, 1e5), "c_out": (1e3, 3e4)},
+        design={"m": 0.0, "v0": 0.69},
+    )
+
+
+def main(folder: Path) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in ("sweep", "search", "optimise", "calibration"):
+        (folder / f"{name}.sqlite").unlink(missing_ok=True)
+    rj.sweep(SWEEP, store=folder / "sweep.sqlite", progress=False, **SWEEP_PLAN)
+    rj.search(gap_problem(), store=folder / "search.sqlite", progress=False, **SEARCH)
+    rj.optimise(gap_problem(), store=folder / "optimise.sqlite", progress=False, **OPTIMISE)
+    rj.calibrate(calibration(), starts=2, store=folder / "calibration.sqlite", progress=False)
+    for path in sorted(folder.glob("*.sqlite")):
+        print(f"{path}: {path.stat().st_size} bytes")
+
+
+if __name__ == "__main__":
+    main(Path(sys.argv[1]))
