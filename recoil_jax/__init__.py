@@ -14,12 +14,10 @@ _jax.config.update("jax_enable_x64", True)
 
 # The lower-level interfaces (extension parts, batches, codes): `recoil_jax.extend`.
 from . import extend as extend
-from ._calibration.calibrate import (
-    Calibration as Calibration,
-    CalibrationResult as CalibrationResult,
-    calibrate as calibrate,
-)
+from ._calibration.calibrate import calibrate as calibrate
 from ._calibration.predict import predict as predict
+from ._calibration.result import CalibrationResult as CalibrationResult
+from ._calibration.spec import Calibration as Calibration
 from ._calibration.traces import read_trace as read_trace
 from ._campaigns.progress import (
     CampaignProgress as CampaignProgress,

@@ -58,9 +58,11 @@ not need them; `docs/developers.md` shows how to plug a part in.
   `sensitivity_box` (the box of a design's ranges, absolute or relative, checked).
 """
 
-from ._calibration.calibrate import LOSSES, Fitted, fit_many, validate
+from ._calibration.calibrate import fit_many, validate
 from ._calibration.model_check import ModelCheck, SignalCheck, trace_noise
 from ._calibration.predict import FittedParameters, Prediction
+from ._calibration.result import Fitted
+from ._calibration.spec import LOSSES
 from ._calibration.traces import T_SHIFT, Experiment, Trace
 from ._design.evaluators import (
     BatchEvaluation,

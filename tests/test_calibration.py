@@ -63,22 +63,23 @@ def test_the_fit_stops_within_a_thousandth_of_a_standard_error_of_the_optimum():
     stops it sooner than either."""
     import jax.numpy as jnp
 
-    from recoil_jax._calibration import calibrate as _calibrate
+    from recoil_jax._calibration import layout as _layout, least_squares as _lsq
+    from recoil_jax._calibration.starts import start_points
 
     calibration = rj.Calibration([rjx.Experiment(trace(TRUTH, seed=3))], fit=BOX)
     result = rj.calibrate(calibration, progress=False)
-    layout = _calibrate._Layout.of(calibration)
-    data = _calibrate._prepare(calibration, calibration.experiments, layout)
-    noise = _calibrate._estimates_noise(data)
-    base = _calibrate._Static(layout.wrt, layout.signals, calibration.loss,
-                              calibration.f_scale, 200, noise)  # fmt: skip
-    u0 = jnp.asarray(_calibrate._u_of_z(_calibrate._start_points(layout, 1, 0)))
+    layout = _layout.Layout.of(calibration)
+    data = _layout.prepare(calibration, calibration.experiments, layout)
+    noise = _layout.estimates_noise(data)
+    base = _lsq.FitSettings(layout.wrt, layout.signals, calibration.loss,
+                            calibration.f_scale, 200, noise)  # fmt: skip
+    u0 = jnp.asarray(_lsq.u_of_z(start_points(layout, 1, 0)))
 
     def fit(**settings):
         static = dataclasses.replace(base, **settings)
-        out = _calibrate._fit_program(u0, data.measured[None], data, static)
+        out = _lsq.fit_program(u0, data.measured[None], data, static)
         assert bool(out.converged[0]), settings
-        return np.asarray(_calibrate._theta_of_u(out.u[0], data.space)), int(out.steps[0])
+        return np.asarray(_lsq.theta_of_u(out.u[0], data.space)), int(out.steps[0])
 
     ours, ours_steps = fit()
     _, loose_steps = fit(lm_standard_errors=0.0)
@@ -99,17 +100,17 @@ def test_the_fit_never_stops_where_an_experiment_failed():
     import jax.numpy as jnp
     import optimistix as optx
 
-    from recoil_jax._calibration.calibrate import _FAILED_RESIDUAL, _LevenbergMarquardt
+    from recoil_jax._calibration.least_squares import FAILED_RESIDUAL, _LevenbergMarquardt
 
     class Data(eqx.Module):
         present: jax.Array
 
     def residuals(u, args):
-        failed = jnp.where(u[0] < 0.5, _FAILED_RESIDUAL, 0.0)
+        failed = jnp.where(u[0] < 0.5, FAILED_RESIDUAL, 0.0)
         return jnp.stack([u[0] - 1.0, u[1] - 2.0, failed])
 
     solver = _LevenbergMarquardt(rtol=1e-4, atol=1e-4, standard_errors=1e-3,
-                                 failed=0.5 * _FAILED_RESIDUAL)  # fmt: skip
+                                 failed=0.5 * FAILED_RESIDUAL)  # fmt: skip
     args = (Data(jnp.ones(3, dtype=bool)), jnp.zeros(2, dtype=bool), jnp.zeros(2))
     solution = optx.least_squares(residuals, solver, jnp.zeros(2), args=args, max_steps=50,
                                   throw=False)  # fmt: skip
@@ -202,9 +203,9 @@ def test_each_experiment_fires_its_own_force_table():
 def test_the_profile_threshold_is_the_chi2_quantile():
     import scipy.stats
 
-    import recoil_jax._calibration.calibrate as calibrate_module
+    import recoil_jax._calibration.profiles as profiles_module
 
-    threshold = calibrate_module._PROFILE_THRESHOLD
+    threshold = profiles_module._PROFILE_THRESHOLD
     assert threshold == pytest.approx(scipy.stats.chi2.ppf(0.95, 1), rel=1e-14)
 
 
@@ -788,8 +789,44 @@ def test_a_second_process_loads_the_exported_fit(tmp_path):
         subprocess.run(argv, check=True, capture_output=True, env=env, timeout=300)
         reports.append(json.loads((out / "result.json").read_text()))
     exported = sorted(p.name.split("-")[0] for p in (tmp_path / "cache" / "exported").iterdir())
-    assert exported == ["_evaluate_program", "_fit_program"]
+    assert exported == ["evaluate_program", "fit_program"]
     assert reports[0]["fitted"] == reports[1]["fitted"]
+
+
+def test_a_calibration_store_keeps_its_identity(tmp_path):
+    """A calibration's store is identified by a digest of its arrays, settings, starts and
+    whether it profiles, whose structure names their classes (`_Data`, `_Static`) and
+    orders their fields: the digest of a fixed calibration is the one it had before
+    calibration was split into modules (issue 53), so every store made before resumes.
+    The trace is exact in binary (a polynomial on a linear grid) and its noise given, so
+    that no transcendental function's rounding enters the digest."""
+    import sqlite3
+
+    from recoil_jax._calibration.campaign import open_store
+    from recoil_jax._calibration.layout import Layout, estimates_noise, prepare
+    from recoil_jax._calibration.least_squares import FitSettings
+    from recoil_jax._calibration.starts import start_points
+    from recoil_jax._campaigns.store import campaign_identity, fingerprint
+
+    t = np.linspace(0.0, 0.5, 101)
+    calibration = rj.Calibration(
+        [rjx.Experiment(rjx.Trace.of(t, x_M=t * (0.5 - t)), sigma={"x_M": 1e-4})],
+        fit={"k": (1e4, 1e5), "gap": (0.0, 0.1)},
+    )
+    layout = Layout.of(calibration)
+    data = prepare(calibration, calibration.experiments, layout)
+    static = FitSettings(layout.wrt, layout.signals, calibration.loss, calibration.f_scale,
+                         200, estimates_noise(data))  # fmt: skip
+    z0 = start_points(layout, 1, 0)
+    parts = (data, static, np.asarray(z0), True)
+    assert fingerprint(*parts) == (
+        "1fecc4e123dbd7477002baa9d3db537ee35d4dc092cf56e3e37083fb5a4d31ce"
+    )
+    path = tmp_path / "fit.sqlite"
+    open_store(path, calibration, layout, data, static, z0, True, False).close()
+    with sqlite3.connect(path) as db:
+        (identity,) = db.execute("SELECT value FROM meta WHERE key = 'identity'").fetchone()
+    assert identity == campaign_identity("calibration", *parts)
 
 
 @pytest.mark.slow  # three fit programs compiled (12, 8 and 4 starts)
@@ -802,7 +839,7 @@ def test_a_stored_calibration_resumes_to_the_same_result(tmp_path, monkeypatch, 
 
     calibration = rj.Calibration([rjx.Experiment(trace(TRUTH, n=201))], fit=BOX)
     plain = rj.calibrate(calibration, starts=12, progress=False)
-    real, calls = calibrate_module._fit_program, []
+    real, calls = calibrate_module.fit_program, []
 
     def stopped_after_one(u0, *args):
         calls.append(len(u0))
@@ -811,7 +848,7 @@ def test_a_stored_calibration_resumes_to_the_same_result(tmp_path, monkeypatch, 
         return real(u0, *args)
 
     store = tmp_path / "fit.sqlite"
-    monkeypatch.setattr(calibrate_module, "_fit_program", stopped_after_one)
+    monkeypatch.setattr(calibrate_module, "fit_program", stopped_after_one)
     with pytest.raises(KeyboardInterrupt):
         rj.calibrate(calibration, starts=12, store=store, progress=False)
     assert rj.campaign_progress(store).line().startswith("calibration: 8/12 fits")

@@ -217,16 +217,7 @@ def predict(
     **Raises:** `ParameterError` for a fitted parameter given in `design`, a fitted value
     the data did not determine, or `samples < 2`.
     """
-    if not (isinstance(samples, int) and samples >= 2):
-        raise ParameterError(f"samples = {samples!r} is invalid: valid an integer >= 2")
-    fitted.check_determined()
-    design = dict(design or {})
-    for name in design:
-        if name in fitted.names:
-            raise ParameterError(
-                f"{name} is fitted: its value comes from the calibration "
-                f"({fitted.values[fitted.names.index(name)]:g}); leave it out of the design"
-            )
+    design = _checked_design(fitted, design, samples)
     clock = time.perf_counter()
     values = {
         **fitted.design,
@@ -246,6 +237,62 @@ def predict(
             f"({result.failures()[0][1]}): no band to give; check the design"
         )
     _, gradients = peak_jacobian(params, smoothing, GRADIENT_OPTIONS, fitted.names)
+    bands = _bands(nominal_peaks, result, gradients, fitted.covariance)
+    return Prediction(
+        design={k: float(v) for k, v in values.items()},
+        given={k: float(v) for k, v in design.items()},
+        nominal=bands.nominal,
+        sampled=bands.sampled,
+        linear=bands.linear,
+        samples=bands.samples,
+        count=samples,
+        clipped=clipped,
+        failed=int((~ok).sum()),
+        seconds=time.perf_counter() - clock,
+    )
+
+
+def _checked_design(
+    fitted: FittedParameters, design: Mapping[str, float] | None, samples: int
+) -> dict[str, float]:
+    """The design a prediction is asked for, as a dict, once `samples` and `fitted` are
+    checked.
+
+    **Raises:** `ParameterError` for `samples < 2` (or not an integer), a fitted value
+    the data did not determine (`FittedParameters.check_determined`), or a fitted
+    parameter given in `design`.
+    """
+    if not (isinstance(samples, int) and samples >= 2):
+        raise ParameterError(f"samples = {samples!r} is invalid: valid an integer >= 2")
+    fitted.check_determined()
+    design = dict(design or {})
+    for name in design:
+        if name in fitted.names:
+            raise ParameterError(
+                f"{name} is fitted: its value comes from the calibration "
+                f"({fitted.values[fitted.names.index(name)]:g}); leave it out of the design"
+            )
+    return design
+
+
+@dataclasses.dataclass(frozen=True)
+class _Bands:
+    """Each metric's band (`Prediction`'s fields of the same names): `nominal` at the
+    fitted values, `sampled` (mean, std, ci95) over the draws that solved, `linear` (std,
+    ci95) from the gradient and the covariance, and the draws' values, `samples`."""
+
+    nominal: dict[str, float]
+    sampled: dict[str, dict[str, Any]]
+    linear: dict[str, dict[str, Any]]
+    samples: dict[str, np.ndarray]
+
+
+def _bands(nominal_peaks, result, gradients, covariance: np.ndarray) -> _Bands:
+    """Each metric's band (`_Bands`) from the peaks at the fitted values
+    `nominal_peaks`, the sweep of the draws `result` (its solves that failed left out),
+    and the metrics' `gradients` with respect to the fitted values, whose `covariance
+    (k, k)` they propagate (`g Σ gᵀ`)."""
+    ok = result.ok
     nominal, sampled, linear, kept = {}, {}, {}, {}
     for name in METRICS:
         nominal[name] = float(getattr(nominal_peaks, name))
@@ -258,20 +305,9 @@ def predict(
             "ci95": [float(low), float(high)],
         }
         g = np.asarray(getattr(gradients, name), dtype=float)
-        std = float(math.sqrt(max(g @ fitted.covariance @ g, 0.0)))
+        std = float(math.sqrt(max(g @ covariance @ g, 0.0)))
         linear[name] = {
             "std": std,
             "ci95": [nominal[name] - 1.96 * std, nominal[name] + 1.96 * std],
         }
-    return Prediction(
-        design={k: float(v) for k, v in values.items()},
-        given={k: float(v) for k, v in design.items()},
-        nominal=nominal,
-        sampled=sampled,
-        linear=linear,
-        samples=kept,
-        count=samples,
-        clipped=clipped,
-        failed=int((~ok).sum()),
-        seconds=time.perf_counter() - clock,
-    )
+    return _Bands(nominal, sampled, linear, kept)

@@ -1,0 +1,370 @@
+"""The fit itself: weighted least squares over every experiment, signal and sample,
+`Σ ρ(((model − measured) / σ)²)`, solved by optimistix's Levenberg–Marquardt, and its
+compiled programs (`fit_program`, `evaluate_program`).
+
+The Jacobian is the library's forward sensitivities of the signals at the sample times
+(the same error-controlled solve as the peaks' gradients; no finite differences), given
+to optimistix through a `jax.custom_jvp`, so that one solve per step gives the residuals
+and their Jacobian (`evaluate`). The experiments, and the starts or noise draws, run one
+after another inside one compiled program (on a CPU, lockstep lanes cost more than they
+save: `docs/speed.md`).
+
+The parameters move in the search space's coordinates (`SearchSpace`: linear between the
+bounds, or logarithmic over three decades and more) through lmfit's bounded transform
+`z = (sin u + 1) / 2` (`theta_of_u`), so that no step leaves the bounds. The solver is
+optimistix's with Marquardt's first damping and a second stopping test, in standard
+errors (`_LevenbergMarquardt`); each fit runs twice where a noise is estimated, the
+second time under the noise the first one's residuals show (`FitOutcome`).
+
+`_Static` keeps its name and fields: it is in the identity of every calibration store
+(`campaign_identity`), as `layout._Data` is. Other modules use its alias `FitSettings`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from .._model.derivatives import signal_sensitivities
+from .._model.params import with_values
+from .._model.programs import structure_jit
+from .._model.status import OK_CODE
+from .._sweeps.space import SearchSpace
+from .layout import CalibrationData
+
+__all__ = [
+    "FAILED_RESIDUAL",
+    "Evaluation",
+    "FitOutcome",
+    "FitSettings",
+    "evaluate",
+    "evaluate_program",
+    "fit_program",
+    "log_likelihood_term",
+    "robust",
+    "solve_lm",
+    "theta_of_u",
+    "u_of_z",
+]
+
+#: The residual given to the fit where an experiment's solve failed (in noise
+#: deviations): large and finite, so that the step is refused rather than NaN.
+FAILED_RESIDUAL = 1e6
+
+#: Levenberg–Marquardt stops once a step changes `u` by less than this (relatively) and
+#: every residual by less than this many noise deviations (optimistix's own test) ...
+_LM_TOLERANCE = 1e-4
+#: ... or once the Gauss–Newton step from its last accepted point would move the fit by
+#: less than this many standard errors (the Mahalanobis length of that step, under the
+#: covariance the report gives). The first test alone waited, at the optimum, for a
+#: step whose predicted gain (10⁻¹⁰ in χ²) the solve's rounding hides, and refused up
+#: to 20 of them one by one (measured on 20 noise draws of the bench's absorber test:
+#: 16–37 steps a fit before, 6–7 after; the values the same within 0.001 standard
+#: errors).
+_LM_STANDARD_ERRORS = 1e-3
+#: Marquardt's first damping, a fraction of the largest diagonal of `JᵀJ` at the start
+#: (Madsen, Nielsen and Tingleff's τ for a start that may be far), instead of
+#: optimistix's damping of 1 whatever the residuals' scale: in noise units `JᵀJ` is
+#: 10⁴–10⁸, so a damping of 1 is a Gauss–Newton step from a far start, refused and
+#: shrunk by 4 up to seven times before one is taken.
+_LM_FIRST_DAMPING = 1e-3
+
+
+class _Static(eqx.Module):
+    """What shapes the fit's program: the model parameters fitted, the signals, the
+    loss, the LM step limit, and whether any noise is estimated (a second pass)."""
+
+    wrt: tuple[str, ...] = eqx.field(static=True)
+    signals: tuple[str, ...] = eqx.field(static=True)
+    loss: str = eqx.field(static=True)
+    f_scale: float = eqx.field(static=True)
+    max_steps: int = eqx.field(static=True)
+    estimate_noise: bool = eqx.field(static=True, default=True)
+    lanes: int = eqx.field(static=True, default=1)
+    # Levenberg–Marquardt's stopping tests (fields, so that a program made with others
+    # is another program, never a cached one).
+    lm_tolerance: float = eqx.field(static=True, default=_LM_TOLERANCE)
+    lm_standard_errors: float = eqx.field(static=True, default=_LM_STANDARD_ERRORS)
+
+
+#: The name other modules use for `_Static`, whose own name stays (it is in the identity
+#: of every calibration store).
+FitSettings = _Static
+
+
+def _experiment_signals(theta_e, params, times, t1, data: CalibrationData, static: _Static):
+    """One experiment's signals at its sample times `(S, n)` and their Jacobian `(S, n,
+    K)` with respect to its K columns (`wrt`, then `t_shift`), and its status code."""
+    params = with_values(params, static.wrt, theta_e[:-1])
+    model_times = times - theta_e[-1]
+    before = model_times < 0  # before the firing the gun is at rest
+    solved = signal_sensitivities(
+        params,
+        data.smoothing,
+        dataclasses.replace(data.options, t1=t1),
+        static.wrt,
+        jnp.clip(model_times, 0.0, t1),
+        t1,
+        static.signals,
+    )
+    gradients = jnp.concatenate([solved.gradients, -solved.rates[..., None]], axis=-1)
+    values = jnp.where(before, 0.0, solved.values)
+    gradients = jnp.where(before[:, None], 0.0, gradients)
+    (code,) = jax.tree.leaves(solved.status)
+    return values, gradients, code
+
+
+class Evaluation(eqx.Module):
+    """The fit's pieces at one point θ: the normalised residuals `(E, S, n)` (0 where
+    no sample), their Jacobian with respect to θ `(E, S, n, P)`, the model's signals
+    `(E, S, n)` and each experiment's status code `(E,)`."""
+
+    residuals: jax.Array
+    jacobian: jax.Array
+    signals: jax.Array
+    codes: jax.Array
+
+
+def evaluate(theta, data: CalibrationData, static: _Static) -> Evaluation:
+    """The fit's pieces at the fitted values `theta (P,)` (SI units; `Evaluation`): every
+    experiment's solve, the residuals in noise units and their Jacobian. A sample of an
+    experiment whose solve failed takes `FAILED_RESIDUAL`, its Jacobian rows 0."""
+    P = theta.shape[0]
+    index = data.index
+    columns = jnp.where(index >= 0, theta[jnp.maximum(index, 0)], data.known)
+    # The experiments one after another (`lax.map`), not in lockstep: a vmapped solve
+    # selects its whole carry, the saved signals included, at every step (measured, one
+    # experiment of 5,001 samples: 13 ms vmapped, 3 ms alone).
+    values, gradients, codes = jax.lax.map(
+        lambda a: _experiment_signals(a[0], a[1], a[2], a[3], data, static),
+        (columns, data.params, data.times, data.t1),
+    )
+    ok = (codes == OK_CODE)[:, None, None]
+    select = jax.nn.one_hot(index, P) * (index >= 0)[..., None]  # (E, K, P)
+    jacobian = jnp.einsum("esnk,ekp->esnp", gradients, select) / data.sigma[..., None, None]
+    residuals = (values - data.measured) / data.sigma[..., None]
+    residuals = jnp.where(data.present & ok, residuals, jnp.where(data.present, FAILED_RESIDUAL, 0))
+    jacobian = jnp.where((data.present & ok)[..., None], jacobian, 0.0)
+    return Evaluation(residuals, jacobian, values, codes)
+
+
+def robust(r, loss: str, f_scale: float):
+    """The residual whose square is the loss `ρ(r²)`: `r` (linear), or scipy's soft-L1
+    and Huber of `r / f_scale`, times `f_scale` (smooth in r; the same near 0)."""
+    if loss == "linear":
+        return r
+    x = r / f_scale
+    if loss == "soft_l1":  # ρ(z) = 2(√(1+z) − 1) = 2z / (√(1+z) + 1)
+        return r * jnp.sqrt(2.0 / (jnp.sqrt(1.0 + x * x) + 1.0))
+    # Huber: ρ(z) = z for z <= 1, else 2√z − 1.
+    big = jnp.abs(x) > 1.0
+    safe = jnp.where(big, jnp.abs(x), 1.0)
+    return jnp.where(big, r * jnp.sqrt((2.0 * safe - 1.0) / (safe * safe)), r)
+
+
+def theta_of_u(u, space: SearchSpace):
+    """lmfit's bounded transform: `z = (sin u + 1) / 2`, `θ = space.theta(z)`."""
+    return space.theta((jnp.sin(u) + 1.0) / 2.0)
+
+
+def u_of_z(z):
+    """The fit's coordinates `u` of box coordinates `z` (NumPy): the inverse of the
+    bounded transform of `theta_of_u`, on its branch `|u| <= π/2`."""
+    return np.arcsin(np.clip(2.0 * np.asarray(z) - 1.0, -1.0, 1.0))
+
+
+def _lm_function(static: _Static):
+    """`(u, (data, held, held_theta)) → robust residuals (N,)`, whose Jacobian
+    (`custom_jvp`) comes from the same forward-sensitivity solve as the residuals. The
+    values `held (P,)` stay at `held_theta` (a profile's fixed parameter)."""
+
+    def value_and_jacobian(u, args):
+        data, held, held_theta = args
+        theta, dtheta = jax.jvp(lambda u_: theta_of_u(u_, data.space), (u,), (jnp.ones_like(u),))
+        theta = jnp.where(held, held_theta, theta)
+        dtheta = jnp.where(held, 0.0, dtheta)
+        evaluation = evaluate(theta, data, static)
+        r = evaluation.residuals.reshape(-1)
+        J = evaluation.jacobian.reshape(r.shape[0], -1) * dtheta
+        robust_r, slope = jax.jvp(
+            lambda x: robust(x, static.loss, static.f_scale), (r,), (jnp.ones_like(r),)
+        )
+        return robust_r, J * slope[:, None]
+
+    @jax.custom_jvp
+    def residuals(u, data):
+        return value_and_jacobian(u, data)[0]
+
+    @residuals.defjvp
+    def _(primals, tangents):
+        u, data = primals
+        du = tangents[0]
+        r, J = value_and_jacobian(u, data)
+        return r, J @ du
+
+    return residuals
+
+
+def _quiet(**_) -> None:
+    """optimistix's `verbose` hook, silent."""
+
+
+class _MarquardtTrustRegion(optx.ClassicalTrustRegion):
+    """optimistix's trust region with Marquardt's first damping (`_LM_FIRST_DAMPING`)
+    and Moré's cutoff for relaxing it: a step that gains three quarters of its predicted
+    reduction, not 99 %, lets the next one be longer."""
+
+    high_cutoff: float = 0.75  # pyright: ignore[reportIncompatibleVariableOverride]
+    first_damping: float = _LM_FIRST_DAMPING
+
+    def step(self, first_step, y, y_eval, f_info, f_eval_info, state):
+        """optimistix's step, with Marquardt's first damping at the first step."""
+        step_size, accept, result, state = super().step(
+            first_step, y, y_eval, f_info, f_eval_info, state
+        )
+        diagonal = jnp.sum(f_eval_info.jac.as_matrix() ** 2, axis=0)  # pyright: ignore[reportAttributeAccessIssue]
+        first = 1.0 / (self.first_damping * jnp.maximum(jnp.max(diagonal), 1e-300))
+        # A Jacobian that is not finite at the start: optimistix's damping of 1, whose
+        # step is then refused (not a NaN damping, whose zero steps it would accept).
+        first = jnp.where(jnp.isfinite(first), first, 1.0)
+        step_size = jnp.where(first_step, first, step_size)
+        return step_size, accept, result, eqx.tree_at(lambda s: s.step_size, state, step_size)
+
+
+class _LevenbergMarquardt(optx.AbstractGaussNewton):
+    """Levenberg–Marquardt (optimistix's Gauss–Newton with a damped Newton descent)
+    with `_MarquardtTrustRegion` and a second stopping test: the Gauss–Newton step from
+    the last accepted point would move the fit by under `standard_errors`. Never at a
+    point where an experiment's solve failed (a residual of at least `failed`)."""
+
+    rtol: float
+    atol: float
+    standard_errors: float
+    failed: float
+    norm: Any = optx.max_norm
+    # optimistix declares these abstract; its own LevenbergMarquardt narrows them so.
+    descent: optx.DampedNewtonDescent = optx.DampedNewtonDescent()  # pyright: ignore[reportIncompatibleVariableOverride]
+    search: _MarquardtTrustRegion = _MarquardtTrustRegion()  # pyright: ignore[reportIncompatibleVariableOverride]
+    verbose: Any = _quiet
+
+    def terminate(self, fn, y, args, options, state, tags):
+        """optimistix's test, or the Gauss–Newton step left is under `standard_errors`
+        (not at the first step, nor where an experiment's solve failed)."""
+        done, result = super().terminate(fn, y, args, options, state, tags)
+        data, held, _ = args
+        jacobian, residuals = state.f_info.jac.as_matrix(), state.f_info.residual
+        step = jnp.linalg.lstsq(jacobian, residuals)[0]
+        # The step's squared length in standard errors: ‖J δ‖² over the residual
+        # variance (the covariance's scale: the samples present, the values free).
+        length2 = jnp.sum((jacobian @ step) ** 2)
+        freedom = jnp.maximum(data.present.sum() - jnp.sum(~held), 1)
+        variance = jnp.sum(residuals**2) / freedom
+        near = length2 <= self.standard_errors**2 * jnp.maximum(variance, 1e-300)
+        near = near & jnp.all(jnp.abs(residuals) < self.failed) & ~state.first_step
+        return done | near, result
+
+
+def solve_lm(u0, data: CalibrationData, static: _Static, held=None, held_theta=None):
+    """One Levenberg–Marquardt fit from `u0 (P,)` (the fit's coordinates) under the noise
+    `data.sigma`, the values `held (P,)` (none by default) fixed at `held_theta (P,)`:
+    `(u (P,), converged, steps)`, never raising (`throw=False`)."""
+    with jax.ensure_compile_time_eval():  # half the failed residual, as the loss gives it
+        failed = float(robust(jnp.asarray(0.5 * FAILED_RESIDUAL), static.loss, static.f_scale))
+    solver = _LevenbergMarquardt(
+        rtol=static.lm_tolerance,
+        atol=static.lm_tolerance,
+        standard_errors=static.lm_standard_errors,
+        failed=failed,
+    )
+    held = jnp.zeros(u0.shape, dtype=bool) if held is None else held
+    held_theta = jnp.zeros(u0.shape) if held_theta is None else held_theta
+    solution = optx.least_squares(
+        _lm_function(static),
+        solver,
+        u0,
+        args=(data, held, held_theta),
+        max_steps=static.max_steps,
+        throw=False,
+    )
+    return solution.value, solution.result == optx.RESULTS.successful, solution.stats["num_steps"]
+
+
+def _residual_scale(residuals, present, loss: str):
+    """Each signal's noise in units of the assumed one, from the residuals `(E, S, n)`:
+    the RMS, or with a robust loss the MAD's normal-consistent scale."""
+    if loss == "linear":
+        count = jnp.maximum(present.sum(-1), 1)
+        return jnp.sqrt(jnp.sum(jnp.where(present, residuals**2, 0.0), -1) / count)
+    absolute = jnp.where(present, jnp.abs(residuals), jnp.nan)
+    return 1.4826 * jnp.nanmedian(absolute, axis=-1)
+
+
+class FitOutcome(eqx.Module):
+    """One lane of a batched fit: the optimum `u`, whether the fit converged, its steps,
+    the noise it settled on `(E, S)`, the cost there, and its `score`: −2 log-likelihood
+    of the Gaussian noise model up to a constant (the cost plus `Σ n log σ²` over every
+    experiment and signal), which ranks fits whose noise was estimated each on its own
+    (their costs are all about N)."""
+
+    u: jax.Array
+    converged: jax.Array
+    steps: jax.Array
+    sigma: jax.Array
+    cost: jax.Array
+    score: jax.Array
+
+
+def log_likelihood_term(sigma, present):
+    """`Σ n log σ²` over experiments and signals (`n` samples each), any array module."""
+    xp = jnp if isinstance(sigma, jax.Array) else np
+    return xp.sum(present.sum(-1) * xp.log(sigma**2))
+
+
+def _fit_one(u0, measured, data: CalibrationData, static: _Static) -> FitOutcome:
+    """Two passes: fit with the assumed noise; then (where it is estimated) with the
+    noise the residuals show, from the first optimum."""
+    data = eqx.tree_at(lambda d: d.measured, data, measured)
+    u1, ok1, steps1 = solve_lm(u0, data, static)
+    if not static.estimate_noise:  # every noise given: one pass
+        final = evaluate(theta_of_u(u1, data.space), data, static)
+        cost = jnp.sum(robust(final.residuals, static.loss, static.f_scale) ** 2)
+        score = cost + log_likelihood_term(data.sigma, data.present)
+        return FitOutcome(u1, ok1, steps1, data.sigma, cost, score)
+    first = evaluate(theta_of_u(u1, data.space), data, static)
+    scale = _residual_scale(first.residuals, data.present, static.loss)
+    scale = jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0)
+    sigma = jnp.where(data.sigma_given, data.sigma, data.sigma * scale)
+    data = eqx.tree_at(lambda d: d.sigma, data, sigma)
+    u2, ok2, steps2 = solve_lm(u1, data, static)
+    final = evaluate(theta_of_u(u2, data.space), data, static)
+    cost = jnp.sum(robust(final.residuals, static.loss, static.f_scale) ** 2)
+    score = cost + log_likelihood_term(sigma, data.present)
+    return FitOutcome(u2, ok1 & ok2, steps1 + steps2, sigma, cost, score)
+
+
+@functools.partial(structure_jit, exported=lambda leaves: FitOutcome(*leaves))
+def fit_program(u0, measured, data: CalibrationData, static: _Static) -> FitOutcome:
+    """`_fit_one` over a batch, `u0 (B, P)`, `measured (B, E, S, n)`, in one program:
+    `static.lanes` fits at a time in lockstep (`vmap`), the groups one after another
+    (`lax.map`). On a CPU one lane is fastest: lanes in lockstep run until the slowest
+    has converged, a vmapped loop selects its whole carry at every step, and a CPU gains
+    nothing from solving lanes side by side (measured, 8 fits of 1,001 samples: 2.6 s in
+    lockstep, 0.5 s as lanes of one, 0.28 s as a plain scan)."""
+    # `batch_size=1` would still vmap (lanes of one, carrying selects); None does not.
+    lanes = static.lanes if static.lanes > 1 else None
+    return jax.lax.map(lambda a: _fit_one(a[0], a[1], data, static), (u0, measured),
+                       batch_size=lanes)  # fmt: skip
+
+
+@functools.partial(structure_jit, exported=lambda leaves: Evaluation(*leaves))
+def evaluate_program(theta, data: CalibrationData, static: _Static) -> Evaluation:
+    """`evaluate` as one compiled program (exported to the compilation cache when it is
+    on)."""
+    return evaluate(theta, data, static)
