@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import recoil_jax as rj
 
-__all__ = ["Commands", "add_max_steps"]
+__all__ = ["Commands", "add_force_table", "add_max_steps"]
 
 
 class Commands:
@@ -35,4 +35,11 @@ def add_max_steps(parser: argparse.ArgumentParser) -> None:
         metavar="N",
         help="most solver steps per design (default %(default)s); a solve that needs more "
         "fails with status max_steps",
+    )
+
+
+def add_force_table(parser: argparse.ArgumentParser) -> None:
+    """`--force-table FILE.csv`: the breech force of one round, measured."""
+    parser.add_argument(
+        "--force-table", metavar="FILE.csv", help="breech force of one round (header t_s,F_N)"
     )

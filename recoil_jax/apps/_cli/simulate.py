@@ -17,7 +17,7 @@ from .._files.inputs import (
     parse_assignments,
     warn,
 )
-from .options import Commands, add_max_steps
+from .options import Commands, add_force_table, add_max_steps
 
 __all__ = ["add_command", "run_simulate"]
 
@@ -121,7 +121,5 @@ def add_command(commands: Commands) -> None:
         "x_m,v_m,F_AN,F_ct, without x_m, v_m, F_ct for m=0), as calibrate and "
         "rj.read_trace read it",
     )
-    sim.add_argument(
-        "--force-table", metavar="FILE.csv", help="breech force of one round (header t_s,F_N)"
-    )
+    add_force_table(sim)
     add_max_steps(sim)

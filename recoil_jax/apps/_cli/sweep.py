@@ -27,7 +27,7 @@ from .._files.inputs import (
     warn,
 )
 from .._files.json_writer import dumps as json_dumps
-from .options import Commands, add_max_steps
+from .options import Commands, add_force_table, add_max_steps
 
 __all__ = [
     "MAX_AXIS",
@@ -342,9 +342,7 @@ def add_command(commands: Commands) -> None:
         help="print a JSON list, in input order (keys as simulate --json + status)",
     )
     swp.add_argument("--out", metavar="DIR", help="folder for sweep.csv, sweep.npz, figures")
-    swp.add_argument(
-        "--force-table", metavar="FILE.csv", help="breech force of one round (header t_s,F_N)"
-    )
+    add_force_table(swp)
     swp.add_argument(
         "--store",
         metavar="FILE.sqlite",
