@@ -114,14 +114,13 @@ from ._model.status import (
     Status as Status,
     failure_message as failure_message,
 )
+from ._sweeps.batches import with_table as with_table
+from ._sweeps.grid import grid as grid
+from ._sweeps.result import SweepResult as SweepResult, load_sweep as load_sweep
 from ._sweeps.sweep import (
-    SweepResult as SweepResult,
-    grid as grid,
-    load_sweep as load_sweep,
     sweep as sweep,
     sweep_grid as sweep_grid,
     sweep_to_store as sweep_to_store,
-    with_table as with_table,
 )
 from ._version import __version__ as __version__
 

@@ -90,15 +90,11 @@ from ._model.registry import Parameter
 from ._model.settings import T1_LIMITS, end_time
 from ._model.status import OK_CODE, status_codes, status_messages, status_table
 from ._model.text_files import MAX_TEXT_BYTES, read_text
+from ._sweeps.batches import batch_params, shard_batch
+from ._sweeps.grid import Grid
+from ._sweeps.memory import check_memory, default_workers
+from ._sweeps.result import StoredSweep
 from ._sweeps.space import SearchSpace, log_coordinates
-from ._sweeps.sweep import (
-    Grid,
-    StoredSweep,
-    batch_params,
-    check_memory,
-    default_workers,
-    shard_batch,
-)
 
 __all__ = [
     "LOSSES",

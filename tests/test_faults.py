@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 import recoil_jax as rj
-import recoil_jax._sweeps.sweep as sweep_module
+import recoil_jax._sweeps.memory as memory_module
 import recoil_jax.extend as rjx
 from recoil_jax._campaigns.store import _hold
 from recoil_jax.apps import main
@@ -167,7 +167,7 @@ def test_an_axis_or_a_grid_too_large_for_memory_is_refused_with_its_size(monkeyp
     assert main(["sweep", "m=10:2000:1000000000", "gap=0.05", "--json"]) == 2
     assert "1,000,000,000 values on one axis" in _one_line(capsys.readouterr().err)
     # As on a machine with 1 GB free (whatever this one has).
-    monkeypatch.setattr(sweep_module, "_available_memory", lambda: 10**9)
+    monkeypatch.setattr(memory_module, "_available_memory", lambda: 10**9)
     assert main(["sweep", "m=10:2000:100000", "gap=0:0.1:100000", "--json"]) == 2
     line = _one_line(capsys.readouterr().err)
     assert "a sweep in memory of 10,000,000,000 designs needs about" in line
@@ -186,8 +186,8 @@ def test_a_refused_huge_sweep_stays_small_in_a_real_process(tmp_path):
     # VmHWM, this program's own peak: ru_maxrss would carry over the forked parent's.
     script = (
         "import re\n"
-        "import recoil_jax._sweeps.sweep as sweep\n"
-        "sweep._available_memory = lambda: 10**9  # as on a machine with 1 GB free\n"
+        "import recoil_jax._sweeps.memory as memory\n"
+        "memory._available_memory = lambda: 10**9  # as on a machine with 1 GB free\n"
         "from recoil_jax.apps import main\n"
         "status = main(['sweep', 'm=10:2000:100000', 'gap=0:0.1:100000', '--json'])\n"
         "text = open('/proc/self/status').read()\n"
@@ -211,7 +211,7 @@ def test_a_streamed_grid_keeps_its_memory_whatever_its_size(tmp_path):
         "import re, sys\n"
         "import numpy as np\n"
         "import recoil_jax as rj, recoil_jax.extend as rjx\n"
-        "import recoil_jax._sweeps.sweep as sweep\n"
+        "import recoil_jax._sweeps.dispatch as dispatch\n"
         "solved = []\n"
         "def stub(batch, t1, count, *args):\n"
         "    solved.append(count)\n"
@@ -219,7 +219,7 @@ def test_a_streamed_grid_keeps_its_memory_whatever_its_size(tmp_path):
         "        raise KeyboardInterrupt\n"
         "    peaks = {key: np.ones(count) for key in rjx.PEAK_FIELDS.values()}\n"
         "    return peaks | {'status_code': np.zeros(count, np.int32)}, 0.01\n"
-        "sweep._solve_chunk = stub\n"
+        "dispatch._solve_chunk = stub\n"
         "side = int(sys.argv[1])\n"
         "grid = rjx.Grid({'m': np.linspace(10, 2000, side), 'gap': np.linspace(0, 0.1, side)})\n"
         "try:\n"
@@ -547,12 +547,12 @@ def test_every_count_of_a_calibration_is_bounded_before_it_starts(
 
 
 def test_starts_that_would_not_fit_in_memory_are_refused(traces, capsys, monkeypatch):
-    monkeypatch.setattr(sweep_module, "_available_memory", lambda: 10**6)  # 1 MB free
+    monkeypatch.setattr(memory_module, "_available_memory", lambda: 10**6)  # 1 MB free
     line = _refused(capsys, ["calibrate", "t.csv", "--fit", "k", "--starts", "1000"],
                     "a calibration of 1,000 starts at once needs about")  # fmt: skip
     assert "--store FILE.sqlite" in line
     # With a store, 8 at a time.
-    monkeypatch.setattr(sweep_module, "_available_memory", lambda: 10**7)
+    monkeypatch.setattr(memory_module, "_available_memory", lambda: 10**7)
     with pytest.raises(_Reached):
         main(["calibrate", "t.csv", "--fit", "k", "--starts", "1000", "--store", "c.sqlite"])
 

@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 
 import recoil_jax as rj
-import recoil_jax._sweeps.sweep as sweep_module
+import recoil_jax._sweeps.dispatch as dispatch_module
 import recoil_jax.extend as rjx
-from recoil_jax._campaigns.store import StudyStore
+from recoil_jax._campaigns.store import StudyStore, read_meta
 from recoil_jax.apps import main
 from recoil_jax.apps._bench.speed import bench_designs
 
@@ -55,7 +55,7 @@ def uninterrupted():
 def test_interrupted_sweep_resumes_to_the_same_bits(uninterrupted, tmp_path, monkeypatch, capsys):
     designs, plain = uninterrupted
     store = tmp_path / "campaign.sqlite"
-    real = sweep_module._run_chunk
+    real = dispatch_module._run_chunk
     solved = []
 
     def stop_after_two(*args, **kwargs):
@@ -64,7 +64,7 @@ def test_interrupted_sweep_resumes_to_the_same_bits(uninterrupted, tmp_path, mon
         solved.append(args[2])  # the chunk's real designs
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(sweep_module, "_run_chunk", stop_after_two)
+    monkeypatch.setattr(dispatch_module, "_run_chunk", stop_after_two)
     with pytest.raises(KeyboardInterrupt):
         rj.sweep(designs, store=store, **PLAN)
     assert _rows(store) == {"points": (1024, 1024), "chunks": 2, "integrity": "ok"}
@@ -73,7 +73,7 @@ def test_interrupted_sweep_resumes_to_the_same_bits(uninterrupted, tmp_path, mon
     assert progress.rate > 0 and progress.seconds_left > 0
     assert "1024/1500 designs" in progress.line()
 
-    monkeypatch.setattr(sweep_module, "_run_chunk", real)
+    monkeypatch.setattr(dispatch_module, "_run_chunk", real)
     resumed = rj.sweep(designs, store=store, **PLAN)
     captured = capsys.readouterr()
     assert "resuming from" in captured.err
@@ -94,7 +94,7 @@ def test_interrupted_sweep_resumes_to_the_same_bits(uninterrupted, tmp_path, mon
     assert {r["status"] for r in rows} <= {"ok", *rjx.status_table().values()}
 
     # Done: a third run solves nothing and gives the same results.
-    monkeypatch.setattr(sweep_module, "_run_chunk", stop_after_two)  # would raise if called
+    monkeypatch.setattr(dispatch_module, "_run_chunk", stop_after_two)  # would raise if called
     again = rj.sweep(designs, store=store, progress=False, **PLAN)
     _assert_same(again, plain)
     assert again.stored == 1500
@@ -117,7 +117,7 @@ def test_a_streamed_sweep_keeps_its_results_in_the_store_only(uninterrupted, tmp
     like a sweep; a sweep that has not finished cannot be loaded."""
     designs, plain = uninterrupted
     store = tmp_path / "streamed.sqlite"
-    real = sweep_module._run_chunk
+    real = dispatch_module._run_chunk
     calls = []
 
     def stop_after_one(*args, **kwargs):
@@ -126,10 +126,10 @@ def test_a_streamed_sweep_keeps_its_results_in_the_store_only(uninterrupted, tmp
         calls.append(1)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(sweep_module, "_run_chunk", stop_after_one)
+    monkeypatch.setattr(dispatch_module, "_run_chunk", stop_after_one)
     with pytest.raises(KeyboardInterrupt):
         rj.sweep_to_store(designs, store, progress=False, **PLAN)
-    monkeypatch.setattr(sweep_module, "_run_chunk", real)
+    monkeypatch.setattr(dispatch_module, "_run_chunk", real)
     with pytest.raises(rj.ParameterError, match="holds 512 of 1500 designs"):
         rj.load_sweep(store)
     streamed = rj.sweep_to_store(designs, store, progress=False, **PLAN)
@@ -638,6 +638,139 @@ def test_a_store_names_a_local_method_as_before_its_settings_moved():
     assert {name: fingerprint(store_form(m)) for name, m in methods.items()} == NAMES_BEFORE
     # Another setting is another name.
     assert fingerprint(store_form(rj.SLSQP(maxiter=8))) != NAMES_BEFORE["SLSQP()"]
+
+
+#: The identity each campaign gave its store before issue 53 moved the opening of stores
+#: into one opener and the sweep's settings into one object (the version fixed: a new
+#: version is a new campaign). A store written before resumes only while these hold.
+IDENTITIES_BEFORE = {
+    "sweep": "7536ae6bd18686f121729f0c47d30ea527e90e9f51b336b125cb7dcf8333231d",
+    "sweep of a force table": "9b1b25128ba8d5da440a8dd61b5d75d1c5831972d7d1fbe63b46be4a2c773fd7",
+    "grid": "19579e91864cde2765421d39ff39521b3eebac8bc4fad3ce7a809a536dd3aff6",
+    "search": "97b017afbc10d471219875615135775891a7016aa3cbed081754d377eda4e299",
+    "optimise": "b133f42c89e9dfb4dbd62335788075f680d8bad578ea42318b2a5d78fcb76511",
+    "calibration": "0a4d8c6c6ebe7316b9f1230bccf3e7c8484430bcb556e6c5693fc38b5daee46e",
+}
+
+
+def test_campaigns_name_their_stores_as_before(monkeypatch):
+    """Each campaign hands its store the identity it did before (the same parts hashed,
+    in the same order): stores written before resume. Each run stops as its store is
+    made, before anything is solved."""
+    import recoil_jax._campaigns.store as store_module
+
+    monkeypatch.setattr(store_module, "__version__", "0.0+identity-test")
+
+    class Opened(Exception):
+        pass
+
+    def opened(self, path, **kwargs):
+        raise Opened(kwargs)
+
+    for store_class in (store_module.SweepStore, StudyStore, store_module.CalibrationStore):
+        monkeypatch.setattr(store_class, "__init__", opened)
+    problem = _gap_problem()
+    designs = [{"gap": 0.01, "k": 28000.0}, {"gap": 0.05, "m": 0.0}]
+    table = rj.ForceTable(t=np.array([0.0, 0.01, 0.02]), F=np.array([0.0, 1e5, 0.0]))
+    steps = dict(starts=3, steps=16, stopping=rj.Stopping(min_steps=6), progress=False)
+    ts = np.linspace(0.0, 0.6, 61)
+    trace = rjx.Trace.of(ts, x_M=0.01 * np.sin(10 * ts))
+    calibration = rj.Calibration([rjx.Experiment(trace)], fit={"k": (1e4, 1e5), "gap": (0.0, 0.1)})
+    campaigns = {
+        "sweep": lambda: rj.sweep(designs, store="s", wrt=("gap",), workers=2),
+        "sweep of a force table": lambda: rj.sweep_to_store(
+            designs, "s", force_table=table, chunk_size=512, lanes=64, sort_by_gap=False, workers=1
+        ),
+        "grid": lambda: rj.sweep_grid(
+            {"gap": [0.01, 0.03], "k": [2e4, 3e4, 4e4]}, {"m": 1200.0}, store="s", workers=1
+        ),
+        "search": lambda: rj.search(problem, store="s", **SEARCH),
+        "optimise": lambda: rj.optimise(problem, store="s", **steps),
+        "calibration": lambda: rj.calibrate(calibration, starts=3, progress=False, store="s"),
+    }
+    identities = {}
+    for name, run in campaigns.items():
+        with pytest.raises(Opened) as made:
+            run()
+        identities[name] = made.value.args[0]["identity"]
+        assert "created" in made.value.args[0]["description"], name
+    assert identities == IDENTITIES_BEFORE
+
+
+def test_a_campaign_opens_says_it_resumes_and_closes_its_store(tmp_path, capsys):
+    """`open_campaign`: None without a path (nothing hashed); one resume notice, as each
+    store says what it holds; the store closed whatever happens, its lock let go."""
+    from recoil_jax._campaigns.opener import open_campaign
+    from recoil_jax._campaigns.store import CalibrationStore
+
+    path = tmp_path / "fit.sqlite"
+
+    def opening(progress=True, identity=lambda: "fit"):
+        return open_campaign(
+            CalibrationStore, path, label="calibrate", identity=identity, total=3,
+            plan={"starts_per_chunk": 8}, description={"fit": ["k"], "starts": 3},
+            progress=progress, columns=(),
+        )  # fmt: skip
+
+    def unused() -> str:
+        raise AssertionError("hashed without a store")
+
+    with open_campaign(
+        CalibrationStore, None, label="calibrate", identity=unused, total=3, plan={},
+        description={}, progress=True, columns=(),
+    ) as nothing:  # fmt: skip
+        assert nothing is None
+    with opening() as store:
+        store.commit("fit:0", 3, {"x": np.arange(3.0)}, 0.1)
+    assert capsys.readouterr().err == ""  # nothing stored before
+    with pytest.raises(KeyboardInterrupt), opening() as store:
+        raise KeyboardInterrupt
+    assert capsys.readouterr().err == f"calibrate: resuming from {path}: 3 fits already done\n"
+    with opening(progress=False) as store:  # the lock was let go: it opens again
+        assert np.array_equal(store.stored("fit:0")["x"], np.arange(3.0))
+        store.close()  # closed before it is left: closing again does nothing
+    assert capsys.readouterr().err == ""
+    made = json.loads(read_meta(sqlite3.connect(path))["description"])
+    assert list(made) == ["fit", "starts", "created"]
+    with pytest.raises(rj.ParameterError, match="holds the results of a different"):
+        opening(identity=lambda: "another").__enter__()
+
+
+def test_a_resumed_sweep_says_its_plan_its_dropped_chunks_then_what_it_has(
+    tmp_path, monkeypatch, capsys
+):
+    """The sweep's notices in their order: the plan kept from the store, the chunks
+    dropped as incomplete, then the one resume notice (the solves stubbed)."""
+    import recoil_jax._sweeps.dispatch as dispatch_module
+
+    solved = []
+
+    def stub(batch, t1, count, *args):
+        solved.append(count)
+        if len(solved) == 3:
+            raise KeyboardInterrupt
+        peaks = {key: np.ones(count) for key in rjx.PEAK_FIELDS.values()}
+        return peaks | {"status_code": np.zeros(count, np.int32)}, 0.01
+
+    monkeypatch.setattr(dispatch_module, "_solve_chunk", stub)
+    designs = {"gap": np.linspace(0.0, 0.1, 40)}
+    store = tmp_path / "notes.sqlite"
+    with pytest.raises(KeyboardInterrupt):
+        rj.sweep_to_store(designs, store, chunk_size=8, workers=1, progress=False)
+    with sqlite3.connect(store) as db:
+        db.execute("DELETE FROM points WHERE chunk = '0:8' AND point % 2 = 0")
+    capsys.readouterr()
+    done = rj.sweep_to_store(designs, store, chunk_size=16, workers=1, progress=None)
+    assert (done.designs, done.stored) == (40, 8)
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("sweep:")]
+    plan = "{'workers': 1, 'lanes': 128, 'chunk_size': %d, 'sort_by_gap': True}"
+    assert lines == [
+        f"sweep: resuming with the plan of the run that made {store} ({plan % 8}), not "
+        f"{plan % 16}: the same chunks give the same results",
+        f"sweep: {store} had chunks with rows missing or doubled (8 designs dropped): "
+        "those chunks are solved again",
+        f"sweep: resuming from {store}: 8 of 40 designs (1 chunk) already done",
+    ]
 
 
 def test_stored_outputs_are_unpacked_one_header_at_a_time(monkeypatch):

@@ -93,7 +93,8 @@ def test_a_grid_made_a_chunk_at_a_time_equals_its_columns(tmp_path):
 def test_a_resumed_grid_does_not_rebuild_the_blocks_it_has(tmp_path, monkeypatch):
     """A grid stopped after two of its five blocks resumes with the other three: the
     stored blocks are not made, grouped or checked again (the solves stubbed)."""
-    import recoil_jax._sweeps.sweep as sweep_module
+    import recoil_jax._sweeps.chunks as chunks_module
+    import recoil_jax._sweeps.dispatch as dispatch_module
 
     solved, grouped, stop = [], [], [True]
 
@@ -105,14 +106,14 @@ def test_a_resumed_grid_does_not_rebuild_the_blocks_it_has(tmp_path, monkeypatch
         peaks = {key: np.ones(count) for key in rjx.PEAK_FIELDS.values()}
         return peaks | {"status_code": np.zeros(count, np.int32)}, 0.01
 
-    real_groups = sweep_module._groups
+    real_groups = chunks_module._groups
 
     def counted(columns, *args, **kwargs):
         grouped.append(len(next(iter(columns.values()))))
         return real_groups(columns, *args, **kwargs)
 
-    monkeypatch.setattr(sweep_module, "_solve_chunk", stub)
-    monkeypatch.setattr(sweep_module, "_groups", counted)
+    monkeypatch.setattr(dispatch_module, "_solve_chunk", stub)
+    monkeypatch.setattr(chunks_module, "_groups", counted)
     designs = rjx.Grid({"m": np.linspace(500.0, 1500.0, 5), "gap": np.linspace(0.0, 0.1, 8)})
     store = tmp_path / "grid.sqlite"
     with pytest.raises(KeyboardInterrupt):

@@ -23,8 +23,8 @@ from .._model.parameter_table import PARAMETERS
 from .._model.params import ForceTable, RecoilParams, params_from_values, params_to_values
 from .._model.registry import ParameterError
 from .._model.settings import Smoothing, SolverOptions, end_time, with_default_tolerances
+from .._sweeps.batches import batch_params, with_table
 from .._sweeps.space import SearchSpace, log_coordinates
-from .._sweeps.sweep import batch_params, with_table
 from .model_check import trace_noise
 from .traces import Experiment, known_values
 

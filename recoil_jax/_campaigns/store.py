@@ -64,7 +64,6 @@ __all__ = [
     "evaluation_row",
     "fingerprint",
     "lowest_row",
-    "open_study",
     "read_meta",
     "read_sweep_store",
     "store_failures",
@@ -307,7 +306,19 @@ class _Store:
     def _create_tables(self) -> None:
         raise NotImplementedError
 
+    def opening_notes(self, label: str, path, plan: dict) -> list[str]:
+        """Lines a campaign `label` says on stderr as it opens this store at `path` (as
+        given), before its resume notice (`open_campaign`); `plan`: the plan it asked
+        for. None by default."""
+        return []
+
+    def resumed(self) -> str | None:
+        """What the resume notice says this store holds (`"{label}: resuming from
+        {path}: {resumed}"`); None when it holds nothing yet."""
+        raise NotImplementedError
+
     def close(self) -> None:
+        """Close the database and let go of the writer lock; closing again does nothing."""
         self.db.close()
         self._release()
 
@@ -330,6 +341,43 @@ class SweepStore(_Store):
     the same chunks and gives the same bits."""
 
     kind = "sweep"
+
+    def __init__(self, path, *, identity: str, total: int, plan: dict, columns, description):
+        super().__init__(
+            path, identity=identity, total=total, plan=plan, columns=columns,
+            description=description,
+        )  # fmt: skip
+        try:
+            self.dropped = self.drop_incomplete()
+        except BaseException:
+            self.close()
+            raise
+
+    def opening_notes(self, label: str, path, plan: dict) -> list[str]:
+        """The plan kept from the run that made the store, where it is not `plan`; the
+        chunks dropped as incomplete (`dropped`), which are solved again."""
+        notes = []
+        if self.plan != plan:
+            notes.append(
+                f"{label}: resuming with the plan of the run that made {path} ({self.plan}), "
+                f"not {plan}: the same chunks give the same results"
+            )
+        if self.dropped:
+            notes.append(
+                f"{label}: {path} had chunks with rows missing or doubled ({self.dropped} "
+                "designs dropped): those chunks are solved again"
+            )
+        return notes
+
+    def resumed(self) -> str | None:
+        done = self.done()
+        already = sum(done.values())
+        if not already:
+            return None
+        return (
+            f"{already} of {self.total} designs ({len(done)} chunk{'s' * (len(done) != 1)}) "
+            "already done"
+        )
 
     def _create_tables(self) -> None:
         data = ", ".join(f"{_quote(name)} REAL" for name in _sql_names(self.columns))
@@ -445,6 +493,10 @@ class CalibrationStore(_Store):
     def stored_fits(self) -> int:
         """How many fits the committed parts hold."""
         return int(self.db.execute("SELECT COALESCE(SUM(designs), 0) FROM chunks").fetchone()[0])
+
+    def resumed(self) -> str | None:
+        fits = self.stored_fits()
+        return f"{fits} fits already done" if fits else None
 
     def stored(self, part: str) -> dict[str, np.ndarray] | None:
         """The arrays of the committed `part`, or None."""
@@ -595,6 +647,14 @@ class StudyStore(_Store):
         """Seconds of the study's time budget spent: the earlier runs' and this one's."""
         return self.prior_seconds + time.perf_counter() - self._opened
 
+    def resumed(self) -> str | None:
+        if not self.evaluation_count:
+            return None
+        return (
+            f"{self.evaluation_count} evaluations stored (read back, not solved), "
+            f"{self.prior_seconds:.1f} s of the budget spent"
+        )
+
     def _create_tables(self) -> None:
         data = ", ".join(f"{_quote(name)} REAL" for name in _sql_names(self.columns))
         self.db.execute(
@@ -700,42 +760,6 @@ def evaluation_row(
         "status": status_messages(np.asarray([code]))[0], "status_code": code,
         "key": key, "outputs": outputs,
     }  # fmt: skip
-
-
-def open_study(
-    path,
-    *,
-    label: str,
-    problem,
-    identity: str,
-    total: int,
-    plan: dict,
-    description: dict,
-    progress: bool | None,
-) -> StudyStore:
-    """The store at `path` of the study `label` (`"search"`, `"optimise"`) of `problem` (a
-    `DesignProblem`: its `tune` and `metric_constraints` name the columns; the store
-    imports nothing of the design layer): created, or checked to be this study's
-    (`identity`), with one line on stderr when it resumes one (unless `progress` is
-    False)."""
-    study = StudyStore(
-        path,
-        identity=identity,
-        total=total,
-        plan=plan,
-        tune=problem.tune,
-        limits=[(name, kind) for name, kind, _ in problem.metric_constraints],
-        description={"study": label, "tune": list(problem.tune)}
-        | description
-        | {"created": time.strftime("%Y-%m-%d %H:%M:%S")},
-    )
-    if progress is not False and study.evaluation_count:
-        print(
-            f"{label}: resuming from {path}: {study.evaluation_count} evaluations stored "
-            f"(read back, not solved), {study.prior_seconds:.1f} s of the budget spent",
-            file=sys.stderr,
-        )
-    return study
 
 
 def _describe(kind: str | None, description: dict) -> str:

@@ -37,8 +37,9 @@ from .._model.params import params_to_values
 from .._model.programs import structure_jit
 from .._model.settings import end_time
 from .._model.status import OK_CODE
+from .._sweeps.settings import CHUNK_SIZE
 from .._sweeps.space import SearchSpace
-from .._sweeps.sweep import CHUNK_SIZE, sweep
+from .._sweeps.sweep import sweep
 
 __all__ = [
     "SERIES_POINTS",

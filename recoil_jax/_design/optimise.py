@@ -25,8 +25,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from .._campaigns.opener import open_study
 from .._campaigns.progress import Progress
-from .._campaigns.store import StudyStore, campaign_identity, evaluation_row, open_study
+from .._campaigns.store import StudyStore, campaign_identity, evaluation_row
 from .._design.lagrangian import AugmentedLagrangian, LagrangianState, cosine_decayed
 from .._design.problem import (
     DesignProblem,
@@ -318,11 +319,8 @@ def optimise(
     state = _initial_state(optimiser, lagrangian, u0, limits.shape[1])
     step_fn, traced = _make_step(problem, optimiser, lagrangian, steps, anneal)
     runs = _Runs(len(u0), steps, problem)
-    study = None
-    if store is not None:
-        settings = (starts, steps, params, limits, seed, anneal, lagrangian, stopping)
-        study = _open_store(store, problem, optimiser, u0, settings, progress)
-    with contextlib.nullcontext() if study is None else study:
+    settings = (starts, steps, params, limits, seed, anneal, lagrangian, stopping)
+    with _open_store(store, problem, optimiser, u0, settings, progress) as study:
         state = runs.resume(study, state)
         bar = Progress("optimise", steps, "steps", progress, already=len(runs.records))
         run_params = jax.tree.map(lambda x: jnp.repeat(jnp.asarray(x), starts, axis=0), params)
@@ -509,16 +507,22 @@ class _Runs:
         )
 
 
-def _open_store(path, problem, optimiser, u0, settings: tuple, progress) -> StudyStore:
-    """The store at `path` of this optimisation (created, or checked to be its own)."""
+def _open_store(
+    path, problem, optimiser, u0, settings: tuple, progress
+) -> contextlib.AbstractContextManager[StudyStore | None]:
+    """The store at `path` of this optimisation (`open_study`: made, or checked to be
+    its own; None where `path` is None)."""
     starts, steps, params, limits, seed, anneal, lagrangian, stopping = settings
-    # The settings flat, in the order stores were named by before they were objects.
-    identity = _identity(
-        problem, optimiser, u0, starts, steps, params, limits, seed, anneal,
-        lagrangian.update_every, lagrangian.penalty, lagrangian.penalty_growth,
-        lagrangian.max_penalty, stopping.patience, stopping.ftol, stopping.vtol,
-        stopping.min_steps,
-    )  # fmt: skip
+
+    def identity() -> str:
+        # The settings flat, in the order stores were named by before they were objects.
+        return _identity(
+            problem, optimiser, u0, starts, steps, params, limits, seed, anneal,
+            lagrangian.update_every, lagrangian.penalty, lagrangian.penalty_growth,
+            lagrangian.max_penalty, stopping.patience, stopping.ftol, stopping.vtol,
+            stopping.min_steps,
+        )  # fmt: skip
+
     return open_study(
         path, label="optimise", problem=problem, identity=identity, total=len(u0) * steps,
         plan={}, description={"runs": len(u0)}, progress=progress,

@@ -28,7 +28,7 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any, NamedTuple, final
 
@@ -37,8 +37,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._campaigns.opener import open_study
 from .._campaigns.progress import Progress
-from .._campaigns.store import StudyStore, campaign_identity, open_study
+from .._campaigns.store import StudyStore, campaign_identity
 from .._design.evaluators import (
     BatchEvaluation,
     BatchEvaluator,
@@ -67,8 +68,8 @@ from .._model.feasibility import (
 )
 from .._model.params import values_of
 from .._model.registry import ParameterError
+from .._sweeps.memory import default_workers
 from .._sweeps.space import SearchSpace
-from .._sweeps.sweep import default_workers
 
 __all__ = [
     "BasinHopping",
@@ -582,16 +583,14 @@ def search(
     batch, gradient = BatchEvaluator(problem, space, client), GradientEvaluator(problem, space)
     window = MinimaxWindow(problem, getattr(local, "peak_times", 0))
     initial = [space.z(np.asarray(values_of(problem.params, problem.tune)))] if use_design else []
-    study = None
-    if store is not None:
-        study = _open_study_store(
-            store, problem, local, hopping, global_phase, use_design, seed, workers, progress
-        )
-        workers = int(study.plan["workers"])
-        stored = StoredEvaluator(study, batch, gradient)
-        batch, gradient = stored.batch, stored.gradient
-    traces = gradient_traces()
-    with contextlib.nullcontext() if study is None else study:
+    with _open_search_store(
+        store, problem, local, hopping, global_phase, use_design, seed, workers, progress
+    ) as study:
+        if study is not None:
+            workers = int(study.plan["workers"])
+            stored = StoredEvaluator(study, batch, gradient)
+            batch, gradient = stored.batch, stored.gradient
+        traces = gradient_traces()
         minimum = _minimise(
             batch, MinimaxEvaluator(gradient, window), len(problem.tune), local=local,
             global_phase=global_phase, initial=initial, hopping=hopping, seed=seed,
@@ -626,24 +625,28 @@ def _search_methods(problem: DesignProblem, local, minimax, global_phase):
     return local, global_phase
 
 
-def _open_study_store(
+@contextlib.contextmanager
+def _open_search_store(
     path, problem, local, hopping, global_phase, use_design, seed, workers, progress
-) -> StudyStore:
-    """The store at `path` for this search (created, or checked to be this search's);
-    its plan's `workers` replaces `workers`."""
-    if isinstance(global_phase, SobolStarts):  # as before it was a class of its own:
-        # (the spacing only when it is not the default: stores made before it was a
-        # setting keep resuming)
-        spacing = [] if global_phase.spacing == SPACING else [global_phase.spacing]
-        phase = [global_phase.samples, global_phase.starts]
-    else:
-        phase, spacing = [global_phase], []
-    identity = campaign_identity(
-        "search", problem, store_form(local), hopping, *phase, use_design, seed,
-        *spacing,
-    )  # fmt: skip
+) -> Iterator[StudyStore | None]:
+    """The store at `path` for this search (`open_study`: None where `path` is None),
+    whose plan's `workers` the search takes instead of `workers`."""
+
+    def identity() -> str:
+        if isinstance(global_phase, SobolStarts):  # as before it was a class of its own:
+            # (the spacing only when it is not the default: stores made before it was a
+            # setting keep resuming)
+            spacing = [] if global_phase.spacing == SPACING else [global_phase.spacing]
+            phase = [global_phase.samples, global_phase.starts]
+        else:
+            phase, spacing = [global_phase], []
+        return campaign_identity(
+            "search", problem, store_form(local), hopping, *phase, use_design, seed,
+            *spacing,
+        )  # fmt: skip
+
     runs = global_phase.starts + int(use_design) + (0 if hopping is None else hopping.hops)
-    study = open_study(
+    with open_study(
         path,
         label="search",
         problem=problem,
@@ -652,11 +655,11 @@ def _open_study_store(
         plan={"workers": int(workers)},
         description={"local": type(local).__name__, "seed": seed},
         progress=progress,
-    )
-    if progress is not False and study.plan["workers"] != workers:
-        print(
-            f"search: {study.plan['workers']} local runs at once, as in the run that "
-            f"made {path} (not {workers}): basin hopping proceeds the same way",
-            file=sys.stderr,
-        )
-    return study
+    ) as study:
+        if study is not None and progress is not False and study.plan["workers"] != workers:
+            print(
+                f"search: {study.plan['workers']} local runs at once, as in the run that "
+                f"made {path} (not {workers}): basin hopping proceeds the same way",
+                file=sys.stderr,
+            )
+        yield study

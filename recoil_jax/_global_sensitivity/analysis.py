@@ -29,7 +29,8 @@ from .._model.params import RecoilParams, params_from_values, params_to_values
 from .._model.registry import ParameterError
 from .._model.settings import Smoothing, SolverOptions
 from .._model.status import SolveError
-from .._sweeps.sweep import SweepResult, sweep
+from .._sweeps.result import SweepResult
+from .._sweeps.sweep import sweep
 
 __all__ = [
     "DGSM",
