@@ -43,8 +43,8 @@ def open_campaign(
       design, so only when there is a store).
     - `total`, `plan`: the work planned (designs, evaluations, fits) and how it is cut,
       for a new store; a store kept from before keeps its own plan.
-    - `description`: what the store says it holds (`_describe`), stamped `created` when
-      the store is made.
+    - `description`: what the store says it holds (named where another campaign is
+      refused it), stamped `created` when the store is made.
     - `progress`: `False`: nothing is printed; else the store's notes
       (`opening_notes`), then one line, `"{label}: resuming from {path}: ..."`, where
       the store holds work done before (`resumed`).

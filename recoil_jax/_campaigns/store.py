@@ -338,7 +338,9 @@ class _Store:
 class SweepStore(_Store):
     """A sweep's store (see the module's docstring). `plan` (the chunking: workers, lanes,
     chunk size) is kept from the run that made the store, so that a resumed sweep cuts
-    the same chunks and gives the same bits."""
+    the same chunks and gives the same bits. Opening it forgets the chunks whose rows
+    are not all there (`drop_incomplete`; `dropped`: how many designs they held), which
+    the sweep solves again."""
 
     kind = "sweep"
 

@@ -169,6 +169,7 @@ class ColumnDesigns:
         self.groups = _groups(columns, options, wrt, force_table)
 
     def identity(self) -> Any:
+        """What a store's identity holds of these designs (`campaign_identity`)."""
         return self.columns
 
     def chunks(self, plan: dict, done: Mapping[str, int]) -> Iterator[Chunk]:
@@ -176,9 +177,11 @@ class ColumnDesigns:
         return (c for c in _chunks(self.groups, plan) if c.key not in done)
 
     def given(self, points: np.ndarray) -> dict[str, np.ndarray]:
+        """The given columns of the designs at `points` (indices into the sweep)."""
         return {name: values[points] for name, values in self.columns.items()}
 
     def all_columns(self) -> dict[str, np.ndarray]:
+        """Every design's given columns."""
         return self.columns
 
     def structures(self, columns) -> list[tuple[np.ndarray, dict[str, np.ndarray]]]:
@@ -201,8 +204,9 @@ class GridDesigns:
         self.options, self.wrt, self.force_table = options, wrt, force_table
 
     def identity(self) -> Any:
-        # The axes in their order (it sets which design each index is): a dict's keys
-        # are sorted when it is flattened.
+        """What a store's identity holds of this grid (`campaign_identity`): its axes in
+        their order (it sets which design each index is; a dict's keys are sorted when
+        it is flattened) and its fixed values."""
         axes = self.grid.axes
         return ("grid", tuple(axes), tuple(axes.values()), self.grid.fixed)
 
@@ -229,9 +233,11 @@ class GridDesigns:
                     yield chunk
 
     def given(self, points: np.ndarray) -> dict[str, np.ndarray]:
+        """The columns of the designs at `points` (flat indices into the grid)."""
         return self.grid.columns(points)
 
     def all_columns(self) -> dict[str, np.ndarray]:
+        """Every design's columns, made at once."""
         return self.grid.columns()
 
     def structures(self, columns) -> list[tuple[np.ndarray, dict[str, np.ndarray]]]:
