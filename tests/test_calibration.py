@@ -823,7 +823,8 @@ def test_a_calibration_store_keeps_its_identity(tmp_path):
         "1fecc4e123dbd7477002baa9d3db537ee35d4dc092cf56e3e37083fb5a4d31ce"
     )
     path = tmp_path / "fit.sqlite"
-    open_store(path, calibration, layout, data, static, z0, True, False).close()
+    with open_store(path, calibration, layout, data, static, z0, True, False):
+        pass
     with sqlite3.connect(path) as db:
         (identity,) = db.execute("SELECT value FROM meta WHERE key = 'identity'").fetchone()
     assert identity == campaign_identity("calibration", *parts)

@@ -84,16 +84,9 @@ def calibrate(
     static = FitSettings(layout.wrt, layout.signals, calibration.loss, calibration.f_scale,
                          max_steps, estimates_noise(data))  # fmt: skip
     bar = Progress("calibrate", 4, "phases", progress, rates=False)
-    store_ = None
-    if store is not None:
-        store_ = open_store(store, calibration, layout, data, static, z0, profiles, progress)
-    try:  # the store (and its writer lock) closed whatever happens
-        return _calibrate(
-            calibration, layout, data, static, z0, profiles, bar, store_, clock
-        )  # fmt: skip
-    finally:
-        if store_ is not None:
-            store_.close()
+    # The store (and its writer lock) closed whatever happens.
+    with open_store(store, calibration, layout, data, static, z0, profiles, progress) as store_:
+        return _calibrate(calibration, layout, data, static, z0, profiles, bar, store_, clock)
 
 
 def _fit_starts(

@@ -11,11 +11,11 @@ made before the change is refused.
 from __future__ import annotations
 
 import os
-import sys
 import time
 
 import numpy as np
 
+from .._campaigns.opener import open_campaign
 from .._campaigns.store import CalibrationStore, campaign_identity
 from .layout import CalibrationData, Layout
 from .least_squares import FitSettings
@@ -29,7 +29,7 @@ STARTS_PER_CHUNK = 8
 
 
 def open_store(
-    path: str | os.PathLike,
+    path: str | os.PathLike | None,
     calibration: Calibration,
     layout: Layout,
     data: CalibrationData,
@@ -37,29 +37,27 @@ def open_store(
     z0: np.ndarray,
     profiles: bool,
     progress: bool | None,
-) -> CalibrationStore:
-    """The calibration's store at `path` (made, or checked to be this calibration's, from
-    its arrays, settings, starts `z0 (N, P)` and whether it profiles), after saying on
-    stderr how many fits it already holds (unless `progress` is False). The caller
-    closes it.
+):
+    """The calibration's store at `path` (None: none), as a context manager
+    (`open_campaign`): made, or checked to be this calibration's from its arrays,
+    settings, starts `z0 (N, P)` and whether it profiles; saying on stderr how many fits
+    it already holds (unless `progress` is False); closed on leaving.
 
     **Raises:** `ParameterError` for a store that holds another calibration.
     """
-    identity = campaign_identity("calibration", data, static, np.asarray(z0), bool(profiles))
     total = len(z0) + (PROFILE_POINTS * len(layout.labels) if profiles else 0)
     description = {
         "fit": list(layout.labels),
         "starts": len(z0),
         "experiments": [e.label for e in calibration.experiments],
-        "created": time.strftime("%Y-%m-%d %H:%M:%S"),
     }
-    store = CalibrationStore(path, identity=identity, total=total,
-                             plan={"starts_per_chunk": STARTS_PER_CHUNK}, columns=(),
-                             description=description)  # fmt: skip
-    if (done := store.stored_fits()) and progress is not False:
-        print(f"calibrate: resuming from {path}: {done} fits already done",
-              file=sys.stderr)  # fmt: skip
-    return store
+    return open_campaign(
+        CalibrationStore, path, label="calibrate",
+        identity=lambda: campaign_identity("calibration", data, static, np.asarray(z0),
+                                           bool(profiles)),
+        total=total, plan={"starts_per_chunk": STARTS_PER_CHUNK}, description=description,
+        progress=progress, columns=(),
+    )  # fmt: skip
 
 
 def stored_part(
