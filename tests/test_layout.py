@@ -394,6 +394,14 @@ def test_calibration_stands_without_the_optimiser():
     for path in sorted((PACKAGE / "_calibration").glob("*.py")):
         for module, _ in _imports(path):
             assert not module.startswith("recoil_jax._design"), (path.name, module)
+    # And its command: the calibration through the public API, the inputs and the figures.
+    command = PACKAGE / "apps" / "_cli" / "calibrate.py"
+    for module, _ in _imports(command):
+        if module.startswith("recoil_jax.apps."):
+            folder = module.split(".")[2]
+            assert folder in ("_files", "_figures", "_cli") and "study" not in module, module
+    used = {name for name in re.findall(r"\brjx?\.([a-zA-Z]\w*)", command.read_text())}
+    assert not used & {"search", "optimise", "sensitivity", "DesignProblem"}, used
 
 
 #: The engine's folders from the bottom: each may import only those before it (and
