@@ -430,3 +430,31 @@ def test_no_engine_import_runs_up_a_layer():
         doc = importlib.import_module(f"recoil_jax.{folder}").__doc__ or ""
         line = doc[doc.index("May import:") :]
         assert all(f"`{name}`" in line for name in allowed), (folder, line)
+
+
+def test_no_module_imports_itself_through_others():
+    """The package's modules import each other without a cycle (imports inside functions
+    included): each could be loaded first."""
+    paths = sorted(PACKAGE.rglob("*.py"))
+    modules = {_module_name(p): p for p in paths}
+    graph = {}
+    for name, path in modules.items():
+        targets = set()
+        for module, imported in _imports(path):
+            full = f"{module}.{imported}"
+            target = full if full in modules else module
+            if target in modules and target != name:
+                targets.add(target)
+        graph[name] = targets
+    finished: set[str] = set()
+
+    def visit(name: str, stack: list[str]) -> None:
+        for target in sorted(graph[name]):
+            assert target not in stack, " -> ".join([*stack[stack.index(target) :], target])
+            if target not in finished:
+                visit(target, [*stack, target])
+        finished.add(name)
+
+    for name in sorted(graph):
+        if name not in finished:
+            visit(name, [name])
