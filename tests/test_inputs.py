@@ -3,6 +3,7 @@ traceback, before anything is solved or compiled; values the model accepts but a
 probably did not mean get a warning that names the documented range."""
 
 import json
+import re
 import sys
 
 import numpy as np
@@ -268,3 +269,39 @@ def test_an_output_folder_that_cannot_be_written_is_refused_before_any_solve(tmp
     from recoil_jax.apps._files.inputs import output_folder
 
     assert output_folder(new) == new and new.is_dir()
+
+
+def test_a_bad_value_is_refused_the_same_way_on_every_path(tmp_path, capsys):
+    """One validation of a parameter's value: the command line, a sweep, a study's
+    [design], a calibration file's [design], the calibration's quick form and a
+    sensitivity file's [design] each refuse `c_out = -5` with the model's own words,
+    exit 2, before anything is solved."""
+    # (A batch names the design's index too: `c_out[0]`.)
+    said = re.compile(r"Barrel\.c_out(\[\d+\])? = -5 N\*s/m is invalid \(out of range\): "
+                      r"valid c_out >= 0 N\*s/m")  # fmt: skip
+    ts = np.linspace(0.0, 0.5, 51)
+    trace = tmp_path / "firing.csv"
+    trace.write_text("t,x_M\n" + "".join(f"{float(t)!r},{0.01 * float(t)!r}\n" for t in ts))
+    (tmp_path / "study.toml").write_text(
+        "[design]\nc_out = -5.0\n[tune]\ngap = [0.0, 0.1]\n"
+        "[objective]\npeak_anchoring_force = 1.0\n"
+    )
+    (tmp_path / "cal.toml").write_text(
+        '[design]\nc_out = -5.0\n[fit]\nk = [1e4, 1e5]\n[[experiment]]\ntrace = "firing.csv"\n'
+    )
+    (tmp_path / "tolerances.toml").write_text(
+        "[design]\nc_out = -5.0\n[ranges]\nk = { relative = 0.1 }\n"
+        '[metrics]\nnames = ["peak_anchoring_force"]\n[method]\nname = "morris"\n'
+    )
+    commands = [
+        ["simulate", "c_out=-5"],
+        ["sweep", "c_out=-5", "m=0,500"],
+        ["optimise", str(tmp_path / "study.toml"), "--out", str(tmp_path / "o")],
+        ["calibrate", str(tmp_path / "cal.toml"), "--out", str(tmp_path / "c")],
+        ["calibrate", str(trace), "--fit", "k", "c_out=-5", "--out", str(tmp_path / "q")],
+        ["sensitivity", str(tmp_path / "tolerances.toml"), "--out", str(tmp_path / "s")],
+    ]
+    for command in commands:
+        assert main(command) == 2, command
+        err = capsys.readouterr().err
+        assert said.search(err) and err.count("\n") == 1, (command, err)

@@ -1,4 +1,4 @@
-"""Every figure the applications draw (matplotlib, imported here and nowhere else):
+"""Every figure the applications draw (matplotlib draws here and nowhere else):
 histories and series, sweep maps, optimisation convergence and fronts, calibration fits,
 profiles and predictions, sensitivity indices, the paper's figures.
 

@@ -295,6 +295,9 @@ def design_warnings(values: Mapping[str, object], table: rj.ForceTable | None = 
         array = np.asarray(value, dtype=float).reshape(-1)
         if name == "m":  # m = 0 is the simplified model, not a mass
             array = array[array != 0]
+        # A value the model refuses is refused (one line), not also warned about.
+        lower_ok = array > p.lower if p.lower_open else array >= p.lower
+        array = array[np.isfinite(array) & lower_ok & (array <= p.upper)]
         if p.documented is None or not array.size:
             continue
         lo, hi = p.documented
