@@ -92,10 +92,10 @@ class _Attempt(NamedTuple):
     z1: jax.Array
     dense_info: dict
     solver_state: Any
-    keep: jax.Array
+    keep: Any  # a bool array (diffrax types it as a bool scalar)
     t_prev: jax.Array
     t_next: jax.Array
-    made_jump: jax.Array
+    made_jump: Any
     controller_state: Any
     metric0: jax.Array
     rate0: jax.Array

@@ -243,7 +243,7 @@ def run_sweep(args) -> int:
     with dask_client(args.workers, args.scheduler) as client:
         result = rj.sweep(
             asked.designs,
-            **({"wrt": asked.wrt} if asked.points is None else {}),
+            wrt=asked.wrt,  # None for points
             options=options,
             progress=not args.json,
             force_table=table,

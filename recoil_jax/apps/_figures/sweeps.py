@@ -59,15 +59,21 @@ _PLOTTED = {
 }
 
 
+def _shape(result: rj.SweepResult) -> tuple[int, ...]:
+    """The grid's shape (`sweep_figures` draws grids only)."""
+    assert result.grid_shape is not None
+    return tuple(result.grid_shape)
+
+
 def _grid_values(result: rj.SweepResult) -> dict[str, np.ndarray]:
     """Each swept parameter's values, shaped as the grid."""
-    return {n: result.values[n].reshape(result.grid_shape) for n in result.swept}
+    return {n: result.values[n].reshape(_shape(result)) for n in result.swept}
 
 
 def _lines_against_gap(result: rj.SweepResult, out: Path) -> list[Path]:
     """Each peak against the gap, one line per value of the other swept parameter."""
     figures = []
-    shape, swept, grid_values = result.grid_shape, result.swept, _grid_values(result)
+    shape, swept, grid_values = _shape(result), result.swept, _grid_values(result)
     other = [n for n in swept if n != "gap"]
     for name, filename in _PLOTTED.items():
         label = rj.METRICS[name].label
@@ -125,7 +131,7 @@ def _heatmaps(result: rj.SweepResult, out: Path) -> list[Path]:
     """Heatmaps of both peaks over the first two swept parameters (the others at their
     first value), and of ∂(peak anchoring force)/∂gap when the gap is swept."""
     figures = []
-    shape, swept, grid_values = result.grid_shape, result.swept, _grid_values(result)
+    shape, swept, grid_values = _shape(result), result.swept, _grid_values(result)
     x_name, y_name = swept[1], swept[0]
     (xlabel, xscale), (ylabel, yscale) = _axis(x_name), _axis(y_name)
     # Heatmaps over the first two swept parameters (others at their first value).
