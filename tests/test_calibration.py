@@ -659,7 +659,7 @@ def test_a_sensitivity_run_ranges_the_fitted_values_over_their_uncertainty(
     """A sensitivity file's `[calibration] from = ...` on a real fit's `result.json`: each
     fitted value ranged over ± `sigmas` standard errors about its value (within its
     bounds), the values the fit held kept, and the run's indices over those ranges."""
-    from recoil_jax.apps._cli.sensitivity import load_sensitivity
+    from recoil_jax.apps._studies.sensitivity_file import load_sensitivity
 
     (tmp_path / "fit.json").write_text(fitted_json.read_text())
     (tmp_path / "s.toml").write_text(

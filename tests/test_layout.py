@@ -95,16 +95,14 @@ def test_the_public_api_is_small_and_declared():
     assert not set(rj.__all__) & set(rj.extend.__all__)
 
 
-#: The applications' folders from the bottom, each importing only those before it. The
-#: one exception: the command line's parser (`_cli/parser.py`) collects every command,
-#: the benchmarks' (above the other commands) too.
+#: The applications' folders from the bottom, each importing only those before it.
 APP_LAYERS = {
     "_files": set(),
     "_figures": {"_files"},
     "_studies": {"_files", "_figures"},
     "_explore": {"_files", "_figures"},
-    "_cli": {"_files", "_figures", "_studies", "_explore"},
-    "_bench": {"_files", "_figures", "_studies", "_cli"},
+    "_bench": {"_files", "_figures", "_studies"},
+    "_cli": {"_files", "_figures", "_studies", "_explore", "_bench"},
 }
 
 
@@ -114,13 +112,11 @@ def test_no_application_import_runs_up_a_layer():
     assert {p.name for p in (PACKAGE / "apps").glob("_*/")} == set(APP_LAYERS)
     for folder, allowed in APP_LAYERS.items():
         for path in sorted((PACKAGE / "apps" / folder).glob("*.py")):
-            top = path.name == "parser.py" and folder == "_cli"
             for module, _ in _imports(path):
                 parts = module.split(".")
                 if parts[:2] != ["recoil_jax", "apps"] or len(parts) < 3:
                     continue
-                ok = parts[2] in allowed | {folder} or (top and parts[2] == "_bench")
-                assert ok, (folder, path.name, module)
+                assert parts[2] in allowed | {folder}, (folder, path.name, module)
         doc = importlib.import_module(f"recoil_jax.apps.{folder}").__doc__ or ""
         line = doc[doc.index("May import:") :]
         assert all(f"`{name}`" in line for name in allowed), (folder, line)

@@ -18,8 +18,8 @@ import recoil_jax as rj
 import recoil_jax.extend as rjx
 from recoil_jax._global_sensitivity.analysis import _analysed, _problem
 from recoil_jax.apps._cli import main
-from recoil_jax.apps._cli.sensitivity import SHIPPED, load_sensitivity
 from recoil_jax.apps._files.inputs import results_folder
+from recoil_jax.apps._studies.sensitivity_file import SHIPPED, load_sensitivity
 
 ABSORBER = {"m": 1500.0, "gap": 0.062}
 RANGES = {"k": 0.1, "c_out": 0.15, "v0": 0.05, "gap": (0.059, 0.065)}

@@ -2,7 +2,6 @@
 (`speed`, with the scalar loop in `anchor`), stores and clusters (`store`), optimisers
 (`tuning`), calibration (`calibration`), global sensitivity (`sensitivity`).
 
-May import: `_files`, `_figures`, `_studies`, `_cli` (the commands' options, the
-sensitivity file reader)."""
+May import: `_files`, `_figures`, `_studies`."""
 
 __all__: list[str] = []

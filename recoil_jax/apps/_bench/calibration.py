@@ -30,7 +30,7 @@ if TYPE_CHECKING:
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-from .._cli.options import Commands
+from .._files.options import Commands
 from .speed import host_description
 
 __all__ = [

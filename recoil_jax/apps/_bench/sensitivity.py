@@ -23,8 +23,8 @@ import numpy as np
 
 import recoil_jax as rj
 
-from .._cli.options import Commands
-from .._cli.sensitivity import load_sensitivity
+from .._files.options import Commands
+from .._studies.sensitivity_file import load_sensitivity
 from .speed import SCIPY_SETTINGS, host_description
 
 __all__ = ["add_command", "main_sensitivity_bench", "run_sensitivity_bench"]

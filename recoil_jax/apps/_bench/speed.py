@@ -18,7 +18,7 @@ import numpy as np
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-from .._cli.options import Commands
+from .._files.options import Commands
 
 __all__ = [
     "CLI_COMMANDS",
@@ -221,7 +221,7 @@ def host_description() -> dict:
 
 
 def anchor_comparison(designs, ours_seconds: float, ours_steps, log=None) -> dict | None:
-    """The compiled scalar loop (`_anchor`, numba, one core) on `designs`, beside our
+    """The compiled scalar loop (`anchor`, numba, one core) on `designs`, beside our
     sweep of the same designs (`ours_seconds`, `ours_steps` per design, on every core):
     each one's sims/s and accepted steps/s per core, and the anchor's lead per step and
     per design (a ratio > 1: the anchor is faster). None without numba."""

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import recoil_jax as rj
 
-from .._cli.options import Commands
+from .._files.options import Commands
 
 __all__ = ["add_command", "format_store_bench", "main_store_bench", "run_store_bench"]
 

@@ -32,8 +32,8 @@ import numpy as np
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-from .._cli.options import Commands
 from .._files.cluster import dask_client
+from .._files.options import Commands
 from .._studies.study_file import load_study, search_kwargs
 
 __all__ = [

@@ -2,8 +2,8 @@
 beside its code (`add_command`), the parser that collects them (`parser`), and the fault
 boundary every command runs inside (`boundary`). `python -m recoil_jax.apps._cli` runs it.
 
-May import: `_files`, `_figures`, `_studies`, `_explore`; and the parser alone `_bench`
-(it collects every command, the benchmarks' too, which stand above the others)."""
+May import: `_files`, `_figures`, `_studies`, `_explore`, `_bench` (the parser collects
+every command, the benchmarks' too)."""
 
 import importlib
 from typing import TYPE_CHECKING

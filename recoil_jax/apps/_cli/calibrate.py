@@ -27,7 +27,7 @@ from .._files.inputs import (
     warn,
 )
 from .._files.json_writer import dumps, write as write_json
-from .options import Commands, add_max_steps
+from .._files.options import Commands, add_max_steps
 
 __all__ = [
     "MAX_EXPERIMENTS",

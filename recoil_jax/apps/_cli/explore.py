@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from .._files.inputs import parse_assignments
-from .options import Commands
+from .._files.options import Commands
 
 __all__ = ["add_command", "run_explore"]
 

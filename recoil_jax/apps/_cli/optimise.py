@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 
 from .._files.json_writer import dumps as json_dumps
-from .options import Commands
+from .._files.options import Commands
 
 __all__ = ["INFEASIBLE", "add_command", "run_optimise"]
 

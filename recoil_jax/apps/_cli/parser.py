@@ -18,6 +18,7 @@ from .._bench import (
     tuning as tuning_bench,
 )
 from .._files.inputs import MADE_FOLDERS, remove_unused_folders
+from .._files.options import Commands
 from . import (
     calibrate,
     explore,
@@ -30,7 +31,6 @@ from . import (
 )
 from .boundary import INTERRUPTED, run_command
 from .optimise import INFEASIBLE
-from .options import Commands
 
 #: The commands, in the order `recoil-jax --help` lists them: each module adds its own
 #: parser (`add_command`) and holds the code it runs.

@@ -6,7 +6,7 @@ import json
 
 import recoil_jax as rj
 
-from .options import Commands
+from .._files.options import Commands
 
 __all__ = ["add_command", "run_progress"]
 

@@ -10,7 +10,7 @@ import recoil_jax as rj
 import recoil_jax.extend as rjx
 
 from .._files.inputs import output_folder
-from .options import Commands
+from .._files.options import Commands
 
 __all__ = [
     "add_command",

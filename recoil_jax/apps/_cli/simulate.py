@@ -17,7 +17,7 @@ from .._files.inputs import (
     parse_assignments,
     warn,
 )
-from .options import Commands, add_force_table, add_max_steps
+from .._files.options import Commands, add_force_table, add_max_steps
 
 __all__ = ["add_command", "run_simulate"]
 

@@ -27,7 +27,7 @@ from .._files.inputs import (
     warn,
 )
 from .._files.json_writer import dumps as json_dumps
-from .options import Commands, add_force_table, add_max_steps
+from .._files.options import Commands, add_force_table, add_max_steps
 
 __all__ = [
     "MAX_AXIS",
@@ -185,8 +185,8 @@ class _Designs(NamedTuple):
         return self.points if self.points is not None else self.grid
 
 
-def _read_designs(args) -> _Designs:
-    """The designs `args` name: `name=values` items (swept or fixed) and `--points`."""
+def _read_assignments(args) -> tuple[dict[str, np.ndarray], dict[str, float], dict[str, str]]:
+    """The `name=values` items: the swept axes, the fixed values, and each as given."""
     axes, fixed = {}, {}
     given: dict[str, str] = {}
     for item in args.assignments:
@@ -197,6 +197,11 @@ def _read_designs(args) -> _Designs:
             fixed[name] = float(values[0])
         else:
             axes[name] = values
+    return axes, fixed, given
+
+
+def _read_designs(args, axes, fixed, given) -> _Designs:
+    """The designs `args` name: the items' axes and fixed values, or `--points`."""
     if args.points:
         if axes:
             raise rj.ParameterError(
@@ -229,8 +234,9 @@ def _read_designs(args) -> _Designs:
 def run_sweep(args) -> int:
     """Run `recoil-jax sweep` with the parsed `args`; its exit status (failed points are
     reported per point, not as a failed command)."""
-    asked = _read_designs(args)
+    axes, fixed, given = _read_assignments(args)
     table = rj.ForceTable.from_csv(args.force_table) if args.force_table else None
+    asked = _read_designs(args, axes, fixed, given)
     warn(design_warnings({n: _given(c) for n, c in asked.columns.items()}, table))
     # The sweep's own options (tighter with gradients), with the step limit asked for.
     options = rj.GRADIENT_OPTIONS if asked.wrt else rj.SolverOptions()

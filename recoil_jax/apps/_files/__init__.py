@@ -1,7 +1,8 @@
 """What a command reads and writes, and where it runs: `name=value` items and the files the
 commands load (`inputs`), the one JSON writer (`json_writer`), a design and a model in
-words (`describe`), `simulate`'s exported program kept on disk (`exported`), and the Dask
-cluster a campaign spreads over (`cluster`).
+words (`describe`), `simulate`'s exported program kept on disk (`exported`), the Dask
+cluster a campaign spreads over (`cluster`), and what every command's parser shares
+(`options`: `Commands`, through which each command adds its own parser).
 
 May import: the engine's public API only (`recoil_jax`, `recoil_jax.extend`)."""
 
