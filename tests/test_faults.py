@@ -745,13 +745,18 @@ def test_real_processes_ctrl_c_while_starting_and_again_is_one_line(tmp_path, de
     root = Path(__file__).resolve().parents[1]
     env = os.environ | {"RECOIL_JAX_CACHE": str(tmp_path / "cache"), "PYTHONPATH": str(root)}
     argv = [*ENTRY, "sweep", "m=100:3000:300", "gap=0:0.1:300"]
-    process = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                               text=True, env=env)  # fmt: skip
-    time.sleep(delay)
     for _ in range(3):
-        process.send_signal(signal.SIGINT)
-        time.sleep(0.02)
-    _, err = process.communicate(timeout=120)
+        process = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                   text=True, env=env)  # fmt: skip
+        time.sleep(delay)
+        for _ in range(3):
+            process.send_signal(signal.SIGINT)
+            time.sleep(0.02)
+        _, err = process.communicate(timeout=120)
+        # On a loaded machine the first signal can come while Python itself still starts
+        # (its `site` module), before any code of ours exists to catch it: try again.
+        if "init_import_site" not in err:
+            break
     assert process.returncode == 130, err
     assert _one_line(err).startswith("recoil-jax: interrupted")
 
