@@ -85,10 +85,14 @@ from ._model.parameter_table import PARAMETERS as PARAMETERS
 from ._model.params import (
     Absorber as Absorber,
     Barrel as Barrel,
+    BatteryStop as BatteryStop,
     Buffer as Buffer,
     Contact as Contact,
+    CounterRecoilBuffer as CounterRecoilBuffer,
     ForceTable as ForceTable,
     Load as Load,
+    Mount as Mount,
+    Rails as Rails,
     RecoilParams as RecoilParams,
     Recuperator as Recuperator,
     params_from_values as params_from_values,
@@ -127,7 +131,8 @@ from ._version import __version__ as __version__
 __all__ = [  # noqa: RUF022 (grouped by topic, as the docs)
     # Designs and parameters
     "PARAMETERS", "Absorber", "Barrel", "Buffer", "Contact", "ForceTable", "Load",
-    "ParameterError", "RecoilParams", "Recuperator", "Smoothing", "SolverOptions",
+    "ParameterError", "RecoilParams", "Recuperator", "Rails", "BatteryStop",
+    "CounterRecoilBuffer", "Mount", "Smoothing", "SolverOptions",
     "params_from_values", "params_to_values", "values_of", "with_values", "with_table",
     "case_params", "paper_cases",
     # Solving

@@ -230,3 +230,229 @@ def test_with_values_mixes_scalar_and_batched_knots():
     np.testing.assert_array_equal(np.asarray(moved.buffer.orifice[:, 0]), [1e-3] * 3)
     np.testing.assert_array_equal(np.asarray(moved.buffer.orifice[:, 3]), [4e-3, 5e-3, 6e-3])
     np.testing.assert_array_equal(np.asarray(moved.buffer.orifice[:, 1:3]), 2e-3)
+
+
+# --- The firing envelope's parameters (issue 54, envelope.md) ------------------------
+
+#: Every new parameter of the firing envelope at a value off its default.
+ENVELOPE_VALUES = dict(
+    elevation=35.0,
+    friction_force=1500.0,
+    friction_coefficient=0.05,
+    recuperator_preload=3e4,
+    stop_stiffness=2.1e8,
+    stop_exponent=1.3,
+    stop_damping=0.4,
+    buffer_damping=1.5e5,
+    buffer_length=0.15,
+    mount_mass=8000.0,
+    cg_distance=3.2,
+    trunnion_height=1.1,
+    spade_distance=3.6,
+)
+
+
+def test_envelope_parameters_are_registered_with_their_groups():
+    groups = {
+        "elevation": ("rails", "deg", 0.0),
+        "friction_force": ("rails", "N", 0.0),
+        "friction_coefficient": ("rails", "", 0.0),
+        "recuperator_preload": ("recuperator", "N", 0.0),
+        "stop_stiffness": ("battery_stop", "N/m^n_s", 0.0),
+        "stop_exponent": ("battery_stop", "", 1.5),
+        "stop_damping": ("battery_stop", "s/m", 0.6),
+        "buffer_damping": ("counter_recoil_buffer", "N*s/m", 0.0),
+        "buffer_length": ("counter_recoil_buffer", "m", 0.1),
+        "mount_mass": ("mount", "kg", 0.0),
+        "cg_distance": ("mount", "m", 2.0),
+        "trunnion_height": ("mount", "m", 1.2),
+        "spade_distance": ("mount", "m", 3.0),
+    }
+    assert set(groups) == set(ENVELOPE_VALUES)
+    for name, (group, unit, default) in groups.items():
+        p = rj.PARAMETERS[name]
+        assert (p.group, p.unit, p.default) == (group, unit, default), name
+        assert p.documented is not None and p.meaning, name  # `wrt` scales by the range
+    assert rj.PARAMETERS["elevation"].documented == (0.0, 75.0)
+    assert rj.PARAMETERS["friction_coefficient"].documented == (0.0, 0.3)
+    # The valid ranges of envelope.md, at their ends.
+    rj.Rails(elevation=-10.0)
+    rj.Rails(elevation=85.0, friction_coefficient=1.0)
+    rj.BatteryStop(stop_exponent=1.0)
+    rj.BatteryStop(stop_exponent=2.0, stop_damping=0.0)
+    rj.Mount(spade_distance=0.0)
+
+
+def test_envelope_parameters_round_trip():
+    values = {**ENVELOPE_VALUES, "M": 1800.0, "m": 0.0}
+    params = rj.params_from_values(values)
+    assert float(params.rails.elevation) == 35.0
+    assert float(params.recuperator.recuperator_preload) == 3e4
+    assert float(params.recuperator.recuperator_force) == 0.0  # a preload alone: F_r's default
+    back = {k: float(v) for k, v in rj.params_to_values(params).items()}
+    defaults = {n: rj.PARAMETERS[n].default for n in ("recuperator_force", "recuperator_length",
+                                                      "polytropic_index")}  # fmt: skip
+    barrel = {n: rj.PARAMETERS[n].default for n in ("k", "c_out", "c_ret", "v0")}
+    contact = {n: rj.PARAMETERS[n].default for n in ("k_c", "n_c", "lambda_c")}
+    assert back == values | defaults | barrel | contact
+    # with_values and values_of reach every new name.
+    names = tuple(ENVELOPE_VALUES)
+    moved = rj.with_values(params, names, [v * 1.01 for v in ENVELOPE_VALUES.values()])
+    np.testing.assert_allclose(
+        rj.values_of(moved, names), [v * 1.01 for v in ENVELOPE_VALUES.values()], rtol=1e-15
+    )
+    # Batches: one column per design.
+    batch = rj.params_from_values(elevation=np.array([0.0, 35.0, 70.0]), friction_force=1e3)
+    assert batch.rails.elevation.shape == (3,)
+
+
+def test_a_design_without_envelope_names_has_todays_leaves():
+    for values in ({}, {"m": 0.0}, {"recuperator_force": 2e3, "pulse_time": 0.004}):
+        params = rj.params_from_values(values)
+        assert params.rails is None and params.battery_stop is None
+        assert params.counter_recoil_buffer is None and params.mount is None
+        names = [n for n in rj.params_to_values(params) if rj.PARAMETERS[n].group in
+                 ("rails", "battery_stop", "counter_recoil_buffer", "mount")]  # fmt: skip
+        assert names == []
+    # The paper's design: the same leaves (values, shapes, order) as the groups it had.
+    paper = rj.RecoilParams()
+    old_groups = (paper.barrel, paper.absorber, paper.contact)
+    leaves = jax.tree.leaves(paper)
+    expected = [leaf for group in old_groups for leaf in jax.tree.leaves(group)]
+    assert len(leaves) == len(expected) == 12
+    for a, b in zip(leaves, expected, strict=True):
+        assert a is b
+    built = jax.tree.leaves(rj.params_from_values({}))
+    assert len(built) == len(leaves)
+    for a, b in zip(built, leaves, strict=True):
+        assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b)
+    # The structure differs only by the new groups' None fields.
+    assert jax.tree.structure(paper).num_leaves == 12
+
+
+@pytest.mark.parametrize(
+    "values, start, fragment",
+    [
+        ({"elevation": 95.0}, "Rails.elevation = 95 deg", "valid elevation >= -10 and <= 85"),
+        ({"elevation": -11.0}, "Rails.elevation = -11 deg", "valid elevation >= -10 and <= 85"),
+        ({"friction_force": -1.0}, "Rails.friction_force = -1 N", "valid friction_force >= 0"),
+        (
+            {"friction_coefficient": -0.1},
+            "Rails.friction_coefficient = -0.1",
+            "valid friction_coefficient >= 0 and <= 1",
+        ),
+        (
+            {"friction_coefficient": 1.5},
+            "Rails.friction_coefficient = 1.5",
+            "valid friction_coefficient >= 0 and <= 1",
+        ),
+        (
+            {"recuperator_preload": -5.0},
+            "Recuperator.recuperator_preload = -5 N",
+            "valid recuperator_preload >= 0",
+        ),
+        (
+            {"stop_stiffness": -1.0},
+            "BatteryStop.stop_stiffness = -1",
+            "valid stop_stiffness >= 0",
+        ),
+        ({"stop_exponent": 2.5}, "BatteryStop.stop_exponent = 2.5", "valid stop_exponent >= 1"),
+        ({"stop_damping": -0.1}, "BatteryStop.stop_damping = -0.1", "valid stop_damping >= 0"),
+        (
+            {"buffer_damping": -1.0},
+            "CounterRecoilBuffer.buffer_damping = -1",
+            "valid buffer_damping >= 0",
+        ),
+        (
+            {"buffer_length": 0.0},
+            "CounterRecoilBuffer.buffer_length = 0 m",
+            "valid buffer_length > 0",
+        ),
+        ({"mount_mass": -1.0}, "Mount.mount_mass = -1 kg", "valid mount_mass >= 0"),
+        (
+            {"mount_mass": 8000.0, "cg_distance": 0.0},
+            "Mount.cg_distance = 0 m",
+            "valid cg_distance > 0",
+        ),
+        (
+            {"mount_mass": 8000.0, "trunnion_height": -1.0},
+            "Mount.trunnion_height = -1 m",
+            "valid trunnion_height > 0",
+        ),
+        (
+            {"mount_mass": 8000.0, "spade_distance": -0.5},
+            "Mount.spade_distance = -0.5 m",
+            "valid spade_distance >= 0",
+        ),
+    ],
+)
+def test_envelope_out_of_range_messages(values, start, fragment):
+    with pytest.raises(rj.ParameterError) as info:
+        rj.params_from_values(values)
+    message = str(info.value)
+    assert message.startswith(start) and "out of range" in message, message
+    assert fragment in message and "\n" not in message, message
+
+
+def test_a_preload_needs_the_battery_stop():
+    expected = (
+        "Recuperator.recuperator_preload = 30000 N is invalid: a preload needs the battery "
+        "stop to hold the barrel in battery against it; valid recuperator_preload 0 without "
+        "a stop, >= 0 N with stop_stiffness > 0"
+    )
+    with pytest.raises(rj.ParameterError) as info:
+        rj.params_from_values(recuperator_preload=3e4)
+    assert str(info.value) == expected
+    with pytest.raises(rj.ParameterError, match="a preload needs the battery stop"):
+        rj.params_from_values(recuperator_preload=3e4, stop_stiffness=0.0)
+    with pytest.raises(rj.ParameterError, match=r"recuperator_preload\[1\] = 30000 N"):
+        rj.params_from_values(
+            recuperator_preload=np.array([0.0, 3e4]), stop_stiffness=np.array([2e8, 0.0])
+        )
+    with pytest.raises(rj.ParameterError, match="a preload needs the battery stop"):
+        rj.RecoilParams(recuperator=rj.Recuperator(recuperator_preload=1.0))
+    with pytest.raises(rj.ParameterError, match="a preload needs the battery stop"):
+        rj.with_values(rj.params_from_values(recuperator_force=1e3), ("recuperator_preload",),
+                       [5.0])  # fmt: skip
+    # With the stop, or at zero, it is a design.
+    rj.params_from_values(recuperator_preload=3e4, stop_stiffness=2.1e8)
+    rj.params_from_values(recuperator_preload=0.0)
+
+
+def test_a_mount_is_heavier_than_its_recoiling_parts():
+    with pytest.raises(rj.ParameterError) as info:
+        rj.params_from_values(mount_mass=5000.0)
+    assert str(info.value) == (
+        "Mount.mount_mass = 5000 kg is invalid: a mount lighter than its recoiling parts "
+        "cannot carry them; valid mount_mass 0 (no mount) or >= M + m = 7100 kg (the whole "
+        "gun on the ground, recoiling parts included)"
+    )
+    with pytest.raises(rj.ParameterError, match=r"mount_mass\[2\] = 100 kg .* = 7100 kg"):
+        rj.params_from_values(mount_mass=np.array([0.0, 8000.0, 100.0]))
+    with pytest.raises(rj.ParameterError, match="M \\+ m = 5600 kg"):
+        rj.params_from_values(m=0.0, mount_mass=5599.0)
+    rj.params_from_values(m=0.0, mount_mass=5600.0)  # exactly M + m
+    rj.params_from_values(mount_mass=7100.0)
+    rj.params_from_values(mount_mass=0.0)  # no mount
+    with pytest.raises(rj.ParameterError, match="lighter than its recoiling parts"):
+        rj.with_values(rj.params_from_values(mount_mass=8000.0), ("M",), [7000.0])
+    with pytest.raises(rj.ParameterError, match="cg_distance is given without a mount"):
+        rj.params_from_values(cg_distance=3.0)
+    with pytest.raises(rj.ParameterError, match="cg_distance, spade_distance are given"):
+        rj.params_from_values(cg_distance=3.0, spade_distance=2.0, mount_mass=0.0)
+
+
+def test_envelope_validation_happens_before_compilation():
+    traced = []
+
+    @jax.jit
+    def f(x):
+        traced.append(1)
+        return x
+
+    with pytest.raises(rj.ParameterError):
+        f(rj.params_from_values(elevation=95.0).barrel.M)
+    assert traced == []
+    # Tracers pass the checks across groups (checked when the inputs were built).
+    built = jax.jit(lambda p: rj.RecoilParams(recuperator=rj.Recuperator(recuperator_preload=p)))
+    assert built(jnp.float64(5.0)).recuperator is not None

@@ -1,7 +1,8 @@
 """The parameter pytrees and the flat-name conversions.
 
 The pytrees (`Barrel`, `Absorber`, `Contact`, `Load` with its `ForceTable`, `Buffer`,
-`Recuperator`, and `RecoilParams`, which holds one of each), their validation, the
+`Recuperator`, the firing envelope's `Rails`, `BatteryStop`, `CounterRecoilBuffer` and
+`Mount`, and `RecoilParams`, which holds one of each), their validation, the
 flat-name conversions (`params_from_values`, `params_to_values`, `with_values`,
 `values_of`) and every error message derive from the registry (`PARAMETERS`,
 `parameter_table`).
@@ -47,12 +48,17 @@ from .._model.text_files import read_text
 __all__ = [
     "Absorber",
     "Barrel",
+    "BatteryStop",
     "Buffer",
     "Contact",
+    "CounterRecoilBuffer",
     "ForceTable",
     "Load",
+    "Mount",
+    "Rails",
     "RecoilParams",
     "Recuperator",
+    "check_design",
     "params_from_values",
     "params_to_values",
     "values_of",
@@ -139,6 +145,14 @@ class Absorber(Validated):
                 "absorber is absorber=None (RecoilParams(absorber=None)), or m=0 in the "
                 f"flat-name forms (params_from_values, the command line){batch}"
             )
+
+
+def _all_zero(value: Any) -> bool:
+    """A concrete number or array that is zero everywhere (False if not a number)."""
+    try:
+        return bool(np.all(np.asarray(value, dtype=np.float64) == 0))
+    except (TypeError, ValueError):
+        return False
 
 
 def _first_zero(value: Any) -> str | None:
@@ -331,15 +345,87 @@ class Recuperator(Validated):
     recuperator_force: Any = _registered("recuperator_force")
     recuperator_length: Any = _registered("recuperator_length")
     polytropic_index: Any = _registered("polytropic_index")
+    recuperator_preload: Any = _registered("recuperator_preload")
 
     LIMITS: ClassVar[Mapping[str, Limits]] = _group_limits("recuperator")
+
+
+class Rails(Validated):
+    """The rails the recoiling parts slide on: their elevation and Coulomb friction
+    (`docs/model.md`, *Firing envelope*).
+
+    - `elevation` θ (degrees above horizontal, -10 to 85): gravity pulls the barrel and
+      the absorber rearward along the rails with `g sin θ`.
+    - `friction_force` F_0 (N) and `friction_coefficient` μ: the friction's largest
+      value `F_max = F_0 + μ (M + m) g cos θ`, which holds a barrel at rest as long as
+      the net force on it is within `±F_max`.
+    """
+
+    elevation: Any = _registered("elevation")
+    friction_force: Any = _registered("friction_force")
+    friction_coefficient: Any = _registered("friction_coefficient")
+
+    LIMITS: ClassVar[Mapping[str, Limits]] = _group_limits("rails")
+
+
+class BatteryStop(Validated):
+    """The battery stop at `x_M = 0`, a Hunt–Crossley contact the barrel cannot pass
+    forward: `F_s = k_s δ^n_s (1 + λ_s δ̇)`, `δ = −x_M > 0`, never pulling.
+
+    - `stop_stiffness` k_s (N/m^n_s; 0 is no stop), `stop_exponent` n_s (1 to 2),
+      `stop_damping` λ_s (s/m).
+    """
+
+    stop_stiffness: Any = _registered("stop_stiffness")
+    stop_exponent: Any = _registered("stop_exponent")
+    stop_damping: Any = _registered("stop_damping")
+
+    LIMITS: ClassVar[Mapping[str, Limits]] = _group_limits("battery_stop")
+
+
+class CounterRecoilBuffer(Validated):
+    """The counter-recoil buffer, a dashpot acting only on the way back over the last
+    stretch before battery: `F_cb = c_b v_M` while `v_M < 0` and `x_M < L_b`.
+
+    - `buffer_damping` c_b (N·s/m), `buffer_length` L_b (m).
+    """
+
+    buffer_damping: Any = _registered("buffer_damping")
+    buffer_length: Any = _registered("buffer_length")
+
+    LIMITS: ClassVar[Mapping[str, Limits]] = _group_limits("counter_recoil_buffer")
+
+
+class Mount(Validated):
+    """The gun on the ground, for the stability margin (its wheels must not lift).
+
+    - `mount_mass` m_g (kg): the whole gun, recoiling parts included; 0 is no mount,
+      else at least `M + m`.
+    - `cg_distance` L_w (m): from the spade forward to the gun's centre of gravity, in
+      battery, horizontally.
+    - `trunnion_height` h (m): the bore axis at the trunnion above the spade's ground
+      contact.
+    - `spade_distance` L_s (m): from the spade forward to the trunnion, horizontally.
+    """
+
+    mount_mass: Any = _registered("mount_mass")
+    cg_distance: Any = _registered("cg_distance")
+    trunnion_height: Any = _registered("trunnion_height")
+    spade_distance: Any = _registered("spade_distance")
+
+    LIMITS: ClassVar[Mapping[str, Limits]] = _group_limits("mount")
 
 
 class RecoilParams(eqx.Module):
     """All physical parameters of one design. `absorber=None` is the simplified model
     (barrel, spring and damper only). The hardware beyond the paper is optional:
     `load=None` is one impulse of `v0`, `buffer=None` no hydraulic buffer,
-    `recuperator=None` no gas recuperator, each as in the paper."""
+    `recuperator=None` no gas recuperator, each as in the paper; so is the firing
+    envelope: `rails=None` is level frictionless rails, `battery_stop=None` no stop,
+    `counter_recoil_buffer=None` no counter-recoil buffer and `mount=None` no mount.
+
+    Checked across the groups (when the values are concrete): a recuperator preload
+    needs the battery stop, and a mount is at least as heavy as its recoiling parts."""
 
     barrel: Barrel = Barrel()
     absorber: Absorber | None = Absorber()
@@ -347,6 +433,62 @@ class RecoilParams(eqx.Module):
     load: Load | None = None
     buffer: Buffer | None = None
     recuperator: Recuperator | None = None
+    rails: Rails | None = None
+    battery_stop: BatteryStop | None = None
+    counter_recoil_buffer: CounterRecoilBuffer | None = None
+    mount: Mount | None = None
+
+    def __check_init__(self):
+        check_design(self)
+
+
+def _first_bad(*arrays: Any, bad) -> tuple[str, tuple[float, ...]] | None:
+    """Where `bad(*arrays)` (broadcast) is first true, and the arrays' values there; None
+    if nowhere or if a value is not concrete."""
+    if not is_concrete(arrays):
+        return None
+    try:
+        values = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in arrays))
+    except (TypeError, ValueError):
+        return None  # the range checks report a value that is not a number
+    mask = np.asarray(bad(*values)).reshape(-1)
+    if not mask.any():
+        return None
+    index = int(np.argmax(mask))
+    return element_label(values[0], index), tuple(float(v.reshape(-1)[index]) for v in values)
+
+
+def check_design(params: RecoilParams) -> None:
+    """The checks that span parameter groups, on concrete values (`ParameterError`, one
+    line each): a recuperator preload needs the battery stop (`stop_stiffness > 0`), and
+    a mount (`mount_mass > 0`) is at least as heavy as its recoiling parts, `M + m`."""
+    if params.recuperator is not None:
+        stop = 0.0 if params.battery_stop is None else params.battery_stop.stop_stiffness
+        found = _first_bad(
+            params.recuperator.recuperator_preload, stop, bad=lambda p, k: (p > 0) & ~(k > 0)
+        )
+        if found is not None:
+            where, (preload, _) = found
+            raise ParameterError(
+                f"Recuperator.recuperator_preload{where} = {preload:g} N is invalid: a preload "
+                "needs the battery stop to hold the barrel in battery against it; valid "
+                "recuperator_preload 0 without a stop, >= 0 N with stop_stiffness > 0"
+            )
+    if params.mount is not None:
+        absorber = 0.0 if params.absorber is None else params.absorber.m
+        found = _first_bad(
+            params.mount.mount_mass,
+            params.barrel.M,
+            absorber,
+            bad=lambda mg, M, m: (mg != 0) & (mg < M + m),
+        )
+        if found is not None:
+            where, (mass, M, m) = found
+            raise ParameterError(
+                f"Mount.mount_mass{where} = {mass:g} kg is invalid: a mount lighter than its "
+                f"recoiling parts cannot carry them; valid mount_mass 0 (no mount) or >= M + m "
+                f"= {M + m:g} kg (the whole gun on the ground, recoiling parts included)"
+            )
 
 
 #: The pytree of each parameter group, by the class name the registry gives it.
@@ -435,6 +577,19 @@ def params_from_values(values: Mapping[str, Any] | None = None, **kwargs: Any) -
         optional["buffer"] = Buffer(**buffer, orifice=_knots(knots) if knots else None)
     if grouped["recuperator"]:
         optional["recuperator"] = Recuperator(**grouped["recuperator"])
+    mount = grouped["mount"]
+    if mount:
+        mass = mount.get("mount_mass", 0.0)
+        extra = sorted(set(mount) - {"mount_mass"})
+        if extra and is_concrete(mass) and _all_zero(mass):
+            verb = "is" if len(extra) == 1 else "are"
+            raise ParameterError(
+                f"{', '.join(extra)} {verb} given without a mount: mount_mass = 0 is no mount; "
+                "give mount_mass (kg, the whole gun on the ground, >= M + m) to use them"
+            )
+    for group in ("rails", "battery_stop", "counter_recoil_buffer", "mount"):
+        if grouped[group]:
+            optional[group] = _GROUPS[group](**grouped[group])
     return RecoilParams(
         barrel=Barrel(**grouped["barrel"]),
         absorber=absorber,
@@ -502,6 +657,7 @@ def with_values(params: RecoilParams, names: Sequence[str], values: Any) -> Reco
         else:
             orifice = orifice.at[..., np.asarray(list(knots))].set(given)
         params = eqx.tree_at(lambda q: q.buffer.orifice, params, orifice)
+    check_design(params)  # the checks across groups (`tree_at` does not run them)
     return params
 
 

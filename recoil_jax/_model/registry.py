@@ -75,6 +75,10 @@ GROUP_CLASSES: dict[str, str] = {
     "load": "Load",
     "buffer": "Buffer",
     "recuperator": "Recuperator",
+    "rails": "Rails",
+    "battery_stop": "BatteryStop",
+    "counter_recoil_buffer": "CounterRecoilBuffer",
+    "mount": "Mount",
 }
 
 

@@ -163,7 +163,7 @@ def group_values(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     seed = {"m": 0.0} if simplified else {}
     for name in columns:
         p = PARAMETERS[name]
-        if p.group in ("load", "buffer", "recuperator") and p.index is None:
+        if p.group not in ("barrel", "absorber", "contact") and p.index is None:
             seed.setdefault(name, p.default)
     defaults = params_to_values(params_from_values(seed))
     values = {k: np.full(n, float(np.asarray(v))) for k, v in defaults.items()}

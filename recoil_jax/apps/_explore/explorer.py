@@ -80,7 +80,12 @@ def _start_values(values: dict[str, float] | None) -> dict[str, float]:
     defaults = {name: float(p.default) for name, p in rj.PARAMETERS.items()}
     defaults |= {f"orifice_{i}": 4e-4 for i in range(EXPLORER_KNOTS)}
     defaults |= {k: float(np.asarray(v)) for k, v in start.items()}
-    return defaults
+    # The firing envelope's parameters (issue 54) have no card yet: their fields stay out.
+    return {
+        k: v
+        for k, v in defaults.items()
+        if rj.PARAMETERS[k].group in _GROUPS and k != "recuperator_preload"
+    }
 
 
 def _time_plot(title: str, y_axis_label: str, x_range=None):

@@ -285,7 +285,11 @@ def design_warnings(values: Mapping[str, object], table: rj.ForceTable | None = 
     knots = sorted(n for n in values if n.startswith("orifice_"))
     no_buffer = bool(knots) and _all_zero(values.get("piston_area"))
     recuperator = {"recuperator_length", "polytropic_index"} & set(values)
-    no_recuperator = bool(recuperator) and _all_zero(values.get("recuperator_force", 0.0))
+    no_recuperator = (
+        bool(recuperator)
+        and _all_zero(values.get("recuperator_force", 0.0))
+        and _all_zero(values.get("recuperator_preload", 0.0))
+    )
     unused = (set(knots) if no_buffer else set()) | (recuperator if no_recuperator else set())
     for name, value in values.items():
         ranged = name in rj.PARAMETERS or name == "t1"  # every documented range, t1's too
