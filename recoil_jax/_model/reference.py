@@ -629,8 +629,8 @@ class _RunningPeaks:
         self.displacement = (-np.inf, 0.0)
         self.anchoring = (-np.inf, 0.0)
         self.contact = (0.0, 0.0)
-        self.min_stroke = 0.0
-        self.max_stroke = 0.0
+        self.min_stroke = np.inf  # the first state considered (t = 0) sets both
+        self.max_stroke = -np.inf
 
     def consider(self, model: _HardModel, t, y, mode: _Mode) -> None:
         if y[0] > self.displacement[0]:
@@ -757,7 +757,8 @@ def reference_energy(
     `breech_work` (the breech force's, impulses as their kinetic energy), `gravity_work`,
     `dissipated` (dampers, orifice, counter-recoil buffer, friction, and the contacts'
     Hunt–Crossley parts), `stored_change` (kinetic energy, springs, gas column and
-    contacts' potentials: end less start); they balance,
+    contacts' potentials: at the end less at rest in battery before the first round);
+    they balance,
     `breech_work + gravity_work = dissipated + stored_change`. Arguments as
     `reference_peaks`."""
     model = _model_of(values, force_table)
@@ -765,6 +766,7 @@ def reference_energy(
         t1 = 10.0 + (model.shots - 1) * model.interval
     done = _integrate(model, t1, rtol, atol, method, max_segments, audit=True)
     y0 = _initial_state(model)
+    y0[1] = 0.0  # at rest in battery, before the first round's impulse (its work)
     y = done.y
     gravity = model.M * (y[0] - y0[0])
     if model.absorber:
@@ -858,6 +860,8 @@ def _integrate(model, t1, rtol, atol, method, max_segments, ts=None, samples=Non
             )
         end = next(s for s in stops if s > t)
         switches = model.switch_events(mode)
+        if model.envelope:
+            switches = [_off_the_surface(event, t) for event in switches]
         sol = scipy.integrate.solve_ivp(
             fun,
             (t, end),
@@ -937,6 +941,21 @@ def _integrate(model, t1, rtol, atol, method, max_segments, ts=None, samples=Non
             if ts is not None:  # a sample at the firing itself: after it, as at t = 0
                 _sample_at(model, mode, t, y, ts, samples)
     return _Done(running, envelope, segments, status, t, y)
+
+
+def _off_the_surface(event: _Event, start: float) -> _Event:
+    """`event` for a segment from `start` whose state may lie exactly on the event's
+    surface (a barrel at rest at t = 0, or slipping from a stick): there its value, 0,
+    reads as just inside the mode's side, so that a crossing after a first excursion
+    is located where it is, not at the start (scipy takes a zero at a step's start for
+    a crossing whenever the step ends across the surface)."""
+    inside = -math.copysign(1e-300, event.direction) if event.direction else 0.0
+
+    def surface(t, y, mode):
+        value = event.surface(t, y, mode)
+        return inside if value == 0 and t == start else value
+
+    return dataclasses.replace(event, surface=surface)
 
 
 def _audited(model: _HardModel):
