@@ -42,6 +42,8 @@ _BOTTOM = 0.95  # the recuperator's gas column may be compressed to this fractio
 GRAVITY = 9.80665
 #: In battery to within this (m): the return is the barrel coming forward through it.
 BATTERY = 1e-3
+#: The friction band's relative margin for rounding (`_HardModel.band`).
+_BAND = 1e-9
 #: Segments in a row that may end where they started (a state exactly on a switching
 #: surface crosses it in a zero-length segment) before the solve is declared stuck.
 _MAX_EMPTY = 50
@@ -128,6 +130,10 @@ class _HardModel:
             + p.get("friction_coefficient", 0.0) * (self.M + self.mass_m) * GRAVITY * self.cos
         )
         self.friction = self.F_max > 0
+        # The band of net forces friction holds: F_max, and a relative 1e-9 for the
+        # rounding of N where a barrel comes to rest at the band's edge (an overdamped
+        # approach to it: N = ∓F_max in the limit, and v_M crosses 0 by rounding alone).
+        self.band = self.F_max * (1.0 + _BAND)
         self.k_s = p.get("stop_stiffness", 0.0)
         self.stop = self.k_s > 0
         self.n_s = p.get("stop_exponent", 1.5)
@@ -444,13 +450,13 @@ class _HardModel:
         only the absorber moves (its contact and clamp switches)."""
         events = [
             _Event(
-                lambda t, y, mode: self.net_force(t, y, mode) - self.F_max,
+                lambda t, y, mode: self.net_force(t, y, mode) - self.band,
                 direction=1.0,
                 terminal=True,
                 kind="slip out",
             ),
             _Event(
-                lambda t, y, mode: self.net_force(t, y, mode) + self.F_max,
+                lambda t, y, mode: self.net_force(t, y, mode) + self.band,
                 direction=-1.0,
                 terminal=True,
                 kind="slip back",
@@ -516,7 +522,7 @@ class _HardModel:
         if v != 0:
             return mode
         net = self.net_force(t, y, mode)
-        if self.friction and abs(net) <= self.F_max:
+        if self.friction and abs(net) <= self.band:
             return dataclasses.replace(mode, stuck=True, moving_out=net > 0)
         if net == 0 and previous is not None:
             return dataclasses.replace(mode, moving_out=previous.moving_out)
@@ -562,11 +568,23 @@ class _HardModel:
             if not self.friction:
                 return dataclasses.replace(new, moving_out=not mode.moving_out)
             net = self.net_force(t, y, new)
-            if abs(net) <= self.F_max:
+            if abs(net) <= self.band:
                 y[1] = 0.0
                 return dataclasses.replace(new, stuck=True, stop_clamped=False)
             return dataclasses.replace(new, moving_out=bool(net > 0))
         return new
+
+    def step_limit(self, start: float, end: float, mode: _Mode) -> dict[str, float]:
+        """`solve_ivp` options for a segment: a barrel held by friction does not feel a
+        pulse in its state, so the steps would pass over it and miss the slip; while a
+        pulse acts (50 pulse times from its round's firing) they are held to an eighth of
+        the pulse time. (A table's points are segment ends, and it is linear between.)"""
+        if not mode.stuck or self.impulse or self.table is not None:
+            return {}
+        acting = [
+            tj for tj in self.firing_times() if tj < end and start < tj + 50 * self.pulse_time
+        ]
+        return {"max_step": self.pulse_time / 8} if acting else {}
 
     def stops(self, t1: float) -> np.ndarray:
         """Segment ends known in advance: later rounds, and every table point."""
@@ -860,8 +878,10 @@ def _integrate(model, t1, rtol, atol, method, max_segments, ts=None, samples=Non
             )
         end = next(s for s in stops if s > t)
         switches = model.switch_events(mode)
+        options = {}
         if model.envelope:
             switches = [_off_the_surface(event, t) for event in switches]
+            options = model.step_limit(t, end, mode)
         sol = scipy.integrate.solve_ivp(
             fun,
             (t, end),
@@ -872,6 +892,7 @@ def _integrate(model, t1, rtol, atol, method, max_segments, ts=None, samples=Non
             args=(mode,),
             events=peak_events + envelope_events + switches,
             dense_output=ts is not None,
+            **options,
         )
         if sol.status < 0:
             raise RuntimeError(f"reference solver failed: {sol.message}")
