@@ -42,6 +42,8 @@ _BOTTOM = 0.95  # the recuperator's gas column may be compressed to this fractio
 GRAVITY = 9.80665
 #: In battery to within this (m): the return is the barrel coming forward through it.
 BATTERY = 1e-3
+#: Pulse times from a round's firing over which a stuck barrel's steps are held short.
+_PULSE_WINDOW = 50.0
 #: The friction band's relative margin for rounding (`_HardModel.band`).
 _BAND = 1e-9
 #: Segments in a row that may end where they started (a state exactly on a switching
@@ -352,12 +354,19 @@ class _HardModel:
     def peak_events(self) -> list[_Event]:
         """Non-terminal surfaces where a tracked quantity may peak: the falling zeros of
         v_M, dF_AN/dt and dF_ct/dt, and every zero of the stroke rate."""
-        return [
+        events = [
             _Event(lambda t, y, mode: y[1] if not mode.stuck else -1.0, direction=-1.0),
             _Event(lambda t, y, mode: self.rates(t, y, mode)[0], direction=-1.0),
             _Event(lambda t, y, mode: self.rates(t, y, mode)[1], direction=-1.0),
             _Event(lambda t, y, mode: y[1] - y[3]),
         ]
+        if self.envelope and not self.absorber:
+            # Without an absorber F_ct = 0, and a stuck barrel's stroke rate is 0: a
+            # surface that is zero everywhere is a root at every step (the paper's path
+            # keeps its events as they were).
+            events[2] = _Event(lambda t, y, mode: -1.0, direction=-1.0)
+            events[3] = _Event(lambda t, y, mode: y[1] - y[3] if not mode.stuck else 1.0)
+        return events
 
     def envelope_events(self) -> list[_Event]:
         """Non-terminal surfaces of the envelope's metrics: the barrel coming forward
@@ -577,13 +586,13 @@ class _HardModel:
     def step_limit(self, start: float, end: float, mode: _Mode) -> dict[str, float]:
         """`solve_ivp` options for a segment: a barrel held by friction does not feel a
         pulse in its state, so the steps would pass over it and miss the slip; while a
-        pulse acts (50 pulse times from its round's firing) they are held to an eighth of
-        the pulse time. (A table's points are segment ends, and it is linear between.)"""
+        pulse acts (50 pulse times from its round's firing: 1e-20 of its peak is left)
+        they are held to an eighth of the pulse time. (A table's points are segment ends,
+        and it is linear between.)"""
         if not mode.stuck or self.impulse or self.table is not None:
             return {}
-        acting = [
-            tj for tj in self.firing_times() if tj < end and start < tj + 50 * self.pulse_time
-        ]
+        window = _PULSE_WINDOW * self.pulse_time  # its end is a segment end (`stops`)
+        acting = [tj for tj in self.firing_times() if tj < end and start < tj + window]
         return {"max_step": self.pulse_time / 8} if acting else {}
 
     def stops(self, t1: float) -> np.ndarray:
@@ -591,6 +600,8 @@ class _HardModel:
         times = list(self.firing_times()[1:])
         if self.table is not None:
             times += [tj + ti for tj in self.firing_times() for ti in self.table[0]]
+        if self.envelope and not self.impulse and self.table is None:
+            times += list(self.firing_times() + _PULSE_WINDOW * self.pulse_time)
         return np.unique([s for s in times if 0.0 < s < t1])
 
     # --- energy -----------------------------------------------------------------------
