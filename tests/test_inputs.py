@@ -153,6 +153,11 @@ def test_values_outside_the_documented_range_are_warned_about():
     assert "no hydraulic buffer" in buffer and "orifice_0, orifice_1" in buffer
     (gas,) = design_warnings({"recuperator_force": 0.0, "recuperator_length": 0.05})
     assert "no gas recuperator: recuperator_length has no effect" in gas
+    # A preload uses the gas column (issue 54); a mount's geometry needs its mass.
+    preload = {"recuperator_preload": 3e4, "stop_stiffness": 2e8, "recuperator_length": 1.5}
+    assert design_warnings(preload) == []
+    (mount,) = design_warnings({"cg_distance": 3.0, "spade_distance": 2.0})
+    assert mount == "mount_mass = 0 is no mount: cg_distance, spade_distance have no effect"
     # A sweep: how many of its values lie outside.
     (sweep,) = design_warnings({"m": np.array([0.0, 100.0, 6000.0, 7000.0])})
     assert sweep.startswith("m: 2 of 3 values (e.g. m=6000) are outside the documented")

@@ -577,16 +577,6 @@ def params_from_values(values: Mapping[str, Any] | None = None, **kwargs: Any) -
         optional["buffer"] = Buffer(**buffer, orifice=_knots(knots) if knots else None)
     if grouped["recuperator"]:
         optional["recuperator"] = Recuperator(**grouped["recuperator"])
-    mount = grouped["mount"]
-    if mount:
-        mass = mount.get("mount_mass", 0.0)
-        extra = sorted(set(mount) - {"mount_mass"})
-        if extra and is_concrete(mass) and _all_zero(mass):
-            verb = "is" if len(extra) == 1 else "are"
-            raise ParameterError(
-                f"{', '.join(extra)} {verb} given without a mount: mount_mass = 0 is no mount; "
-                "give mount_mass (kg, the whole gun on the ground, >= M + m) to use them"
-            )
     for group in ("rails", "battery_stop", "counter_recoil_buffer", "mount"):
         if grouped[group]:
             optional[group] = _GROUPS[group](**grouped[group])

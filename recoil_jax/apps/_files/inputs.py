@@ -290,7 +290,10 @@ def design_warnings(values: Mapping[str, object], table: rj.ForceTable | None = 
         and _all_zero(values.get("recuperator_force", 0.0))
         and _all_zero(values.get("recuperator_preload", 0.0))
     )
+    mount = {"cg_distance", "trunnion_height", "spade_distance"} & set(values)
+    no_mount = bool(mount) and _all_zero(values.get("mount_mass", 0.0))
     unused = (set(knots) if no_buffer else set()) | (recuperator if no_recuperator else set())
+    unused |= mount if no_mount else set()
     for name, value in values.items():
         ranged = name in rj.PARAMETERS or name == "t1"  # every documented range, t1's too
         if not ranged or name in unused or value is None:
@@ -326,6 +329,11 @@ def design_warnings(values: Mapping[str, object], table: rj.ForceTable | None = 
         lines.append(
             "recuperator_force = 0 is no gas recuperator: "
             f"{', '.join(sorted(recuperator))} has no effect"
+        )
+    if no_mount:
+        lines.append(
+            f"mount_mass = 0 is no mount: {', '.join(sorted(mount))} "
+            f"{'has' if len(mount) == 1 else 'have'} no effect"
         )
     if table is not None:
         F = np.asarray(table.F)
