@@ -364,9 +364,19 @@ class _HardModel:
             # Without an absorber F_ct = 0, and a stuck barrel's stroke rate is 0: a
             # surface that is zero everywhere is a root at every step (the paper's path
             # keeps its events as they were).
+            # Likewise F_AN while stuck under an impulse load: constant.
+            events[1] = _Event(
+                lambda t, y, mode: -1.0 if self.constant(mode) else self.rates(t, y, mode)[0],
+                direction=-1.0,
+            )
             events[2] = _Event(lambda t, y, mode: -1.0, direction=-1.0)
             events[3] = _Event(lambda t, y, mode: y[1] - y[3] if not mode.stuck else 1.0)
         return events
+
+    def constant(self, mode: _Mode) -> bool:
+        """Nothing moves and no force changes: a stuck barrel without an absorber under
+        an impulse load (between its rounds)."""
+        return mode.stuck and not self.absorber and self.impulse
 
     def envelope_events(self) -> list[_Event]:
         """Non-terminal surfaces of the envelope's metrics: the barrel coming forward
@@ -380,7 +390,13 @@ class _HardModel:
             )
         ]
         if self.mount:
-            events.append(_Event(self.margin_rate, direction=1.0, kind="margin"))
+            events.append(
+                _Event(
+                    lambda t, y, mode: 1.0 if self.constant(mode) else self.margin_rate(t, y, mode),
+                    direction=1.0,
+                    kind="margin",
+                )
+            )
         return events
 
     def switch_events(self, mode: _Mode) -> list[_Event]:
