@@ -12,6 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import recoil_jax  # noqa: F401  (float64 on import, as for the model)
+
 M, K, F_MAX, V0, T1 = 5600.0, 27500.0, 2000.0, 1.0, 6.0
 
 
@@ -25,7 +27,7 @@ def coulomb_rest() -> tuple[float, float]:
         phase = np.arctan2(-v / w, x - centre)
         dt = (-phase) % np.pi or np.pi
         t += dt / w
-        x = centre + amplitude * np.cos(phase + dt)
+        x, v = centre + amplitude * np.cos(phase + dt), 0.0  # a turning point
         if abs(K * x) <= F_MAX:
             return x, t
         direction = -np.sign(x)
