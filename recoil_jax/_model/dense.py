@@ -70,7 +70,7 @@ def polish(solver, args, vector_fn, best, best_time, best_step, search: bool = F
     the polynomial's maximum.) Maxima at a step's end are solver points and keep their
     value. Derivative-free, so it adds little to compile times under `jacfwd`/`grad`.
 
-    `vector_fn(y, args)` is the stacked vector of tracked quantities, shape `(n,)`;
+    `vector_fn(t, y, args)` is the stacked vector of tracked quantities, shape `(n,)`;
     `best`, `best_time` (`(n,)`) and `best_step` (per quantity, the dense info of the step
     holding its maximum) are the running maxima.
 
@@ -87,7 +87,7 @@ def polish(solver, args, vector_fn, best, best_time, best_step, search: bool = F
             return interp.evaluate(jnp.clip(t, step["t0"], step["t0"] + safe_dt))
 
         def values(ts):  # one traced copy of the interpolant for several times
-            return jax.vmap(lambda t: vector_fn(state(t), args)[i])(ts)
+            return jax.vmap(lambda t: vector_fn(t, state(t), args)[i])(ts)
 
         def refine(_, carry):
             # Vertex of the parabola through three points of the interpolant, with a

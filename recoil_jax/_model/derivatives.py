@@ -30,6 +30,8 @@ from .._model.equations import (
     contact_width,
     forces,
     future_metric_bounds,
+    has_envelope,
+    held_bounds,
     initial_state,
     load_jump,
     load_stops,
@@ -39,13 +41,20 @@ from .._model.equations import (
     vector_field,
 )
 from .._model.lanes import queued_map
-from .._model.metrics import METRICS, PeakGradients, Peaks
+from .._model.metrics import EXTREMES, METRICS, PeakGradients, Peaks
 from .._model.parameter_table import PARAMETERS
 from .._model.params import RecoilParams, values_of, with_values
 from .._model.programs import structure_jit
 from .._model.registry import ParameterError, is_concrete
 from .._model.settings import Smoothing, SolverOptions, end_time, with_default_tolerances
-from .._model.solve import model_ceilings, model_samples, peaks_of_run
+from .._model.solve import (
+    battery_crossing,
+    last_firing,
+    model_ceilings,
+    model_samples,
+    peaks_of_run,
+    residual_at,
+)
 from .._model.status import raise_on_failure
 from .._model.stepping import Events, PeakLoop, PeakRun
 
@@ -205,14 +214,14 @@ def _augmented_vf(t, y, params, smoothing, smooth_max, t1):
     f = vector_field(t, y[:_N_STATE], model_args(params, smoothing))
     if smooth_max is None:
         return f
-    g = _smoothed(tracked_metrics(y[:_N_STATE], model_args(params, smoothing)), smooth_max)
+    g = _smoothed(tracked_metrics(t, y[:_N_STATE], model_args(params, smoothing)), smooth_max)
     # Clipped so that a sudden rise far above the running integral cannot overflow.
     exponent = jnp.minimum(g / smooth_max.temperatures - y[_N_STATE:], 700.0)
     return jnp.concatenate([f, jnp.exp(exponent) / t1])
 
 
-def _augmented_metrics(y, params, smoothing, smooth_max) -> dict[str, Any]:
-    values = tracked_metrics(y[:_N_STATE], model_args(params, smoothing))
+def _augmented_metrics(t, y, params, smoothing, smooth_max) -> dict[str, Any]:
+    values = tracked_metrics(t, y[:_N_STATE], model_args(params, smoothing))
     if smooth_max is not None:
         # The log-integrals increase monotonically: their maximum is their value at t1.
         for j, name in enumerate(smooth_max.metrics):
@@ -224,7 +233,7 @@ def _augmented_initial_state(params, smoothing, smooth_max):
     y0 = initial_state(params)
     if smooth_max is None:
         return y0
-    g0 = _smoothed(tracked_metrics(y0, model_args(params, smoothing)), smooth_max)
+    g0 = _smoothed(tracked_metrics(0.0, y0, model_args(params, smoothing)), smooth_max)
     return jnp.concatenate([y0, g0 / smooth_max.temperatures + jnp.log(_SEED)])
 
 
@@ -260,15 +269,17 @@ def _tangent_term(wrt: tuple[str, ...]) -> diffrax.ODETerm:
 _STATE_TERM = diffrax.ODETerm(lambda t, y, args: _augmented_vf(t, y, *args))
 
 
-def _tangent_metrics(z, args):
+def _tangent_metrics(t, z, args):
     params, smoothing, smooth_max, _ = args
-    return _augmented_metrics(z[: _state_size(smooth_max)], params, smoothing, smooth_max)
+    return _augmented_metrics(t, z[: _state_size(smooth_max)], params, smoothing, smooth_max)
 
 
 def _tangent_bounds(z, args, t, t1):
-    """`future_metric_bounds` of the state part of `z` (without smooth maxima)."""
+    """`future_metric_bounds` (`held_bounds` with the firing envelope) of the state part
+    of `z` (without smooth maxima)."""
     params, smoothing, _, _ = args
-    return future_metric_bounds(z[:_N_STATE], model_args(params, smoothing), t, t1)
+    bounds = held_bounds if has_envelope(params) else future_metric_bounds
+    return bounds(z[:_N_STATE], model_args(params, smoothing), t, t1)
 
 
 #: A smooth maximum stops integrating once the rest of `[t, t1]` can add less than this to
@@ -387,15 +398,15 @@ def _tangent_post(args, run: PeakRun, wrt, series: MetricSeries | None = None):
     theta = values_of(params, wrt)
     stops = None if params.load is None else load_stops(params)
 
-    def metric(i, y_, theta_):
-        """Tracked quantity `i` (in the order of `run.names`) of the state `y_`."""
-        values = _augmented_metrics(y_, with_values(params, wrt, theta_), smoothing, smooth_max)
+    def metric(i, t_, y_, theta_):
+        """Tracked quantity `i` (in the order of `run.names`) at time `t_`, state `y_`."""
+        values = _augmented_metrics(t_, y_, with_values(params, wrt, theta_), smoothing, smooth_max)
         return jnp.stack([values[name] for name in run.names])[i]
 
     def gradient_of_metric(i, state, time):
         y, tangents = state[:n], state[n:].reshape(-1, n)
         directional = jax.vmap(
-            lambda s, d: jax.jvp(lambda y_, th: metric(i, y_, th), (y, theta), (s, d))[1]
+            lambda s, d: jax.jvp(lambda y_, th: metric(i, time, y_, th), (y, theta), (s, d))[1]
         )(tangents, _directions(wrt))
         if stops is None:
             return directional
@@ -403,7 +414,9 @@ def _tangent_post(args, run: PeakRun, wrt, series: MetricSeries | None = None):
         # which moves with the parameters: add the metric's rate times the move.
         index = jnp.argmin(jnp.abs(stops - time))
         f = _augmented_vf(time, y, params, smoothing, smooth_max, t1)
-        rate = jax.jvp(lambda y_: metric(i, y_, theta), (y,), (f,))[1]
+        rate = jax.jvp(
+            lambda t_, y_: metric(i, t_, y_, theta), (time, y), (jnp.ones_like(time), f)
+        )[1]
         moved = jax.vmap(
             lambda d: jax.jvp(
                 lambda th: _stops(with_values(params, wrt, th))[index], (theta,), (d,)
@@ -415,8 +428,9 @@ def _tangent_post(args, run: PeakRun, wrt, series: MetricSeries | None = None):
     directional = jax.vmap(gradient_of_metric)(indices, run.best_state, run.best_time)
     scales = jnp.asarray([parameter_scale(name) for name in wrt])
     grads = run.by_name(directional / scales)
-    gradients = PeakGradients.of({name: m.sign * grads[name] for name, m in METRICS.items()}, wrt)
-    peaks = peaks_of_run(run)
+    extremes = {name: m.sign * grads[name] for name, m in EXTREMES.items()}
+    gradients = PeakGradients.of(_envelope_gradients(args, run, wrt, extremes, scales, n), wrt)
+    peaks = peaks_of_run(params, smoothing, run, t1)
     smooth_values = smooth_grads = None
     if smooth_max is not None:
         best = run.by_name(run.best)
@@ -431,7 +445,7 @@ def _tangent_post(args, run: PeakRun, wrt, series: MetricSeries | None = None):
     def on_series(i):
         # The same envelope formula at each save time (a fixed time: no rate term).
         states, times = run.saved, series.ts
-        values = jax.vmap(lambda state: metric(i, state[:n], theta))(states)
+        values = jax.vmap(lambda state, t: metric(i, t, state[:n], theta))(states, times)
         slopes = jax.vmap(lambda st, t: gradient_of_metric(i, st, t))(states, times) / scales
         written = jnp.arange(times.shape[0]) < run.save_count
         return (
@@ -445,6 +459,41 @@ def _tangent_post(args, run: PeakRun, wrt, series: MetricSeries | None = None):
     return ForwardSensitivities(
         peaks, gradients, smooth_values, smooth_grads, series_values, series_grads
     )
+
+
+def _envelope_gradients(args, run: PeakRun, wrt, extremes: dict, scales, n) -> dict:
+    """The gradients of the envelope's metrics beside `extremes` (by metric name, scaled
+    to parameter units): `residual_displacement` from the tangents at `t1`; the return's
+    from those at the crossing `x_M(t*) = 1 mm`, which moves by `dt*/dθ = −S_x / v_M`
+    (`return_time = t* − t_last`, `battery_speed = −v_M(t*)`, whose rate there is the
+    barrel's acceleration). Zero where there is no return, NaN without the envelope (as
+    the values); the margin is an extreme, NaN without a mount."""
+    params, smoothing, smooth_max, t1 = args
+    out = dict(extremes)
+    nan = jnp.full_like(out["peak_displacement"], jnp.nan)
+    if not has_envelope(params):
+        for name in ("return_time", "battery_speed", "residual_displacement"):
+            out[name] = nan
+        out["stability_margin"] = nan
+        return out
+    theta = values_of(params, wrt)
+    final = run.final_state[n:].reshape(-1, n)
+    out["residual_displacement"] = residual_at(final, run.final_time, t1, smoothing) / scales
+    y, tangents = run.cross_state[:n], run.cross_state[n:].reshape(-1, n)
+    f = _augmented_vf(run.cross_time, y, params, smoothing, smooth_max, t1)
+    moving = y[1] != 0
+    crossing_move = -tangents[:, 0] / jnp.where(moving, y[1], 1.0)  # dt*/dθ, per direction
+    last_move = jax.vmap(
+        lambda d: jax.jvp(lambda th: last_firing(with_values(params, wrt, th)), (theta,), (d,))[1]
+    )(_directions(wrt))
+    returned = run.crossed & moving
+    out["return_time"] = jnp.where(returned, (crossing_move - last_move) / scales, 0.0)
+    speed_rate = -(tangents[:, 1] + f[1] * crossing_move)
+    out["battery_speed"] = jnp.where(returned, speed_rate / scales, 0.0)
+    mount = params.mount
+    present = False if mount is None else mount.mount_mass > 0
+    out["stability_margin"] = jnp.where(present, out["stability_margin"], nan)
+    return out
 
 
 def tangent_solve(
@@ -467,6 +516,7 @@ def tangent_loop(params, options, wrt, smooth_max=None, stop_early: bool = True)
     the tangent system into a solve (as `model_loop` for the model alone). `stop_early`:
     stop once the peaks are certain (a calibration's signals run to `t1`)."""
     bounds = _tangent_bounds if smooth_max is None else _smooth_tangent_bounds
+    envelope = has_envelope(params)
     return PeakLoop(
         _tangent_term(wrt),
         _tangent_metrics,
@@ -476,6 +526,7 @@ def tangent_loop(params, options, wrt, smooth_max=None, stop_early: bool = True)
         model_ceilings,
         **model_samples(params),
         leading_term=(_STATE_TERM, _state_size(smooth_max)),
+        crossing_fn=(lambda args: battery_crossing(args[0])) if envelope else None,
     )
 
 

@@ -13,12 +13,19 @@ import diffrax
 import jax
 import jax.numpy as jnp
 
-from .._model.metrics import METRICS
+from .._model.metrics import EXTREMES
 from .._model.params import Buffer, Load, RecoilParams, Recuperator
 from .._model.settings import Smoothing
 
+#: Standard gravity (m/s²), as `envelope.md` fixes it.
+GRAVITY = 9.80665
+#: The barrel is back in battery once it comes forward through this `x_M` (m).
+BATTERY = 1e-3
+
 __all__ = [
+    "BATTERY",
     "BOTTOM",
+    "GRAVITY",
     "RECOIL_TERM",
     "Forces",
     "breech_force",
@@ -26,13 +33,18 @@ __all__ = [
     "characteristic_penetration",
     "contact_width",
     "forces",
+    "friction_bound",
     "future_metric_bounds",
+    "has_envelope",
+    "held_bounds",
     "initial_state",
     "knot_crossing",
     "load_jump",
     "load_stops",
     "metric_ceilings",
     "model_args",
+    "net_force",
+    "onset_ramp",
     "orifice_area",
     "positive_power",
     "recuperator_energy",
@@ -41,6 +53,7 @@ __all__ = [
     "restart_step",
     "signals",
     "smooth_relu",
+    "smooth_step",
     "tracked_metrics",
     "vector_field",
 ]
@@ -61,6 +74,34 @@ def smooth_relu(x, width):
     inside = safe_width * (s + 1.0) ** 3 * (3.0 - s) / 16.0
     in_band = smooth & (jnp.abs(x) < width)
     return jnp.where(in_band, inside, jnp.maximum(x, 0.0))
+
+
+def smooth_step(x, width):
+    """The step `x > 0` (0 or 1) smoothed over `|x| < width` into the slope of
+    `smooth_relu`, `(s + 1)² (2 − s) / 4` with `s = x / w` (C¹, monotone); exact outside
+    the band, and the exact step for `width = 0`."""
+    width = jnp.asarray(width)
+    smooth = width > 0
+    safe_width = jnp.where(smooth, width, 1.0)
+    s = jnp.clip(x / safe_width, -1.0, 1.0)
+    inside = (s + 1.0) ** 2 * (2.0 - s) / 4.0
+    in_band = smooth & (jnp.abs(x) < width)
+    return jnp.where(in_band, inside, jnp.where(x > 0, 1.0, 0.0))
+
+
+def onset_ramp(x, width):
+    """`max(0, x)` smoothed over `0 < x < width` only, by the C¹ cubic
+    `x² (2w − x) / w²`: exactly 0 for `x <= 0` and exactly `x` for `x >= width` (so a
+    barrel at rest in battery, `x_M = 0`, feels no stop force at all); the exact ramp for
+    `width = 0`. Below `max(0, x)` inside the band."""
+    width = jnp.asarray(width)
+    smooth = width > 0
+    safe_width = jnp.where(smooth, width, 1.0)
+    inside = smooth & (x > 0) & (x < width)
+    safe_x = jnp.where(inside, x, 0.0)
+    return jnp.where(
+        inside, safe_x**2 * (2.0 * safe_width - safe_x) / safe_width**2, jnp.maximum(x, 0.0)
+    )
 
 
 def positive_power(x, exponent):
@@ -86,14 +127,26 @@ class Forces(NamedTuple):
     buffer: jnp.ndarray | None = None  # F_h, the hydraulic buffer's orifice force
     recuperator: jnp.ndarray | None = None  # F_g, the gas recuperator
     breech: jnp.ndarray | None = None  # F_b(t), the breech force (pulse or table loads)
+    # The firing envelope (`envelope.md`):
+    preload: jnp.ndarray | None = None  # F_p, the recuperator's preload on its gas column
+    counter_recoil: jnp.ndarray | None = None  # F_cb, the counter-recoil buffer (<= 0)
+    stop: jnp.ndarray | None = None  # F_s (>= 0), the battery stop pushing the barrel back
+    friction: jnp.ndarray | None = None  # F_f, rail friction
+    gravity: jnp.ndarray | None = None  # M g sin θ, along +x on the barrel
+    absorber_gravity: jnp.ndarray | None = None  # m g sin θ on the absorber
 
     @property
     def anchoring(self):
-        """F_AN = k x_M + c(v_M) v_M + F_h + F_g: the load into the mounting (wall P)."""
+        """F_AN = k x_M + c(v_M) v_M + F_h + F_g + F_p + F_cb + F_f − F_s: the load into
+        the mounting (wall P)."""
         total = self.recoil_spring + self.recoil_damper
-        for part in (self.buffer, self.recuperator):
+        for part in (self.buffer, self.recuperator, self.preload, self.counter_recoil):
             if part is not None:
                 total = total + part
+        if self.friction is not None:
+            total = total + self.friction
+        if self.stop is not None:
+            total = total - self.stop
         return total
 
 
@@ -214,10 +267,16 @@ def forces(y, params: RecoilParams, smoothing: Smoothing, width_contact=None, t=
         hardware["recuperator"] = recuperator_force(x_M, params.recuperator)
     if params.load is not None and t is not None:
         hardware["breech"] = breech_force(t, params)
+    hardware |= _envelope_forces(y, params, smoothing)
     absorber = params.absorber
     if absorber is None:
         zero = jnp.zeros_like(x_M)
-        return Forces(recoil_spring, recoil_damper, zero, zero, zero, zero, **hardware)
+        return _with_friction(
+            Forces(recoil_spring, recoil_damper, zero, zero, zero, zero, **hardware),
+            y,
+            params,
+            smoothing,
+        )
     contact = params.contact
     if width_contact is None:
         width_contact = contact_width(params, smoothing)
@@ -228,7 +287,7 @@ def forces(y, params: RecoilParams, smoothing: Smoothing, width_contact=None, t=
     damping_factor = smooth_relu(
         1.0 + contact.lambda_c * penetration_rate, contact.lambda_c * width_v
     )
-    return Forces(
+    together = Forces(
         recoil_spring=recoil_spring,
         recoil_damper=recoil_damper,
         coupling_spring=absorber.k_r * (x_M - x_m),
@@ -237,29 +296,157 @@ def forces(y, params: RecoilParams, smoothing: Smoothing, width_contact=None, t=
         contact_elastic=elastic,
         **hardware,
     )
+    return _with_friction(together, y, params, smoothing)
+
+
+def has_envelope(params: RecoilParams) -> bool:
+    """Whether the design has any part of the firing envelope (rails, the battery stop,
+    the counter-recoil buffer, a mount): static, from the structure. Such a design is
+    solved to `t1` (its return and its rest are metrics), the others stop once their
+    peaks are certain."""
+    return any(
+        getattr(params, group) is not None
+        for group in ("rails", "battery_stop", "counter_recoil_buffer", "mount")
+    )
+
+
+def _sin_cos(params: RecoilParams):
+    theta = jnp.deg2rad(params.rails.elevation) if params.rails is not None else 0.0
+    return jnp.sin(theta), jnp.cos(theta)
+
+
+def _envelope_forces(y, params: RecoilParams, smoothing: Smoothing) -> dict:
+    """The envelope's forces at `y` but friction (`_with_friction`), by `Forces` field:
+    each only where the design has its group (else the paper's forces, operation for
+    operation)."""
+    x_M, v_M = y[0], y[1]
+    out = {}
+    recuperator = params.recuperator
+    if recuperator is not None and params.battery_stop is not None:
+        # A preload needs the stop (`check_design`): without one it is 0 and left out.
+        held = jnp.minimum(x_M, _HOLD * recuperator.recuperator_length)
+        ratio = recuperator.recuperator_length / (recuperator.recuperator_length - held)
+        out["preload"] = recuperator.recuperator_preload * ratio**recuperator.polytropic_index
+    stop = params.battery_stop
+    if stop is not None:
+        depth = onset_ramp(-x_M, smoothing.stop_width)
+        elastic = stop.stop_stiffness * positive_power(depth, stop.stop_exponent)
+        # No-pull clamp max(0, 1 + λ_s δ̇) with δ̇ = −v_M, smoothed as the contact's.
+        factor = smooth_relu(
+            1.0 - stop.stop_damping * v_M, stop.stop_damping * smoothing.damping_width
+        )
+        out["stop"] = elastic * factor
+    counter = params.counter_recoil_buffer
+    if counter is not None:
+        inside = smooth_step(counter.buffer_length - x_M, smoothing.buffer_width)
+        # One-sided, so that a barrel at rest (at t = 0, in battery) feels none of it.
+        returning = onset_ramp(-v_M, smoothing.damping_width)
+        out["counter_recoil"] = -counter.buffer_damping * returning * inside
+    if params.rails is not None:
+        sin, _ = _sin_cos(params)
+        out["gravity"] = params.barrel.M * GRAVITY * sin
+        if params.absorber is not None:
+            out["absorber_gravity"] = params.absorber.m * GRAVITY * sin
+    return out
+
+
+def friction_bound(params: RecoilParams):
+    """`F_max = F_0 + μ (M + m) g cos θ` (N), the most the rails' friction holds."""
+    rails = params.rails
+    assert rails is not None
+    _, cos = _sin_cos(params)
+    mass = params.barrel.M + (0.0 if params.absorber is None else params.absorber.m)
+    return rails.friction_force + rails.friction_coefficient * mass * GRAVITY * cos
+
+
+def net_force(f: Forces):
+    """`N` (N): the force along `+x` on the barrel from everything but friction (the
+    breech's, where `f` has it, gravity's, and less all that holds the barrel back)."""
+    net = -(f.anchoring + f.coupling_spring + f.coupling_damper + f.contact)
+    if f.friction is not None:
+        net = net + f.friction  # (`anchoring` holds it)
+    if f.gravity is not None:
+        net = net + f.gravity
+    if f.breech is not None:
+        net = net + f.breech
+    return net
+
+
+def _with_friction(f: Forces, y, params: RecoilParams, smoothing: Smoothing) -> Forces:
+    """`f` with the rails' friction (`docs/model.md`, *Sticking*):
+    `F_f = clamp(N_h + M v_M / τ, ±F_max)` with `τ = stick_time`, where `N` is the net
+    force on the barrel from everything but friction (the breech force included, so
+    `forces` needs the time `t` for a design with a pulse or table load), and
+
+    - inside the band, `|N| <= F_max`: `N_h = N`. A barrel at rest stays at rest
+      (friction takes `N`), and any speed it has is relaxed to 0 over `τ`: no creep;
+    - outside it: `N_h = ±F_max`, opposing the motion: `−sign(N) F_max` while the
+      barrel moves against `N` (slowing to reverse) and `+sign(N) F_max` once it moves
+      with it (or starts from rest). The friction is then `F_max` against the motion,
+      switching as `v_M` crosses 0 within `slip_width`, as the exact law's sign does.
+      Over `|N| − F_max < friction_width` the two join continuously.
+    """
+    if params.rails is None:
+        return f
+    net = net_force(f)
+    bound, width = friction_bound(params), smoothing.friction_width
+    direction = jnp.where(net >= 0, 1.0, -1.0)
+    # 1 moving with N or at rest (a barrel at rest starts in N's direction, with the
+    # full friction against it), 0 moving against it faster than 2 slip_width.
+    along = 1.0 - smooth_step(-direction * y[1] - smoothing.slip_width, smoothing.slip_width)
+    excess = jnp.abs(net) - bound
+    safe_width = jnp.where(width > 0, width, 1.0)
+    against = jnp.where(width > 0, jnp.clip(excess / safe_width, 0.0, 1.0), 1.0)
+    outside = direction * bound * (1.0 - 2.0 * (1.0 - along) * against)
+    held = jnp.where(excess <= 0, net, outside)
+    relaxing = held + params.barrel.M * y[1] / smoothing.stick_time
+    return f._replace(friction=jnp.clip(relaxing, -bound, bound))
 
 
 # max over s in [0, 1] of s (1 − s)³ (3 + s) / 16 = 0.021472 (at s = 0.2649), rounded up.
 _SWITCH_POWER = 0.0215
 
 
-def signals(y, args) -> dict[str, jnp.ndarray]:
+def signals(t, y, args) -> dict[str, jnp.ndarray]:
     """The time signals whose extremes are the metrics (`Metric.signal`): barrel
     displacement `x_M` (m), anchoring force `F_AN` (N), contact force `F_ct` (N) and the
     absorber's travel `stroke = x_m − x_M` (m; 0 for the simplified model).
-    `args = model_args(params, smoothing)`."""
+    `args = model_args(params, smoothing)`; the time `t` (s) for the breech force, which
+    the friction's sticking sees."""
     params, smoothing, width_contact = args
-    f = forces(y, params, smoothing, width_contact)
+    f = forces(y, params, smoothing, width_contact, t=t)
     # The simplified model has no absorber, hence no stroke.
     stroke = jnp.zeros_like(y[0]) if params.absorber is None else y[2] - y[0]
-    return {"x_M": y[0], "F_AN": f.anchoring, "F_ct": f.contact, "stroke": stroke}
+    out = {"x_M": y[0], "F_AN": f.anchoring, "F_ct": f.contact, "stroke": stroke}
+    out["margin"] = stability(y, params, f.anchoring)
+    return out
 
 
-def tracked_metrics(y, args) -> dict[str, jnp.ndarray]:
-    """What the peak loop maximises, by metric name: `sign · signal` of each metric of
-    `METRICS` (the negated stroke for `min_stroke`, so that its minimum is a maximum)."""
-    values = signals(y, args)
-    return {name: m.sign * values[m.signal] for name, m in METRICS.items()}
+def stability(y, params: RecoilParams, anchoring):
+    """The mount's stability margin at state `y` with anchoring force `anchoring` (N):
+    `(S − O) / (m_g g L_w)`, the stabilising moment about the spade less the overturning
+    one, over the gun's weight's moment (`envelope.md`); 1 without a mount (no load on
+    it: the margin is then not reported, `Peaks`)."""
+    mount = params.mount
+    if mount is None:
+        return jnp.ones_like(y[0])
+    sin, cos = _sin_cos(params)
+    lever = mount.trunnion_height * cos - mount.spade_distance * sin
+    moved = params.barrel.M * y[0]
+    if params.absorber is not None:
+        moved = moved + params.absorber.m * (y[2] - initial_state(params)[2])
+    present = mount.mount_mass > 0
+    weight_moment = jnp.where(present, mount.mount_mass, 1.0) * GRAVITY * mount.cg_distance
+    margin = (weight_moment - GRAVITY * moved * cos - anchoring * lever) / weight_moment
+    return jnp.where(present, margin, jnp.ones_like(margin))
+
+
+def tracked_metrics(t, y, args) -> dict[str, jnp.ndarray]:
+    """What the peak loop maximises, by metric name: `sign · signal` of each extreme
+    metric of `METRICS` (the negated stroke for `min_stroke`, so that its minimum is a
+    maximum)."""
+    values = signals(t, y, args)
+    return {name: m.sign * values[str(m.signal)] for name, m in EXTREMES.items()}
 
 
 def future_metric_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
@@ -297,6 +484,9 @@ def future_metric_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
     energy, spread = _energy_ceiling(y, args, t, t1)
     two_energy = 2.0 * energy
     displacement, anchoring = _barrel_bounds(params, two_energy, spread, width_v)
+    # Only designs without the envelope stop early (`has_envelope`): without a mount the
+    # tracked margin is the constant −1.
+    margin = -jnp.ones_like(displacement)
     if params.absorber is None:
         zero = jnp.zeros_like(displacement)
         return {
@@ -305,6 +495,7 @@ def future_metric_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
             "peak_contact_force": zero,
             "min_stroke": zero,
             "max_stroke": zero,
+            "stability_margin": margin,
         }
     relative_max, penetration, contact_force = _contact_bounds(
         params, energy, two_energy, width_contact, width_v
@@ -320,7 +511,77 @@ def future_metric_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
         "min_stroke": params.absorber.gap + penetration,
         "max_stroke": relative_max,
     }
-    return {name: jnp.where(valid, bound, inf) for name, bound in bounds.items()}
+    bounds = {name: jnp.where(valid, bound, inf) for name, bound in bounds.items()}
+    return bounds | {"stability_margin": margin}
+
+
+#: A held barrel is settled once its speed is below this (m/s): what it can still creep,
+#: `|v_M| τ`, is then below 1e-9 m for τ <= 1 ms.
+_SETTLED_SPEED = 1e-6
+#: ... and what can still change the net force on it (the absorber ringing on it) is
+#: below this fraction of the friction's bound.
+_SETTLED_FORCE = 1e-6
+
+
+def held_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
+    """Bounds on every tracked metric from `t` to `t1`, by name, for a design with the
+    firing envelope: finite only once the barrel is held for good, `+inf` before. Held
+    for good means all rounds fired and their breech force spent, the barrel at rest
+    (`|v_M| < 1e-6 m/s`) with the net force on it inside the friction's band by more
+    than what the absorber can still change (its energy about its rest on the barrel,
+    bounding the coupling's swing; nor can it reach the wall): nothing moves the barrel
+    again, so its peaks, return (found, or never) and rest `x_M(t1)` are known now
+    (to its creep, `|v_M| τ < 1e-9 m`). The loop then stops (`PeakLoop`)."""
+    params, smoothing, width_contact = args
+    f = forces(y, params, smoothing, width_contact, t=t)
+    values = tracked_metrics(t, y, args)
+    inf = jnp.full_like(y[0], jnp.inf)
+    if params.rails is None:
+        return {name: inf for name in values}
+    bound = friction_bound(params)
+    speed = jnp.abs(y[1])
+    swing = jnp.zeros_like(y[0])  # the coupling force's possible change (N)
+    reach = jnp.zeros_like(y[0])  # the absorber's possible travel (m)
+    quiet = jnp.array(True)
+    if params.absorber is not None:
+        absorber = params.absorber
+        sin, _ = _sin_cos(params)
+        rest = -absorber.m * GRAVITY * sin / absorber.k_r  # x_M − x_m at rest
+        relative = y[0] - y[2]
+        energy = 0.5 * absorber.m * (y[3] - y[1]) ** 2 + 0.5 * absorber.k_r * (relative - rest) ** 2
+        reach = jnp.sqrt(2.0 * energy / absorber.k_r)
+        swing = absorber.k_r * reach + absorber.c_r * jnp.sqrt(2.0 * energy / absorber.m)
+        quiet = rest + reach + speed * smoothing.stick_time < absorber.gap - width_contact
+    force_change = swing + params.barrel.M * speed / smoothing.stick_time
+    spent = remaining_impulse(t, params) <= 1e-12 * params.barrel.M * jnp.abs(params.barrel.v0)
+    held = (
+        spent
+        & quiet
+        & (speed < _SETTLED_SPEED)
+        & (swing <= _SETTLED_FORCE * bound)
+        & (jnp.abs(net_force(f)) + force_change < bound - smoothing.friction_width)
+    )
+    creep = speed * smoothing.stick_time
+    mount = params.mount
+    margin_change = jnp.zeros_like(y[0])
+    if mount is not None:
+        sin, cos = _sin_cos(params)
+        lever = jnp.abs(mount.trunnion_height * cos - mount.spade_distance * sin)
+        mass = params.barrel.M * creep + (
+            0.0 if params.absorber is None else params.absorber.m * reach
+        )
+        weight_moment = jnp.maximum(mount.mount_mass, 1.0) * GRAVITY * mount.cg_distance
+        margin_change = (force_change * lever + GRAVITY * mass) / weight_moment
+    travel = jnp.zeros_like(y[0]) if params.absorber is None else reach + creep
+    change = {
+        "peak_displacement": creep,
+        "peak_anchoring_force": force_change,
+        "peak_contact_force": jnp.zeros_like(y[0]),  # (`quiet`: out of reach)
+        "min_stroke": travel,
+        "max_stroke": travel,
+        "stability_margin": margin_change,
+    }
+    return {name: jnp.where(held, value + change[name], inf) for name, value in values.items()}
 
 
 def _energy_ceiling(y, args, t, t1):
@@ -421,7 +682,10 @@ def metric_ceilings(params: RecoilParams) -> dict[str, jnp.ndarray] | None:
         return None
     recuperator = params.recuperator
     bottom = BOTTOM * recuperator.recuperator_length
-    return {"peak_displacement": jnp.where(recuperator.recuperator_force > 0, bottom, jnp.inf)}
+    gas = recuperator.recuperator_force > 0
+    if params.battery_stop is not None:  # a preload is on the same gas column
+        gas = gas | (recuperator.recuperator_preload > 0)
+    return {"peak_displacement": jnp.where(gas, bottom, jnp.inf)}
 
 
 def vector_field(t, y, args):
@@ -429,6 +693,8 @@ def vector_field(t, y, args):
     params, smoothing, width_contact = args
     f = forces(y, params, smoothing, width_contact, t=t)
     internal = f.anchoring + f.coupling_spring + f.coupling_damper + f.contact
+    if f.gravity is not None:
+        internal = internal - f.gravity
     if f.breech is None:
         a_M = -internal / params.barrel.M
     else:
@@ -436,7 +702,10 @@ def vector_field(t, y, args):
     if params.absorber is None:
         a_m = jnp.zeros_like(a_M)
     else:
-        a_m = (f.coupling_spring + f.coupling_damper + f.contact) / params.absorber.m
+        pushed = f.coupling_spring + f.coupling_damper + f.contact
+        if f.absorber_gravity is not None:
+            pushed = pushed + f.absorber_gravity
+        a_m = pushed / params.absorber.m
     return jnp.stack([y[1], a_M, y[3], a_m])
 
 
@@ -456,12 +725,18 @@ def _impulse(load: Load):
 
 
 def initial_state(params: RecoilParams):
-    """`y(0) = (0, v0, 0, 0)` for an impulse load; at rest for a pulse or table load."""
+    """`y(0) = (0, v0, sag, 0)` for an impulse load; the barrel at rest for a pulse or
+    table load. The absorber starts at rest at its static sag on the barrel,
+    `m g sin θ / k_r` (0 on level rails)."""
     v0 = jnp.asarray(params.barrel.v0, dtype=float)
     zero = jnp.zeros_like(v0)
     if params.load is not None:
         v0 = jnp.where(_impulse(params.load), v0, zero)
-    return jnp.stack([zero, v0, zero, zero])
+    sag = zero
+    if params.rails is not None and params.absorber is not None:
+        sin, _ = _sin_cos(params)
+        sag = sag + params.absorber.m * GRAVITY * sin / params.absorber.k_r
+    return jnp.stack([zero, v0, sag, zero])
 
 
 def load_stops(params: RecoilParams):

@@ -21,6 +21,7 @@ from .._model.registry import ParameterError
 from .._model.status import Status
 
 __all__ = [
+    "EXTREMES",
     "METRICS",
     "PEAK_FIELDS",
     "Metric",
@@ -28,27 +29,40 @@ __all__ = [
     "Peaks",
     "gradient_key",
     "metric",
+    "reported_value",
     "worst_case",
 ]
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class Metric:
-    """One reported metric: the `extreme` (`"max"` or `"min"`) over `[0, t1]` of the model
-    signal `signal` (see `tracked_metrics`), in `unit`."""
+    """One reported metric, in `unit`. Of `kind`:
+
+    - `"extreme"`: the `extreme` (`"max"` or `"min"`) over `[0, t1]` of the model signal
+      `signal` (see `tracked_metrics`);
+    - `"return"`: taken where the barrel comes back into battery after the last round
+      (`return_time`, `battery_speed`; the firing envelope's designs only);
+    - `"final"`: taken at `t1` (`residual_displacement`; likewise).
+
+    `extreme` is also the direction in which it is worst (`worst_case`)."""
 
     name: str
     unit: str
-    signal: str
+    signal: str | None
     extreme: Literal["max", "min"]
     timed: bool  # the time of the extreme is reported too
     smoothable: bool  # has a smooth maximum over time (`SmoothMax`)
     meaning: str
+    kind: Literal["extreme", "return", "final"] = "extreme"
+    envelope: bool = False  # reported for the firing envelope's designs only (else null)
 
     @property
     def key(self) -> str:
-        """The JSON / CSV key: the name with its unit (`peak_anchoring_force_N`)."""
-        return f"{self.name}_{self.unit}"
+        """The JSON / CSV key: the name with its unit (`peak_anchoring_force_N`,
+        `battery_speed_m_per_s`; the name alone for a ratio)."""
+        if not self.unit:
+            return self.name
+        return f"{self.name}_{self.unit.replace('/', '_per_')}"
 
     @property
     def time_field(self) -> str:
@@ -66,7 +80,7 @@ class Metric:
     @property
     def label(self) -> str:
         """`meaning (unit)`, for axis labels."""
-        return f"{self.meaning} ({self.unit})"
+        return f"{self.meaning} ({self.unit})" if self.unit else self.meaning
 
 
 #: The metrics by name, in the order they are reported.
@@ -118,8 +132,55 @@ METRICS: dict[str, Metric] = {
             smoothable=False,
             meaning="largest absorber travel x_m - x_M",
         ),
+        Metric(
+            name="return_time",
+            unit="s",
+            signal=None,
+            extreme="max",
+            timed=False,
+            smoothable=False,
+            meaning="time from the last round back into battery (x_M = 1 mm)",
+            kind="return",
+            envelope=True,
+        ),
+        Metric(
+            name="battery_speed",
+            unit="m/s",
+            signal=None,
+            extreme="max",
+            timed=False,
+            smoothable=False,
+            meaning="speed of the barrel arriving in battery",
+            kind="return",
+            envelope=True,
+        ),
+        Metric(
+            name="residual_displacement",
+            unit="m",
+            signal=None,
+            extreme="max",
+            timed=False,
+            smoothable=False,
+            meaning="barrel displacement at the end, x_M(t1)",
+            kind="final",
+            envelope=True,
+        ),
+        Metric(
+            name="stability_margin",
+            unit="",
+            signal="margin",
+            extreme="min",
+            timed=True,
+            smoothable=False,
+            meaning="least stability margin of the mount",
+            envelope=True,
+        ),
     )
 }
+
+#: The metrics that are extremes of a signal over the solve, the peak loop's tracked
+#: quantities.
+EXTREMES: dict[str, Metric] = {n: m for n, m in METRICS.items() if m.kind == "extreme"}
 
 
 def worst_case(
@@ -156,6 +217,7 @@ def _reported_fields() -> dict[str, str]:
         fields[m.name] = m.key
         if m.timed:
             fields[m.time_field] = m.time_key
+    fields["returned"] = "returned"
     fields["num_steps"] = "num_steps"
     return fields
 
@@ -181,6 +243,15 @@ class Peaks(eqx.Module):
       when there is no contact or no absorber).
     - `min_stroke`, `max_stroke` (m): min and max of the absorber's travel relative to the
       barrel, x_m − x_M (both 0 for the simplified model).
+    - The firing envelope's metrics (`envelope.md`), for designs with any part of it
+      (rails, the battery stop, the counter-recoil buffer, a mount; NaN for the others,
+      whose solve stops once the peaks are certain): `return_time` (s), from the last
+      round's firing until the barrel comes forward through `x_M = 1 mm`, and
+      `battery_speed` (m/s), `−v_M` then; `returned`, whether it did before `t1` (if
+      not, `return_time` is the time observed, `t1` less the last firing, a lower bound,
+      and `battery_speed` 0: neither is reported, `to_dict`); `residual_displacement`
+      (m), `x_M(t1)`; `stability_margin`, `stability_margin_time` (s), the mount's least
+      margin (NaN without a mount, `mount_mass = 0`).
     - `num_steps`: accepted steps; `num_attempts`: accepted + rejected. The solve stops
       before `t1` once the mechanical energy left shows that no metric can exceed its
       peak again (`future_metric_bounds`); the peaks are those over all of `[0, t1]`.
@@ -198,19 +269,37 @@ class Peaks(eqx.Module):
     peak_contact_force_time: jax.Array
     min_stroke: jax.Array
     max_stroke: jax.Array
+    return_time: jax.Array
+    battery_speed: jax.Array
+    residual_displacement: jax.Array
+    stability_margin: jax.Array
+    stability_margin_time: jax.Array
+    returned: jax.Array
     num_steps: jax.Array
     num_attempts: jax.Array
     status: Any
 
     @classmethod
     def of(
-        cls, values: dict[str, Any], times: dict[str, Any], num_steps, num_attempts, status
+        cls,
+        values: dict[str, Any],
+        times: dict[str, Any],
+        num_steps,
+        num_attempts,
+        status,
+        returned,
     ) -> Peaks:
         """Build from `values` and `times` keyed by metric name (every metric of
         `METRICS`; times of the timed ones)."""
         fields = {name: values[name] for name in METRICS}
         fields |= {m.time_field: times[m.name] for m in METRICS.values() if m.timed}
-        return cls(**fields, num_steps=num_steps, num_attempts=num_attempts, status=status)
+        return cls(
+            **fields,
+            returned=returned,
+            num_steps=num_steps,
+            num_attempts=num_attempts,
+            status=status,
+        )
 
     def metrics(self) -> dict[str, Any]:
         """The metric values by name (`METRICS`), as in objectives and constraints."""
@@ -220,10 +309,29 @@ class Peaks(eqx.Module):
         """JSON-ready dict of one (unbatched) solve; the keys of `recoil-jax simulate
         --json` (`PEAK_FIELDS`, then `status`: `"ok"` or why the solve failed)."""
         out: dict[str, Any] = {
-            key: (int if field == "num_steps" else float)(getattr(self, field))
+            key: reported_value(field, getattr(self, field), self.returned)
             for field, key in PEAK_FIELDS.items()
         }
+        if np.isnan(float(self.residual_displacement)):
+            out["returned"] = None
         return out | {"status": Status[self.status]}
+
+
+def reported_value(field: str, value: Any, returned: Any) -> Any:
+    """A `Peaks` field's value as reported (`PEAK_FIELDS`): a float, an int
+    (`num_steps`), a bool (`returned`), or None where there is none: an envelope metric
+    a design has not got (NaN), and the return's metrics of a barrel that did not come
+    back."""
+    if field == "num_steps":
+        return int(value)
+    if field == "returned":
+        return bool(value)
+    value = float(value)
+    name = field if field in METRICS else field.removesuffix("_time")
+    if name in METRICS and METRICS[name].envelope:
+        if np.isnan(value) or (METRICS[name].kind == "return" and not bool(returned)):
+            return None
+    return value
 
 
 class PeakGradients(eqx.Module):
@@ -240,6 +348,10 @@ class PeakGradients(eqx.Module):
     peak_contact_force: jax.Array
     min_stroke: jax.Array
     max_stroke: jax.Array
+    return_time: jax.Array
+    battery_speed: jax.Array
+    residual_displacement: jax.Array
+    stability_margin: jax.Array
     wrt: tuple[str, ...] = eqx.field(static=True)
 
     @classmethod

@@ -51,6 +51,13 @@ class Smoothing(Validated):
       so the relative smoothing error is the same over the whole range of `k_c`, `n_c`, `m`, `v0`.
     - `knot_width_fraction`: the kinks of the orifice profile at its knots, over this
       fraction of the knot spacing.
+    - `stop_width` (m): the battery stop's onset at `x_M = 0`.
+    - `buffer_width` (m): the counter-recoil buffer's engagement at `x_M = buffer_length`.
+    - `friction_width` (N): the corners of the rails' friction clamp at `±F_max`.
+    - `slip_width` (m/s): the friction's turn as a sliding barrel's `v_M` crosses 0.
+    - `stick_time` (s): not a switch but the sticking law's relaxation time τ: a barrel
+      held by friction has its speed relaxed to 0 over τ (`docs/model.md`, *Sticking*);
+      kept by `exact()`.
 
     A width of 0 makes its switch exact. `Smoothing.exact()` sets every width to 0: the
     hard-switch model (not differentiable at the switches; for reference and checks). It
@@ -64,6 +71,11 @@ class Smoothing(Validated):
     contact_width: Any = float_leaf(None)
     contact_width_fraction: Any = float_leaf(0.005)
     knot_width_fraction: Any = float_leaf(1e-4)
+    stop_width: Any = float_leaf(1e-7)
+    buffer_width: Any = float_leaf(1e-5)
+    friction_width: Any = float_leaf(10.0)
+    slip_width: Any = float_leaf(1e-6)
+    stick_time: Any = float_leaf(3e-4)
 
     LIMITS: ClassVar[Mapping[str, Limits]] = {
         "damping_width": Limits(
@@ -90,12 +102,51 @@ class Smoothing(Validated):
             upper=1.0,
             meaning="contact width / characteristic penetration",
         ),
+        "stop_width": Limits(
+            unit="m",
+            lower=0.0,
+            documented=(0.0, 1e-4),
+            meaning="battery stop onset smoothing width; 0 is the exact switch",
+        ),
+        "buffer_width": Limits(
+            unit="m",
+            lower=0.0,
+            documented=(0.0, 5e-3),
+            meaning="counter-recoil buffer engagement smoothing width; 0 is the exact switch",
+        ),
+        "friction_width": Limits(
+            unit="N",
+            lower=0.0,
+            documented=(0.0, 100.0),
+            meaning="friction clamp smoothing width; 0 is the exact clamp",
+        ),
+        "slip_width": Limits(
+            unit="m/s",
+            lower=0.0,
+            documented=(0.0, 1e-4),
+            meaning="friction reversal smoothing width; 0 is the exact switch",
+        ),
+        "stick_time": Limits(
+            unit="s",
+            lower=0.0,
+            lower_open=True,
+            documented=(1e-4, 3e-3),
+            meaning="the sticking law's relaxation time",
+        ),
     }
 
     @classmethod
     def exact(cls) -> Smoothing:
         """The hard-switch model: every width 0."""
-        return cls(damping_width=0.0, contact_width_fraction=0.0, knot_width_fraction=0.0)
+        return cls(
+            damping_width=0.0,
+            contact_width_fraction=0.0,
+            knot_width_fraction=0.0,
+            stop_width=0.0,
+            buffer_width=0.0,
+            friction_width=0.0,
+            slip_width=0.0,
+        )
 
     @property
     def hard(self) -> bool:

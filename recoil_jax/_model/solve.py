@@ -11,10 +11,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._model.equations import (
+    BATTERY,
     RECOIL_TERM,
     Forces,
     forces,
     future_metric_bounds,
+    has_envelope,
+    held_bounds,
     initial_state,
     knot_crossing,
     load_jump,
@@ -25,7 +28,7 @@ from .._model.equations import (
     tracked_metrics,
 )
 from .._model.lanes import queued_map
-from .._model.metrics import METRICS, Peaks
+from .._model.metrics import EXTREMES, Peaks
 from .._model.params import RecoilParams
 from .._model.programs import structure_jit
 from .._model.registry import ParameterError, is_concrete
@@ -36,6 +39,9 @@ from .._model.stepping import Events, PeakLoop, PeakRun
 __all__ = [
     "MODEL_EVENTS",
     "History",
+    "battery_crossing",
+    "envelope_values",
+    "last_firing",
     "model_ceilings",
     "model_events",
     "model_loop",
@@ -44,6 +50,7 @@ __all__ = [
     "peaks",
     "peaks_batch",
     "peaks_of_run",
+    "residual_at",
     "simulate",
 ]
 
@@ -65,10 +72,13 @@ def model_samples(params: RecoilParams) -> dict:
     """Where else in each step the peaks are looked for (`samples`, `kinks_fn` of
     `PeakLoop`): with a throttling orifice, whose force (`∝ v²/A(x)²`) is far from cubic
     over a step and has a corner at each knot (smoothed over a band narrower than a
-    step), at 3 interior points and where the barrel crosses a knot; else nowhere."""
+    step), at 3 interior points and where the barrel crosses a knot. With the firing
+    envelope, whose friction turns within microseconds as a sliding barrel reverses (a
+    step's end rates then make the cubic Hermite estimate overshoot), at 3 interior
+    points. Else nowhere."""
     buffer = params.buffer
     if buffer is None or buffer.orifice is None:
-        return {}
+        return {"samples": 3} if has_envelope(params) else {}
     return {
         "samples": 3,
         "kinks_fn": lambda t0, dt, evaluate, z0, z1, args: knot_crossing(
@@ -82,33 +92,87 @@ def model_ceilings(args):
     return metric_ceilings(args[0])
 
 
+def last_firing(params: RecoilParams):
+    """The last round's firing time (s): `(shots − 1) · fire_interval`, 0 for one round."""
+    load = params.load
+    if load is None or load.shots == 1:
+        return jnp.zeros(())
+    return (load.shots - 1) * jnp.asarray(load.fire_interval, dtype=float)
+
+
+def battery_crossing(params: RecoilParams):
+    """`(level, after)` of the barrel's return into battery (`PeakLoop.crossing_fn`):
+    `x_M = 1 mm`, after the last round's firing."""
+    return jnp.asarray(BATTERY), last_firing(params)
+
+
 def model_loop(params: RecoilParams, options: SolverOptions, stop_early: bool = True) -> PeakLoop:
     """The stepping loop of the recoil model for the structure of `params`: the one place
     that wires the model (its term, tracked metrics, load events, ceilings and peak
     samples) into a solve. `stop_early`: stop once the peaks are certain (a history runs
-    to `t1`). Its `integrate(initial_state(p), model_args(p, smoothing), t1)` solves."""
+    to `t1`; so does a design with the firing envelope, whose return and rest are
+    metrics). Its `integrate(initial_state(p), model_args(p, smoothing), t1)` solves."""
+    envelope = has_envelope(params)
     return PeakLoop(
         RECOIL_TERM,
         tracked_metrics,
         with_default_tolerances(params, options),
-        future_metric_bounds if stop_early else None,
+        (held_bounds if envelope else future_metric_bounds) if stop_early else None,
         model_events(params),
         model_ceilings,
         **model_samples(params),
+        crossing_fn=(lambda args: battery_crossing(args[0])) if envelope else None,
     )
 
 
-def peaks_of_run(run: PeakRun) -> Peaks:
+def envelope_values(
+    params: RecoilParams, smoothing: Smoothing, run: PeakRun, values: dict, end
+) -> dict:
+    """`values` (extremes by metric name) with the firing envelope's metrics of `run`:
+    the return's (from its crossing), `residual_displacement` (`x_M(t1)`, `end = t1`:
+    `residual_at`) and the stability margin (NaN without a mount), and `returned`; all
+    NaN for a design without the envelope. Shared by `peaks_of_run` and the gradients."""
+    out = dict(values)
+    nan = jnp.full_like(out["peak_displacement"], jnp.nan)
+    if not has_envelope(params):
+        out |= {"return_time": nan, "battery_speed": nan, "residual_displacement": nan}
+        out["stability_margin"] = nan
+        return out | {"returned": jnp.zeros(nan.shape, bool)}
+    returned = run.crossed
+    last = last_firing(params)
+    out["return_time"] = jnp.where(returned, run.cross_time - last, end - last)
+    out["battery_speed"] = jnp.where(returned, -run.cross_state[1], 0.0)
+    out["residual_displacement"] = residual_at(run.final_state, run.final_time, end, smoothing)
+    mount = params.mount
+    present = False if mount is None else mount.mount_mass > 0
+    out["stability_margin"] = jnp.where(present, out["stability_margin"], jnp.nan)
+    return out | {"returned": returned}
+
+
+def residual_at(final_state, final_time, end, smoothing: Smoothing):
+    """`x_M(t1)` from a run's last state (`final_state`, `(n,)`, at `final_time`; with
+    its tangents, their `x_M` row): the state itself at `t1 = end`, or, where the run
+    stopped before because the barrel is held (`held_bounds`), where the sticking law
+    takes it, `x_M + v_M τ` (its speed decays as `exp(−t/τ)`), tangents alike."""
+    early = final_time < end
+    return final_state[..., 0] + jnp.where(early, final_state[..., 1] * smoothing.stick_time, 0.0)
+
+
+def peaks_of_run(params: RecoilParams, smoothing: Smoothing, run: PeakRun, end) -> Peaks:
     """The `Peaks` of a loop run that tracked `tracked_metrics` (maxima of `sign · signal`,
-    so a minimum comes back with its sign restored)."""
+    so a minimum comes back with its sign restored), with the envelope's metrics
+    (`envelope_values`); `end` is the solve's end time `t1` (s)."""
     best, times = run.by_name(run.best), run.by_name(run.best_time)
-    return Peaks.of(
-        {name: m.sign * best[name] for name, m in METRICS.items()},
-        times,
-        run.num_steps,
-        run.num_attempts,
-        run.status,
-    )
+    values = {name: m.sign * best[name] for name, m in EXTREMES.items()}
+    values = envelope_values(params, smoothing, run, values, end)
+    times = dict(times)
+    mount = params.mount
+    if has_envelope(params) and mount is not None:
+        present = mount.mount_mass > 0
+        times["stability_margin"] = jnp.where(present, times["stability_margin"], jnp.nan)
+    else:
+        times["stability_margin"] = jnp.full_like(times["stability_margin"], jnp.nan)
+    return Peaks.of(values, times, run.num_steps, run.num_attempts, run.status, values["returned"])
 
 
 def peak_metrics(
@@ -132,10 +196,11 @@ def peak_metrics(
     **Returns:** `Peaks`, whose `status` says whether the solve succeeded (a failure is
     never raised here: see `peaks`).
     """
+    t1 = end_time(params, options)
     run = model_loop(params, options).integrate(
-        initial_state(params), model_args(params, smoothing), end_time(params, options)
+        initial_state(params), model_args(params, smoothing), t1
     )
-    return peaks_of_run(run)
+    return peaks_of_run(params, smoothing, run, t1)
 
 
 @structure_jit
@@ -211,8 +276,9 @@ class History(eqx.Module):
 @structure_jit
 def _simulate_jit(params, smoothing, options, ts, throw: bool) -> History:
     args = model_args(params, smoothing)
+    t1 = end_time(params, options)
     run = model_loop(params, options, stop_early=False).integrate(
-        initial_state(params), args, end_time(params, options), save_ts=ts
+        initial_state(params), args, t1, save_ts=ts
     )
     ys = run.saved
     f = jax.vmap(lambda t, y: forces(y, params, smoothing, args[2], t=t))(ts, ys)
@@ -225,7 +291,7 @@ def _simulate_jit(params, smoothing, options, ts, throw: bool) -> History:
         anchoring_force=f.anchoring,
         contact_force=f.contact,
         forces=f,
-        peaks=peaks_of_run(run),
+        peaks=peaks_of_run(params, smoothing, run, t1),
         status=run.status,
     )
     return raise_on_failure(history, run.status) if throw else history
@@ -277,7 +343,12 @@ def _peaks_batch(
         return initial_state(p), model_args(p, smoothing), end
 
     return queued_map(
-        loop, setup, lambda design, args, run: peaks_of_run(run), (params, t1), lanes, count
+        loop,
+        setup,
+        lambda design, args, run: peaks_of_run(design[0], smoothing, run, design[1]),
+        (params, t1),
+        lanes,
+        count,
     )
 
 

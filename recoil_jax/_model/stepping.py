@@ -35,8 +35,8 @@ __all__ = [
 # PID coefficients: damp the step-size oscillation at impacts (measured on a prototype).
 _PCOEFF, _ICOEFF = 0.3, 0.4
 
-#: `metrics_fn(y, args) -> {name: scalar}`: the quantities whose running maxima are kept.
-MetricsFn = Callable[[Any, Any], dict[str, Any]]
+#: `metrics_fn(t, y, args) -> {name: scalar}`: the quantities whose running maxima are kept.
+MetricsFn = Callable[[Any, Any, Any], dict[str, Any]]
 
 
 class Events(NamedTuple):
@@ -78,6 +78,8 @@ class _Carry(eqx.Module):
     names: tuple[str, ...] = eqx.field(static=True)
     saved: Any = None  # (n_ts, n_state): the state at the save times, when saving
     save_index: Any = None  # the first save time not yet written
+    crossed: Any = None  # with a `crossing_fn`: whether the crossing was found
+    cross_step: Any = None  # the dense info of the step that holds it
 
 
 class _Attempt(NamedTuple):
@@ -118,6 +120,11 @@ class PeakRun(eqx.Module):
     names: tuple[str, ...] = eqx.field(static=True)
     saved: Any = None  # (n_ts, n_state), with `save_ts`
     save_count: Any = None  # how many rows of `saved` were written (the run may stop early)
+    final_time: Any = None  # where the run ended (s)
+    final_state: Any = None  # (n_state,) the state there
+    crossed: Any = None  # with a `crossing_fn`: whether the crossing was found
+    cross_time: Any = None  # its time (s)
+    cross_state: Any = None  # (n_state,) the state there
 
     def by_name(self, stacked) -> dict[str, Any]:
         """Rows of an array stacked in the order of `names`, keyed by name."""
@@ -195,6 +202,11 @@ class PeakLoop:
       dense polynomial.
     - `save_ts` (shape `(n,)`, sorted), if given: the state is also written at these
       times (`PeakRun.saved`), from the solver's dense polynomial.
+    - `crossing_fn(args)`, if given, returns `(level, after)`: the loop finds the first
+      time after `after` at which the state's first component comes down through
+      `level` (the barrel back into battery), from the step that holds it, and its state
+      there (`PeakRun.cross_time`, `cross_state`). A step that crosses up and down
+      within itself is not seen (steps are short against a recoil).
     - `leading_term`, if given, `(term, size)`: a term for the first `size` components of
       the state alone (their derivatives do not depend on the rest, as the model's do
       not on its forward sensitivities). The first step is then chosen on them: diffrax's
@@ -213,11 +225,12 @@ class PeakLoop:
         samples: int = 0,
         kinks_fn=None,
         leading_term=None,
+        crossing_fn=None,
     ):
         self.term, self.metrics_fn, self.options = term, metrics_fn, options
         self.bounds_fn, self.events, self.ceilings_fn = bounds_fn, events, ceilings_fn
         self.samples, self.kinks_fn = samples, kinks_fn
-        self.leading_term = leading_term
+        self.leading_term, self.crossing_fn = leading_term, crossing_fn
         self.solver, self.controller = make_solver(options), make_controller(options)
         self.error_order = self.solver.order(term) + 1
 
@@ -233,12 +246,13 @@ class PeakLoop:
         )
         return self.finish(final, args)
 
-    def _vector(self, names, z, args):
-        values = self.metrics_fn(z, args)
+    def _vector(self, names, t, z, args):
+        values = self.metrics_fn(t, z, args)
         return jnp.stack([values[name] for name in names])
 
-    def _metric_and_rate(self, names, z, f, args):
-        return jax.jvp(lambda x: self._vector(names, x, args), (z,), (f,))
+    def _metric_and_rate(self, names, t, z, f, args):
+        """The tracked quantities at `(t, z)` and their rates along `dz/dt = f`."""
+        return jax.jvp(lambda s, x: self._vector(names, s, x, args), (t, z), (jnp.ones_like(t), f))
 
     def _start(self, c: _Carry, f_start, args):
         """The tracked quantities and their rates at the start of the step: carried from
@@ -249,7 +263,7 @@ class PeakLoop:
         stale = c.made_jump
 
         def fresh():
-            metric, rate = self._metric_and_rate(c.names, c.y, f_start, args)
+            metric, rate = self._metric_and_rate(c.names, c.t, c.y, f_start, args)
             return jnp.where(stale, metric, c.metric), jnp.where(stale, rate, c.metric_rate)
 
         return jax.lax.cond(eqxi.unvmap_any(stale), fresh, lambda: (c.metric, c.metric_rate))
@@ -278,14 +292,18 @@ class PeakLoop:
         t_next = jnp.minimum(t_next, t1)
         if self.events is not None:
             t_next = jnp.minimum(t_next, t0 + self.events.restart(args))
-        names = tuple(self.metrics_fn(z0, args))
-        metric0 = self._vector(names, z0, args)
+        names = tuple(self.metrics_fn(t0, z0, args))
+        metric0 = self._vector(names, t0, z0, args)
         saved = save_index = None
         if save_ts is not None:
             # NaN until written: a solve that stops early leaves the later times NaN,
             # not zeros that read as a state.
             saved = jnp.full((save_ts.shape[0], *z0.shape), jnp.nan, z0.dtype)
             saved, save_index = _write_saves(save_ts, saved, jnp.array(0), t0, lambda t: z0)
+        crossed = cross_step = None
+        if self.crossing_fn is not None:
+            crossed = jnp.array(False)
+            cross_step = jax.tree.map(lambda x: x[0], placeholder_steps(t0, z0, 1))
         return _Carry(
             t=t0,
             t_next=t_next,
@@ -309,6 +327,8 @@ class PeakLoop:
             names=names,
             saved=saved,
             save_index=save_index,
+            crossed=crossed,
+            cross_step=cross_step,
         )
 
     def running(self, c: _Carry):
@@ -333,6 +353,7 @@ class PeakLoop:
             saved, save_index = _write_saves(
                 save_ts, saved, save_index, jnp.where(keep, step.t_end, c.t), interpolation.evaluate
             )
+        crossed, cross_step = self._crossing(c, args, step)
         if stops is not None:
             step, saved, save_index = self._past_stop(
                 c, args, step, upcoming, landing, t1, save_ts, saved, save_index
@@ -361,7 +382,23 @@ class PeakLoop:
             names=c.names,
             saved=saved,
             save_index=save_index,
+            crossed=crossed,
+            cross_step=cross_step,
         )
+
+    def _crossing(self, c: _Carry, args, step: _Attempt):
+        """`(crossed, cross_step)` after the step: the step kept as the one holding the
+        crossing (`crossing_fn`) if it is the first to come down through the level
+        after its time."""
+        if self.crossing_fn is None:
+            return c.crossed, c.cross_step
+        level, after = self.crossing_fn(args)
+        down = step.keep & ~c.crossed & (c.t >= after) & (c.y[0] > level) & (step.z1[0] <= level)
+        new_step = dict(t0=c.t, t1=step.t_end, **step.dense_info)
+        cross_step = jax.tree.map(
+            lambda new, old: jnp.where(down, new, old), new_step, c.cross_step
+        )
+        return c.crossed | down, cross_step
 
     def _step_end(self, c: _Carry, args, t1):
         """Where the step from `c.t` ends: at `c.t_next`, or one ULP before the next stop
@@ -396,7 +433,7 @@ class PeakLoop:
         )
         # Tsit5 is FSAL: its last stage is dt * f(t + dt, z1).
         f_end = dense_info["k"][-1] / dt
-        metric1, rate1 = self._metric_and_rate(c.names, z1, f_end, args)
+        metric1, rate1 = self._metric_and_rate(c.names, t_end, z1, f_end, args)
         return _Attempt(
             t_end=t_end,
             dt=dt,
@@ -428,7 +465,7 @@ class PeakLoop:
         # far from cubic over the step can push the Hermite maximum far above (or
         # below) the polynomial's, and the largest estimate would win the peak.
         step_best, s = _sampled_max(
-            lambda t: self._vector(c.names, interpolation.evaluate(t), args),
+            lambda t: self._vector(c.names, t, interpolation.evaluate(t), args),
             c.t,
             dt,
             self.samples,
@@ -437,9 +474,9 @@ class PeakLoop:
         )
         if self.kinks_fn is not None:
             kinks = self.kinks_fn(c.t, dt, interpolation.evaluate, c.y, step.z1, args)
-            at_kinks = jax.vmap(lambda t: self._vector(c.names, interpolation.evaluate(t), args))(
-                kinks
-            )
+            at_kinks = jax.vmap(
+                lambda t: self._vector(c.names, t, interpolation.evaluate(t), args)
+            )(kinks)
             j = jnp.argmax(at_kinks, axis=0)
             higher = jnp.max(at_kinks, axis=0) > step_best
             step_best = jnp.where(higher, jnp.max(at_kinks, axis=0), step_best)
@@ -518,12 +555,16 @@ class PeakLoop:
         best, best_time, best_state = polish(
             self.solver,
             args,
-            lambda z, a: self._vector(final.names, z, a),
+            lambda t, z, a: self._vector(final.names, t, z, a),
             final.best,
             final.best_time,
             final.best_step,
             search=self.samples > 0,
         )
+        cross_time = cross_state = None
+        if self.crossing_fn is not None:
+            level, _ = self.crossing_fn(args)
+            cross_time, cross_state = _crossing_point(self.solver, final.cross_step, level)
         return PeakRun(
             best=best,
             best_time=best_time,
@@ -534,7 +575,48 @@ class PeakLoop:
             names=final.names,
             saved=final.saved,
             save_count=final.save_index,
+            final_time=final.t,
+            final_state=final.y,
+            crossed=final.crossed,
+            cross_time=cross_time,
+            cross_state=cross_state,
         )
+
+
+#: Bisections of a crossing's step before Newton's steps (each halves the bracket).
+_BISECTIONS = 24
+_NEWTON = 3
+
+
+def _crossing_point(solver, step, level):
+    """`(t, state)` where the dense polynomial of `step` has its first component come down
+    through `level`: bisection, then Newton's steps on the position with the velocity
+    (the second component) as its rate. A zero-length placeholder step gives its start."""
+    interp = solver.interpolation_cls(**step)
+    t0, t1 = step["t0"], step["t1"]
+    has_step = t1 > t0
+    safe_t1 = jnp.where(has_step, t1, t0 + 1.0)
+
+    def state(t):
+        return interp.evaluate(jnp.clip(t, t0, safe_t1))
+
+    def bisect(_, bracket):
+        low, high = bracket
+        middle = 0.5 * (low + high)
+        above = state(middle)[0] > level
+        return jnp.where(above, middle, low), jnp.where(above, high, middle)
+
+    low, high = jax.lax.fori_loop(0, _BISECTIONS, bisect, (t0, safe_t1))
+
+    def newton(_, t):
+        y = state(t)
+        moving = y[1] != 0
+        shift = jnp.where(moving, (y[0] - level) / jnp.where(moving, y[1], 1.0), 0.0)
+        return jnp.clip(t - shift, low, high)
+
+    t = jax.lax.fori_loop(0, _NEWTON, newton, 0.5 * (low + high))
+    t = jnp.where(has_step, t, t0)
+    return t, jnp.where(has_step, state(t), step["y0"])
 
 
 def _sampled_max(vector_at, t0, dt, samples, first, last):
@@ -602,7 +684,7 @@ def integrate_peaks(
     kinks_fn=None,
 ) -> PeakRun:
     """Integrate `term` from `z0` over `[0, t1]` with Tsit5 + PID in one while loop, keeping
-    the running maxima of `metrics_fn(z, args)` (a dict of scalars) located between steps.
+    the running maxima of `metrics_fn(t, z, args)` (a dict of scalars) located between steps.
     With `bounds_fn` (see `PeakLoop`) it stops once the peaks are certain; `events`,
     `ceilings_fn`, `samples`, `kinks_fn` and `save_ts` as `PeakLoop`."""
     loop = PeakLoop(term, metrics_fn, options, bounds_fn, events, ceilings_fn, samples, kinks_fn)

@@ -258,7 +258,7 @@ def _settings(options: rj.SolverOptions) -> _Settings:
     a = np.zeros((7, 7))
     for i, row in enumerate(tableau.a_lower):
         a[i + 1, : len(row)] = np.asarray(row, dtype=float)
-    order = float(PeakLoop(RECOIL_TERM, lambda y, args: {}, options).error_order)
+    order = float(PeakLoop(RECOIL_TERM, lambda t, y, args: {}, options).error_order)
     rule = np.array([controller.safety, controller.factormin, controller.factormax], float)
     return _Settings(
         rtol=float(options.rtol),
