@@ -10,6 +10,7 @@ from conftest import all_ok, batch_peaks
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
+from recoil_jax._model.metrics import ENVELOPE_FIELDS
 
 PEAKS = ("peak_displacement", "peak_anchoring_force")
 
@@ -142,7 +143,8 @@ def _corner_designs():
 def _check_against_reference(designs, t1):
     options = rj.SolverOptions(t1=t1)
     result = batch_peaks(designs, options=options)
-    leaves = [np.asarray(getattr(result, f)) for f in rjx.PEAK_FIELDS]
+    # (Without the firing envelope, its metrics are not solved for: NaN.)
+    leaves = [np.asarray(getattr(result, f)) for f in rjx.PEAK_FIELDS if f not in ENVELOPE_FIELDS]
     assert all(np.all(np.isfinite(leaf)) for leaf in leaves)
     assert all_ok(result.status)
     worst = {"x": 0.0, "F": 0.0, "Fc": 0.0}

@@ -11,7 +11,8 @@ from conftest import all_ok, batch_params
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-METRICS = tuple(rj.METRICS)
+# The metrics these designs have (the firing envelope's are NaN without it).
+METRICS = tuple(name for name, m in rj.METRICS.items() if not m.envelope)
 DESIGN = ("gap", "m", "k_r", "c_r")
 DEFAULTS = {k: float(v) for k, v in rj.params_to_values(rj.RecoilParams()).items()}
 

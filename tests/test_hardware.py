@@ -268,7 +268,8 @@ def test_one_round_of_a_burst_is_the_single_shot():
     )
     for name in rjx.PEAK_FIELDS:
         if name != "num_steps":  # the stop on certain peaks may come a step apart
-            assert float(getattr(one, name)) == float(getattr(single, name)), name
+            # (The envelope's metrics are NaN for both: neither has the envelope.)
+            assert np.array_equal(getattr(one, name), getattr(single, name), equal_nan=True), name
 
 
 def test_a_history_at_a_firing_holds_its_impulse_as_the_reference_does():
@@ -363,7 +364,7 @@ def _energy_run(params, smoothing, t1):
             z0,
             args,
             t1,
-            lambda z, a: {"x": z[0]},
+            lambda t, z, a: {"x": z[0]},
             rj.SolverOptions(rtol=1e-11, atol=1e-14, max_steps=400_000),
             events=events,
             save_ts=ts,

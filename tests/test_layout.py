@@ -16,6 +16,7 @@ import recoil_jax as rj
 import recoil_jax.extend as rjx
 from recoil_jax._model.equations import (
     future_metric_bounds,
+    held_bounds,
     initial_state,
     model_args,
     signals,
@@ -161,6 +162,12 @@ def test_metric_names_derive_from_the_registry():
         "peak_contact_force_time_s",
         "min_stroke_m",
         "max_stroke_m",
+        "return_time_s",
+        "battery_speed_m_per_s",
+        "residual_displacement_m",
+        "stability_margin",
+        "stability_margin_time_s",
+        "returned",
         "num_steps",
     ]
     peaks_fields = [f.name for f in dataclasses.fields(rj.Peaks)]
@@ -170,9 +177,11 @@ def test_metric_names_derive_from_the_registry():
     params, smoothing = rj.RecoilParams(), rj.Smoothing()
     args = model_args(params, smoothing)
     y = initial_state(params)
-    assert list(tracked_metrics(y, args)) == list(rj.METRICS)
-    assert set(future_metric_bounds(y, args, 0.0, 1.0)) == set(rj.METRICS)
-    assert {m.signal for m in rj.METRICS.values()} <= set(signals(y, args))
+    extremes = [name for name, m in rj.METRICS.items() if m.kind == "extreme"]
+    assert list(tracked_metrics(0.0, y, args)) == extremes
+    assert set(future_metric_bounds(y, args, 0.0, 1.0)) == set(extremes)
+    assert set(held_bounds(y, args, 0.0, 1.0)) == set(extremes)
+    assert {rj.METRICS[name].signal for name in extremes} <= set(signals(0.0, y, args))
 
 
 def test_parameter_names_derive_from_the_registry():

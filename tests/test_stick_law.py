@@ -1,6 +1,8 @@
-"""The sticking law chosen for the smoothed model (issue 54; `docs/model.md`, *Firing
-envelope*), on its own before the model uses it: friction `F_f = clamp(N + M·v/τ, −F_max,
-F_max)`, N the net force on the barrel from everything but friction. On a Coulomb
+"""The sticking law's first form (issue 54; `docs/model.md`, *Sticking*), on its own,
+as it was measured before the model used it: friction `F_f = clamp(N + M·v/τ, −F_max,
+F_max)`, N the net force on the barrel from everything but friction. (The model's law
+holds the same way and turns at `v = 0` when the barrel reverses:
+`tests/test_envelope_model.py` tests it against the closed form and the reference.) On a Coulomb
 oscillator (closed form: half-cycles about ±F/k, the amplitude falling by 2F/k each, at
 rest for good once a turning point lies within |x| ≤ F/k) it holds (no creep after the
 stick), comes to rest within (ωτ)²-order of the exact place, and a bristle state (the

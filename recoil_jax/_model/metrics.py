@@ -21,6 +21,7 @@ from .._model.registry import ParameterError
 from .._model.status import Status
 
 __all__ = [
+    "ENVELOPE_FIELDS",
     "EXTREMES",
     "METRICS",
     "PEAK_FIELDS",
@@ -181,6 +182,14 @@ METRICS: dict[str, Metric] = {
 #: The metrics that are extremes of a signal over the solve, the peak loop's tracked
 #: quantities.
 EXTREMES: dict[str, Metric] = {n: m for n, m in METRICS.items() if m.kind == "extreme"}
+
+#: The `Peaks` fields of the firing envelope: NaN (`returned` False) for a design without
+#: it, whose solve stops at its last peak; `stability_margin` also without a mount.
+ENVELOPE_FIELDS: tuple[str, ...] = (
+    *(n for n, m in METRICS.items() if m.envelope),
+    *(m.time_field for m in METRICS.values() if m.envelope and m.timed),
+    "returned",
+)
 
 
 def worst_case(

@@ -69,8 +69,12 @@ def _chunk_columns(result, wrt, all_wrt) -> dict[str, np.ndarray]:
     codes = status_codes(peaks.status)
     failed = codes != status_codes(Status.ok)
     out = {}
+    # A design without the firing envelope has none of its metrics (NaN), nor a return.
+    unsolved = np.isnan(np.asarray(peaks.residual_displacement, dtype=float))
     for field, key in PEAK_FIELDS.items():
         value = np.asarray(getattr(peaks, field), dtype=float)
+        if field == "returned":
+            value = np.where(unsolved, np.nan, value)
         out[key] = value if field == "num_steps" else np.where(failed, np.nan, value)
     for name in METRICS if all_wrt else ():
         matrix = getattr(grads, name) if grads is not None else None

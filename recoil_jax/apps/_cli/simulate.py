@@ -82,6 +82,7 @@ def run_simulate(args) -> int:
         if absorber:
             stroke = f"{result[low.key]:+.4f} .. {result[high.key]:+.4f} m"
             rows.append(("absorber stroke x_m - x_M", stroke, ""))
+        rows.extend(_envelope_rows(result))
         rows.append(("solver steps", f"{result['num_steps']}", ""))
         for name, value, when in rows:
             print(f"  {name:28s} {value:>22s}  {when}")
@@ -123,3 +124,24 @@ def add_command(commands: Commands) -> None:
     )
     add_force_table(sim)
     add_max_steps(sim)
+
+
+def _envelope_rows(result: dict) -> list[tuple[str, str, str]]:
+    """The firing envelope's metrics as rows of the summary (none without it)."""
+    if result["returned"] is None:
+        return []
+    metrics = rj.METRICS
+    if result["returned"]:
+        back = f"{result[metrics['return_time'].key]:.4f} s"
+        speed = f"{result[metrics['battery_speed'].key]:.4f} m/s"
+        rows = [("back in battery (x_M = 1 mm)", back, f"at {speed}")]
+    else:
+        rows = [("back in battery (x_M = 1 mm)", "never, by t1", "")]
+    rest = result[metrics["residual_displacement"].key]
+    rows.append(("barrel at rest at t1", f"{rest:+.6f} m", ""))
+    margin = metrics["stability_margin"]
+    if result[margin.key] is not None:
+        rows.append(
+            (margin.meaning, f"{result[margin.key]:.4f}", f"at {result[margin.time_key]:.4f} s")
+        )
+    return rows

@@ -1,6 +1,8 @@
 """Make the stores `tests/test_store.py::test_stores_made_before_the_redraw_resume` reads:
 a sweep's, a search's, an optimisation's and a calibration's, each small and finished.
-They were made at 66a0bae, before issue 53 redrew the package, with
+They were made at 66a0bae, before issue 53 redrew the package, and made again when
+issue 54 changed every campaign's identity on purpose (the design's structure gained
+the firing envelope's groups, the smoothing its widths, the results their columns), with
 
     PYTHONPATH=<a checkout of 66a0bae> python tests/data/stores/make_stores.py tests/data/stores
 
