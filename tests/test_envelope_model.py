@@ -90,7 +90,10 @@ def compare(design, table, t1):
     reference has none); raises on a disagreement about status or return."""
     ref = reference_peaks(design, t1=t1, force_table=table)
     ours = solve(design, t1, table)
-    assert rj.Status[ours.status] == ref["status"] == "ok", (design, ref["status"])
+    if ref["status"] != "ok":  # the gas column bottomed out: both say so, no metrics
+        assert ref["status"] == "bottomed_out" and "bottomed out" in rj.Status[ours.status]
+        return {}
+    assert rj.Status[ours.status] == "ok", (design, rj.Status[ours.status])
     assert bool(ours.returned) == ref["returned"], design
     errors = {}
     events = np.asarray(ref["sticks"] + ref["slips"])
@@ -101,6 +104,11 @@ def compare(design, table, t1):
         at_event = np.any(np.abs(events - ref[f"{name}_time"]) < 1e-9)
         if name == "peak_anchoring_force" and at_event:
             errors[name] *= PEAK_RTOL / STICK_PEAK
+        if name == "peak_displacement" and ref[f"{name}_time"] == t1:
+            # No peak: a barrel still creeping back at t1, at speeds inside the damping
+            # switch's band, where the smoothed damper is off (`docs/model.md`,
+            # *Smoothing*). It is the residual displacement, and held as that.
+            errors[name] = abs(float(ours.peak_displacement) - ref[name]) * PEAK_RTOL / RESIDUAL
     if design["m"] > 0:
         for name in ("min_stroke", "max_stroke"):
             errors[name] = abs(float(getattr(ours, name)) - ref[name]) / max(
