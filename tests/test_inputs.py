@@ -30,6 +30,16 @@ def files(tmp_path):
     t = np.linspace(0.0, 0.01, 70_000)
     rows = "\n".join(f"{a:.9g},{1e5 * np.sin(np.pi * a / 0.01):.6g}" for a in t)
     (tmp_path / "long.csv").write_text("t_s,F_N\n" + rows + "\n")
+    study = 'description = "x"\n[design]\n{design}\n[tune]\nc_out = [2e3, 6e4]\n'
+    study += "[objective]\npeak_anchoring_force = 1.0\n[constraints]\n{limit}\n"
+    envelope = "friction_force = 1500.0"
+    for name, design, limit in (
+        ("margin_without_mount", envelope, "stability_margin = { min = 0.1 }"),
+        ("margin_mount_zero", envelope + "\nmount_mass = 0.0", "stability_margin = { min = 0.1 }"),
+        ("return_without_envelope", "m = 1500.0", "return_time = { max = 2.5 }"),
+        ("return_beyond_t1", envelope, "return_time = { max = 12.0 }"),
+    ):
+        (tmp_path / f"{name}.toml").write_text(study.format(design=design, limit=limit))
     return tmp_path
 
 
@@ -81,6 +91,15 @@ def _refused(capsys, argv, fragment, status=2):
         (["simulate", "pulse_time=5"], "the pulse of the last round lasts until 50 s"),
         (["simulate", "--force-table", "bom.csv", "t1=0.003"], "lasts until 0.004 s"),
         (["simulate", "shots=3", "t1=0.9"], "the last of 3 rounds fires at 1 s"),
+        # The firing envelope's metrics only where the design has what they measure.
+        (["simulate", "elevation=95"], "elevation"),
+        (["simulate", "friction_coefficient=-0.1"], "friction_coefficient"),
+        (["simulate", "recuperator_preload=2e4", "recuperator_length=1.8"], "battery stop"),
+        (["simulate", "mount_mass=1000"], "mount_mass"),
+        (["optimise", "margin_without_mount.toml"], "stability_margin needs a mount"),
+        (["optimise", "margin_mount_zero.toml"], "stability_margin needs a mount"),
+        (["optimise", "return_without_envelope.toml"], "a metric of the firing envelope"),
+        (["optimise", "return_beyond_t1.toml"], "is not below the 10 s the solve sees"),
     ],
 )
 def test_a_bad_input_is_one_line_and_exit_status_2(

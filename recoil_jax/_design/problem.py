@@ -23,12 +23,14 @@ import numpy as np
 
 from .._model.derivatives import GRADIENT_OPTIONS, MetricSeries, SmoothMax, check_wrt, smooth_name
 from .._model.differentiable import design_metrics
+from .._model.equations import check_envelope_metrics
 from .._model.feasibility import FEASIBILITY_TOLERANCE
 from .._model.metrics import METRICS, metric, worst_case
 from .._model.parameter_table import PARAMETERS, parameter
 from .._model.params import RecoilParams, values_of, with_values
-from .._model.registry import ParameterError, check_value
-from .._model.settings import Smoothing, SolverOptions
+from .._model.registry import ParameterError, check_value, is_concrete
+from .._model.settings import Smoothing, SolverOptions, end_time
+from .._model.solve import last_firing
 from .._model.status import status_item
 
 __all__ = [
@@ -199,6 +201,9 @@ class DesignProblem(eqx.Module):
 
     def __check_init__(self):
         check_wrt(self.params, self.tune)
+        asked = [*self.objective.weights, *(c.name for c in self.constraints if c.is_metric)]
+        check_envelope_metrics(self.params, asked, "study")
+        self._check_return_limits()
         for name, bound in self.bounds.items():
             if name not in self.tune:
                 raise ParameterError(f"bounds given for {name!r}, which is not tuned")
@@ -212,6 +217,21 @@ class DesignProblem(eqx.Module):
             if not lo < hi:
                 raise ParameterError(
                     f"the constraints leave no room for {name}: bounds ({lo:g}, {hi:g})"
+                )
+
+    def _check_return_limits(self) -> None:
+        """A design that has not come back by `t1` is reported with the time it was seen
+        away, `t1 − t_last` (`Peaks`), which fails every upper limit on `return_time`
+        below that: refuse a limit at or above it, which such a design would pass."""
+        for c in self.constraints:
+            if c.name != "return_time" or c.upper is None:
+                continue
+            seen = np.asarray(end_time(self.params, self.options) - last_firing(self.params))
+            if is_concrete(seen) and c.upper >= (least := float(np.min(seen))):
+                raise ParameterError(
+                    f"study: return_time <= {c.upper:g} s is not below the {least:g} s "
+                    "the solve sees after the last round, so a barrel that never comes back "
+                    "would meet it: lower the limit or raise t1"
                 )
 
     def box(self) -> tuple[np.ndarray, np.ndarray]:

@@ -12,9 +12,11 @@ from typing import NamedTuple
 import diffrax
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from .._model.metrics import EXTREMES
+from .._model.metrics import EXTREMES, METRICS
 from .._model.params import Buffer, Load, RecoilParams, Recuperator
+from .._model.registry import ParameterError, is_concrete
 from .._model.settings import Smoothing
 
 #: Standard gravity (m/s²), as `envelope.md` fixes it.
@@ -31,6 +33,7 @@ __all__ = [
     "breech_force",
     "buffer_force",
     "characteristic_penetration",
+    "check_envelope_metrics",
     "contact_width",
     "forces",
     "friction_bound",
@@ -308,6 +311,33 @@ def has_envelope(params: RecoilParams) -> bool:
         getattr(params, group) is not None
         for group in ("rails", "battery_stop", "counter_recoil_buffer", "mount")
     )
+
+
+#: The parameters that give a design the firing envelope, named in refusals.
+_ENVELOPE_PARTS = "elevation, friction_force, stop_stiffness, buffer_damping or mount_mass"
+
+
+def check_envelope_metrics(params: RecoilParams, names, where: str) -> None:
+    """Refuse (`ParameterError`, one line) metrics `names` the design has not got: the
+    firing envelope's (`Metric.envelope`) on a design without any part of it, and
+    `stability_margin` without a mount (`mount_mass > 0`). `where` says who asks."""
+    for name in names:
+        m = METRICS.get(name)
+        if m is None or not m.envelope:
+            continue
+        if not has_envelope(params):
+            raise ParameterError(
+                f"{where}: {name} is a metric of the firing envelope, and this design has "
+                f"none of it: give one of {_ENVELOPE_PARTS}"
+            )
+        mount = params.mount
+        no_mount = mount is None or (
+            is_concrete(mount.mount_mass) and not np.all(np.asarray(mount.mount_mass) > 0)
+        )
+        if name == "stability_margin" and no_mount:
+            raise ParameterError(
+                f"{where}: stability_margin needs a mount: mount_mass > 0 (0 is no mount)"
+            )
 
 
 def _sin_cos(params: RecoilParams):
