@@ -48,12 +48,18 @@ def _scattered(problem: rj.DesignProblem, params, offsets) -> list[rj.Peaks]:
     ]
 
 
+def _solved(peaks: rj.Peaks) -> list[str]:
+    """The metrics a design has (the firing envelope's only with the envelope, the
+    margin only with a mount: NaN otherwise)."""
+    return [name for name in rj.METRICS if not np.isnan(float(getattr(peaks, name)))]
+
+
 def _worst_case(problem: rj.DesignProblem, runs: list[rj.Peaks]) -> tuple[dict, float]:
     """Worst-case metrics (each metric's own extreme, or the objective's quantile
     towards it) by JSON key, and the objective the same way, over the scattered solves
     `runs`: what the optimiser held."""
     objective = problem.objective
-    values = {name: [float(getattr(r, name)) for r in runs] for name in rj.METRICS}
+    values = {name: [float(getattr(r, name)) for r in runs] for name in _solved(runs[0])}
     worst = rjx.worst_case(values, quantile=objective.quantile)
     objectives = np.array([float(objective(r.metrics())) for r in runs])
     return (
@@ -79,7 +85,7 @@ def best_summary(study: Study, result: rj.OptimiseResult, scenario: int) -> dict
         )
         summary["objective"] = worst_objective
         summary["worst_case_metrics"] = worst
-        by_name = {name: worst[m.key] for name, m in rj.METRICS.items()}
+        by_name = {name: worst[m.key] for name, m in rj.METRICS.items() if m.key in worst}
         summary["constraints"] = rj.constraint_report(problem, design, by_name, limits)
     else:
         summary["constraints"] = rj.constraint_report(problem, design, best.metrics(), limits)
@@ -176,7 +182,7 @@ def check_best(study: Study, result, report: dict, simulations: dict, kwargs, ou
             "max_relative_difference": max(
                 abs(float(getattr(hard, name)) - float(getattr(smooth, name)))
                 / max(abs(float(getattr(smooth, name))), 1e-12)
-                for name in rj.METRICS
+                for name in _solved(smooth)
             ),
         }
         simulations["hard_check"] = 1
