@@ -36,6 +36,7 @@ from .._model.equations import (
     load_jump,
     load_stops,
     model_args,
+    mounted,
     restart_step,
     tracked_metrics,
     vector_field,
@@ -490,9 +491,7 @@ def _envelope_gradients(args, run: PeakRun, wrt, extremes: dict, scales, n) -> d
     out["return_time"] = jnp.where(returned, (crossing_move - last_move) / scales, 0.0)
     speed_rate = -(tangents[:, 1] + f[1] * crossing_move)
     out["battery_speed"] = jnp.where(returned, speed_rate / scales, 0.0)
-    mount = params.mount
-    present = False if mount is None else mount.mount_mass > 0
-    out["stability_margin"] = jnp.where(present, out["stability_margin"], nan)
+    out["stability_margin"] = jnp.where(mounted(params), out["stability_margin"], nan)
     return out
 
 

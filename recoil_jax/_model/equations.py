@@ -30,6 +30,7 @@ __all__ = [
     "GRAVITY",
     "RECOIL_TERM",
     "Forces",
+    "absorber_sag",
     "breech_force",
     "buffer_force",
     "characteristic_penetration",
@@ -46,6 +47,7 @@ __all__ = [
     "load_stops",
     "metric_ceilings",
     "model_args",
+    "mounted",
     "net_force",
     "onset_ramp",
     "orifice_area",
@@ -340,6 +342,20 @@ def check_envelope_metrics(params: RecoilParams, names, where: str) -> None:
             )
 
 
+def absorber_sag(params: RecoilParams):
+    """The absorber's static sag on the barrel, `m g sin θ / k_r` (m, rearward; 0 on level
+    rails or without an absorber): where it starts, and where it rests on a held barrel."""
+    if params.rails is None or params.absorber is None:
+        return 0.0
+    sin, _ = _sin_cos(params)
+    return params.absorber.m * GRAVITY * sin / params.absorber.k_r
+
+
+def mounted(params: RecoilParams):
+    """Whether the design has a mount (`mount_mass > 0`; False without the group)."""
+    return False if params.mount is None else params.mount.mount_mass > 0
+
+
 def _sin_cos(params: RecoilParams):
     theta = jnp.deg2rad(params.rails.elevation) if params.rails is not None else 0.0
     return jnp.sin(theta), jnp.cos(theta)
@@ -464,8 +480,8 @@ def stability(y, params: RecoilParams, anchoring):
     lever = mount.trunnion_height * cos - mount.spade_distance * sin
     moved = params.barrel.M * y[0]
     if params.absorber is not None:
-        moved = moved + params.absorber.m * (y[2] - initial_state(params)[2])
-    present = mount.mount_mass > 0
+        moved = moved + params.absorber.m * (y[2] - absorber_sag(params))
+    present = mounted(params)
     weight_moment = jnp.where(present, mount.mount_mass, 1.0) * GRAVITY * mount.cg_distance
     margin = (weight_moment - GRAVITY * moved * cos - anchoring * lever) / weight_moment
     return jnp.where(present, margin, jnp.ones_like(margin))
@@ -575,8 +591,7 @@ def held_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
     quiet = jnp.array(True)
     if params.absorber is not None:
         absorber = params.absorber
-        sin, _ = _sin_cos(params)
-        rest = -absorber.m * GRAVITY * sin / absorber.k_r  # x_M − x_m at rest
+        rest = -absorber_sag(params)  # x_M − x_m at rest
         relative = y[0] - y[2]
         energy = 0.5 * absorber.m * (y[3] - y[1]) ** 2 + 0.5 * absorber.k_r * (relative - rest) ** 2
         reach = jnp.sqrt(2.0 * energy / absorber.k_r)
@@ -762,11 +777,7 @@ def initial_state(params: RecoilParams):
     zero = jnp.zeros_like(v0)
     if params.load is not None:
         v0 = jnp.where(_impulse(params.load), v0, zero)
-    sag = zero
-    if params.rails is not None and params.absorber is not None:
-        sin, _ = _sin_cos(params)
-        sag = sag + params.absorber.m * GRAVITY * sin / params.absorber.k_r
-    return jnp.stack([zero, v0, sag, zero])
+    return jnp.stack([zero, v0, zero + absorber_sag(params), zero])
 
 
 def load_stops(params: RecoilParams):

@@ -24,6 +24,7 @@ from .._model.equations import (
     load_stops,
     metric_ceilings,
     model_args,
+    mounted,
     restart_step,
     tracked_metrics,
 )
@@ -131,7 +132,7 @@ def envelope_values(
     """`values` (extremes by metric name) with the firing envelope's metrics of `run`:
     the return's (from its crossing), `residual_displacement` (`x_M(t1)`, `end = t1`:
     `residual_at`) and the stability margin (NaN without a mount), and `returned`; all
-    NaN for a design without the envelope. Shared by `peaks_of_run` and the gradients."""
+    NaN for a design without the envelope (`peaks_of_run`)."""
     out = dict(values)
     nan = jnp.full_like(out["peak_displacement"], jnp.nan)
     if not has_envelope(params):
@@ -143,9 +144,7 @@ def envelope_values(
     out["return_time"] = jnp.where(returned, run.cross_time - last, end - last)
     out["battery_speed"] = jnp.where(returned, -run.cross_state[1], 0.0)
     out["residual_displacement"] = residual_at(run.final_state, run.final_time, end, smoothing)
-    mount = params.mount
-    present = False if mount is None else mount.mount_mass > 0
-    out["stability_margin"] = jnp.where(present, out["stability_margin"], jnp.nan)
+    out["stability_margin"] = jnp.where(mounted(params), out["stability_margin"], jnp.nan)
     return out | {"returned": returned}
 
 
@@ -166,12 +165,8 @@ def peaks_of_run(params: RecoilParams, smoothing: Smoothing, run: PeakRun, end) 
     values = {name: m.sign * best[name] for name, m in EXTREMES.items()}
     values = envelope_values(params, smoothing, run, values, end)
     times = dict(times)
-    mount = params.mount
-    if has_envelope(params) and mount is not None:
-        present = mount.mount_mass > 0
-        times["stability_margin"] = jnp.where(present, times["stability_margin"], jnp.nan)
-    else:
-        times["stability_margin"] = jnp.full_like(times["stability_margin"], jnp.nan)
+    present = mounted(params) if has_envelope(params) else False
+    times["stability_margin"] = jnp.where(present, times["stability_margin"], jnp.nan)
     return Peaks.of(values, times, run.num_steps, run.num_attempts, run.status, values["returned"])
 
 
