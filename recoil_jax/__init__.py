@@ -37,6 +37,7 @@ from ._design.optimise import (
 )
 from ._design.problem import (
     Agreement as Agreement,
+    Condition as Condition,
     Constraint as Constraint,
     DesignProblem as DesignProblem,
     Objective as Objective,
@@ -146,7 +147,7 @@ __all__ = [  # noqa: RUF022 (grouped by topic, as the docs)
     "SweepResult", "grid", "load_sweep", "sweep", "sweep_grid", "sweep_to_store",
     "CampaignProgress", "campaign_progress",
     # Design problems and optimisers
-    "FEASIBILITY_TOLERANCE", "Agreement", "Constraint", "DesignProblem", "Objective",
+    "FEASIBILITY_TOLERANCE", "Agreement", "Condition", "Constraint", "DesignProblem", "Objective",
     "OptimiseResult", "closest_miss", "constraint_report", "feasible", "metric_violations",
     "search", "minimise", "SobolStarts", "BasinHopping", "SLSQP", "EpigraphMinimax",
     "TrustRegionLP", "OptaxLocal", "optimise", "default_optimiser", "AugmentedLagrangian",

@@ -144,6 +144,8 @@ def test_bench_smoke():
     assert result["hardware_mean_steps"] > 0
     assert result["envelope_sims_per_s"] > 0 and result["envelope_failed"] == 0
     assert result["envelope_vs_paper"] > 0 and "the firing envelope" in format_bench(result)
+    assert result["envelope_no_absorber_sims_per_s"] > 0
+    assert result["envelope_no_absorber_failed"] == 0
     assert [row["batch_size"] for row in result["batches"]] == [1, 8]
     assert result["batch_size"] in (1, 8)
     assert "(tuned_absorber), ms" in format_bench(result)

@@ -38,8 +38,34 @@ def files(tmp_path):
         ("margin_mount_zero", envelope + "\nmount_mass = 0.0", "stability_margin = { min = 0.1 }"),
         ("return_without_envelope", "m = 1500.0", "return_time = { max = 2.5 }"),
         ("return_beyond_t1", envelope, "return_time = { max = 12.0 }"),
+        ("t1_negative", envelope + "\nt1 = -1.0", ""),
     ):
         (tmp_path / f"{name}.toml").write_text(study.format(design=design, limit=limit))
+    # Firing conditions (issue 54): what a user might write by mistake.
+    for name, condition in (
+        ("condition_elevation_95", 'name = "a"\nelevation = 95.0'),
+        ("condition_tuned", 'name = "a"\nc_out = 1e4'),
+        ("condition_unknown", 'name = "a"\nelevaton = 5.0'),
+        ("condition_not_number", 'name = "a"\nelevation = "high"'),
+        (
+            "condition_limit_unknown",
+            'name = "a"\nelevation = 5.0\nconstraints = { peak_displacment = { max = 1.0 } }',
+        ),
+        (
+            "condition_limit_parameter",
+            'name = "a"\nelevation = 5.0\nconstraints = { m = { max = 1.0 } }',
+        ),
+        (
+            "condition_twice",
+            'name = "a"\nelevation = 5.0\n[[condition]]\nname = "a"\nelevation = 9.0',
+        ),
+    ):
+        text = study.format(design=envelope, limit="") + "[[condition]]\n" + condition + "\n"
+        (tmp_path / f"{name}.toml").write_text(text)
+    text = study.format(design=envelope, limit="") + '[[condition]]\nname = "a"\nv0 = 9.0\n'
+    (tmp_path / "condition_and_scatter.toml").write_text(
+        text.replace("[constraints]", "[objective.scatter]\nv0 = [-0.05, 0.05]\n[constraints]")
+    )
     return tmp_path
 
 
@@ -100,6 +126,15 @@ def _refused(capsys, argv, fragment, status=2):
         (["optimise", "margin_mount_zero.toml"], "stability_margin needs a mount"),
         (["optimise", "return_without_envelope.toml"], "a metric of the firing envelope"),
         (["optimise", "return_beyond_t1.toml"], "is not below the 10 s the solve sees"),
+        (["optimise", "t1_negative.toml"], "[design] t1 = -1.0: valid > 0 s"),
+        (["optimise", "condition_elevation_95.toml"], "elevation"),
+        (["optimise", "condition_tuned.toml"], "sets c_out, which is tuned"),
+        (["optimise", "condition_unknown.toml"], "elevaton"),
+        (["optimise", "condition_not_number.toml"], "elevation = 'high': valid a number"),
+        (["optimise", "condition_limit_unknown.toml"], "peak_displacment"),
+        (["optimise", "condition_limit_parameter.toml"], "metrics only, not the parameter m"),
+        (["optimise", "condition_twice.toml"], "two conditions share a name"),
+        (["optimise", "condition_and_scatter.toml"], "cannot both be given"),
     ],
 )
 def test_a_bad_input_is_one_line_and_exit_status_2(

@@ -64,7 +64,7 @@ def test_leaves_are_float64_arrays():
     [
         (lambda: rj.Barrel(M=0.0), "Barrel.M", "valid M > 0 kg"),
         (lambda: rj.Absorber(m=-5.0), "Absorber.m", "valid m > 0 kg"),
-        (lambda: rj.Barrel(k=0.0), "Barrel.k", "valid k > 0 N/m"),
+        (lambda: rj.Barrel(k=-1.0), "Barrel.k", "valid k >= 0 N/m"),
         (lambda: rj.Absorber(k_r=-1.0), "Absorber.k_r", "valid k_r > 0 N/m"),
         (lambda: rj.Contact(k_c=0.0), "Contact.k_c", "valid k_c > 0"),
         (lambda: rj.Barrel(c_out=-1.0), "Barrel.c_out", "valid c_out >= 0"),

@@ -25,13 +25,13 @@ g = GRAVITY
 M, K, V0 = 5600.0, 27500.0, 6.86 * 564.0 / 5600.0
 
 #: The issue's hand design of the light howitzer (`optimise/envelope.toml`), which meets
-#: every limit at 169 kN; with k = 1e-6 N/m for its k = 0 (the registry's valid k is > 0).
+#: every limit at 169 kN: no recoil spring (k = 0), the recuperator returns it.
 HOWITZER = dict(
     M=1800.0,
     v0=10.0,
     m=0.0,
     pulse_time=0.004,
-    k=1e-6,
+    k=0.0,
     friction_force=1500.0,
     friction_coefficient=0.05,
     stop_stiffness=2.1e8,

@@ -112,8 +112,21 @@ class BatchEvaluator:
     def evaluate(self, designs: dict[str, np.ndarray]) -> BatchEvaluation:
         """The designs given by flat name (`(n,)` columns, the tuned ones among them;
         names not given take the paper's values), swept with `problem`'s smoothing and
-        options."""
+        options; with conditions, each design at each (`n·K` points in the one sweep),
+        its objective and violations the worst over them (`metric_violations`)."""
         problem = self.problem
+        n = len(next(iter(designs.values())))
+        conditions = problem.conditions
+        if conditions:
+            # Row i·K + k: design i at condition k.
+            designs = {name: np.repeat(np.asarray(v, dtype=float), len(conditions)) for
+                       name, v in designs.items()}  # fmt: skip
+            for name in dict.fromkeys(n for c in conditions for n in c.names):
+                column = designs[name].reshape(n, len(conditions))
+                column[:] = [dict(c.values).get(name, np.nan) for c in conditions]
+                designs[name] = np.where(
+                    np.isnan(column), np.asarray(designs[name]).reshape(n, -1), column
+                ).ravel()
         result = sweep(
             designs,
             smoothing=problem.smoothing,
@@ -122,11 +135,16 @@ class BatchEvaluator:
             client=self.client,
             chunk_size=self.chunk_size,
         )
-        codes = result.codes
-        n = len(codes)
-        objective = np.asarray(problem.objective(result.peaks), dtype=float)
-        violations = np.asarray(metric_violations(problem, result.peaks), dtype=float)
+        codes, peaks = result.codes, result.peaks
+        objective = np.asarray(problem.objective(peaks), dtype=float)
         theta = np.stack([np.asarray(designs[name], dtype=float) for name in problem.tune], 1)
+        if conditions:
+            shape = (n, len(conditions))
+            peaks = {name: np.asarray(v).reshape(shape) for name, v in peaks.items()}
+            objective = np.max(objective.reshape(shape), axis=1)
+            codes = np.max(codes.reshape(shape), axis=1)
+            theta = theta[:: len(conditions)]
+        violations = np.asarray(metric_violations(problem, peaks), dtype=float)
         return BatchEvaluation(theta, objective, violations.reshape(n, -1), codes)
 
 
@@ -148,13 +166,21 @@ class GradientEvaluator:
         return {name: np.asarray(solve[name]) for name in GRADIENT_OUTPUTS}
 
     def __call__(self, z, level, series_ts=None) -> LocalEvaluation:
-        return local_evaluation(self.outputs(z, level, series_ts))
+        return local_evaluation(self.outputs(z, level, series_ts), level, series_ts is not None)
 
 
-def local_evaluation(out: dict[str, np.ndarray]) -> LocalEvaluation:
-    """A gradient solve's named outputs as the local phase's `LocalEvaluation`."""
+def local_evaluation(out: dict[str, np.ndarray], level, series: bool = False) -> LocalEvaluation:
+    """A gradient solve's named outputs at continuation `level` as the local phase's
+    `LocalEvaluation` (`series`: a minimax's solve over time, whose pieces it keeps). A
+    problem with conditions gives the objective at each: at level 0 (a minimax) they are
+    its pieces; above it, the greatest is the objective (its row of the Jacobian, a
+    subgradient of the maximum)."""
     ok = int(out["code"]) == OK_CODE
-    return LocalEvaluation(out["f"], out["g"], out["df"], out["dg"], float(out["exact"]), ok)
+    f, df = out["f"], out["df"]
+    if np.ndim(f) == 1 and float(level) > 0 and not series:
+        worst = int(np.argmax(np.where(np.isnan(f), np.inf, f)))
+        f, df = f[worst], df[worst]
+    return LocalEvaluation(f, out["g"], df, out["dg"], float(out["exact"]), ok)
 
 
 class StoredEvaluator:
@@ -209,7 +235,7 @@ class StoredEvaluator:
             out = self._gradient.outputs(z, level, series_ts)
             theta = np.asarray(self._gradient.space.theta(jnp.asarray(z)))
             self.store.commit([self._row("local", theta, key, out["exact"], out["g"], out)])
-        return local_evaluation(out)
+        return local_evaluation(out, level, series_ts is not None)
 
     def _row(self, phase: str, theta, key: str, objective, violations, out: dict) -> dict:
         """The store's row of one evaluation, its outputs kept for the resume."""
@@ -292,10 +318,11 @@ class MinimaxEvaluator:
 
 def minimax_metric(problem: DesignProblem) -> str | None:
     """The metric when `problem`'s objective is a positive multiple of one maximum over
-    time (a metric with a `SmoothMax`), with no scatter: `search` then treats it as a
-    minimax over time. Else None."""
+    time (a metric with a `SmoothMax`), with no scatter and no conditions: `search` then
+    treats it as a minimax over time. Else None (with conditions, the minimax is over
+    them)."""
     objective = problem.objective
-    if objective.scatter is not None or len(objective.weights) != 1:
+    if objective.scatter is not None or problem.conditions or len(objective.weights) != 1:
         return None
     ((name, weight),) = objective.weights.items()
     return name if weight > 0 and METRICS[name].smoothable else None
@@ -313,7 +340,11 @@ def _gradient_solve(problem: DesignProblem, box: SearchSpace, z, temperature, se
 
     With `series_ts` (`(n,)` save times), the objective comes as a minimax instead:
     `(1 + n,)` values, its peak then the weighted signal at each save time (NaN after
-    the solve's end), with their Jacobian `(1 + n, P)` (forward mode: P columns)."""
+    the solve's end), with their Jacobian `(1 + n, P)` (forward mode: P columns).
+
+    With conditions (`K`), the objective at each condition `(K,)` and its Jacobian
+    `(K, P)`: smoothed at a level above 0, with the peaks at level 0, the minimax's
+    pieces (`local_evaluation` takes the greatest above level 0)."""
     if series_ts is not None:
         name = minimax_metric(problem)
         assert name is not None
@@ -330,6 +361,27 @@ def _gradient_solve(problem: DesignProblem, box: SearchSpace, z, temperature, se
 
         jacobian, (values, evaluation) = jax.jacfwd(minimax_outputs, has_aux=True)(z)
         n = series_ts.shape[0] + 1
+        f, df = values[:n], jacobian[:n]
+    elif problem.conditions:
+        # Level 0 is the minimax over the conditions (no smoothing); the scale keeps the
+        # smoothed branch finite there, so that `where` passes no NaN to the gradient.
+        smoothed = temperature > 0
+        scale = jnp.where(smoothed, temperature, 1.0)
+
+        def condition_outputs(z):
+            evaluation = evaluate_design(problem, box.theta(z), temperature_scale=scale)
+            per_condition = evaluation.conditions
+            assert per_condition is not None
+            pieces = jnp.where(
+                smoothed,
+                problem.objective(per_condition, smooth=bool(problem.objective.temperatures)),
+                problem.objective(per_condition),
+            )
+            values = jnp.concatenate([pieces, evaluation.violations])
+            return values, (values, evaluation)
+
+        jacobian, (values, evaluation) = jax.jacrev(condition_outputs, has_aux=True)(z)
+        n = len(problem.conditions)
         f, df = values[:n], jacobian[:n]
     else:
 

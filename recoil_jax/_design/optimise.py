@@ -355,8 +355,7 @@ class _Runs:
 
     def __init__(self, count: int, steps: int, problem: DesignProblem):
         self.steps = steps
-        scatter = problem.objective.scatter
-        self.samples = 1 if scatter is None else len(scatter[1])  # solves in a run's step
+        self.samples = problem.solves_per_design  # solves in a run's step
         self.active = np.ones(count, dtype=bool)
         self.converged_step = np.full(count, -1)
         self.records: list[_StepRecord] = []

@@ -4,9 +4,12 @@ evaluation of one design as a differentiable function of its tuned values.
 - `Objective`: a weighted sum of peak metrics, optionally with a smooth maximum over time
   (log-sum-exp, `SmoothMax`) in place of a peak, and optionally the worst case over a
   scatter of one parameter (e.g. v0 ± 5 %).
-- `Constraint`: an upper or lower limit on a metric or a parameter.
-- `DesignProblem`: the base design, the tuned parameters with their bounds, the objective
-  and the constraints.
+- `Constraint`: an upper or lower limit on a metric or a parameter, at every firing
+  condition or at some.
+- `Condition`: a firing condition (e.g. an elevation, a charge's `v0`): values of
+  untuned parameters the design must also be good at.
+- `DesignProblem`: the base design, the tuned parameters with their bounds, the objective,
+  the constraints and the firing conditions (the objective their worst case).
 - `evaluate_design`: metrics, objectives and normalised limit violations of tuned values,
   differentiable through the forward sensitivities (`design_metrics`).
 """
@@ -27,7 +30,7 @@ from .._model.equations import check_envelope_metrics
 from .._model.feasibility import FEASIBILITY_TOLERANCE
 from .._model.metrics import METRICS, metric, worst_case
 from .._model.parameter_table import PARAMETERS, parameter
-from .._model.params import RecoilParams, values_of, with_values
+from .._model.params import RecoilParams, check_present, values_of, with_values
 from .._model.registry import ParameterError, check_value, is_concrete
 from .._model.settings import Smoothing, SolverOptions, end_time
 from .._model.solve import last_firing
@@ -35,6 +38,7 @@ from .._model.status import status_item
 
 __all__ = [
     "Agreement",
+    "Condition",
     "Constraint",
     "DesignEvaluation",
     "DesignProblem",
@@ -152,8 +156,20 @@ class Constraint(eqx.Module):
     name: str = eqx.field(static=True)
     upper: float | None = eqx.field(default=None, static=True)
     lower: float | None = eqx.field(default=None, static=True)
+    conditions: tuple[str, ...] | None = eqx.field(default=None, static=True)
 
     def __check_init__(self):
+        if self.conditions is not None:
+            if isinstance(self.conditions, str) or not self.conditions:
+                raise ParameterError(
+                    f"Constraint on {self.name}: conditions must be a non-empty tuple of "
+                    "condition names (None: every condition)"
+                )
+            if self.name not in METRICS:
+                raise ParameterError(
+                    f"Constraint on {self.name}: only a metric's limit can name conditions "
+                    "(a parameter's value is the design's, the same at every condition)"
+                )
         if self.name not in METRICS and self.name not in PARAMETERS:
             raise ParameterError(
                 f"Constraint on unknown quantity {self.name!r}; metrics: "
@@ -170,6 +186,12 @@ class Constraint(eqx.Module):
     def is_metric(self) -> bool:
         return self.name in METRICS
 
+    def label(self, kind: str) -> str:
+        """How reports name its limit of `kind` ("max" or "min"): `"return_time (max)"`,
+        with `" at 0°, 35°"` when it holds at some conditions only."""
+        where = "" if self.conditions is None else " at " + ", ".join(self.conditions)
+        return f"{self.name} ({kind}){where}"
+
     def limits(self) -> list[tuple[str, float]]:
         """`[(kind, limit)]` with kind `"max"` or `"min"`."""
         out = []
@@ -178,6 +200,37 @@ class Constraint(eqx.Module):
         if self.lower is not None:
             out.append(("min", float(self.lower)))
         return out
+
+
+def _condition_values(values: Any) -> tuple[tuple[str, float], ...]:
+    pairs = values.items() if isinstance(values, Mapping) else values
+    return tuple((str(name), float(value)) for name, value in pairs)
+
+
+class Condition(eqx.Module):
+    """A firing condition: the values `(flat name → SI value)` of untuned parameters
+    that the design must also be good at, e.g. `Condition("70°", {"elevation": 70.0})`
+    or a charge, `Condition("charge 2", {"v0": 8.0})`. A `DesignProblem` with conditions
+    solves every design at each (in one batched program), and its objective is their
+    worst case."""
+
+    name: str = eqx.field(static=True)
+    values: tuple[tuple[str, float], ...] = eqx.field(static=True, converter=_condition_values)
+
+    def __check_init__(self):
+        if not isinstance(self.name, str) or not self.name.strip():
+            raise ParameterError("Condition.name must be a non-empty string")
+        if not self.values:
+            raise ParameterError(f"condition {self.name!r} sets no parameter")
+        names = [name for name, _ in self.values]
+        if len(set(names)) != len(names):
+            raise ParameterError(f"condition {self.name!r} sets a parameter twice: {names}")
+        for name, value in self.values:
+            check_value(f"condition {self.name!r}", name, value, parameter(name))
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(name for name, _ in self.values)
 
 
 class DesignProblem(eqx.Module):
@@ -189,6 +242,10 @@ class DesignProblem(eqx.Module):
     - `bounds`: name → `(lo, hi)`; default the documented range. Parameter constraints on
       tuned parameters tighten these.
     - `objective`, `constraints`, `smoothing`, `options` (default `GRADIENT_OPTIONS`).
+    - `conditions`: firing conditions (`Condition`s): each design is solved at each,
+      the objective is the worst over them and each metric limit the worst over the
+      conditions it names (`Constraint.conditions`, default all). Their parameters must
+      be in the base design and not tuned. Not with the objective's scatter.
     """
 
     params: RecoilParams
@@ -198,9 +255,11 @@ class DesignProblem(eqx.Module):
     constraints: tuple[Constraint, ...] = eqx.field(default=(), static=True)
     smoothing: Smoothing = Smoothing()
     options: SolverOptions = GRADIENT_OPTIONS
+    conditions: tuple[Condition, ...] = eqx.field(default=(), static=True)
 
     def __check_init__(self):
         check_wrt(self.params, self.tune)
+        self._check_conditions()
         asked = [*self.objective.weights, *(c.name for c in self.constraints if c.is_metric)]
         check_envelope_metrics(self.params, asked, "study")
         self._check_return_limits()
@@ -218,6 +277,36 @@ class DesignProblem(eqx.Module):
                 raise ParameterError(
                     f"the constraints leave no room for {name}: bounds ({lo:g}, {hi:g})"
                 )
+
+    def _check_conditions(self) -> None:
+        names = [c.name for c in self.conditions]
+        if len(set(names)) != len(names):
+            raise ParameterError(f"study: two conditions share a name: {names}")
+        if self.conditions and self.objective.scatter is not None:
+            raise ParameterError(
+                "study: conditions and the objective's scatter cannot both be given (each "
+                "is a worst case over designs); list the scatter's values as conditions"
+            )
+        for condition in self.conditions:
+            for name in condition.names:
+                if name in self.tune:
+                    raise ParameterError(
+                        f"condition {condition.name!r} sets {name}, which is tuned: a "
+                        "condition sets untuned parameters only"
+                    )
+                try:
+                    check_present(self.params, parameter(name))
+                except ParameterError as error:
+                    raise ParameterError(
+                        f"condition {condition.name!r}: {error}; give {name} in the design too"
+                    ) from None
+        for c in self.constraints:
+            for name in c.conditions or ():
+                if name not in names:
+                    known = ", ".join(names) if names else "none"
+                    raise ParameterError(
+                        f"the limit on {c.name} names condition {name!r}; conditions: {known}"
+                    )
 
     def _check_return_limits(self) -> None:
         """A design that has not come back by `t1` is reported with the time it was seen
@@ -247,6 +336,56 @@ class DesignProblem(eqx.Module):
             lower.append(lo)
             upper.append(hi)
         return np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
+
+    @property
+    def condition_names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.conditions)
+
+    def at_conditions(self, params: RecoilParams) -> RecoilParams:
+        """`params` at each condition, stacked along a leading axis `(K, ...)` (the
+        conditions' parameters; the others `params`' own). The structure must have
+        conditions."""
+        names = tuple(dict.fromkeys(n for c in self.conditions for n in c.names))
+        base = values_of(params, names)
+        rows = [
+            [dict(c.values).get(name, base[j]) for j, name in enumerate(names)]
+            for c in self.conditions
+        ]
+        values = jnp.stack([jnp.stack([jnp.asarray(v, dtype=float) for v in row]) for row in rows])
+        return jax.vmap(lambda v: with_values(params, names, v))(values)
+
+    def condition_designs(self, design: Mapping[str, Any]) -> list[dict[str, Any]]:
+        """A design by flat name at each condition (the conditions' values replacing its
+        own); `[design]` without conditions."""
+        if not self.conditions:
+            return [dict(design)]
+        return [dict(design) | dict(c.values) for c in self.conditions]
+
+    @property
+    def solves_per_design(self) -> int:
+        """The solves one evaluation of a design takes: one per scatter point or
+        condition."""
+        scatter = self.objective.scatter
+        return max(1, len(self.conditions)) * (1 if scatter is None else len(scatter[1]))
+
+    @property
+    def limit_labels(self) -> list[str]:
+        """The name of each metric limit in reports, in `metric_constraints`' order
+        (`Constraint.label`)."""
+        return [c.label(kind) for c in self.constraints if c.is_metric for kind, _ in c.limits()]
+
+    @property
+    def limit_conditions(self) -> list[np.ndarray]:
+        """For each metric limit (`metric_constraints`' order), the indices of the
+        conditions it holds at (all of them where it names none)."""
+        names = self.condition_names
+        every = np.arange(len(names))
+        return [
+            every if c.conditions is None else np.asarray([names.index(n) for n in c.conditions])
+            for c in self.constraints
+            if c.is_metric
+            for _ in c.limits()
+        ]
 
     @property
     def metric_constraints(self) -> list[tuple[str, str, float]]:
@@ -316,7 +455,9 @@ class DesignEvaluation(NamedTuple):
       objective has temperatures);
     - `objective`: the objective with the true peaks;
     - `violations (C,)`: the normalised violations of the metric constraints (`<= 0`
-      where held).
+      where held);
+    - `conditions`: with firing conditions, the metrics at each, name → `(K,)` (the
+      `metrics` are their worst case); else None.
     """
 
     metrics: dict[str, Any]
@@ -324,6 +465,7 @@ class DesignEvaluation(NamedTuple):
     smooth_objective: Any
     objective: Any
     violations: Any
+    conditions: dict[str, Any] | None = None
 
 
 def evaluate_design(
@@ -347,9 +489,12 @@ def evaluate_design(
       the objective is not smoothed (the smooth objective is the exact one).
 
     **Returns:** a `DesignEvaluation`: the metrics by name (worst case over the
-    objective's scatter), the solve's `Status`, the objective the optimiser sees and the
-    one with true peaks, and the normalised violations of the metric constraints (`<= 0`
-    when satisfied).
+    objective's scatter or the conditions), the solve's `Status`, the objective the
+    optimiser sees and the one with true peaks, and the normalised violations of the
+    metric constraints (`<= 0` when satisfied). With conditions (`DesignProblem.conditions`)
+    every condition is solved in one vmapped program: the objectives are the worst over
+    them, each limit's violation the worst over its conditions, and `conditions` holds
+    the metrics at each.
     """
     params = problem.params if params is None else params
     if limits is None:
@@ -369,8 +514,20 @@ def evaluate_design(
         )
         return metrics, status_item(code)
 
-    if series is not None and objective.scatter is not None:
-        raise ParameterError("evaluate_design: a MetricSeries does not take a scatter objective")
+    if series is not None and (objective.scatter is not None or problem.conditions):
+        raise ParameterError(
+            "evaluate_design: a MetricSeries takes neither a scatter objective nor conditions"
+        )
+    if problem.conditions:
+        per_condition, statuses = jax.vmap(metrics_at)(problem.at_conditions(params))
+        return DesignEvaluation(
+            metrics=worst_case(per_condition, xp=jnp),
+            status=jax.tree.map(jnp.max, statuses),
+            smooth_objective=jnp.max(objective(per_condition, smooth=smooth_max is not None)),
+            objective=jnp.max(objective(per_condition)),
+            violations=_violations(problem, per_condition, limits),
+            conditions=per_condition,
+        )
     if objective.scatter is None:
         metrics, status = metrics_at(params)
     else:
@@ -411,24 +568,31 @@ def metric_violations(problem: DesignProblem, metrics: Mapping[str, Any], limits
     for a `max` and `(limit − value)/|limit|` for a `min` (`|limit|` → 1 for a zero limit):
     `<= 0` where a limit holds.
 
-    **Arguments:** `metrics`: metric name → values of one shape `(...)`; `limits`: `(C,)`
-    in the order of `problem.metric_constraints` (default theirs); `xp`: `numpy` or
-    `jax.numpy`.
+    **Arguments:** `metrics`: metric name → values of one shape `(...)`, or `(..., K)`
+    for a problem with `K` conditions (the metrics at each; a limit's violation is then
+    the worst over its conditions); `limits`: `(C,)` in the order of
+    `problem.metric_constraints` (default theirs); `xp`: `numpy` or `jax.numpy`.
 
     **Returns:** `(..., C)`.
     """
     constraints = problem.metric_constraints
     if limits is None:
         limits = [limit for _, _, limit in constraints]
+    at = problem.limit_conditions
     out = []
     for j, (name, kind, _) in enumerate(constraints):
         limit = limits[j]
         scale = xp.where(limit != 0, xp.abs(limit), 1.0)
         value = xp.asarray(metrics[name])
-        out.append((value - limit) / scale if kind == "max" else (limit - value) / scale)
+        violation = (value - limit) / scale if kind == "max" else (limit - value) / scale
+        if problem.conditions:
+            violation = xp.max(violation[..., at[j]], axis=-1)
+        out.append(violation)
     if out:
         return xp.stack(out, axis=-1)
     shape = xp.shape(metrics[next(iter(metrics))]) if metrics else ()
+    if problem.conditions:
+        shape = shape[:-1]
     return xp.zeros((*shape, 0))
 
 
@@ -441,13 +605,16 @@ def closest_miss(problem: DesignProblem, violations) -> dict[str, dict]:
     for every limit it misses (value and miss in the metric's SI unit).
     """
     missed = {}
-    for (name, kind, limit), v in zip(
-        problem.metric_constraints, np.asarray(violations, dtype=float), strict=True
+    for (_, kind, limit), label, v in zip(
+        problem.metric_constraints,
+        problem.limit_labels,
+        np.asarray(violations, dtype=float),
+        strict=True,
     ):
         if v > -FEASIBILITY_TOLERANCE:
             scale = abs(limit) or 1.0
             value = limit + v * scale if kind == "max" else limit - v * scale
-            missed[f"{name} ({kind})"] = {
+            missed[label] = {
                 "limit": float(limit),
                 "value": float(value),
                 "missed_by": float(v * scale),
@@ -457,30 +624,39 @@ def closest_miss(problem: DesignProblem, violations) -> dict[str, dict]:
 
 
 def constraint_report(
-    problem: DesignProblem, design: Mapping[str, float], metrics: Mapping[str, float], limits=None
+    problem: DesignProblem, design: Mapping[str, float], metrics: Mapping[str, Any], limits=None
 ) -> dict[str, dict]:
     """Whether each limit of `problem` holds.
 
     **Arguments:**
 
     - `design`: flat parameter values (`params_to_values`, `OptimiseResult.best_design`).
-    - `metrics`: the metrics by name (`Peaks.metrics()`).
+    - `metrics`: the metrics by name (`Peaks.metrics()`); for a problem with `K`
+      conditions, `(K,)` each, the metrics at each condition (a limit's value is the
+      worst over its conditions).
     - `limits`: optional per-scenario limits of the metric constraints (in the order of
       `problem.metric_constraints`).
 
-    **Returns:** `{"<name> (max|min)": {"value", "limit", "satisfied"}}`.
+    **Returns:** `{label: {"value", "limit", "satisfied"}}`, labels as
+    `"<name> (max|min)"` (`Constraint.label`: `" at <conditions>"` after a limit held
+    at some conditions only).
     """
     metric_limits = iter([] if limits is None else [float(x) for x in limits])
+    names = problem.condition_names
     report = {}
     for c in problem.constraints:
         for kind, limit in c.limits():
             if c.is_metric:
                 limit = next(metric_limits) if limits is not None else limit
-                value = float(metrics[c.name])
+                values = np.asarray(metrics[c.name], dtype=float)
+                if problem.conditions:
+                    at = [names.index(n) for n in c.conditions or names]
+                    values = values[at]
+                value = float(np.max(values) if kind == "max" else np.min(values))
             else:
                 value = float(design[c.name])
             ok = value <= limit if kind == "max" else value >= limit
-            report[f"{c.name} ({kind})"] = {
+            report[c.label(kind)] = {
                 "value": value,
                 "limit": float(limit),
                 "satisfied": bool(ok),

@@ -515,14 +515,15 @@ def default_local(problem: DesignProblem, minimax: bool | None = None) -> LocalM
     """The local method `search` uses for `problem` when none is given.
 
     - `minimax` (default: when the objective's one peak over time has a temperature, the
-      study's sign that it jumps between local maxima): with a temperature
+      study's sign that it jumps between local maxima, or when there are several firing
+      conditions, whose worst case is the objective): with a temperature
       `EpigraphMinimax()`, without one `TrustRegionLP()`;
     - otherwise `SLSQP` through the continuation `TEMPERATURE_SCHEDULE` of the
       objective's temperatures (a single level on the peaks when it has none).
     """
     name = minimax_metric(problem)
     if minimax is None:
-        minimax = name in problem.objective.temperatures
+        minimax = name in problem.objective.temperatures or len(problem.conditions) > 1
     if minimax:
         # Smoothed first where the objective has a temperature: from a far start the
         # smooth maximum finds the basin, where the minimax (level 0) then levels the peaks.
@@ -591,12 +592,17 @@ def search(
             stored = StoredEvaluator(study, batch, gradient)
             batch, gradient = stored.batch, stored.gradient
         traces = gradient_traces()
+
+        def run_evaluator():
+            # With conditions the minimax's pieces are the conditions' objectives, each
+            # solve's own; else the signal over time (`MinimaxEvaluator`).
+            return gradient if problem.conditions else MinimaxEvaluator(gradient, window)
+
         minimum = _minimise(
-            batch, MinimaxEvaluator(gradient, window), len(problem.tune), local=local,
+            batch, run_evaluator(), len(problem.tune), local=local,
             global_phase=global_phase, initial=initial, hopping=hopping, seed=seed,
             max_seconds=max_seconds, workers=workers, progress=progress, label="search",
-            run_evaluator=lambda: MinimaxEvaluator(gradient, window),
-            spent=None if study is None else study.spent,
+            run_evaluator=run_evaluator, spent=None if study is None else study.spent,
         )  # fmt: skip
     theta = lambda z: np.asarray(space.theta(jnp.asarray(z)))  # noqa: E731
     replayed = 0 if study is None else study.replayed
@@ -617,10 +623,11 @@ def _search_methods(problem: DesignProblem, local, minimax, global_phase):
         )
     local = default_local(problem, minimax) if local is None else local
     local, global_phase = _checked_methods(local, global_phase, len(problem.tune), "search")
-    if local.minimax and minimax_metric(problem) is None:
+    if local.minimax and minimax_metric(problem) is None and not problem.conditions:
         raise ParameterError(
             "search: minimax needs an objective that is one peak over time "
-            "(peak_anchoring_force or peak_displacement, positive weight, no scatter)"
+            "(peak_anchoring_force or peak_displacement, positive weight, no scatter), "
+            "or firing conditions"
         )
     return local, global_phase
 

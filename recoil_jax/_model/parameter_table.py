@@ -40,7 +40,6 @@ _SCALARS = (
         default=27500.0,
         unit="N/m",
         lower=0.0,
-        lower_open=True,
         documented=(1e3, 1e6),
         meaning="recoil spring stiffness",
     ),

@@ -59,6 +59,7 @@ __all__ = [
     "RecoilParams",
     "Recuperator",
     "check_design",
+    "check_present",
     "params_from_values",
     "params_to_values",
     "values_of",
@@ -611,7 +612,9 @@ def _get(params: RecoilParams, p: Parameter) -> Any:
     return value if p.index is None else value[..., p.index]
 
 
-def _check_present(params: RecoilParams, p: Parameter) -> None:
+def check_present(params: RecoilParams, p: Parameter) -> None:
+    """Raise `ParameterError` unless parameter `p` is part of `params` and set by value
+    (not an integer count)."""
     module = getattr(params, p.group)
     if module is None or (p.index is not None and p.index >= module.knots):
         raise ParameterError(f"{p.name} is not part of this design (its {p.group} is absent)")
@@ -626,7 +629,7 @@ def with_values(params: RecoilParams, names: Sequence[str], values: Any) -> Reco
     knots: dict[int, Any] = {}  # orifice index -> value
     for j, name in enumerate(names):
         p = parameter(name)
-        _check_present(params, p)
+        check_present(params, p)
         value = values[j]
         check_value(p.owner, name, value, p)
         value = jnp.asarray(value, dtype=float)
@@ -639,7 +642,7 @@ def with_values(params: RecoilParams, names: Sequence[str], values: Any) -> Reco
     if knots:
         # All knots in one update: this runs in every stage of a tangent solve, where
         # a scatter per knot made the 22-parameter program larger and slower.
-        assert params.buffer is not None  # (_check_present)
+        assert params.buffer is not None  # (check_present)
         orifice = jnp.asarray(params.buffer.orifice, dtype=float)
         given = jnp.stack(jnp.broadcast_arrays(*knots.values()), axis=-1)
         if list(knots) == list(range(orifice.shape[-1])):

@@ -68,14 +68,17 @@ def hardware_designs(count: int, seed: int = 1) -> dict[str, np.ndarray]:
     return columns
 
 
-def envelope_designs(count: int, seed: int = 2) -> dict[str, np.ndarray]:
+def envelope_designs(count: int, seed: int = 2, absorber: bool = True) -> dict[str, np.ndarray]:
     """Designs with the firing envelope on, friction, the battery stop and the
     counter-recoil buffer among it: the absorber designs of `bench_designs` on rails at
     0–70° with packing and slide friction, a preloaded recuperator on a battery stop, a
     counter-recoil buffer and a mount (elevation, friction, preload and buffer drawn at
-    random)."""
+    random). `absorber=False`: the same without the absorber (`m = 0`)."""
     rng = np.random.default_rng(seed)
     columns = bench_designs(count, seed)
+    if not absorber:
+        columns = {k: v for k, v in columns.items() if k not in ("gap", "k_r", "c_r")}
+        columns["m"] = np.zeros(count)
     columns |= {
         "elevation": rng.uniform(0.0, 70.0, count),
         "friction_force": rng.uniform(500.0, 3000.0, count),
@@ -316,6 +319,7 @@ def run_bench(
     jacobians = _jacobian_throughput(columns, jacobian_batch, log)
     hardware = _hardware_throughput(largest, log)
     envelope = _envelope_throughput(largest, log)
+    bare_envelope = _envelope_throughput(largest, log, absorber=False)
     baseline = _scipy_baseline(columns, scipy_designs, log)
 
     gradient_rows = (
@@ -343,6 +347,10 @@ def run_bench(
         "envelope_vs_paper": envelope.sims_per_s / (largest / ours.seconds),
         "envelope_mean_steps": float(np.mean(envelope.result.peaks["num_steps"])),
         "envelope_failed": len(envelope.result.failures()),
+        "envelope_no_absorber_sims_per_s": bare_envelope.sims_per_s,
+        "envelope_no_absorber_vs_paper": bare_envelope.sims_per_s / (largest / ours.seconds),
+        "envelope_no_absorber_mean_steps": float(np.mean(bare_envelope.result.peaks["num_steps"])),
+        "envelope_no_absorber_failed": len(bare_envelope.result.failures()),
         "jacobian_compile_s": jacobians.compile_s,
         "compile_s": batches.compile_s,
         "max_rel_error": baseline.max_rel_error,
@@ -477,14 +485,15 @@ def _hardware_throughput(size: int, log) -> _Hardware:
     return _Hardware(per_s, result)
 
 
-def _envelope_throughput(size: int, log) -> _Hardware:
+def _envelope_throughput(size: int, log, absorber: bool = True) -> _Hardware:
     """The firing envelope on (`envelope_designs`), at batch `size`, beside the paper
     model's sweep of the same size."""
-    designs = envelope_designs(size)
+    designs = envelope_designs(size, absorber=absorber)
     _timed_sweep(designs)
     result, seconds = min((_timed_sweep(designs) for _ in range(2)), key=lambda r: r.seconds)
     per_s = size / seconds
-    log(f"  envelope designs (friction, stop, buffer, preload, mount), batch {size}: "
+    which = "" if absorber else " without the absorber"
+    log(f"  envelope designs{which} (friction, stop, buffer, preload, mount), batch {size}: "
         f"{per_s:.0f} sims/s")  # fmt: skip
     return _Hardware(per_s, result)
 
@@ -558,7 +567,11 @@ def format_bench(result: dict) -> str:
         f"each solved to its rest): {result['envelope_sims_per_s']:.0f} sims/s at batch "
         f"{result['hardware_batch_size']} ({result['envelope_vs_paper']:.2f}x the paper "
         f"model's at that batch), {result['envelope_mean_steps']:.0f} steps a design, "
-        f"{result['envelope_failed']} failed",
+        f"{result['envelope_failed']} failed; without the absorber "
+        f"{result['envelope_no_absorber_sims_per_s']:.0f} sims/s "
+        f"({result['envelope_no_absorber_vs_paper']:.2f}x), "
+        f"{result['envelope_no_absorber_mean_steps']:.0f} steps a design, "
+        f"{result['envelope_no_absorber_failed']} failed",
         f"compile: {result['compile_s']:.2f} s (solve), {result['jacobian_compile_s']:.2f} s "
         "(jacobian)",
         f"max relative error vs the scipy baseline's peaks: {result['max_rel_error']:.1e}",

@@ -1,15 +1,70 @@
 """A study's own figures beside its convergence (`designs`): a Pareto front, a throttling
-design's force over its stroke, a robust design against the nominal one under scatter."""
+design's force over its stroke, a robust design against the nominal one under scatter,
+the best design's metrics at each firing condition."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import matplotlib.pyplot as plt
+import numpy as np
+
 import recoil_jax as rj
 
 from .histories import plot_series
+from .style import save, styled
 
-__all__ = ["plot_force_stroke", "plot_front", "plot_robust"]
+__all__ = ["plot_conditions", "plot_force_stroke", "plot_front", "plot_robust"]
+
+
+@styled
+def plot_conditions(problem: rj.DesignProblem, report: dict, path, title: str = "") -> Path:
+    """The best design's metrics at each firing condition side by side (`report`: a
+    study's `result.json` with its `conditions`): a panel per metric of the objective
+    and the limits, a bar per condition (red where it breaks a limit there, hatched
+    where the condition is the objective's worst), each limit a dashed line over the
+    conditions it holds at. Saved as PNG at `path`."""
+    conditions = report["conditions"]
+    names = list(conditions)
+    metrics = list(dict.fromkeys([*problem.objective.weights,
+                                  *(n for n, _, _ in problem.metric_constraints)]))  # fmt: skip
+    columns = min(3, len(metrics))
+    rows = -(-len(metrics) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(4.2 * columns, 3.2 * rows), squeeze=False)
+    x = np.arange(len(names))
+    at = dict(zip(problem.metric_constraints, problem.limit_conditions, strict=True))
+    for ax, name in zip(axes.flat, metrics, strict=False):
+        metric = rj.METRICS[name]
+        values = np.asarray(
+            [np.nan if (v := conditions[c]["metrics"][metric.key]) is None else v for c in names],
+            dtype=float,
+        )
+        broken = np.zeros(len(names), dtype=bool)
+        for (limited, kind, limit), where in at.items():
+            if limited != name:
+                continue
+            broken[where] |= values[where] > limit if kind == "max" else values[where] < limit
+            for k in where:
+                ax.hlines(limit, k - 0.45, k + 0.45, colors="k", linestyles="--", lw=1.2)
+        colours = np.where(broken, "tab:red", "tab:blue")
+        bars = ax.bar(x, np.nan_to_num(values), color=colours, width=0.6)
+        if name in problem.objective.weights:
+            bars[names.index(report["worst_condition"])].set_hatch("//")
+        for k, v in enumerate(values):
+            text = "not back" if np.isnan(v) else f"{v:,.0f}" if abs(v) >= 1e4 else f"{v:.4g}"
+            ax.annotate(text, (k, 0 if np.isnan(v) else v), ha="center",
+                        va="bottom" if not v < 0 else "top", fontsize=8)  # fmt: skip
+        ax.set_xticks(x, names)
+        ax.set_title(metric.label, fontsize=9)
+        ax.axhline(0.0, color="k", lw=0.5)
+    for ax in list(axes.flat)[len(metrics) :]:
+        ax.set_visible(False)
+    fig.suptitle(
+        f"{title}: the best design at each condition (dashed: limits; hatched: the "
+        "objective's worst; red: a limit broken)",
+        fontsize=10,
+    )
+    return save(fig, path)
 
 
 def plot_front(vary: str, xlabel: str, x, force, displacement, out: Path) -> list[Path]:

@@ -19,6 +19,8 @@ from .study_file import Study
 __all__ = [
     "best_summary",
     "check_best",
+    "condition_params",
+    "per_condition",
     "percent",
     "problem_peaks",
     "run_front",
@@ -46,6 +48,22 @@ def _scattered(problem: rj.DesignProblem, params, offsets) -> list[rj.Peaks]:
     return [
         problem_peaks(problem, rj.with_values(params, names, nominal * (1 + o))) for o in offsets
     ]
+
+
+def condition_params(problem: rj.DesignProblem, params) -> dict[str, object]:
+    """`params` at each of the problem's conditions by name (`{"": params}` without)."""
+    if not problem.conditions:
+        return {"": params}
+    return {
+        c.name: rj.with_values(params, c.names, np.asarray([v for _, v in c.values]))
+        for c in problem.conditions
+    }
+
+
+def per_condition(runs: list[rj.Peaks]) -> dict[str, np.ndarray]:
+    """The metrics of each run by name, `(K,)` each (`rj.constraint_report`'s form for a
+    problem with conditions)."""
+    return {name: np.asarray([float(getattr(r, name)) for r in runs]) for name in rj.METRICS}
 
 
 def _solved(peaks: rj.Peaks) -> list[str]:
@@ -79,7 +97,21 @@ def best_summary(study: Study, result: rj.OptimiseResult, scenario: int) -> dict
         "objective": float(problem.objective(best.metrics())),
     }
     limits = result.scenario_limits[scenario]
-    if problem.objective.scatter is not None:
+    if problem.conditions:
+        at = condition_params(problem, params)
+        runs = [problem_peaks(problem, p) for p in at.values()]
+        worst, worst_objective = _worst_case(problem, runs)
+        objectives = [float(problem.objective(r.metrics())) for r in runs]
+        summary["objective"] = worst_objective
+        summary["worst_condition"] = list(at)[int(np.argmax(objectives))]
+        summary["metrics"] = runs[int(np.argmax(objectives))].to_dict()
+        summary["worst_case_metrics"] = worst
+        summary["conditions"] = {
+            c.name: {"values": dict(c.values), "objective": objective, "metrics": r.to_dict()}
+            for c, r, objective in zip(problem.conditions, runs, objectives, strict=True)
+        }
+        summary["constraints"] = rj.constraint_report(problem, design, per_condition(runs), limits)
+    elif problem.objective.scatter is not None:
         worst, worst_objective = _worst_case(
             problem, _scattered(problem, params, problem.objective.scatter_points[1])
         )
@@ -161,9 +193,16 @@ def check_best(study: Study, result, report: dict, simulations: dict, kwargs, ou
     from .._figures.histories import plot_history
 
     problem = study.problem
+    worst = report.get("worst_condition")
+    at = condition_params(problem, result.best_params(0))
     with phase("history", "the best design's history"):
-        history = _history(problem, result.best_params(0), 3.0)
-        plot_history(history, out / "best_history.png", title=f"{study.name}: best design")
+        title = f"{study.name}: best design" + (f" at {worst}" if worst else "")
+        history = _history(problem, at[worst or ""], 3.0)
+        plot_history(history, out / "best_history.png", title=title)
+    if problem.conditions:
+        from .._figures.studies import plot_conditions
+
+        plot_conditions(problem, report, out / "conditions.png", title=study.name)
 
     if _is_throttling(report["best"]):
         with phase("force_stroke", "force over the stroke, beside a tuned linear damper"):
@@ -173,19 +212,28 @@ def check_best(study: Study, result, report: dict, simulations: dict, kwargs, ou
     check = study.check
     if check.get("hard"):
         with phase("hard_check", "check: the hard-switch model"):
-            hard = problem_peaks(problem, result.best_params(0), rj.Smoothing.exact())
-            smooth = problem_peaks(problem, result.best_params(0))
-        # At the nominal parameters (for a scatter study too): a check of the model.
-        report["hard_model"] = {
-            "metrics": hard.to_dict(),
-            "objective_at_nominal": float(problem.objective(hard.metrics())),
-            "max_relative_difference": max(
-                abs(float(getattr(hard, name)) - float(getattr(smooth, name)))
-                / max(abs(float(getattr(smooth, name))), 1e-12)
-                for name in _solved(smooth)
-            ),
+            hard = {k: problem_peaks(problem, p, rj.Smoothing.exact()) for k, p in at.items()}
+            smooth = {k: problem_peaks(problem, p) for k, p in at.items()}
+        # At the nominal parameters (for a scatter study too; at each condition): a check
+        # of the model.
+        differences = {
+            k: max(
+                abs(float(getattr(hard[k], name)) - float(getattr(smooth[k], name)))
+                / max(abs(float(getattr(smooth[k], name))), 1e-12)
+                for name in _solved(smooth[k])
+            )
+            for k in at
         }
-        simulations["hard_check"] = 1
+        key = worst or ""
+        report["hard_model"] = {
+            "metrics": hard[key].to_dict(),
+            "objective_at_nominal": float(problem.objective(hard[key].metrics())),
+            "max_relative_difference": max(differences.values()),
+        }
+        if problem.conditions:
+            report["hard_model"]["at"] = worst
+            report["hard_model"]["max_relative_difference_by_condition"] = differences
+        simulations["hard_check"] = len(at)
     if "grid" in check:
         with phase("grid_check", "check: a grid around the best design"):
             report["grid_check"], n = _grid_check(study, result, check["grid"], phase.enabled)

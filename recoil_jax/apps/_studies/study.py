@@ -24,6 +24,8 @@ from .._files.json_writer import write as write_json
 from .checks import (
     best_summary,
     check_best,
+    condition_params,
+    per_condition,
     percent,
     problem_peaks,
     run_front,
@@ -54,13 +56,31 @@ def study_summary(report: dict) -> str:
         f"{report['seconds']:.1f} s",
         "  best: " + ", ".join(f"{k}={report['best'][k]:.6g}" for k in report["tuned"]),
     ]
+    for name, c in report.get("conditions", {}).items():
+        metrics = ", ".join(
+            f"{key} {c['metrics'][key]:.6g}" if c["metrics"][key] is not None else f"{key} -"
+            for key in _condition_keys(report)
+        )
+        worst = " (worst)" if name == report.get("worst_condition") else ""
+        lines.append(f"  at {name}{worst}: {metrics}")
     for name, c in report["constraints"].items():
-        unit = unit_of(name.rsplit(" (", 1)[0])
+        unit = unit_of(name.split(" (", 1)[0])
         state = "ok" if c["satisfied"] else "VIOLATED"
         lines.append(f"  {name}: {c['value']:.6g} {unit} (limit {c['limit']:g} {unit}) {state}")
     if line := agreement_line(report):
         lines.append(f"  {line}")
     return "\n".join(lines)
+
+
+def _condition_keys(report: dict) -> list[str]:
+    """The JSON keys the summary shows at each condition: the objective's metrics and
+    the limited ones."""
+    names = [
+        *report.get("objective_metrics", []),
+        *(n.split(" (", 1)[0] for n in report["constraints"]),
+    ]
+    keys = [rj.METRICS[n].key for n in dict.fromkeys(names) if n in rj.METRICS]
+    return keys
 
 
 def _search_summary(result: rj.OptimiseResult, local: rjx.LocalMethod) -> dict:
@@ -155,6 +175,7 @@ def run_study(
         "study": study.name,
         "description": study.description,
         "objective_unit": study.problem.objective.unit,
+        "objective_metrics": list(study.problem.objective.weights),
     }
     if study.optimiser["method"] == "search":
         result, simulations, report["optimiser"] = _run_search(
@@ -264,18 +285,25 @@ def _infeasible_summary(study: Study, closest) -> dict:
         summary["closest"] = None
         summary["message"] = "no design met every limit, and no solve succeeded"
         return summary
-    peaks = problem_peaks(problem, closest)
-    metrics = peaks.metrics()
+    at = condition_params(problem, closest)
+    runs = [problem_peaks(problem, p) for p in at.values()]
+    metrics = per_condition(runs) if problem.conditions else runs[0].metrics()
     missed = rj.closest_miss(problem, rj.metric_violations(problem, metrics))
     design = {k: float(np.asarray(v)) for k, v in rj.params_to_values(closest).items()}
+    objectives = [float(problem.objective(r.metrics())) for r in runs]
     summary["closest"] = {
         "design": design,
-        "metrics": peaks.to_dict(),
-        "objective": float(problem.objective(metrics)),
+        "metrics": runs[int(np.argmax(objectives))].to_dict(),
+        "objective": max(objectives),
         "missed": missed,
     }
+    if problem.conditions:
+        summary["closest"]["conditions"] = {k: r.to_dict() for k, r in zip(at, runs, strict=True)}
     units = {
-        f"{name} ({kind})": rj.METRICS[name].unit for name, kind, _ in problem.metric_constraints
+        label: rj.METRICS[name].unit
+        for (name, _, _), label in zip(
+            problem.metric_constraints, problem.limit_labels, strict=True
+        )
     }
     misses = "; ".join(
         f"{name} {m['value']:.6g} {units[name]} against the limit {m['limit']:.6g} "

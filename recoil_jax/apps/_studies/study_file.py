@@ -13,7 +13,11 @@ peak_anchoring_force = 20.0
 [objective.scatter]           # optional: worst case over relative offsets of a parameter
 v0 = [-0.05, 0.0, 0.05]
 [constraints]                 # name = {max = .., min = ..}: metrics or parameters
-max_stroke = {max = 0.15}
+max_stroke = {max = 0.15}     #   (a metric's: at every condition)
+[[condition]]                 # optional, repeatable: firing conditions (values of untuned
+name = "70 deg"               #   parameters); the objective is the worst over them, each
+elevation = 70.0              #   solved in one batched program; a condition's own limits:
+constraints = {peak_displacement = {max = 0.8}}
 [optimiser]                   # method = "search" (global + a local method): samples, starts,
 starts = 8                    #   maxiter, seed, max_seconds, and local = "slsqp",
                               #   "epigraph_minimax", "trust_region_lp" or "optax_adam"
@@ -37,6 +41,10 @@ local = 0.02                  # 1-D scans ± this fraction of each bound's width
 hard = true                   # the hard-switch model
 nominal = true                # (scatter) the nominal optimum under the same scatter
 ```
+
+`[design]` may also give `t1`, the end time of every solve (s; default 10 s after the
+last round). A condition's parameters not in `[design]` enter it at the first
+condition's values (they must be part of the design).
 
 A `[design]` that gives a tuned parameter is a start (`search` starts one local run
 there); one that sets only fixed hardware is not. Tuned parameters it does not give take
@@ -85,6 +93,7 @@ __all__ = [
 
 _SECTIONS = {
     "calibration",
+    "condition",
     "description",
     "design",
     "tune",
@@ -217,7 +226,12 @@ def load_study(path) -> Study:
     tune, bounds = _parse_tune(path, config["tune"])
     objective = _parse_objective(path, config["objective"])
     constraints = _parse_constraints(path, config.get("constraints", {}))
+    conditions, condition_limits = _parse_conditions(path, config.get("condition", []), tune)
+    constraints = constraints + condition_limits
     design = dict(config.get("design", {}))
+    t1 = _parse_t1(path, design)
+    for condition in conditions:  # (their parameters must be in the design's structure)
+        design = dict(condition.values) | design
     calibration = None
     if "calibration" in config:
         design, objective = _parse_calibration(path, config["calibration"], design, tune, objective)
@@ -232,12 +246,19 @@ def load_study(path) -> Study:
             else f"quantile {objective.quantile:g}",
         }
     params, has_start = _parse_design(path, design, tune, bounds)
-    problem = rj.DesignProblem(
-        params=params, objective=objective, tune=tuple(tune), bounds=bounds,
-        constraints=constraints,
-    )  # fmt: skip
+    options = rj.GRADIENT_OPTIONS if t1 is None else dataclasses.replace(rj.GRADIENT_OPTIONS, t1=t1)
+    try:
+        problem = rj.DesignProblem(
+            params=params, objective=objective, tune=tuple(tune), bounds=bounds,
+            constraints=constraints, conditions=conditions, options=options,
+        )  # fmt: skip
+    except rj.ParameterError as error:
+        raise _error(path, str(error)) from None
     optimiser = _parse_optimiser(path, dict(config.get("optimiser", {})))
     fronts = _parse_fronts(path, config.get("front", []), problem)
+    for front in fronts:
+        if any(front["vary"] in c.names for c in conditions):
+            raise _error(path, f"[[front]] vary = {front['vary']!r} is set by the conditions")
     if optimiser["method"] == "search" and (fronts or objective.scatter is not None):
         raise _error(
             path, 'method = "search" takes neither [[front]] nor a scatter; use "adam" for those'
@@ -354,14 +375,74 @@ def _parse_objective(path, section: dict) -> rj.Objective:
     )
 
 
-def _parse_constraints(path, section: dict) -> tuple[rj.Constraint, ...]:
+def _parse_constraints(path, section: dict, where="[constraints]") -> tuple[rj.Constraint, ...]:
     """`[constraints]`: `name = {max = .., min = ..}` for metrics and parameters."""
     constraints = []
     for name, limits in section.items():
         if not isinstance(limits, dict) or set(limits) - {"max", "min"}:
-            raise _error(path, f"[constraints] {name} = {{max = .., min = ..}} expected")
-        constraints.append(rj.Constraint(name, upper=limits.get("max"), lower=limits.get("min")))
+            raise _error(path, f"{where} {name} = {{max = .., min = ..}} expected")
+        if not all(_is_number(v) for v in limits.values()):
+            raise _error(path, f"{where} {name} = {limits!r}: limits must be numbers")
+        try:
+            constraints.append(
+                rj.Constraint(name, upper=limits.get("max"), lower=limits.get("min"))
+            )
+        except rj.ParameterError as error:
+            raise _error(path, f"{where} {error}") from None
     return tuple(constraints)
+
+
+_CONDITION_KEYS = {"name", "constraints"}
+
+
+def _parse_conditions(
+    path, tables, tune: list[str]
+) -> tuple[tuple[rj.Condition, ...], tuple[rj.Constraint, ...]]:
+    """`[[condition]]`: each a `name` (default its values, `"elevation=70"`), values of
+    untuned parameters, and its own limits (`constraints = {metric = {max = ..}}`)."""
+    tables = [tables] if isinstance(tables, dict) else list(tables)
+    conditions, limits = [], []
+    for i, table in enumerate(tables):
+        if not isinstance(table, dict):
+            raise _error(path, "[[condition]] must be tables: name = .., parameter = value")
+        values = {k: v for k, v in table.items() if k not in _CONDITION_KEYS}
+        where = f"[[condition]] {i + 1}"
+        for name, value in values.items():
+            if name not in rj.PARAMETERS:
+                raise _error(path, f"{where}: {rj.PARAMETERS.unknown(name)}")
+            if not _is_number(value):
+                raise _error(path, f"{where}: {name} = {value!r}: valid a number")
+            if name in tune:
+                raise _error(path, f"{where} sets {name}, which is tuned: a condition sets "
+                             "untuned parameters only")  # fmt: skip
+        default = ", ".join(f"{k}={v:g}" for k, v in values.items())
+        name = table.get("name", default)
+        if not isinstance(name, str) or not name.strip():
+            raise _error(path, f"{where}: name = {name!r}: valid a non-empty string")
+        try:
+            conditions.append(rj.Condition(name, values))
+        except rj.ParameterError as error:
+            raise _error(path, f"{where}: {error}") from None
+        own = table.get("constraints", {})
+        if not isinstance(own, dict):
+            raise _error(path, f"{where}: constraints = {{metric = {{max = .., min = ..}}}}")
+        for constraint in _parse_constraints(path, own, f"[[condition]] {name!r} constraints"):
+            if not constraint.is_metric:
+                raise _error(path, f"{where}: constraints may limit metrics only, not the "
+                             f"parameter {constraint.name}")  # fmt: skip
+            limits.append(dataclasses.replace(constraint, conditions=(name,)))
+    return tuple(conditions), tuple(limits)
+
+
+def _parse_t1(path, design: dict) -> float | None:
+    """`[design] t1` (removed from `design`): the solves' end time, s."""
+    if "t1" not in design:
+        return None
+    t1 = design.pop("t1")
+    limits = rjx.T1_LIMITS
+    if not _is_number(t1) or not limits.lower < t1 <= limits.upper:
+        raise _error(path, f"[design] t1 = {t1!r}: valid {limits.describe()}")
+    return float(t1)
 
 
 def _parse_design(path, design: dict, tune: list[str], bounds: dict) -> tuple[Any, bool]:

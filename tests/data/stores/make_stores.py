@@ -2,7 +2,8 @@
 a sweep's, a search's, an optimisation's and a calibration's, each small and finished.
 They were made at 66a0bae, before issue 53 redrew the package, and made again when
 issue 54 changed every campaign's identity on purpose (the design's structure gained
-the firing envelope's groups, the smoothing its widths, the results their columns), with
+the firing envelope's groups, the smoothing its widths, the results their columns, a
+design problem its firing conditions), with
 
     PYTHONPATH=<a checkout of 66a0bae> python tests/data/stores/make_stores.py tests/data/stores
 
