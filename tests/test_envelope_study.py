@@ -115,6 +115,37 @@ def test_conditions_in_one_program_equal_each_solved_alone(envelope):
     assert swept.objective[1] == pytest.approx(float(other.objective), rel=1e-6)
 
 
+def test_conditions_that_set_different_parameters(envelope):
+    """A charge (v0) and an elevation as two conditions: each fires at the design's
+    value of what it does not set, in the batched evaluator (the search's global phase)
+    as in `evaluate_design`, beside plain solves of those designs."""
+    problem = eqx_replace(
+        envelope,
+        conditions=(rj.Condition("charge", {"v0": 8.0}), rj.Condition("high", {"elevation": 70.0})),
+        constraints=(rj.Constraint("return_time", upper=2.5, conditions=["high"]),),
+    )
+    assert problem.constraints[0].conditions == ("high",)  # (a list is taken as a tuple)
+    theta = theta_of(problem, HAND)
+    evaluation = rjx.evaluate_design(problem, theta)
+    batch = rjx.BatchEvaluator(problem)
+    swept = batch(np.asarray(batch.space.z(np.asarray(theta)))[None])
+    design = rj.params_to_values(problem.params) | HAND  # elevation 0, v0 10
+    plain = [
+        rj.peaks(rj.params_from_values(design | change), problem.smoothing, problem.options)
+        for change in ({"v0": 8.0}, {"elevation": 70.0})
+    ]
+    forces = [float(p.peak_anchoring_force) for p in plain]
+    np.testing.assert_allclose(evaluation.conditions["peak_anchoring_force"], forces, rtol=1e-6)
+    assert swept.objective[0] == pytest.approx(max(forces), rel=1e-6)
+    high = float(plain[1].return_time)
+    assert swept.violations[0, 0] == pytest.approx((high - 2.5) / 2.5, rel=1e-5)
+
+
+def test_a_front_cannot_vary_a_metric_with_several_limits(envelope):
+    with pytest.raises(rj.ParameterError, match="has 3 limits"):
+        rj.optimise(envelope, scenario_limits={"peak_displacement": [0.9, 1.0]}, starts=1, steps=1)
+
+
 @pytest.mark.slow
 def test_the_minimax_pieces_and_their_gradients(envelope):
     """At level 0 the gradient solve gives each condition's objective and its gradient

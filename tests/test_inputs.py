@@ -63,6 +63,8 @@ def files(tmp_path):
         text = study.format(design=envelope, limit="") + "[[condition]]\n" + condition + "\n"
         (tmp_path / f"{name}.toml").write_text(text)
     text = study.format(design=envelope, limit="") + '[[condition]]\nname = "a"\nv0 = 9.0\n'
+    mixed = text + '[[condition]]\nname = "b"\nelevation = 70.0\n'
+    (tmp_path / "condition_mixed.toml").write_text(mixed)
     (tmp_path / "condition_and_scatter.toml").write_text(
         text.replace("[constraints]", "[objective.scatter]\nv0 = [-0.05, 0.05]\n[constraints]")
     )
@@ -135,6 +137,7 @@ def _refused(capsys, argv, fragment, status=2):
         (["optimise", "condition_limit_parameter.toml"], "metrics only, not the parameter m"),
         (["optimise", "condition_twice.toml"], "two conditions share a name"),
         (["optimise", "condition_and_scatter.toml"], "cannot both be given"),
+        (["optimise", "condition_mixed.toml"], "'b' does not set v0"),
     ],
 )
 def test_a_bad_input_is_one_line_and_exit_status_2(

@@ -122,11 +122,9 @@ class BatchEvaluator:
             designs = {name: np.repeat(np.asarray(v, dtype=float), len(conditions)) for
                        name, v in designs.items()}  # fmt: skip
             for name in dict.fromkeys(n for c in conditions for n in c.names):
-                column = designs[name].reshape(n, len(conditions))
-                column[:] = [dict(c.values).get(name, np.nan) for c in conditions]
-                designs[name] = np.where(
-                    np.isnan(column), np.asarray(designs[name]).reshape(n, -1), column
-                ).ravel()
+                own = designs[name].reshape(n, len(conditions))  # the design's value
+                given = np.asarray([dict(c.values).get(name, np.nan) for c in conditions])
+                designs[name] = np.where(np.isnan(given), own, given).ravel()
         result = sweep(
             designs,
             smoothing=problem.smoothing,

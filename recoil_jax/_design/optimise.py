@@ -204,6 +204,11 @@ def _scenarios(
                 f"scenario_limits names {name!r}, which has no metric "
                 f"constraint; constrained: {', '.join(names) or 'none'}"
             )
+        if names.count(name) > 1:
+            raise ParameterError(
+                f"scenario_limits names {name!r}, which has {names.count(name)} limits (at "
+                "different conditions, or a max and a min): a front varies a metric with one"
+            )
         if not np.all(np.isfinite(np.asarray(values, dtype=float))):
             raise ParameterError(f"scenario_limits for {name} must be finite numbers")
         sizes.add(len(values))

@@ -149,6 +149,12 @@ class Objective(eqx.Module):
         return total
 
 
+def _condition_names(names: Any) -> Any:
+    """A list of condition names as a tuple (a static field must hash); anything else
+    as given, for `Constraint`'s check."""
+    return tuple(names) if isinstance(names, list) else names
+
+
 class Constraint(eqx.Module):
     """`lower <= value <= upper` for a metric (`METRICS`) or a parameter (flat
     name), in its SI unit. Give one or both limits."""
@@ -156,7 +162,9 @@ class Constraint(eqx.Module):
     name: str = eqx.field(static=True)
     upper: float | None = eqx.field(default=None, static=True)
     lower: float | None = eqx.field(default=None, static=True)
-    conditions: tuple[str, ...] | None = eqx.field(default=None, static=True)
+    conditions: tuple[str, ...] | None = eqx.field(
+        default=None, static=True, converter=_condition_names
+    )
 
     def __check_init__(self):
         if self.conditions is not None:

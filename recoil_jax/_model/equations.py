@@ -578,7 +578,8 @@ def held_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
     (`|v_M| < 1e-6 m/s`) with the net force on it inside the friction's band by more
     than what the absorber can still change (its energy about its rest on the barrel,
     bounding the coupling's swing; nor can it reach the wall), and by the band's
-    smoothing width (or, within it, at a creep below 1e-9 m/s): nothing moves the barrel
+    smoothing width (or, within it, at a creep below 1e-9 m/s); the coupling's swing
+    counted from one side to the other, since it may be at either now: nothing moves the barrel
     again, so its peaks, return (found, or never) and rest `x_M(t1)` are known now (to
     its creep, `|v_M| τ < 1e-9 m`, or `|v_M| (t1 − t)` at the band's edge). The loop
     then stops (`PeakLoop`)."""
@@ -590,17 +591,21 @@ def held_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
         return {name: inf for name in values}
     bound = friction_bound(params)
     speed = jnp.abs(y[1])
-    swing = jnp.zeros_like(y[0])  # the coupling force's possible change (N)
-    reach = jnp.zeros_like(y[0])  # the absorber's possible travel (m)
+    swing = jnp.zeros_like(y[0])  # the coupling force's possible change from now (N)
+    reach = jnp.zeros_like(y[0])  # the absorber's possible travel from now (m)
     quiet = jnp.array(True)
     if params.absorber is not None:
         absorber = params.absorber
         rest = -absorber_sag(params)  # x_M − x_m at rest
         relative = y[0] - y[2]
         energy = 0.5 * absorber.m * (y[3] - y[1]) ** 2 + 0.5 * absorber.k_r * (relative - rest) ** 2
-        reach = jnp.sqrt(2.0 * energy / absorber.k_r)
-        swing = absorber.k_r * reach + absorber.c_r * jnp.sqrt(2.0 * energy / absorber.m)
-        quiet = rest + reach + speed * smoothing.stick_time < absorber.gap - width_contact
+        amplitude = jnp.sqrt(2.0 * energy / absorber.k_r)  # about its rest, either way
+        quiet = rest + amplitude + speed * smoothing.stick_time < absorber.gap - width_contact
+        # From one side of its swing to the other: twice the amplitude, from now.
+        reach = 2.0 * amplitude
+        swing = 2.0 * (
+            absorber.k_r * amplitude + absorber.c_r * jnp.sqrt(2.0 * energy / absorber.m)
+        )
     force_change = swing + params.barrel.M * speed / smoothing.stick_time
     spent = remaining_impulse(t, params) <= 1e-12 * params.barrel.M * jnp.abs(params.barrel.v0)
     load = jnp.abs(net_force(f)) + force_change

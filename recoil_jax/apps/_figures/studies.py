@@ -32,7 +32,7 @@ def plot_conditions(problem: rj.DesignProblem, report: dict, path, title: str = 
     rows = -(-len(metrics) // columns)
     fig, axes = plt.subplots(rows, columns, figsize=(4.2 * columns, 3.2 * rows), squeeze=False)
     x = np.arange(len(names))
-    at = dict(zip(problem.metric_constraints, problem.limit_conditions, strict=True))
+    at = list(zip(problem.metric_constraints, problem.limit_conditions, strict=True))
     for ax, name in zip(axes.flat, metrics, strict=False):
         metric = rj.METRICS[name]
         values = np.asarray(
@@ -40,7 +40,7 @@ def plot_conditions(problem: rj.DesignProblem, report: dict, path, title: str = 
             dtype=float,
         )
         broken = np.zeros(len(names), dtype=bool)
-        for (limited, kind, limit), where in at.items():
+        for (limited, kind, limit), where in at:
             if limited != name:
                 continue
             broken[where] |= values[where] > limit if kind == "max" else values[where] < limit

@@ -43,8 +43,9 @@ nominal = true                # (scatter) the nominal optimum under the same sca
 ```
 
 `[design]` may also give `t1`, the end time of every solve (s; default 10 s after the
-last round). A condition's parameters not in `[design]` enter it at the first
-condition's values (they must be part of the design).
+last round). A condition fires at the design's values of what it does not set; a
+parameter that every condition sets need not be in `[design]`, one that only some set
+must be.
 
 A `[design]` that gives a tuned parameter is a start (`search` starts one local run
 there); one that sets only fixed hardware is not. Tuned parameters it does not give take
@@ -230,8 +231,15 @@ def load_study(path) -> Study:
     constraints = constraints + condition_limits
     design = dict(config.get("design", {}))
     t1 = _parse_t1(path, design)
-    for condition in conditions:  # (their parameters must be in the design's structure)
-        design = dict(condition.values) | design
+    for name in dict.fromkeys(n for c in conditions for n in c.names):
+        # A condition that does not set a parameter fires at the design's value of it.
+        unset = [c.name for c in conditions if name not in c.names]
+        if name not in design and unset:
+            raise _error(
+                path, f"[[condition]] {unset[0]!r} does not set {name}, which another condition "
+                f"sets: give {name} in [design] (its value there) or at every condition",
+            )  # fmt: skip
+        design.setdefault(name, dict(next(c for c in conditions if name in c.names).values)[name])
     calibration = None
     if "calibration" in config:
         design, objective = _parse_calibration(path, config["calibration"], design, tune, objective)
@@ -519,6 +527,12 @@ def _parse_fronts(path, fronts, problem: rj.DesignProblem) -> list[dict]:
         front["values"] = _front_values(path, front, constrained)
         if front["vary"] in problem.tune:
             raise _error(path, f"[[front]] vary = {front['vary']!r} is tuned; fix it to vary it")
+        if constrained.count(front["vary"]) > 1:
+            raise _error(
+                path,
+                f"[[front]] vary = {front['vary']!r} has several limits (at different "
+                "conditions, or a max and a min): a front varies one",
+            )
     return fronts
 
 
