@@ -279,6 +279,7 @@ def test_every_search_method_designs_over_the_conditions(envelope, local):
     )
     assert bool(result.feasible[0])
     assert float(result.best_objective[0]) < 0.9 * HAND_OBJECTIVE
+    assert result.solves == 3 * 64  # every sample at each of the three conditions
 
 
 @pytest.mark.slow

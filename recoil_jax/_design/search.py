@@ -492,6 +492,8 @@ def _result(
     """The `OptimiseResult` of a `_minimise` run, its points mapped to parameter values by
     `theta`, each start given its region."""
     regions = _regions(minimum.runs, minimum.spacing)
+    # An evaluation solves the design at each of its firing conditions.
+    per_design = 1 if problem is None else problem.solves_per_design
     found = Found(
         best_theta=minimum.best_z[None],
         best_objective=np.array([minimum.best_objective]),
@@ -501,8 +503,8 @@ def _result(
             dataclasses.replace(run, region=r) for run, r in zip(minimum.runs, regions, strict=True)
         ],
         trace=minimum.trace,
-        solves=minimum.solves,
-        gradient_solves=minimum.gradient_solves + extra_gradient_solves,
+        solves=minimum.solves * per_design,
+        gradient_solves=(minimum.gradient_solves + extra_gradient_solves) * per_design,
         seconds=minimum.seconds,
         samples=minimum.samples,
     )

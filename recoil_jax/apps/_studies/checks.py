@@ -156,7 +156,7 @@ def _grid_check(study: Study, result, axes: dict, progress: bool) -> tuple[dict,
         "grid_best_objective": float(objective[i]),
         "grid_best_design": {n: float(columns[n][i]) for n in grid_axes},
         "grid_spacing": spacing,
-    }, int(objective.size)
+    }, int(objective.size) * problem.solves_per_design
 
 
 def _local_check(study: Study, result, fraction: float, progress: bool) -> tuple[dict, int]:
@@ -180,7 +180,7 @@ def _local_check(study: Study, result, fraction: float, progress: bool) -> tuple
         "per_parameter": {
             n: float(np.min(objective[np.asarray(labels) == n])) for n in problem.tune
         },
-    }, len(points)
+    }, len(points) * problem.solves_per_design
 
 
 def percent(fraction: float) -> str:
