@@ -119,12 +119,9 @@ class BatchEvaluator:
         conditions = problem.conditions
         if conditions:
             # Row i·K + k: design i at condition k.
+            at = {name: v.ravel() for name, v in problem.condition_values(designs).items()}
             designs = {name: np.repeat(np.asarray(v, dtype=float), len(conditions)) for
-                       name, v in designs.items()}  # fmt: skip
-            for name in dict.fromkeys(n for c in conditions for n in c.names):
-                own = designs[name].reshape(n, len(conditions))  # the design's value
-                given = np.asarray([dict(c.values).get(name, np.nan) for c in conditions])
-                designs[name] = np.where(np.isnan(given), own, given).ravel()
+                       name, v in designs.items()} | at  # fmt: skip
         result = sweep(
             designs,
             smoothing=problem.smoothing,

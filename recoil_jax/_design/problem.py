@@ -349,25 +349,26 @@ class DesignProblem(eqx.Module):
     def condition_names(self) -> tuple[str, ...]:
         return tuple(c.name for c in self.conditions)
 
-    def at_conditions(self, params: RecoilParams) -> RecoilParams:
-        """`params` at each condition, stacked along a leading axis `(K, ...)` (the
-        conditions' parameters; the others `params`' own). The structure must have
-        conditions."""
-        names = tuple(dict.fromkeys(n for c in self.conditions for n in c.names))
-        base = values_of(params, names)
-        rows = [
-            [dict(c.values).get(name, base[j]) for j, name in enumerate(names)]
-            for c in self.conditions
-        ]
-        values = jnp.stack([jnp.stack([jnp.asarray(v, dtype=float) for v in row]) for row in rows])
-        return jax.vmap(lambda v: with_values(params, names, v))(values)
+    def condition_values(self, own: Mapping[str, Any], xp: Any = np) -> dict[str, Any]:
+        """Each parameter a condition sets, at every condition, by name: `(..., K)`, the
+        condition's value, or `own[name]` (`(...)`, the design's) where it sets none.
+        `xp`: `numpy` or `jax.numpy`."""
+        out = {}
+        for name in dict.fromkeys(n for c in self.conditions for n in c.names):
+            value = xp.asarray(own[name], dtype=float)
+            set_by = [dict(c.values).get(name) for c in self.conditions]
+            columns = [value if v is None else xp.full_like(value, v) for v in set_by]
+            out[name] = xp.stack(columns, axis=-1)
+        return out
 
-    def condition_designs(self, design: Mapping[str, Any]) -> list[dict[str, Any]]:
-        """A design by flat name at each condition (the conditions' values replacing its
-        own); `[design]` without conditions."""
-        if not self.conditions:
-            return [dict(design)]
-        return [dict(design) | dict(c.values) for c in self.conditions]
+    def at_conditions(self, params: RecoilParams) -> RecoilParams:
+        """`params` at each condition, stacked along a leading axis `(K, ...)`
+        (`condition_values`). The structure must have conditions."""
+        names = tuple(dict.fromkeys(n for c in self.conditions for n in c.names))
+        own = dict(zip(names, values_of(params, names), strict=True))
+        values = self.condition_values(own, jnp)
+        stacked = jnp.stack([values[name] for name in names], axis=1)  # (K, names)
+        return jax.vmap(lambda v: with_values(params, names, v))(stacked)
 
     @property
     def solves_per_design(self) -> int:
@@ -526,37 +527,31 @@ def evaluate_design(
         raise ParameterError(
             "evaluate_design: a MetricSeries takes neither a scatter objective nor conditions"
         )
-    if problem.conditions:
-        per_condition, statuses = jax.vmap(metrics_at)(problem.at_conditions(params))
-        return DesignEvaluation(
-            metrics=worst_case(per_condition, xp=jnp),
-            status=jax.tree.map(jnp.max, statuses),
-            smooth_objective=jnp.max(objective(per_condition, smooth=smooth_max is not None)),
-            objective=jnp.max(objective(per_condition)),
-            violations=_violations(problem, per_condition, limits),
-            conditions=per_condition,
-        )
-    if objective.scatter is None:
+    if objective.scatter is None and not problem.conditions:
         metrics, status = metrics_at(params)
     else:
-        names, offsets = objective.scatter_points
-        nominal = values_of(params, names)
-        scattered = jax.vmap(lambda o: with_values(params, names, nominal * (1.0 + o)))(
-            jnp.asarray(offsets)
-        )
-        per_sample, statuses = jax.vmap(metrics_at)(scattered)
-        # Worst case (or quantile) over the scatter: of the objective, and of each
-        # limited metric.
-        smooth_values = objective(per_sample, smooth=True)
-        exact_values = objective(per_sample)
-        metrics = worst_case(per_sample, xp=jnp, quantile=objective.quantile)
-        status = jax.tree.map(jnp.max, statuses)
+        if problem.conditions:
+            points = problem.at_conditions(params)
+        else:
+            names, offsets = objective.scatter_points
+            nominal = values_of(params, names)
+            points = jax.vmap(lambda o: with_values(params, names, nominal * (1.0 + o)))(
+                jnp.asarray(offsets)
+            )
+        per_point, statuses = jax.vmap(metrics_at)(points)
+        # Worst case (or quantile) over the scatter or the conditions: of the objective,
+        # and of each limited metric (with conditions, over those each limit names).
+        smooth_values = objective(per_point, smooth=True)
+        exact_values = objective(per_point)
+        metrics = worst_case(per_point, xp=jnp, quantile=objective.quantile)
+        at_conditions = per_point if problem.conditions else None
         return DesignEvaluation(
             metrics=metrics,
-            status=status,
+            status=jax.tree.map(jnp.max, statuses),
             smooth_objective=objective.over_scatter(smooth_values, jnp),
             objective=objective.over_scatter(exact_values, jnp),
-            violations=_violations(problem, metrics, limits),
+            violations=_violations(problem, per_point if problem.conditions else metrics, limits),
+            conditions=at_conditions,
         )
     return DesignEvaluation(
         metrics=metrics,
@@ -650,15 +645,15 @@ def constraint_report(
     at some conditions only).
     """
     metric_limits = iter([] if limits is None else [float(x) for x in limits])
-    names = problem.condition_names
+    limit_conditions = iter(problem.limit_conditions)
     report = {}
     for c in problem.constraints:
         for kind, limit in c.limits():
             if c.is_metric:
                 limit = next(metric_limits) if limits is not None else limit
                 values = np.asarray(metrics[c.name], dtype=float)
+                at = next(limit_conditions)
                 if problem.conditions:
-                    at = [names.index(n) for n in c.conditions or names]
                     values = values[at]
                 value = float(np.max(values) if kind == "max" else np.min(values))
             else:

@@ -20,6 +20,7 @@ __all__ = [
     "best_summary",
     "check_best",
     "condition_params",
+    "condition_peaks",
     "per_condition",
     "percent",
     "problem_peaks",
@@ -60,10 +61,15 @@ def condition_params(problem: rj.DesignProblem, params) -> dict[str, object]:
     }
 
 
-def per_condition(runs: list[rj.Peaks]) -> dict[str, np.ndarray]:
-    """The metrics of each run by name, `(K,)` each (`rj.constraint_report`'s form for a
-    problem with conditions)."""
-    return {name: np.asarray([float(getattr(r, name)) for r in runs]) for name in rj.METRICS}
+def condition_peaks(problem: rj.DesignProblem, params) -> dict[str, rj.Peaks]:
+    """The peaks of `params` at each condition by name (`condition_params`)."""
+    return {k: problem_peaks(problem, p) for k, p in condition_params(problem, params).items()}
+
+
+def per_condition(runs: list[rj.Peaks], names=tuple(rj.METRICS)) -> dict[str, np.ndarray]:
+    """The metrics `names` of each run by name, `(K,)` each (`rj.constraint_report`'s
+    form for a problem with conditions)."""
+    return {name: np.asarray([float(getattr(r, name)) for r in runs]) for name in names}
 
 
 def _solved(peaks: rj.Peaks) -> list[str]:
@@ -77,8 +83,7 @@ def _worst_case(problem: rj.DesignProblem, runs: list[rj.Peaks]) -> tuple[dict, 
     towards it) by JSON key, and the objective the same way, over the scattered solves
     `runs`: what the optimiser held."""
     objective = problem.objective
-    values = {name: [float(getattr(r, name)) for r in runs] for name in _solved(runs[0])}
-    worst = rjx.worst_case(values, quantile=objective.quantile)
+    worst = rjx.worst_case(per_condition(runs, _solved(runs[0])), quantile=objective.quantile)
     objectives = np.array([float(objective(r.metrics())) for r in runs])
     return (
         {rj.METRICS[name].key: float(v) for name, v in worst.items()},
@@ -98,8 +103,8 @@ def best_summary(study: Study, result: rj.OptimiseResult, scenario: int) -> dict
     }
     limits = result.scenario_limits[scenario]
     if problem.conditions:
-        at = condition_params(problem, params)
-        runs = [problem_peaks(problem, p) for p in at.values()]
+        at = condition_peaks(problem, params)
+        runs = list(at.values())
         worst, worst_objective = _worst_case(problem, runs)
         objectives = [float(problem.objective(r.metrics())) for r in runs]
         summary["objective"] = worst_objective
@@ -213,7 +218,7 @@ def check_best(study: Study, result, report: dict, simulations: dict, kwargs, ou
     if check.get("hard"):
         with phase("hard_check", "check: the hard-switch model"):
             hard = {k: problem_peaks(problem, p, rj.Smoothing.exact()) for k, p in at.items()}
-            smooth = {k: problem_peaks(problem, p) for k, p in at.items()}
+            smooth = condition_peaks(problem, result.best_params(0))
         # At the nominal parameters (for a scatter study too; at each condition): a check
         # of the model.
         differences = {

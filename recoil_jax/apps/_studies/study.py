@@ -24,10 +24,9 @@ from .._files.json_writer import write as write_json
 from .checks import (
     best_summary,
     check_best,
-    condition_params,
+    condition_peaks,
     per_condition,
     percent,
-    problem_peaks,
     run_front,
     unit_of,
     write_front,
@@ -79,8 +78,7 @@ def _condition_keys(report: dict) -> list[str]:
         *report.get("objective_metrics", []),
         *(n.split(" (", 1)[0] for n in report["constraints"]),
     ]
-    keys = [rj.METRICS[n].key for n in dict.fromkeys(names) if n in rj.METRICS]
-    return keys
+    return [rj.METRICS[n].key for n in dict.fromkeys(names) if n in rj.METRICS]
 
 
 def _search_summary(result: rj.OptimiseResult, local: rjx.LocalMethod) -> dict:
@@ -285,8 +283,8 @@ def _infeasible_summary(study: Study, closest) -> dict:
         summary["closest"] = None
         summary["message"] = "no design met every limit, and no solve succeeded"
         return summary
-    at = condition_params(problem, closest)
-    runs = [problem_peaks(problem, p) for p in at.values()]
+    at = condition_peaks(problem, closest)
+    runs = list(at.values())
     metrics = per_condition(runs) if problem.conditions else runs[0].metrics()
     missed = rj.closest_miss(problem, rj.metric_violations(problem, metrics))
     design = {k: float(np.asarray(v)) for k, v in rj.params_to_values(closest).items()}
