@@ -119,6 +119,8 @@ from ._model.status import (
     Status as Status,
     failure_message as failure_message,
 )
+from ._planning.plan import FiringPlan as FiringPlan, plan_firings as plan_firings
+from ._planning.problem import PlanProblem as PlanProblem, Sensor as Sensor
 from ._sweeps.batches import with_table as with_table
 from ._sweeps.grid import grid as grid
 from ._sweeps.result import SweepResult as SweepResult, load_sweep as load_sweep
@@ -156,4 +158,6 @@ __all__ = [  # noqa: RUF022 (grouped by topic, as the docs)
     "Calibration", "CalibrationResult", "calibrate", "read_trace", "predict",
     # Global sensitivity
     "sensitivity", "SensitivityResult", "SobolIndices", "MorrisEffects", "DGSM",
+    # Planning a firing test
+    "PlanProblem", "Sensor", "plan_firings", "FiringPlan",
 ]  # fmt: skip

@@ -51,6 +51,14 @@ not need them; `docs/developers.md` shows how to plug a part in.
   `reference_history` (time histories by the independent hard-switch scipy solver: a
   synthetic firing test the library shares no code with).
 
+**Test planning's parts**
+
+- `PlanReport` (what one plan predicts: its firings, criterion, standard errors and
+  what it leaves undetermined), `candidate_information` (`JᵀJ/σ²` of every candidate
+  firing and signal from the exact sensitivities, in one program), `check_plan` (noisy
+  tests of a plan fitted by the calibration, against the prediction) with `PlanCheck`,
+  and `plan_calibration` (the calibration of a plan's firings from their traces).
+
 **Global sensitivity's parts**
 
 - `SensitivityMethod` (abstract: how a method samples the box and analyses the outputs;
@@ -90,6 +98,9 @@ from ._model.registry import Parameter
 from ._model.settings import T1_LIMITS, end_time
 from ._model.status import OK_CODE, status_codes, status_messages, status_table
 from ._model.text_files import MAX_TEXT_BYTES, read_text
+from ._planning.check import PlanCheck, check_plan, plan_calibration
+from ._planning.information import candidate_information
+from ._planning.plan import PlanReport
 from ._sweeps.batches import batch_params, shard_batch
 from ._sweeps.grid import Grid
 from ._sweeps.memory import check_memory, default_workers
@@ -124,6 +135,8 @@ __all__ = [
     "MinimaxWindow",
     "ModelCheck",
     "Parameter",
+    "PlanCheck",
+    "PlanReport",
     "Prediction",
     "RunRecord",
     "SearchSpace",
@@ -133,7 +146,9 @@ __all__ = [
     "StoredSweep",
     "Trace",
     "batch_params",
+    "candidate_information",
     "check_memory",
+    "check_plan",
     "default_local",
     "default_workers",
     "end_time",
@@ -143,6 +158,7 @@ __all__ = [
     "live_programs",
     "log_coordinates",
     "minimax_metric",
+    "plan_calibration",
     "read_text",
     "reference_history",
     "run_local",

@@ -36,7 +36,7 @@ from .result import AT_BOUND, CalibrationResult, Fitted
 from .spec import Calibration
 from .traces import Experiment
 
-__all__ = ["ExperimentFit", "experiment_summary", "lane_report"]
+__all__ = ["BoxCovariance", "ExperimentFit", "box_covariance", "experiment_summary", "lane_report"]
 
 
 def lane_report(
@@ -204,29 +204,35 @@ class _Uncertainty:
     unidentifiable: list[str]
 
 
-def _uncertainty(layout: Layout, theta: np.ndarray, misfit: _Misfit) -> _Uncertainty:
-    """The Gauss–Newton covariance of `theta (P,)` scaled by the reduced χ², worked in
-    box coordinates (each bound range [0, 1]; logarithmic where the space is): a
-    direction whose 95 % interval is wider than the box, or where `JᵀJ` is singular to
-    rounding, is unconfined, and every value it involves unidentifiable."""
-    J, reduced, P = misfit.jacobian, misfit.reduced_chi2, len(theta)
-    # Box coordinates (each bound range [0, 1]; logarithmic where the space is).
-    space = layout.space
-    z = space.z(theta)
-    dtheta_dz = np.asarray(jax.jvp(space.theta, (jnp.asarray(z),), (jnp.ones(P),))[1])
-    Jz = J * dtheta_dz
-    H = Jz.T @ Jz
+@dataclasses.dataclass(frozen=True)
+class BoxCovariance:
+    """What an information matrix determines, in box coordinates (each bound range [0,
+    1]): the `covariance (P, P)`, the directions it cannot confine to the box, in words
+    (`unidentifiable`), and which values are `identifiable (P,)` (in none of them, and a
+    95 % interval narrower than the box)."""
+
+    covariance: np.ndarray
+    identifiable: np.ndarray
+    unidentifiable: list[str]
+
+
+def box_covariance(information: np.ndarray, labels, scale: float = 1.0) -> BoxCovariance:
+    """The covariance `scale · H⁻¹` of an information matrix `H (P, P)` in box
+    coordinates (`JᵀJ`, or `JᵀJ/σ²` with `scale` 1), and what it leaves undetermined: a
+    direction whose 95 % interval is wider than the box, or where `H` is singular to
+    rounding, is unconfined, and every value it involves (by `labels`) unidentifiable.
+    Shared by the calibration's report and the test plan's prediction."""
+    H = 0.5 * (information + information.T)
+    P = H.shape[0]
     eigenvalues, vectors = np.linalg.eigh(H)
     largest = max(float(eigenvalues[-1]), 1e-300)
-    # A direction is unconfined when its 95 % interval is wider than the box (or JᵀJ is
-    # singular to rounding there).
     flat = [
         j
         for j, lam in enumerate(eigenvalues)
-        if lam <= 1e-12 * largest or 1.96 * math.sqrt(reduced / max(lam, 1e-300)) > 0.5
+        if lam <= 1e-12 * largest or 1.96 * math.sqrt(scale / max(lam, 1e-300)) > 0.5
     ]
-    covariance_z = reduced * np.linalg.pinv(H, rcond=1e-12, hermitian=True)
-    sd_z = np.sqrt(np.maximum(np.diag(covariance_z), 0.0))
+    covariance = scale * np.linalg.pinv(H, rcond=1e-12, hermitian=True)
+    sd = np.sqrt(np.maximum(np.diag(covariance), 0.0))
     involved = set()
     unidentifiable = []
     for j in flat:
@@ -234,22 +240,36 @@ def _uncertainty(layout: Layout, theta: np.ndarray, misfit: _Misfit) -> _Uncerta
         names = [i for i in np.argsort(-np.abs(v)) if abs(v[i]) >= 0.2 * np.max(np.abs(v))]
         involved.update(names)
         terms = " ".join(
-            f"{'−' if v[i] < 0 else '+'} {abs(v[i]):.2f}·{layout.labels[i]}" for i in names
+            f"{'−' if v[i] < 0 else '+'} {abs(v[i]):.2f}·{labels[i]}" for i in names
         ).lstrip("+ ")
         unidentifiable.append(
-            f"{', '.join(layout.labels[i] for i in names)}: {terms} (box coordinates) is not "
+            f"{', '.join(labels[i] for i in names)}: {terms} (box coordinates) is not "
             "determined by the data"
         )
     identifiable = np.asarray(
-        [i not in involved and 2 * 1.96 * sd_z[i] < 1.0 for i in range(P)], dtype=bool
+        [i not in involved and 2 * 1.96 * sd[i] < 1.0 for i in range(P)], dtype=bool
     )
-    covariance = covariance_z * np.outer(dtheta_dz, dtheta_dz)
+    return BoxCovariance(covariance, identifiable, unidentifiable)
+
+
+def _uncertainty(layout: Layout, theta: np.ndarray, misfit: _Misfit) -> _Uncertainty:
+    """The Gauss–Newton covariance of `theta (P,)` scaled by the reduced χ², worked in
+    box coordinates (each bound range [0, 1]; logarithmic where the space is), with what
+    the data leave undetermined (`box_covariance`)."""
+    P = len(theta)
+    space = layout.space
+    z = space.z(theta)
+    dtheta_dz = np.asarray(jax.jvp(space.theta, (jnp.asarray(z),), (jnp.ones(P),))[1])
+    Jz = misfit.jacobian * dtheta_dz
+    box = box_covariance(Jz.T @ Jz, layout.labels, misfit.reduced_chi2)
+    identifiable = box.identifiable
+    covariance = box.covariance * np.outer(dtheta_dz, dtheta_dz)
     sd = np.sqrt(np.maximum(np.diag(covariance), 0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
         correlation = covariance / np.outer(sd, sd)
     correlation[~identifiable, :] = np.nan
     correlation[:, ~identifiable] = np.nan
-    return _Uncertainty(z, covariance, sd, correlation, identifiable, unidentifiable)
+    return _Uncertainty(z, covariance, sd, correlation, identifiable, box.unidentifiable)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -21,7 +21,7 @@ from .._model.settings import Smoothing, SolverOptions
 from .layout import Layout, prepare
 from .traces import T_SHIFT, Experiment
 
-__all__ = ["LOSSES", "Calibration", "validation_problem"]
+__all__ = ["LOSSES", "Calibration", "check_fitted", "validation_problem"]
 
 #: The robust losses: `linear` (plain least squares), `soft_l1` and `huber` (scipy's),
 #: each applied to the residual in units of `f_scale` noise deviations.
@@ -81,7 +81,7 @@ class Calibration:
         if not (math.isfinite(self.f_scale) and self.f_scale > 0):
             raise ParameterError(f"calibration: f_scale = {self.f_scale!r}: valid > 0")
         for name, bounds in self.fit.items():
-            _check_fitted(name, bounds, self.start.get(name))
+            check_fitted(name, bounds, self.start.get(name))
         for name in self.start:
             if name not in self.fit:
                 raise ParameterError(f"calibration: a start for {name}, which is not fitted")
@@ -116,7 +116,7 @@ class Calibration:
         return experiment.force_table if experiment.force_table is not None else self.force_table
 
 
-def _check_fitted(name: str, bounds, start) -> None:
+def check_fitted(name: str, bounds, start) -> None:
     """Check one fitted name, its `bounds` `(lower, upper)` and its `start` (None: none).
 
     **Raises:** `ParameterError` for an unknown or integer parameter, bounds that are not

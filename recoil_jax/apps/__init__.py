@@ -23,6 +23,10 @@ if TYPE_CHECKING:  # what the lazy loader below provides, for type checkers
         plot_heatmap as plot_heatmap,
     )
     from ._figures.histories import plot_history as plot_history, plot_series as plot_series
+    from ._figures.planning import (
+        plot_plan_information as plot_plan_information,
+        plot_plan_intervals as plot_plan_intervals,
+    )
     from ._studies.study import run_study as run_study
     from ._studies.study_file import load_study as load_study, resolve_study as resolve_study
 
@@ -39,6 +43,8 @@ __all__ = [
     "plot_convergence",
     "plot_heatmap",
     "plot_history",
+    "plot_plan_information",
+    "plot_plan_intervals",
     "plot_series",
     "reproduce",
     "resolve_study",
@@ -58,6 +64,8 @@ _HOMES = {
     "reproduce": "._cli.reproduce",
     "plot_convergence": "._figures.designs",
     "plot_heatmap": "._figures.designs",
+    "plot_plan_information": "._figures.planning",
+    "plot_plan_intervals": "._figures.planning",
     "plot_history": "._figures.histories",
     "plot_series": "._figures.histories",
 }

@@ -23,6 +23,7 @@ from . import (
     calibrate,
     explore,
     optimise,
+    plan,
     progress,
     reproduce,
     sensitivity,
@@ -35,7 +36,7 @@ from .optimise import INFEASIBLE
 #: The commands, in the order `recoil-jax --help` lists them: each module adds its own
 #: parser (`add_command`) and holds the code it runs.
 COMMANDS = (simulate, sweep, progress, speed_bench, store_bench, optimise, tuning_bench,
-            calibrate, sensitivity, calibration_bench, sensitivity_bench, explore,
+            calibrate, sensitivity, plan, calibration_bench, sensitivity_bench, explore,
             reproduce)  # fmt: skip
 
 __all__ = ["COMMANDS", "INFEASIBLE", "INTERRUPTED", "build_parser", "main"]
