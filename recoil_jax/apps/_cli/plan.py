@@ -155,7 +155,7 @@ def add_command(commands: Commands) -> None:
         "[budget], [criterion]; or a shipped example's name: envelope_friction). The "
         "Fisher information comes from the exact sensitivities of the signals; the choice "
         "is Fedorov's exchange. Writes result.json (the plan, each parameter's predicted "
-        "standard error and 95%% interval, and the same for the firings spread evenly and "
+        "standard error and 95% interval, and the same for the firings spread evenly and "
         "for every round at the first candidate), summary.txt, intervals.png, "
         "information.png and a calibration.toml for the traces. Exit 0 done, 1 a solve "
         "failed, 2 bad input.",
