@@ -73,6 +73,7 @@ from ._model.feasibility import (
     FEASIBILITY_TOLERANCE as FEASIBILITY_TOLERANCE,
     feasible as feasible,
 )
+from ._model.hazards import peaks_hazards as peaks_hazards
 from ._model.metrics import (
     METRICS as METRICS,
     PeakGradients as PeakGradients,
@@ -139,7 +140,7 @@ __all__ = [  # noqa: RUF022 (grouped by topic, as the docs)
     "params_from_values", "params_to_values", "values_of", "with_values", "with_table",
     "case_params", "paper_cases",
     # Solving
-    "History", "Peaks", "METRICS", "SolveError", "Status", "failure_message",
+    "History", "Peaks", "METRICS", "peaks_hazards", "SolveError", "Status", "failure_message",
     "peak_metrics", "peaks", "simulate", "reference_peaks", "enable_compilation_cache",
     "use_avx2_codegen",
     # Gradients

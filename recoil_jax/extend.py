@@ -36,6 +36,9 @@ not need them; `docs/developers.md` shows how to plug a part in.
   `worst_case`: each metric's worst over a scatter of designs; `read_text`: a text
   file, or one line saying why not (`MAX_TEXT_BYTES`: the most it reads);
   `check_memory`: refuse a count whose arrays would take over half the free memory.
+- `HAZARDS`, `Hazard`, `design_hazards`, `hazard_flags`: the hazards every report names
+  unasked (`envelope.md`), their registry, one design's from its values and metrics,
+  and a batch's as boolean arrays (`rj.peaks_hazards` takes a solved design).
 
 **Calibration's parts**
 
@@ -91,6 +94,7 @@ from ._design.search import GlobalPhase, default_local
 from ._global_sensitivity.analysis import SENSITIVITY_METHODS, SensitivityMethod, sensitivity_box
 from ._model.derivatives import SIGNALS, signal_sensitivities
 from ._model.equations import Forces
+from ._model.hazards import HAZARDS, Hazard, design_hazards, hazard_flags
 from ._model.metrics import PEAK_FIELDS, Metric, gradient_key, worst_case
 from ._model.programs import live_programs, set_max_programs, structure_jit
 from ._model.reference import reference_history
@@ -108,6 +112,7 @@ from ._sweeps.result import StoredSweep
 from ._sweeps.space import SearchSpace, log_coordinates
 
 __all__ = [
+    "HAZARDS",
     "LOSSES",
     "MAX_TEXT_BYTES",
     "OK_CODE",
@@ -126,6 +131,7 @@ __all__ = [
     "GlobalPhase",
     "GradientEvaluator",
     "Grid",
+    "Hazard",
     "LocalEvaluation",
     "LocalMethod",
     "LocalRun",
@@ -151,10 +157,12 @@ __all__ = [
     "check_plan",
     "default_local",
     "default_workers",
+    "design_hazards",
     "end_time",
     "evaluate_design",
     "fit_many",
     "gradient_key",
+    "hazard_flags",
     "live_programs",
     "log_coordinates",
     "minimax_metric",

@@ -65,7 +65,7 @@ def test_the_compiled_scalar_loop_solves_the_library_model():
         jax.vmap(
             lambda p: integrate_peaks(
                 RECOIL_TERM,
-                initial_state(p),
+                initial_state(model_args(p, smoothing)),
                 model_args(p, smoothing),
                 10.0,
                 tracked_metrics,

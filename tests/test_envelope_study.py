@@ -18,10 +18,10 @@ import recoil_jax.extend as rjx
 from recoil_jax.apps._studies.study import run_study
 from recoil_jax.apps._studies.study_file import load_study
 
-#: The issue's hand design: it meets every limit at 169 kN.
-HAND = {"c_out": 16000.0, "c_ret": 15000.0, "recuperator_preload": 30000.0,
-        "buffer_damping": 150000.0}  # fmt: skip
-HAND_OBJECTIVE = 169131.3  # N, the reference's at 70° (test_envelope_model)
+#: The hand design (issue 62): it meets every limit at 169.2 kN.
+HAND = {"c_out": 16000.0, "c_ret": 30000.0, "recuperator_preload": 30000.0,
+        "buffer_damping": 40000.0}  # fmt: skip
+HAND_OBJECTIVE = 169248.6  # N, its mount load at 70° (the push; the reference's 169.25 kN)
 ELEVATIONS = {"0 deg": 0.0, "35 deg": 35.0, "70 deg": 70.0}
 
 
@@ -57,11 +57,12 @@ def test_the_study_file_states_the_issue(envelope):
         "return_time (max)": ("return_time", "max", 2.5),
         "battery_speed (max)": ("battery_speed", "max", 0.5),
         "residual_displacement (max)": ("residual_displacement", "max", 1e-3),
+        "stability_margin (min)": ("stability_margin", "min", 0.1),
         "peak_displacement (max) at 0 deg": ("peak_displacement", "max", 1.0),
-        "stability_margin (min) at 0 deg": ("stability_margin", "min", 0.1),
         "peak_displacement (max) at 35 deg": ("peak_displacement", "max", 1.0),
         "peak_displacement (max) at 70 deg": ("peak_displacement", "max", 0.8),
     }
+    assert dict(envelope.objective.weights) == {"peak_mount_load": 1.0}
 
 
 def test_conditions_in_one_program_equal_each_solved_alone(envelope):
@@ -85,13 +86,15 @@ def test_conditions_in_one_program_equal_each_solved_alone(envelope):
             ours = float(evaluation.conditions[metric][k])
             # vmap moves results by roundoff, which may tip one step's acceptance
             # (`test_solver.test_batched_equals_loop`): measured 3e-9 on the peak force,
-            # 2e-6 on the margin at 70° (whose minimum is at the buffer's onset).
-            assert ours == pytest.approx(float(looped[metric][0]), rel=1e-5, abs=1e-9)
+            # 2e-6 on the margin at 70° (whose minimum is at the buffer's onset), 1.3e-9 m
+            # on where friction holds the barrel at 0° (its residual, 63 µm from the rest).
+            floor = 5e-9 if metric == "residual_displacement" else 1e-9
+            assert ours == pytest.approx(float(looped[metric][0]), rel=1e-5, abs=floor)
             single = float(getattr(alone[name], metric))
-            assert ours == pytest.approx(single, rel=1e-5, abs=1e-9), (name, metric)
-    forces = [float(alone[name].peak_anchoring_force) for name in ELEVATIONS]
-    assert float(evaluation.objective) == pytest.approx(max(forces), rel=1e-6)
-    assert max(forces) == pytest.approx(HAND_OBJECTIVE, abs=1.0)
+            assert ours == pytest.approx(single, rel=1e-5, abs=floor), (name, metric)
+    loads = [float(alone[name].peak_mount_load) for name in ELEVATIONS]
+    assert float(evaluation.objective) == pytest.approx(max(loads), rel=1e-6)
+    assert max(loads) == pytest.approx(HAND_OBJECTIVE, abs=1.0)
     # The violations by hand: each limit over the conditions it names.
     by_hand = []
     for (metric, kind, limit), label in zip(
@@ -134,9 +137,9 @@ def test_conditions_that_set_different_parameters(envelope):
         rj.peaks(rj.params_from_values(design | change), problem.smoothing, problem.options)
         for change in ({"v0": 8.0}, {"elevation": 70.0})
     ]
-    forces = [float(p.peak_anchoring_force) for p in plain]
-    np.testing.assert_allclose(evaluation.conditions["peak_anchoring_force"], forces, rtol=1e-6)
-    assert swept.objective[0] == pytest.approx(max(forces), rel=1e-6)
+    loads = [float(p.peak_mount_load) for p in plain]
+    np.testing.assert_allclose(evaluation.conditions["peak_mount_load"], loads, rtol=1e-6)
+    assert swept.objective[0] == pytest.approx(max(loads), rel=1e-6)
     high = float(plain[1].return_time)
     assert swept.violations[0, 0] == pytest.approx((high - 2.5) / 2.5, rel=1e-5)
 
@@ -162,7 +165,7 @@ def test_the_minimax_pieces_and_their_gradients(envelope):
 
     def conditions(z):
         evaluation = rjx.evaluate_design(envelope, space.theta(jnp.asarray(z)))
-        return np.asarray(evaluation.conditions["peak_anchoring_force"]), np.asarray(
+        return np.asarray(evaluation.conditions["peak_mount_load"]), np.asarray(
             evaluation.violations
         )
 
@@ -230,16 +233,31 @@ def test_bad_condition_problems_are_refused(envelope, change, fragment):
         rj.DesignProblem(**kwargs)
 
 
+@pytest.fixture(scope="module")
+def studies(tmp_path_factory) -> dict[int, tuple]:
+    """`recoil-jax optimise envelope` at seeds 0 to 3: each report and its folder."""
+    out = tmp_path_factory.mktemp("envelope")
+    return {
+        seed: (
+            run_study("envelope", out=out / str(seed), progress=False, seed=seed),
+            out / str(seed),
+        )
+        for seed in range(4)
+    }
+
+
 @pytest.mark.slow
-def test_the_envelope_study_beats_the_hand_design(tmp_path):
-    """`recoil-jax optimise envelope`: feasible, below the hand design's 169 kN, under 5
-    minutes; result.json holds each condition's metrics and the side-by-side figure is
-    written; at each condition the best design's metrics are the exact reference's
+def test_the_envelope_study_beats_the_hand_design(studies):
+    """`recoil-jax optimise envelope`: feasible, its worst mount load at least 20 % below
+    the hand design's 169.2 kN, under 5 minutes, with no hazard at any elevation;
+    result.json holds each condition's metrics and hazards and the side-by-side figure
+    is written; at each condition the best design's metrics are the exact reference's
     (`test_envelope_model`'s tolerances) and every limit holds on the reference too."""
-    report = run_study("envelope", out=tmp_path, progress=False)
+    report, tmp_path = studies[0]
     assert report["feasible"]
-    assert report["objective"] < 0.8 * HAND_OBJECTIVE  # measured 125 556 N
+    assert report["objective"] <= 0.8 * HAND_OBJECTIVE  # measured 126 234 N
     assert report["seconds"] < 300.0
+    assert all(c["hazards"] == [] for c in report["conditions"].values())
     assert all(c["satisfied"] for c in report["constraints"].values())
     assert set(report["conditions"]) == set(ELEVATIONS)
     assert (tmp_path / "conditions.png").stat().st_size > 10_000
@@ -251,7 +269,8 @@ def test_the_envelope_study_beats_the_hand_design(tmp_path):
         errors = compare(design, None, 6.0)
         assert all(errors[m] <= LIMITS[m] for m in errors), (name, errors)
         metrics = report["conditions"][name]["metrics"]
-        assert metrics["peak_anchoring_force_N"] <= report["objective"] + 1e-6
+        assert metrics["peak_mount_load_N"] <= report["objective"] + 1e-6
+        assert metrics["peak_pull_force_N"] < metrics["peak_anchoring_force_N"]
     # The limits on the reference's numbers, within its tolerance of ours.
     peaks = {name: report["conditions"][name]["metrics"] for name in ELEVATIONS}
     for (metric, kind, limit), label in zip(
@@ -265,6 +284,16 @@ def test_the_envelope_study_beats_the_hand_design(tmp_path):
                 LIMITS[metric] * (abs(limit) if metric == "peak_displacement" else 1.0),
             )
             assert value <= limit + slack if kind == "max" else value >= limit - slack, (label, n)
+
+
+@pytest.mark.slow
+def test_the_envelope_study_finds_one_optimum_over_seeds(studies):
+    """Seeds 0 to 3 of the study end at the same worst mount load, within 0.1 %, each
+    feasible and below 0.8 of the hand design's."""
+    assert all(report["feasible"] for report, _ in studies.values())
+    objectives = [report["objective"] for report, _ in studies.values()]
+    assert max(objectives) <= 0.8 * HAND_OBJECTIVE
+    assert (max(objectives) - min(objectives)) / min(objectives) <= 1e-3, objectives
 
 
 @pytest.mark.slow

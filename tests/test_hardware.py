@@ -356,7 +356,7 @@ def _energy_run(params, smoothing, t1):
     events = Events(
         stops=lambda a: load_stops(params), jump=jump, restart=lambda a: restart_step(params)
     )
-    z0 = jnp.concatenate([initial_state(params), jnp.zeros(2)])
+    z0 = jnp.concatenate([initial_state(args), jnp.zeros(2)])
     ts = jnp.linspace(0.0, t1, 2001)
     run = eqx.filter_jit(
         lambda: integrate_peaks(

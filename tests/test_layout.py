@@ -168,6 +168,10 @@ def test_metric_names_derive_from_the_registry():
         "residual_displacement_m",
         "stability_margin",
         "stability_margin_time_s",
+        "peak_pull_force_N",
+        "peak_pull_force_time_s",
+        "peak_mount_load_N",
+        "peak_mount_load_time_s",
         "returned",
         "num_steps",
     ]
@@ -177,7 +181,7 @@ def test_metric_names_derive_from_the_registry():
     # The model tracks, and bounds, exactly the registered metrics.
     params, smoothing = rj.RecoilParams(), rj.Smoothing()
     args = model_args(params, smoothing)
-    y = initial_state(params)
+    y = initial_state(args)
     extremes = [name for name, m in rj.METRICS.items() if m.kind == "extreme"]
     assert list(tracked_metrics(0.0, y, args)) == extremes
     assert set(future_metric_bounds(y, args, 0.0, 1.0)) == set(extremes)
@@ -254,6 +258,7 @@ RJ_NAMES = (
     "PeakGradients",
     "Peaks",
     "Rails",
+    "peaks_hazards",
     "RecoilParams",
     "Recuperator",
     "SLSQP",
@@ -320,6 +325,8 @@ RJX_NAMES = (
     "GlobalPhase",
     "GradientEvaluator",
     "Grid",
+    "HAZARDS",
+    "Hazard",
     "LOSSES",
     "LocalEvaluation",
     "LocalMethod",
@@ -333,6 +340,8 @@ RJX_NAMES = (
     "OK_CODE",
     "PEAK_FIELDS",
     "Parameter",
+    "design_hazards",
+    "hazard_flags",
     "Prediction",
     "RunRecord",
     "SENSITIVITY_METHODS",

@@ -563,7 +563,7 @@ def test_study_axis_labels_carry_units():
 
     assert _label("k_r") == "k_r (N/m)" and _label("m") == "m (kg)"
     assert _label("gap") == "gap (m)" and _label("c_r") == "c_r (N*s/m)"
-    assert _label("peak_displacement") == "peak barrel displacement (m)"
+    assert _label("peak_displacement") == "peak barrel displacement from its rest (m)"
 
 
 _IMPOSSIBLE = """

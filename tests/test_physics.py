@@ -36,7 +36,7 @@ def _energy_history(params, smoothing, t1=3.0, n=3001):
         )
         return jnp.concatenate([vector_field(t, y, args), power[None]])
 
-    z0 = jnp.concatenate([initial_state(params), jnp.zeros(1)])
+    z0 = jnp.concatenate([initial_state(args), jnp.zeros(1)])
     ts = jnp.linspace(0.0, t1, n)
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(augmented),

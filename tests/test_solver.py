@@ -70,7 +70,7 @@ def test_tsit5_last_stage_is_the_end_derivative():
     params, smoothing = rj.params_from_values(m=500.0, gap=0.0), rj.Smoothing()
     args = model_args(params, smoothing)
     solver = diffrax.Tsit5(scan_kind="lax")  # as the peak loop builds it
-    y0 = initial_state(params)
+    y0 = initial_state(args)
     dt = 1e-3
     state = solver.init(RECOIL_TERM, 0.0, dt, y0, args)
     y1, _, dense, _, _ = solver.step(RECOIL_TERM, 0.0, dt, y0, args, state, False)
@@ -306,16 +306,11 @@ def test_stopping_when_the_peaks_are_certain_changes_no_peak():
 
     def solve(bounds_fn):
         def one(params):
+            args = model_args(params, smoothing)
             run = integrate_peaks(
-                RECOIL_TERM,
-                initial_state(params),
-                model_args(params, smoothing),
-                10.0,
-                tracked_metrics,
-                options,
-                bounds_fn,
+                RECOIL_TERM, initial_state(args), args, 10.0, tracked_metrics, options, bounds_fn
             )
-            return peaks_of_run(params, smoothing, run, 10.0)
+            return peaks_of_run(params, smoothing, run, 10.0, args.rest)
 
         return eqx.filter_jit(jax.vmap(one))(batch_params(designs))
 

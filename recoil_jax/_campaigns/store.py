@@ -56,10 +56,12 @@ from .._model.status import OK_CODE, status_messages
 from .._version import __version__
 
 __all__ = [
+    "MODEL_REVISION",
     "CalibrationStore",
     "StudyStore",
     "SweepStore",
     "campaign_identity",
+    "check_model_revision",
     "connect_read",
     "evaluation_row",
     "fingerprint",
@@ -71,6 +73,12 @@ __all__ = [
 
 #: The layout of the tables; a store of another format is refused, not misread.
 STORE_FORMAT = 1
+#: The revision of the model's semantics a store's results were made by (`meta`'s
+#: `model`): 2 since the firing envelope's revision 2 (`envelope.md`: the gun fires from
+#: its static rest, displacements are measured from it, the whole gun's stability margin,
+#: the pull and the mount load). A store made by another is refused, never resumed or read
+#: on its semantics (`check_model_revision`).
+MODEL_REVISION = 2
 
 
 def campaign_identity(kind: str, *parts: Any) -> str:
@@ -256,6 +264,7 @@ class _Store:
         self.run = cursor.lastrowid
 
     def _check(self, meta: dict[str, str], identity: str) -> None:
+        check_model_revision(self.path, meta)
         kind, made = meta.get("kind"), json.loads(meta.get("description", "{}"))
         if kind != self.kind or meta.get("identity") != identity:
             what = f"a different {self.kind}" if kind == self.kind else f"a {kind}"
@@ -293,6 +302,7 @@ class _Store:
             meta = {
                 "kind": self.kind,
                 "format": str(STORE_FORMAT),
+                "model": str(MODEL_REVISION),
                 "identity": identity,
                 "total": str(total),
                 "plan": json.dumps(self.plan),
@@ -516,6 +526,22 @@ class CalibrationStore(_Store):
         )
 
 
+def check_model_revision(path, meta: dict[str, str]) -> None:
+    """Refuse (`ParameterError`, one line saying why and what to do) a store whose results
+    were made by another revision of the model's semantics (`MODEL_REVISION`; a store
+    from before revision 2 has none)."""
+    if not meta or meta.get("model") == str(MODEL_REVISION):
+        return
+    made = meta.get("model", "1")
+    raise ParameterError(
+        f"store {path} was made by revision {made} of the model, and this is revision "
+        f"{MODEL_REVISION} (the firing envelope's revision 2: the gun fires from its static "
+        "rest, displacements are measured from it, the stability margin is the whole "
+        "gun's, and the pull and the mount load are metrics): its results are not this "
+        "model's. Run the campaign again with a new store path (or delete the file)"
+    )
+
+
 def _open_sweep(path) -> tuple[sqlite3.Connection, dict[str, str]]:
     """A sweep's store, to read: its connection and `meta` (raises `ParameterError`)."""
     path = Path(path)
@@ -525,6 +551,11 @@ def _open_sweep(path) -> tuple[sqlite3.Connection, dict[str, str]]:
         db.close()
         what = f"a {meta['kind']}'s" if meta else "empty, not a recoil-jax"
         raise ParameterError(f"store {path} is {what} store, not a sweep's")
+    try:
+        check_model_revision(path, meta)
+    except ParameterError:
+        db.close()
+        raise
     return db, meta
 
 

@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 
 from .._model.equations import (
+    ModelArgs,
     contact_width,
     forces,
     future_metric_bounds,
@@ -37,6 +38,7 @@ from .._model.equations import (
     load_stops,
     model_args,
     mounted,
+    rest_root,
     restart_step,
     tracked_metrics,
     vector_field,
@@ -211,18 +213,24 @@ def _smoothed(values: dict, smooth_max: SmoothMax):
     return jnp.stack([values[name] for name in smooth_max.metrics])
 
 
-def _augmented_vf(t, y, params, smoothing, smooth_max, t1):
-    f = vector_field(t, y[:_N_STATE], model_args(params, smoothing))
+def _field_args(params, smoothing) -> ModelArgs:
+    """The model's `args` for its vector field alone, which does not read the rest."""
+    return ModelArgs(params, smoothing, contact_width(params, smoothing), None)
+
+
+def _augmented_vf(t, y, params, smoothing, smooth_max, t1, rest_guess):
+    f = vector_field(t, y[:_N_STATE], _field_args(params, smoothing))
     if smooth_max is None:
         return f
-    g = _smoothed(tracked_metrics(t, y[:_N_STATE], model_args(params, smoothing)), smooth_max)
+    args = model_args(params, smoothing, rest_guess)
+    g = _smoothed(tracked_metrics(t, y[:_N_STATE], args), smooth_max)
     # Clipped so that a sudden rise far above the running integral cannot overflow.
     exponent = jnp.minimum(g / smooth_max.temperatures - y[_N_STATE:], 700.0)
     return jnp.concatenate([f, jnp.exp(exponent) / t1])
 
 
-def _augmented_metrics(t, y, params, smoothing, smooth_max) -> dict[str, Any]:
-    values = tracked_metrics(t, y[:_N_STATE], model_args(params, smoothing))
+def _augmented_metrics(t, y, params, smoothing, smooth_max, rest_guess) -> dict[str, Any]:
+    values = tracked_metrics(t, y[:_N_STATE], model_args(params, smoothing, rest_guess))
     if smooth_max is not None:
         # The log-integrals increase monotonically: their maximum is their value at t1.
         for j, name in enumerate(smooth_max.metrics):
@@ -230,11 +238,12 @@ def _augmented_metrics(t, y, params, smoothing, smooth_max) -> dict[str, Any]:
     return values
 
 
-def _augmented_initial_state(params, smoothing, smooth_max):
-    y0 = initial_state(params)
+def _augmented_initial_state(params, smoothing, smooth_max, rest_guess):
+    args = model_args(params, smoothing, rest_guess)
+    y0 = initial_state(args)
     if smooth_max is None:
         return y0
-    g0 = _smoothed(tracked_metrics(0.0, y0, model_args(params, smoothing)), smooth_max)
+    g0 = _smoothed(tracked_metrics(0.0, y0, args), smooth_max)
     return jnp.concatenate([y0, g0 / smooth_max.temperatures + jnp.log(_SEED)])
 
 
@@ -243,14 +252,14 @@ def _state_size(smooth_max) -> int:
 
 
 def _tangent_vf(t, z, args, wrt):
-    params, smoothing, smooth_max, t1 = args
+    params, smoothing, smooth_max, t1, rest_guess = args
     n = _state_size(smooth_max)
     y, tangents = z[:n], z[n:].reshape(-1, n)
     # Linearised in the parameters `wrt` only: the others are constants here, so no
     # tangent flows through them.
     f_y, f_jvp = jax.linearize(
         lambda y_, theta: _augmented_vf(
-            t, y_, with_values(params, wrt, theta), smoothing, smooth_max, t1
+            t, y_, with_values(params, wrt, theta), smoothing, smooth_max, t1, rest_guess
         ),
         y,
         values_of(params, wrt),
@@ -271,16 +280,18 @@ _STATE_TERM = diffrax.ODETerm(lambda t, y, args: _augmented_vf(t, y, *args))
 
 
 def _tangent_metrics(t, z, args):
-    params, smoothing, smooth_max, _ = args
-    return _augmented_metrics(t, z[: _state_size(smooth_max)], params, smoothing, smooth_max)
+    params, smoothing, smooth_max, _, rest_guess = args
+    return _augmented_metrics(
+        t, z[: _state_size(smooth_max)], params, smoothing, smooth_max, rest_guess
+    )
 
 
 def _tangent_bounds(z, args, t, t1):
     """`future_metric_bounds` (`held_bounds` with the firing envelope) of the state part
     of `z` (without smooth maxima)."""
-    params, smoothing, _, _ = args
+    params, smoothing, _, _, rest_guess = args
     bounds = held_bounds if has_envelope(params) else future_metric_bounds
-    return bounds(z[:_N_STATE], model_args(params, smoothing), t, t1)
+    return bounds(z[:_N_STATE], model_args(params, smoothing, rest_guess), t, t1)
 
 
 #: A smooth maximum stops integrating once the rest of `[t, t1]` can add less than this to
@@ -292,7 +303,7 @@ def _smooth_tangent_bounds(z, args, t, t1):
     """`_tangent_bounds`, and for each smooth maximum its log-integral `L` where the
     rest of the run cannot raise it by `_SMOOTH_TAIL` (else `+inf`): with `B` bounding
     the metric from `t` on, `L(t1) <= L(t) + log(1 + (t1 - t)/t1 · exp(B/T - L(t)))`."""
-    _, _, smooth_max, _ = args
+    smooth_max = args[2]
     bounds = _tangent_bounds(z, args, t, t1)
     for j, name in enumerate(smooth_max.metrics):
         log_integral = z[_N_STATE + j]
@@ -319,7 +330,7 @@ def _tangent_jump(before, t, z, f_before, args, wrt):
     `y⁺ = g(y⁻, θ)` at a time `τ(θ)`, the tangents jump
     by `S⁺ = g_y (S⁻ + f⁻ τ_θ) + g_θ − f⁺ τ_θ`: the round's firing time moves with
     `fire_interval`, and `f⁻ ≠ f⁺` where a force table starts or ends off zero."""
-    params, smoothing, smooth_max, t1 = args
+    params, smoothing, smooth_max, t1, rest_guess = args
     n = _state_size(smooth_max)
     y, tangents = z[:n], z[n:].reshape(-1, n)
     theta = values_of(params, wrt)
@@ -333,7 +344,7 @@ def _tangent_jump(before, t, z, f_before, args, wrt):
 
     after = jump(y, theta)
     f_before = f_before[:n]
-    f_after = _augmented_vf(t, after, params, smoothing, smooth_max, t1)
+    f_after = _augmented_vf(t, after, params, smoothing, smooth_max, t1, rest_guess)
 
     def column(s, d):
         moved = jax.jvp(stop_time, (theta,), (d,))[1]
@@ -360,16 +371,21 @@ def _events(params, wrt):
 
 def _tangent_setup(params, smoothing, wrt, smooth_max, t1):
     """`(z0, args)` of the tangent system up to `t1`: the state, then one tangent
-    column per parameter in `wrt` (scaled by its range)."""
+    column per parameter in `wrt` (scaled by its range). `args = (params, smoothing,
+    smooth_max, t1, rest_guess)`: the static rest's root is found once, here; each use
+    polishes it (`model_args`), which carries its derivatives."""
+    rest_guess = rest_root(params, smoothing, contact_width(params, smoothing))
 
     def initial(theta):
-        return _augmented_initial_state(with_values(params, wrt, theta), smoothing, smooth_max)
+        return _augmented_initial_state(
+            with_values(params, wrt, theta), smoothing, smooth_max, rest_guess
+        )
 
     theta = values_of(params, wrt)
     y0 = initial(theta)
     s0 = jax.vmap(lambda d: jax.jvp(initial, (theta,), (d,))[1])(_directions(wrt))
     z0 = jnp.concatenate([y0, s0.reshape(-1)])
-    return z0, (params, smoothing, smooth_max, t1)
+    return z0, (params, smoothing, smooth_max, t1, rest_guess)
 
 
 class ForwardSensitivities(NamedTuple):
@@ -394,14 +410,16 @@ class ForwardSensitivities(NamedTuple):
 def _tangent_post(args, run: PeakRun, wrt, series: MetricSeries | None = None):
     """Gradients at the located peaks by the envelope theorem: `∇_y g · S(t*) + ∂g/∂θ`,
     as `ForwardSensitivities`."""
-    params, smoothing, smooth_max, t1 = args
+    params, smoothing, smooth_max, t1, rest_guess = args
     n = _state_size(smooth_max)
     theta = values_of(params, wrt)
     stops = None if params.load is None else load_stops(params)
 
     def metric(i, t_, y_, theta_):
         """Tracked quantity `i` (in the order of `run.names`) at time `t_`, state `y_`."""
-        values = _augmented_metrics(t_, y_, with_values(params, wrt, theta_), smoothing, smooth_max)
+        values = _augmented_metrics(
+            t_, y_, with_values(params, wrt, theta_), smoothing, smooth_max, rest_guess
+        )
         return jnp.stack([values[name] for name in run.names])[i]
 
     def gradient_of_metric(i, state, time):
@@ -414,7 +432,7 @@ def _tangent_post(args, run: PeakRun, wrt, series: MetricSeries | None = None):
         # A peak right after a round's firing (a velocity jump) stays at that instant,
         # which moves with the parameters: add the metric's rate times the move.
         index = jnp.argmin(jnp.abs(stops - time))
-        f = _augmented_vf(time, y, params, smoothing, smooth_max, t1)
+        f = _augmented_vf(time, y, params, smoothing, smooth_max, t1, rest_guess)
         rate = jax.jvp(
             lambda t_, y_: metric(i, t_, y_, theta), (time, y), (jnp.ones_like(time), f)
         )[1]
@@ -430,8 +448,10 @@ def _tangent_post(args, run: PeakRun, wrt, series: MetricSeries | None = None):
     scales = jnp.asarray([parameter_scale(name) for name in wrt])
     grads = run.by_name(directional / scales)
     extremes = {name: m.sign * grads[name] for name, m in EXTREMES.items()}
-    gradients = PeakGradients.of(_envelope_gradients(args, run, wrt, extremes, scales, n), wrt)
-    peaks = peaks_of_run(params, smoothing, run, t1)
+    envelope = _envelope_gradients(args, run, wrt, extremes, scales, n)
+    gradients = PeakGradients.of(envelope, wrt)
+    rest = model_args(params, smoothing, rest_guess).rest
+    peaks = peaks_of_run(params, smoothing, run, t1, rest)
     smooth_values = smooth_grads = None
     if smooth_max is not None:
         best = run.by_name(run.best)
@@ -464,26 +484,34 @@ def _tangent_post(args, run: PeakRun, wrt, series: MetricSeries | None = None):
 
 def _envelope_gradients(args, run: PeakRun, wrt, extremes: dict, scales, n) -> dict:
     """The gradients of the envelope's metrics beside `extremes` (by metric name, scaled
-    to parameter units): `residual_displacement` from the tangents at `t1`; the return's
-    from those at the crossing `x_M(t*) = 1 mm`, which moves by `dt*/dθ = −S_x / v_M`
+    to parameter units): `residual_displacement = x_M(t1) − x_r` from the tangents at
+    `t1` less the rest's derivative; the return's from those at the crossing
+    `x_M(t*) = x_r + 1 mm`, which moves by `dt*/dθ = −(S_x − dx_r/dθ) / v_M`
     (`return_time = t* − t_last`, `battery_speed = −v_M(t*)`, whose rate there is the
     barrel's acceleration). Zero where there is no return, NaN without the envelope (as
-    the values); the margin is an extreme, NaN without a mount."""
-    params, smoothing, smooth_max, t1 = args
+    the values); the margin is an extreme, NaN without a mount; the pull's is 0 where
+    `F_AN` never goes negative (the pull is then 0)."""
+    params, smoothing, smooth_max, t1, rest_guess = args
     out = dict(extremes)
     nan = jnp.full_like(out["peak_displacement"], jnp.nan)
     if not has_envelope(params):
-        for name in ("return_time", "battery_speed", "residual_displacement"):
-            out[name] = nan
-        out["stability_margin"] = nan
-        return out
+        return out | {name: nan for name, m in METRICS.items() if m.envelope}
     theta = values_of(params, wrt)
+    rest_move = jax.vmap(
+        lambda d: jax.jvp(
+            lambda th: model_args(with_values(params, wrt, th), smoothing, rest_guess).rest,
+            (theta,),
+            (d,),
+        )[1]
+    )(_directions(wrt))
     final = run.final_state[n:].reshape(-1, n)
-    out["residual_displacement"] = residual_at(final, run.final_time, t1, smoothing) / scales
+    residual = residual_at(final, run.final_time, t1, smoothing) - rest_move
+    out["residual_displacement"] = residual / scales
     y, tangents = run.cross_state[:n], run.cross_state[n:].reshape(-1, n)
-    f = _augmented_vf(run.cross_time, y, params, smoothing, smooth_max, t1)
+    f = _augmented_vf(run.cross_time, y, params, smoothing, smooth_max, t1, rest_guess)
     moving = y[1] != 0
-    crossing_move = -tangents[:, 0] / jnp.where(moving, y[1], 1.0)  # dt*/dθ, per direction
+    # dt*/dθ, per direction
+    crossing_move = -(tangents[:, 0] - rest_move) / jnp.where(moving, y[1], 1.0)
     last_move = jax.vmap(
         lambda d: jax.jvp(lambda th: last_firing(with_values(params, wrt, th)), (theta,), (d,))[1]
     )(_directions(wrt))
@@ -492,6 +520,8 @@ def _envelope_gradients(args, run: PeakRun, wrt, extremes: dict, scales, n) -> d
     speed_rate = -(tangents[:, 1] + f[1] * crossing_move)
     out["battery_speed"] = jnp.where(returned, speed_rate / scales, 0.0)
     out["stability_margin"] = jnp.where(mounted(params), out["stability_margin"], nan)
+    pulled = run.by_name(run.best)["peak_pull_force"] > 0
+    out["peak_pull_force"] = jnp.where(pulled, out["peak_pull_force"], 0.0)
     return out
 
 
@@ -525,7 +555,7 @@ def tangent_loop(params, options, wrt, smooth_max=None, stop_early: bool = True)
         model_ceilings,
         **model_samples(params),
         leading_term=(_STATE_TERM, _state_size(smooth_max)),
-        crossing_fn=(lambda args: battery_crossing(args[0])) if envelope else None,
+        crossing_fn=(lambda args: battery_crossing(args[0], args[4])) if envelope else None,
     )
 
 
@@ -687,7 +717,7 @@ def signal_sensitivities(
         gradients = jax.vmap(
             lambda s, d: jax.jvp(lambda y_, th: signal(t, y_, th), (y, theta), (s, d))[1]
         )(columns, _directions(wrt))
-        f = vector_field(t, y, model_args(params, smoothing))
+        f = vector_field(t, y, _field_args(params, smoothing))
         rate = jax.jvp(lambda t_, y_: signal(t_, y_, theta), (t, y), (jnp.ones_like(t), f))[1]
         return values, gradients.T / scales, rate
 

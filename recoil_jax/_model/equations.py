@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._model.metrics import EXTREMES, METRICS
-from .._model.params import Buffer, Load, RecoilParams, Recuperator
+from .._model.params import Buffer, CounterRecoilBuffer, Load, RecoilParams, Recuperator
 from .._model.registry import ParameterError, is_concrete
 from .._model.settings import Smoothing
 
@@ -30,12 +30,15 @@ __all__ = [
     "GRAVITY",
     "RECOIL_TERM",
     "Forces",
+    "ModelArgs",
     "absorber_sag",
+    "axial_weight",
     "breech_force",
     "buffer_force",
     "characteristic_penetration",
     "check_envelope_metrics",
     "contact_width",
+    "counter_recoil_force",
     "forces",
     "friction_bound",
     "future_metric_bounds",
@@ -55,10 +58,13 @@ __all__ = [
     "recuperator_energy",
     "recuperator_force",
     "remaining_impulse",
+    "rest_root",
     "restart_step",
     "signals",
     "smooth_relu",
     "smooth_step",
+    "static_anchoring",
+    "static_rest",
     "tracked_metrics",
     "vector_field",
 ]
@@ -384,16 +390,32 @@ def _envelope_forces(y, params: RecoilParams, smoothing: Smoothing) -> dict:
         out["stop"] = elastic * factor
     counter = params.counter_recoil_buffer
     if counter is not None:
-        inside = smooth_step(counter.buffer_length - x_M, smoothing.buffer_width)
-        # One-sided, so that a barrel at rest (at t = 0, in battery) feels none of it.
-        returning = onset_ramp(-v_M, smoothing.damping_width)
-        out["counter_recoil"] = -counter.buffer_damping * returning * inside
+        out["counter_recoil"] = counter_recoil_force(y, counter, smoothing)
     if params.rails is not None:
         sin, _ = _sin_cos(params)
         out["gravity"] = params.barrel.M * GRAVITY * sin
         if params.absorber is not None:
             out["absorber_gravity"] = params.absorber.m * GRAVITY * sin
     return out
+
+
+def counter_recoil_force(y, counter: CounterRecoilBuffer, smoothing: Smoothing, lead=False):
+    """The counter-recoil buffer's `F_cb = c_b v_M` while `v_M < 0` and `x_M < L_b` (N,
+    <= 0). Its speed ramp is one-sided, so that a barrel at rest feels none of it. Its
+    engagement at `x_M = L_b` is a jump of `F_AN` in the exact model, smoothed over
+    `buffer_width` `w`: the dynamics' step is centred on `L_b` (over `[L_b − w, L_b + w]`,
+    so that its impulse is the jump's to `O(w²)`), and with `lead` (the signals',
+    `signals`) it lies all before the dynamics' (over `[L_b + w, L_b + 3w]`). So the
+    signals reach the exact jump's value as the barrel enters the dynamics' step, before
+    the smoothed buffer has slowed it: a pull or a margin whose extreme is the jump is the
+    exact model's to the approach's `O(w)`, not `c_b w / (M v)` of itself low
+    (`docs/model.md`). With `w = 0` both are the exact switch."""
+    x_M, v_M = y[0], y[1]
+    width = smoothing.buffer_width
+    edge = counter.buffer_length + (2.0 * width if lead else 0.0)
+    inside = smooth_step(edge - x_M, width)
+    returning = onset_ramp(-v_M, smoothing.damping_width)
+    return -counter.buffer_damping * returning * inside
 
 
 def friction_bound(params: RecoilParams):
@@ -453,41 +475,58 @@ def _with_friction(f: Forces, y, params: RecoilParams, smoothing: Smoothing) -> 
 _SWITCH_POWER = 0.0215
 
 
-def signals(t, y, args) -> dict[str, jnp.ndarray]:
-    """The time signals whose extremes are the metrics (`Metric.signal`): barrel
-    displacement `x_M` (m), anchoring force `F_AN` (N), contact force `F_ct` (N) and the
-    absorber's travel `stroke = x_m − x_M` (m; 0 for the simplified model).
-    `args = model_args(params, smoothing)`; the time `t` (s) for the breech force, which
-    the friction's sticking sees."""
-    params, smoothing, width_contact = args
-    f = forces(y, params, smoothing, width_contact, t=t)
+def signals(t, y, args: ModelArgs) -> dict[str, jnp.ndarray]:
+    """The time signals whose extremes are the metrics (`Metric.signal`): the recoil
+    `x_M − x_r` from the static rest (m), anchoring force `F_AN` (N), its pull on the
+    mount `−F_AN` and its size `|F_AN|` (N; 0 for a design without the firing envelope,
+    whose solve stops before the return), contact force `F_ct` (N), the absorber's
+    travel `stroke = x_m − x_M` (m; 0 for the simplified model) and the mount's
+    stability `margin`. `args = model_args(params, smoothing)`; the time `t` (s) for the
+    breech force, which the friction's sticking sees."""
+    params = args.params
+    f = forces(y, params, args.smoothing, args.contact_width, t=t)
     # The simplified model has no absorber, hence no stroke.
     stroke = jnp.zeros_like(y[0]) if params.absorber is None else y[2] - y[0]
-    out = {"x_M": y[0], "F_AN": f.anchoring, "F_ct": f.contact, "stroke": stroke}
-    out["margin"] = stability(y, params, f.anchoring)
+    anchoring = f.anchoring
+    counter = params.counter_recoil_buffer
+    if counter is not None:  # its engagement as the signals see it (`counter_recoil_force`)
+        lead = counter_recoil_force(y, counter, args.smoothing, lead=True)
+        anchoring = anchoring - f.counter_recoil + lead
+    out = {"recoil": y[0] - args.rest, "F_AN": anchoring, "F_ct": f.contact, "stroke": stroke}
+    if has_envelope(params):
+        out |= {"pull": -anchoring, "mount_load": jnp.abs(anchoring)}
+    else:
+        out |= {"pull": jnp.zeros_like(anchoring), "mount_load": jnp.zeros_like(anchoring)}
+    out["margin"] = stability(y, params, anchoring, args.rest)
     return out
 
 
-def stability(y, params: RecoilParams, anchoring):
-    """The mount's stability margin at state `y` with anchoring force `anchoring` (N):
-    `(S − O) / (m_g g L_w)`, the stabilising moment about the spade less the overturning
-    one, over the gun's weight's moment (`envelope.md`); 1 without a mount (no load on
-    it: the margin is then not reported, `Peaks`)."""
+def stability(y, params: RecoilParams, anchoring, rest):
+    """The mount's stability margin at state `y` with anchoring force `anchoring` (N),
+    the gun having started at its static rest `rest` (m, `x_r`):
+    `(S − K d) / (m_g g L_w)`, the stabilising moment about the spade less the
+    overturning one, over the gun's weight's moment (`envelope.md`, revision 2). The
+    whole gun's moments: the overturning force is the resistance to recoil net of the
+    recoiling parts' axial weight, `K = F_AN − (M + m) g sin θ` (that weight is in the
+    stabilising moment already), on the bore axis's arm `d = h cos θ − L_s sin θ`, and
+    the recoiling parts' move from their rest shifts the weight's moment. 1 without a
+    mount (no load on it: the margin is then not reported, `Peaks`)."""
     mount = params.mount
     if mount is None:
         return jnp.ones_like(y[0])
     sin, cos = _sin_cos(params)
     lever = mount.trunnion_height * cos - mount.spade_distance * sin
-    moved = params.barrel.M * y[0]
+    moved = params.barrel.M * (y[0] - rest)
     if params.absorber is not None:
-        moved = moved + params.absorber.m * (y[2] - absorber_sag(params))
+        moved = moved + params.absorber.m * (y[2] - rest - absorber_sag(params))
     present = mounted(params)
     weight_moment = jnp.where(present, mount.mount_mass, 1.0) * GRAVITY * mount.cg_distance
-    margin = (weight_moment - GRAVITY * moved * cos - anchoring * lever) / weight_moment
+    resistance = anchoring - axial_weight(params)
+    margin = (weight_moment - GRAVITY * moved * cos - resistance * lever) / weight_moment
     return jnp.where(present, margin, jnp.ones_like(margin))
 
 
-def tracked_metrics(t, y, args) -> dict[str, jnp.ndarray]:
+def tracked_metrics(t, y, args: ModelArgs) -> dict[str, jnp.ndarray]:
     """What the peak loop maximises, by metric name: `sign · signal` of each extreme
     metric of `METRICS` (the negated stroke for `min_stroke`, so that its minimum is a
     maximum)."""
@@ -525,14 +564,20 @@ def future_metric_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
     loop stops once every bound is below its running peak. `args = model_args(params,
     smoothing)`.
     """
-    params, smoothing, width_contact = args
+    params, smoothing, width_contact = args.params, args.smoothing, args.contact_width
     width_v = smoothing.damping_width
     energy, spread = _energy_ceiling(y, args, t, t1)
     two_energy = 2.0 * energy
     displacement, anchoring = _barrel_bounds(params, two_energy, spread, width_v)
     # Only designs without the envelope stop early (`has_envelope`): without a mount the
-    # tracked margin is the constant −1.
+    # tracked margin is the constant −1, and the pull and mount load are the constant 0
+    # (`signals`; not reported, `envelope_values`).
     margin = -jnp.ones_like(displacement)
+    untracked = {
+        "stability_margin": margin,
+        "peak_pull_force": jnp.full_like(displacement, -jnp.inf),
+        "peak_mount_load": jnp.full_like(displacement, -jnp.inf),
+    }
     if params.absorber is None:
         zero = jnp.zeros_like(displacement)
         return {
@@ -541,8 +586,7 @@ def future_metric_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
             "peak_contact_force": zero,
             "min_stroke": zero,
             "max_stroke": zero,
-            "stability_margin": margin,
-        }
+        } | untracked
     relative_max, penetration, contact_force = _contact_bounds(
         params, energy, two_energy, width_contact, width_v
     )
@@ -558,7 +602,7 @@ def future_metric_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
         "max_stroke": relative_max,
     }
     bounds = {name: jnp.where(valid, bound, inf) for name, bound in bounds.items()}
-    return bounds | {"stability_margin": margin}
+    return bounds | untracked
 
 
 #: A held barrel is settled once its speed is below this (m/s): what it can still creep,
@@ -583,7 +627,7 @@ def held_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
     again, so its peaks, return (found, or never) and rest `x_M(t1)` are known now (to
     its creep, `|v_M| τ < 1e-9 m`, or `|v_M| (t1 − t)` at the band's edge). The loop
     then stops (`PeakLoop`)."""
-    params, smoothing, width_contact = args
+    params, smoothing, width_contact = args.params, args.smoothing, args.contact_width
     f = forces(y, params, smoothing, width_contact, t=t)
     values = tracked_metrics(t, y, args)
     inf = jnp.full_like(y[0], jnp.inf)
@@ -627,6 +671,8 @@ def held_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
     change = {
         "peak_displacement": creep,
         "peak_anchoring_force": force_change,
+        "peak_pull_force": force_change,
+        "peak_mount_load": force_change,
         "peak_contact_force": jnp.zeros_like(y[0]),  # (`quiet`: out of reach)
         "min_stroke": travel,
         "max_stroke": travel,
@@ -638,7 +684,7 @@ def held_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
 def _energy_ceiling(y, args, t, t1):
     """`(E*, spread)`: a bound on the mechanical energy from `t` to `t1` at state `y`
     (J; see `future_metric_bounds`), and `|c_out − c_ret|` (N·s/m)."""
-    params, smoothing, width_contact = args
+    params, smoothing, width_contact = args.params, args.smoothing, args.contact_width
     barrel, absorber, contact = params.barrel, params.absorber, params.contact
     x_M, v_M, x_m, v_m = y[0], y[1], y[2], y[3]
     width_v = smoothing.damping_width
@@ -744,8 +790,9 @@ def metric_ceilings(params: RecoilParams) -> dict[str, jnp.ndarray] | None:
 
 
 def vector_field(t, y, args):
-    """`dy/dt` for `args = (params, smoothing, contact_width)`; the diffrax vector field."""
-    params, smoothing, width_contact = args
+    """`dy/dt` for `args = model_args(params, smoothing)` (`ModelArgs`); the diffrax
+    vector field."""
+    params, smoothing, width_contact = args[:3]
     f = forces(y, params, smoothing, width_contact, t=t)
     internal = f.anchoring + f.coupling_spring + f.coupling_damper + f.contact
     if f.gravity is not None:
@@ -768,9 +815,110 @@ def vector_field(t, y, args):
 RECOIL_TERM = diffrax.ODETerm(vector_field)
 
 
-def model_args(params: RecoilParams, smoothing: Smoothing):
-    """The `args` that `RECOIL_TERM` takes."""
-    return (params, smoothing, contact_width(params, smoothing))
+class ModelArgs(NamedTuple):
+    """The `args` that `RECOIL_TERM` and the model's signals take (`model_args`):
+
+    - `params`, `smoothing`: the design and its switch widths;
+    - `contact_width` (m): the contact onset's smoothing width (`contact_width`);
+    - `rest` (m): the barrel's static rest in battery `x_r` (`static_rest`), from which
+      the displacement metrics and the mount's moments are measured; differentiable in
+      the parameters."""
+
+    params: RecoilParams
+    smoothing: Smoothing
+    contact_width: jnp.ndarray
+    rest: jnp.ndarray
+
+
+def model_args(params: RecoilParams, smoothing: Smoothing, rest_guess=None) -> ModelArgs:
+    """The `args` that `RECOIL_TERM` takes. `rest_guess`: the rest `x_r` found already
+    for these values (`rest_root`; its value only), so that only its polishing Newton
+    step (which carries the derivatives) is done again; default: found here."""
+    width = contact_width(params, smoothing)
+    if rest_guess is None:
+        rest_guess = rest_root(params, smoothing, width)
+    return ModelArgs(params, smoothing, width, static_rest(params, smoothing, width, rest_guess))
+
+
+def axial_weight(params: RecoilParams):
+    """`(M + m) g sin θ` (N): the recoiling parts' weight along `+x` (0 on level rails or
+    without rails), which the mechanism holds at rest."""
+    if params.rails is None:
+        return 0.0
+    sin, _ = _sin_cos(params)
+    mass = params.barrel.M + (0.0 if params.absorber is None else params.absorber.m)
+    return mass * GRAVITY * sin
+
+
+def static_anchoring(x_M, params: RecoilParams, smoothing: Smoothing, width_contact):
+    """`F_AN(x_M, v = 0)` (N) with friction aside: what connects the barrel to the mount
+    at rest at `x_M`, the absorber hanging at its rest on it (as the model's forces have
+    it, smoothing included, so that the model's rest is its own exactly)."""
+    x_M = jnp.asarray(x_M, dtype=float)
+    zero = jnp.zeros_like(x_M)
+    y = jnp.stack([x_M, zero, x_M + absorber_sag(params), zero])
+    f = forces(y, params, smoothing, width_contact)
+    return f.anchoring - (0.0 if f.friction is None else f.friction)
+
+
+#: Bisections of the rest's bracket (each halves it): 2^-64 of a bracket of millimetres.
+_REST_BISECTIONS = 64
+
+
+def rest_root(params: RecoilParams, smoothing: Smoothing, width_contact):
+    """The static rest `x_r` (m, <= 0) by bisection, its value only (no derivatives flow
+    through it: `static_rest` polishes it with one Newton step that carries them).
+
+    `x_r` is the root of `F_AN(x, 0) = (M + m) g sin θ` (`static_anchoring`,
+    `axial_weight`) nearest battery with `x <= 0`: with a battery stop and a preload
+    above the axial weight the barrel presses into the stop, where the stop's force takes
+    the difference. `F_AN(x, 0)` rises with `x`, so the root is unique and the bracket
+    `[−2 ((F_AN(0, 0) − W) / k_s)^(1/n_s) − 2 w_s, 0]` holds it. 0 where there is no root
+    (no stop, or a preload that cannot hold the weight): the barrel starts at battery and
+    may sag (`envelope.md`)."""
+    if params.battery_stop is None:
+        return 0.0
+    params, smoothing, width_contact = jax.lax.stop_gradient((params, smoothing, width_contact))
+
+    def balance(x):
+        return static_anchoring(x, params, smoothing, width_contact) - axial_weight(params)
+
+    stop = params.battery_stop
+    excess = balance(jnp.zeros(()))
+    stiff = stop.stop_stiffness > 0
+    held = stiff & (excess > 0)
+    safe_stiffness = jnp.where(stiff, stop.stop_stiffness, 1.0)
+    depth = 2.0 * (
+        (jnp.maximum(excess, 0.0) / safe_stiffness) ** (1.0 / stop.stop_exponent)
+        + smoothing.stop_width
+    )
+
+    def bisect(_, bracket):
+        low, high = bracket
+        middle = 0.5 * (low + high)
+        above = balance(middle) > 0
+        return jnp.where(above, low, middle), jnp.where(above, middle, high)
+
+    low, high = jax.lax.fori_loop(0, _REST_BISECTIONS, bisect, (-depth, jnp.zeros_like(depth)))
+    return jnp.where(held, 0.5 * (low + high), 0.0)
+
+
+def static_rest(params: RecoilParams, smoothing: Smoothing, width_contact, guess):
+    """The static rest `x_r` (m) from its root `guess` (`rest_root`): one Newton step on
+    the balance, `x_r = x̃ − h(x̃) / h'(x̃)`, whose value is the root's and whose
+    derivatives are the implicit function's, `dx_r/dθ = −(∂h/∂θ) / (∂h/∂x)`, in every
+    parameter. 0 (no derivatives) where there is no root, and for a design without a
+    battery stop (the paper's model, unchanged)."""
+    if params.battery_stop is None:
+        return jnp.zeros(())
+    guess = jax.lax.stop_gradient(jnp.asarray(guess, dtype=float))
+
+    def balance(x):
+        return static_anchoring(x, params, smoothing, width_contact) - axial_weight(params)
+
+    value, slope = jax.jvp(balance, (guess,), (jnp.ones_like(guess),))
+    held = (guess < 0) & (slope > 0)
+    return jnp.where(held, guess - value / jnp.where(held, slope, 1.0), 0.0)
 
 
 def _impulse(load: Load):
@@ -779,15 +927,18 @@ def _impulse(load: Load):
     return jnp.logical_and(load.table is None, load.pulse_time <= 0)
 
 
-def initial_state(params: RecoilParams):
-    """`y(0) = (0, v0, sag, 0)` for an impulse load; the barrel at rest for a pulse or
-    table load. The absorber starts at rest at its static sag on the barrel,
-    `m g sin θ / k_r` (0 on level rails)."""
+def initial_state(args: ModelArgs):
+    """`y(0) = (x_r, v0, x_r + sag, 0)` for an impulse load, the barrel at rest for a
+    pulse or table load: the gun at its static rest in battery (`static_rest`, 0 without
+    a battery stop), the absorber hanging at rest on its spring, `m g sin θ / k_r`
+    behind the barrel (0 on level rails). `args = model_args(params, smoothing)`."""
+    params = args.params
     v0 = jnp.asarray(params.barrel.v0, dtype=float)
     zero = jnp.zeros_like(v0)
     if params.load is not None:
         v0 = jnp.where(_impulse(params.load), v0, zero)
-    return jnp.stack([zero, v0, zero + absorber_sag(params), zero])
+    rest = zero + args.rest
+    return jnp.stack([rest, v0, rest + absorber_sag(params), zero])
 
 
 def load_stops(params: RecoilParams):

@@ -91,11 +91,11 @@ METRICS: dict[str, Metric] = {
         Metric(
             name="peak_displacement",
             unit="m",
-            signal="x_M",
+            signal="recoil",
             extreme="max",
             timed=True,
             smoothable=True,
-            meaning="peak barrel displacement",
+            meaning="peak barrel displacement from its rest",
         ),
         Metric(
             name="peak_anchoring_force",
@@ -140,7 +140,7 @@ METRICS: dict[str, Metric] = {
             extreme="max",
             timed=False,
             smoothable=False,
-            meaning="time from the last round back into battery (x_M = 1 mm)",
+            meaning="time from the last round back into battery (x_M = x_r + 1 mm)",
             kind="return",
             envelope=True,
         ),
@@ -162,7 +162,7 @@ METRICS: dict[str, Metric] = {
             extreme="max",
             timed=False,
             smoothable=False,
-            meaning="barrel displacement at the end, x_M(t1)",
+            meaning="barrel displacement from its rest at the end, x_M(t1) - x_r",
             kind="final",
             envelope=True,
         ),
@@ -174,6 +174,26 @@ METRICS: dict[str, Metric] = {
             timed=True,
             smoothable=False,
             meaning="least stability margin of the mount",
+            envelope=True,
+        ),
+        Metric(
+            name="peak_pull_force",
+            unit="N",
+            signal="pull",
+            extreme="max",
+            timed=True,
+            smoothable=True,
+            meaning="peak forward pull on the mount, max(0, -F_AN)",
+            envelope=True,
+        ),
+        Metric(
+            name="peak_mount_load",
+            unit="N",
+            signal="mount_load",
+            extreme="max",
+            timed=True,
+            smoothable=True,
+            meaning="peak load on the mount either way, max |F_AN|",
             envelope=True,
         ),
     )
@@ -255,12 +275,16 @@ class Peaks(eqx.Module):
     - The firing envelope's metrics (`envelope.md`), for designs with any part of it
       (rails, the battery stop, the counter-recoil buffer, a mount; NaN for the others,
       whose solve stops once the peaks are certain): `return_time` (s), from the last
-      round's firing until the barrel comes forward through `x_M = 1 mm`, and
+      round's firing until the barrel comes forward through `x_M = x_r + 1 mm`, and
       `battery_speed` (m/s), `−v_M` then; `returned`, whether it did before `t1` (if
       not, `return_time` is the time observed, `t1` less the last firing, a lower bound,
       and `battery_speed` 0: neither is reported, `to_dict`); `residual_displacement`
-      (m), `x_M(t1)`; `stability_margin`, `stability_margin_time` (s), the mount's least
-      margin (NaN without a mount, `mount_mass = 0`).
+      (m), `x_M(t1) − x_r`; `stability_margin`, `stability_margin_time` (s), the mount's
+      least margin (NaN without a mount, `mount_mass = 0`); `peak_pull_force` (N), the
+      largest forward pull `max(0, −F_AN)`, with the time `F_AN` is least, and
+      `peak_mount_load` (N), `max |F_AN|`, with its time.
+    - Displacements are measured from the gun's static rest `x_r` (`static_rest`; 0
+      without a battery stop), where it starts.
     - `num_steps`: accepted steps; `num_attempts`: accepted + rejected. The solve stops
       before `t1` once the mechanical energy left shows that no metric can exceed its
       peak again (`future_metric_bounds`); the peaks are those over all of `[0, t1]`.
@@ -283,6 +307,10 @@ class Peaks(eqx.Module):
     residual_displacement: jax.Array
     stability_margin: jax.Array
     stability_margin_time: jax.Array
+    peak_pull_force: jax.Array
+    peak_pull_force_time: jax.Array
+    peak_mount_load: jax.Array
+    peak_mount_load_time: jax.Array
     returned: jax.Array
     num_steps: jax.Array
     num_attempts: jax.Array
@@ -361,6 +389,8 @@ class PeakGradients(eqx.Module):
     battery_speed: jax.Array
     residual_displacement: jax.Array
     stability_margin: jax.Array
+    peak_pull_force: jax.Array
+    peak_mount_load: jax.Array
     wrt: tuple[str, ...] = eqx.field(static=True)
 
     @classmethod

@@ -21,6 +21,15 @@ friction takes `N`, and ends at the event `|N| = F_max`, where the barrel slips 
 parameters have no effect (zero elevation, friction, stop, buffer and preload) runs the
 paper's code path, operation for operation.
 
+Revision 2 of `envelope.md`: the gun fires from its **static rest** `x_r <= 0`, the root of
+`F_AN(x, v = 0) = (M + m) g sin θ` (friction aside) in the battery stop where a preload
+above the axial weight presses the barrel into it (`reference_rest`; else `x_r = 0`);
+displacements and the return are measured from it; the **stability margin** takes the
+recoiling parts' axial weight out of the overturning force, `K = F_AN − (M + m) g sin θ`,
+and the stabilising moment counts their travel from the start; and two metrics join,
+`peak_pull_force` (the largest `−F_AN`, located at the rising zeros of `dF_AN/dt`) and
+`peak_mount_load` (the largest `|F_AN|`).
+
 Used by the tests as ground truth across the documented ranges, and as the serial
 baseline of the benchmarks.
 """
@@ -35,7 +44,7 @@ import numpy as np
 
 from .._model.params import params_from_values, params_to_values
 
-__all__ = ["reference_energy", "reference_history", "reference_peaks"]
+__all__ = ["reference_energy", "reference_history", "reference_peaks", "reference_rest"]
 
 _BOTTOM = 0.95  # the recuperator's gas column may be compressed to this fraction
 #: Standard gravity (m/s²), as envelope.md fixes it.
@@ -152,6 +161,44 @@ class _HardModel:
         if self.mount:
             self.L_w = p["cg_distance"]
             self.lever = p["trunnion_height"] * self.cos - p["spade_distance"] * self.sin
+        # The static rest (revision 2): the axial weight of the recoiling parts, and the
+        # rest x_r <= 0 it and the preload give in the stop; the start x_M(0) = x_r with
+        # the absorber hanging at rest on its spring, x_m(0) = x_r + m g sin θ / k_r.
+        self.weight = (self.M + self.mass_m) * GRAVITY * self.sin
+        self.x_r = self.rest()
+        self.x_m0 = self.x_r + self.sag
+
+    def static_force(self, x) -> float:
+        """F_AN(x, v = 0) less the friction: `k x + F_g + F_p − k_s δ^n_s` (δ = −x)."""
+        force = self.k * x + self.gas(x) + self.preload_force(x)
+        if self.stop and x < 0:
+            force -= self.k_s * (-x) ** self.n_s
+        return force
+
+    def rest(self) -> float:
+        """x_r: the root, `<= 0`, of `F_AN(x, 0) = (M + m) g sin θ` (friction aside), with
+        a battery stop and `F_AN(0, 0)` above the axial weight; else 0. The balance rises
+        with x (each term does), so its root is unique; at `−δ_0`, with
+        `k_s δ_0^n_s = F_AN(0, 0) − W`, it is `<= 0`: the bracket."""
+        if not self.stop:
+            return 0.0
+        excess = self.static_force(0.0) - self.weight
+        if not excess > 0:
+            return 0.0
+        import scipy.optimize  # when used: `import recoil_jax` stays quick
+
+        def balance(x):
+            return self.static_force(x) - self.weight
+
+        low = -((excess / self.k_s) ** (1.0 / self.n_s))
+        for _ in range(100):
+            if balance(low) <= 0:
+                break
+            low *= 2.0
+        root = scipy.optimize.brentq(
+            balance, low, 0.0, xtol=1e-300, rtol=4 * np.finfo(float).eps, maxiter=500
+        )
+        return float(root)
 
     # --- forces -----------------------------------------------------------------------
     def firing_times(self) -> np.ndarray:
@@ -336,10 +383,14 @@ class _HardModel:
         return d_anchor, d_contact
 
     def margin(self, t, y, mode: _Mode) -> float:
-        """(S − O) / (m_g g L_w): the share of the stabilising moment left (with a mount)."""
-        moved = self.M * y[0] + (self.mass_m * (y[2] - self.sag) if self.absorber else 0.0)
+        """(S − O) / (m_g g L_w): the share of the stabilising moment left (with a mount).
+        `O = K d`, `K = F_AN − (M + m) g sin θ` (the resistance net of the axial weight),
+        and `S = g (m_g L_w − (M (x_M − x_M(0)) + m (x_m − x_m(0))) cos θ)`."""
+        moved = self.M * (y[0] - self.x_r)
+        if self.absorber:
+            moved += self.mass_m * (y[2] - self.x_m0)
         stabilising = GRAVITY * (self.mount_mass * self.L_w - moved * self.cos)
-        overturning = self.anchoring(y, mode, t) * self.lever
+        overturning = (self.anchoring(y, mode, t) - self.weight) * self.lever
         return (stabilising - overturning) / (self.mount_mass * GRAVITY * self.L_w)
 
     def margin_rate(self, t, y, mode: _Mode) -> float:
@@ -373,6 +424,20 @@ class _HardModel:
             events[3] = _Event(lambda t, y, mode: y[1] - y[3] if not mode.stuck else 1.0)
         return events
 
+    def low_events(self) -> list[_Event]:
+        """Non-terminal surfaces where F_AN may be least (`peak_pull_force`): the rising
+        zeros of dF_AN/dt (not where it is constant: a surface zero everywhere is a root
+        at every step). Apart from `peak_events`, so that the peaks they locate are
+        found at the same points as before."""
+        if self.envelope and not self.absorber:
+            return [
+                _Event(
+                    lambda t, y, mode: 1.0 if self.constant(mode) else self.rates(t, y, mode)[0],
+                    direction=1.0,
+                )
+            ]
+        return [_Event(lambda t, y, mode: self.rates(t, y, mode)[0], direction=1.0)]
+
     def constant(self, mode: _Mode) -> bool:
         """Nothing moves and no force changes: a stuck barrel without an absorber under
         an impulse load (between its rounds)."""
@@ -380,11 +445,12 @@ class _HardModel:
 
     def envelope_events(self) -> list[_Event]:
         """Non-terminal surfaces of the envelope's metrics: the barrel coming forward
-        through `x_M = 1 mm` (the return), and the rising zeros of the stability
+        through `x_M = x_r + 1 mm` (the return), and the rising zeros of the stability
         margin's rate (its local minima), with a mount."""
+        battery = self.x_r + BATTERY
         events = [
             _Event(
-                lambda t, y, mode: y[0] - BATTERY if not mode.stuck else 1.0,
+                lambda t, y, mode: y[0] - battery if not mode.stuck else 1.0,
                 direction=-1.0,
                 kind="return",
             )
@@ -604,9 +670,15 @@ class _HardModel:
         pulse in its state, so the steps would pass over it and miss the slip; while a
         pulse acts (50 pulse times from its round's firing: 1e-20 of its peak is left)
         they are held to an eighth of the pulse time. (A table's points are segment ends,
-        and it is linear between.)"""
-        if not mode.stuck or self.impulse or self.table is not None:
+        and it is linear between.) A free barrel's segment from a round's firing starts
+        with a step of an eighth of the pulse time: at rest (as at its static rest, where
+        no force acts at first) the step size the solver would pick from the vanishing
+        rates leaps over the pulse to the gas column's end and back."""
+        if self.impulse or self.table is not None:
             return {}
+        if not mode.stuck:
+            firing = np.any(self.firing_times() == start)
+            return {"first_step": min(self.pulse_time / 8, end - start)} if firing else {}
         window = _PULSE_WINDOW * self.pulse_time  # its end is a segment end (`stops`)
         acting = [tj for tj in self.firing_times() if tj < end and start < tj + window]
         return {"max_step": self.pulse_time / 8} if acting else {}
@@ -668,11 +740,13 @@ class _HardModel:
 
 
 class _RunningPeaks:
-    """Running maxima (value, time) of x_M, F_AN and F_ct, and the stroke's range."""
+    """Running maxima (value, time) of x_M, F_AN and F_ct, the running minimum of F_AN,
+    and the stroke's range."""
 
     def __init__(self):
         self.displacement = (-np.inf, 0.0)
         self.anchoring = (-np.inf, 0.0)
+        self.low = (np.inf, 0.0)  # the least F_AN
         self.contact = (0.0, 0.0)
         self.min_stroke = np.inf  # the first state considered (t = 0) sets both
         self.max_stroke = -np.inf
@@ -683,6 +757,8 @@ class _RunningPeaks:
         anchoring = model.anchoring(y, mode, t)
         if anchoring > self.anchoring[0]:
             self.anchoring = (anchoring, t)
+        if anchoring < self.low[0]:
+            self.low = (anchoring, t)
         contact = model.contact_force(y, mode)
         if contact > self.contact[0]:
             self.contact = (contact, t)
@@ -690,9 +766,17 @@ class _RunningPeaks:
         self.min_stroke = min(self.min_stroke, stroke)
         self.max_stroke = max(self.max_stroke, stroke)
 
-    def metrics(self) -> dict[str, float]:
+    def consider_low(self, model: _HardModel, t, y, mode: _Mode) -> None:
+        """The least F_AN only (at a local minimum of it)."""
+        anchoring = model.anchoring(y, mode, t)
+        if anchoring < self.low[0]:
+            self.low = (anchoring, t)
+
+    def metrics(self, x_r: float = 0.0) -> dict[str, float]:
+        pull = max(0.0, -self.low[0])
+        mount = self.anchoring if self.anchoring[0] >= -self.low[0] else (-self.low[0], self.low[1])
         return {
-            "peak_displacement": self.displacement[0],
+            "peak_displacement": self.displacement[0] - x_r,
             "peak_displacement_time": self.displacement[1],
             "peak_anchoring_force": self.anchoring[0],
             "peak_anchoring_force_time": self.anchoring[1],
@@ -700,12 +784,17 @@ class _RunningPeaks:
             "peak_contact_force_time": self.contact[1],
             "min_stroke": self.min_stroke,
             "max_stroke": self.max_stroke,
+            "peak_pull_force": pull,
+            "peak_pull_force_time": self.low[1],
+            "peak_mount_load": mount[0],
+            "peak_mount_load_time": mount[1],
+            "rest_position": x_r,
         }
 
 
 class _Envelope:
     """The envelope's metrics as the solve goes: the barrel's forward crossings of
-    `x_M = 1 mm` (time, speed), the stability margin's running minimum (with a mount),
+    `x_M = x_r + 1 mm` (time, speed), the stability margin's running minimum (with a mount),
     and the times the barrel sticks and slips."""
 
     def __init__(self, model: _HardModel):
@@ -724,7 +813,7 @@ class _Envelope:
     def metrics(self, t_end: float, y_end: np.ndarray) -> dict:
         """`return_time` (s from the last round's firing; None if the barrel never came
         back), `battery_speed` (m/s, `−v_M` then; None likewise), `returned`,
-        `residual_displacement` (m, `x_M` at the end), `stability_margin` and its time
+        `residual_displacement` (m, `x_M − x_r` at the end), `stability_margin` and its time
         (None without a mount), `sticks` and `slips` (the times, s)."""
         last = float(self.model.firing_times()[-1])
         after = [(t, v) for t, v in self.returns if t > last]
@@ -733,7 +822,7 @@ class _Envelope:
             "return_time": None if first is None else first[0] - last,
             "battery_speed": None if first is None else -first[1],
             "returned": first is not None,
-            "residual_displacement": float(y_end[0]),
+            "residual_displacement": float(y_end[0] - self.model.x_r),
             "stability_margin": self.margin[0] if self.model.mount else None,
             "stability_margin_time": self.margin[1] if self.model.mount else None,
             "end_time": float(t_end),
@@ -765,13 +854,18 @@ def reference_peaks(
     (`peak_anchoring_force`, `peak_anchoring_force_time`, ..., `min_stroke`,
     `max_stroke`), `segments`, and `status`: `"ok"`, or `"bottomed_out"` when x_M
     reaches 0.95 of the recuperator's gas column (the peaks are then those up to there).
-    Also the firing envelope's metrics (`envelope.md`): `return_time` (s, from the last
-    round's firing to the barrel's first forward crossing of `x_M = 1 mm` after it; None
+    Also the firing envelope's metrics (`envelope.md`, revision 2): `rest_position` (m,
+    the static rest `x_r <= 0` the solve starts from, as `reference_rest`);
+    `peak_displacement` is `max (x_M − x_r)`; `return_time` (s, from the last round's
+    firing to the barrel's first forward crossing of `x_M = x_r + 1 mm` after it; None
     if it never comes back), `battery_speed` (m/s, `−v_M` at that crossing; None
-    likewise), `returned` (bool), `residual_displacement` (m, `x_M` at the end),
-    `stability_margin` and `stability_margin_time` (None without a mount), `end_time`
-    (s, `t1` unless the solve stopped early) and `sticks`, `slips` (the times, s, at
-    which friction held the barrel and let it go).
+    likewise), `returned` (bool), `residual_displacement` (m, `x_M − x_r` at the end),
+    `peak_pull_force` (N, `max(0, −min F_AN)`) and `peak_pull_force_time` (s, where
+    `F_AN` is least), `peak_mount_load` (N, `max |F_AN|`) and `peak_mount_load_time`,
+    `stability_margin` (the least `(S − K d) / (m_g g L_w)`, `K = F_AN − (M + m) g sin θ`)
+    and `stability_margin_time` (None without a mount), `end_time` (s, `t1` unless the
+    solve stopped early) and `sticks`, `slips` (the times, s, at which friction held the
+    barrel and let it go).
 
     **Raises:** `RuntimeError` if more than `max_segments` segments are needed (contact
     chatter when the system comes to rest on the contact boundary, at gap 0 after
@@ -782,7 +876,7 @@ def reference_peaks(
         t1 = 10.0 + (model.shots - 1) * model.interval
     done = _integrate(model, t1, rtol, atol, method, max_segments)
     return (
-        done.running.metrics()
+        done.running.metrics(model.x_r)
         | {"segments": done.segments, "status": done.status}
         | done.envelope.metrics(done.t, done.y)
     )
@@ -825,6 +919,14 @@ def reference_energy(
     }
 
 
+def reference_rest(values: Mapping[str, float] | None = None) -> float:
+    """The static rest `x_r` (m, `<= 0`) of the hard-switch model for flat parameter
+    values (as `reference_peaks`): the root of `F_AN(x, v = 0) = (M + m) g sin θ` with
+    friction left out, `k x + F_g + F_p − k_s (−x)^n_s`, with a battery stop
+    (`stop_stiffness > 0`) and a preload above the axial weight; else 0."""
+    return _model_of(values, None).x_r
+
+
 def _model_of(values, force_table) -> _HardModel:
     flat = params_to_values(params_from_values(values or {}))
     return _HardModel({name: float(np.asarray(v)) for name, v in flat.items()}, force_table)
@@ -854,9 +956,9 @@ def reference_history(
 
 
 def _initial_state(model: _HardModel) -> np.ndarray:
-    """From battery: `x_M = 0`, `v_M = v0` under an impulse (else 0), the absorber at
-    rest at its sag on the barrel, `x_m = m g sin θ / k_r`."""
-    return np.array([0.0, model.v0 if model.impulse else 0.0, model.sag, 0.0])
+    """From the static rest in battery: `x_M = x_r`, `v_M = v0` under an impulse (else
+    0), the absorber at rest at its sag on the barrel, `x_m = x_r + m g sin θ / k_r`."""
+    return np.array([model.x_r, model.v0 if model.impulse else 0.0, model.x_m0, 0.0])
 
 
 @dataclasses.dataclass
@@ -877,6 +979,7 @@ def _integrate(model, t1, rtol, atol, method, max_segments, ts=None, samples=Non
     import scipy.integrate  # when used: `import recoil_jax` stays quick
 
     peak_events = model.peak_events()
+    low_events = model.low_events()
     envelope_events = model.envelope_events()
     running = _RunningPeaks()
     envelope = _Envelope(model)
@@ -917,7 +1020,7 @@ def _integrate(model, t1, rtol, atol, method, max_segments, ts=None, samples=Non
             rtol=rtol,
             atol=atol,
             args=(mode,),
-            events=peak_events + envelope_events + switches,
+            events=peak_events + low_events + envelope_events + switches,
             dense_output=ts is not None,
             **options,
         )
@@ -927,7 +1030,11 @@ def _integrate(model, t1, rtol, atol, method, max_segments, ts=None, samples=Non
         for index in range(len(peak_events)):
             for te, ye in zip(sol.t_events[index], sol.y_events[index], strict=True):
                 running.consider(model, te, ye, mode)
-        for index, event in enumerate(envelope_events, start=len(peak_events)):
+        for index in range(len(peak_events), len(peak_events) + len(low_events)):
+            for te, ye in zip(sol.t_events[index], sol.y_events[index], strict=True):
+                running.consider_low(model, te, ye, mode)
+        start = len(peak_events) + len(low_events)
+        for index, event in enumerate(envelope_events, start=start):
             for te, ye in zip(sol.t_events[index], sol.y_events[index], strict=True):
                 if event.kind == "return":
                     envelope.returns.append((float(te), float(ye[1])))
@@ -944,7 +1051,7 @@ def _integrate(model, t1, rtol, atol, method, max_segments, ts=None, samples=Non
         running.consider(model, t, y, mode)
         envelope.consider(t, y, mode)
         if sol.status == 1:
-            first = len(peak_events) + len(envelope_events)
+            first = len(peak_events) + len(low_events) + len(envelope_events)
             fired = {
                 event.kind for i, event in enumerate(switches) if sol.t_events[first + i].size > 0
             }

@@ -72,7 +72,7 @@ class Smoothing(Validated):
     contact_width_fraction: Any = float_leaf(0.005)
     knot_width_fraction: Any = float_leaf(1e-4)
     stop_width: Any = float_leaf(1e-7)
-    buffer_width: Any = float_leaf(1e-5)
+    buffer_width: Any = float_leaf(1e-6)
     friction_width: Any = float_leaf(10.0)
     slip_width: Any = float_leaf(1e-6)
     stick_time: Any = float_leaf(3e-4)

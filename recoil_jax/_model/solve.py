@@ -29,7 +29,7 @@ from .._model.equations import (
     tracked_metrics,
 )
 from .._model.lanes import queued_map
-from .._model.metrics import EXTREMES, Peaks
+from .._model.metrics import EXTREMES, METRICS, Peaks
 from .._model.params import RecoilParams
 from .._model.programs import structure_jit
 from .._model.registry import ParameterError, is_concrete
@@ -101,10 +101,10 @@ def last_firing(params: RecoilParams):
     return (load.shots - 1) * jnp.asarray(load.fire_interval, dtype=float)
 
 
-def battery_crossing(params: RecoilParams):
+def battery_crossing(params: RecoilParams, rest):
     """`(level, after)` of the barrel's return into battery (`PeakLoop.crossing_fn`):
-    `x_M = 1 mm`, after the last round's firing."""
-    return jnp.asarray(BATTERY), last_firing(params)
+    `x_M = x_r + 1 mm` (`rest`: `x_r`, m), after the last round's firing."""
+    return rest + BATTERY, last_firing(params)
 
 
 def model_loop(params: RecoilParams, options: SolverOptions, stop_early: bool = True) -> PeakLoop:
@@ -112,7 +112,8 @@ def model_loop(params: RecoilParams, options: SolverOptions, stop_early: bool = 
     that wires the model (its term, tracked metrics, load events, ceilings and peak
     samples) into a solve. `stop_early`: stop once the peaks are certain (a history runs
     to `t1`; so does a design with the firing envelope, whose return and rest are
-    metrics). Its `integrate(initial_state(p), model_args(p, smoothing), t1)` solves."""
+    metrics). Its `integrate(initial_state(args), args, t1)` with
+    `args = model_args(p, smoothing)` solves."""
     envelope = has_envelope(params)
     return PeakLoop(
         RECOIL_TERM,
@@ -122,29 +123,31 @@ def model_loop(params: RecoilParams, options: SolverOptions, stop_early: bool = 
         model_events(params),
         model_ceilings,
         **model_samples(params),
-        crossing_fn=(lambda args: battery_crossing(args[0])) if envelope else None,
+        crossing_fn=(lambda args: battery_crossing(args.params, args.rest)) if envelope else None,
     )
 
 
 def envelope_values(
-    params: RecoilParams, smoothing: Smoothing, run: PeakRun, values: dict, end
+    params: RecoilParams, smoothing: Smoothing, run: PeakRun, values: dict, end, rest
 ) -> dict:
     """`values` (extremes by metric name) with the firing envelope's metrics of `run`:
-    the return's (from its crossing), `residual_displacement` (`x_M(t1)`, `end = t1`:
-    `residual_at`) and the stability margin (NaN without a mount), and `returned`; all
-    NaN for a design without the envelope (`peaks_of_run`)."""
+    the return's (from its crossing), `residual_displacement` (`x_M(t1) − x_r`, with
+    `end = t1` and the rest `x_r`: `residual_at`), the stability margin (NaN without a
+    mount), the pull (no less than 0) and `returned`; all NaN for a design without the
+    envelope (`peaks_of_run`)."""
     out = dict(values)
     nan = jnp.full_like(out["peak_displacement"], jnp.nan)
     if not has_envelope(params):
-        out |= {"return_time": nan, "battery_speed": nan, "residual_displacement": nan}
-        out["stability_margin"] = nan
+        out |= {name: nan for name, m in METRICS.items() if m.envelope}
         return out | {"returned": jnp.zeros(nan.shape, bool)}
     returned = run.crossed
     last = last_firing(params)
     out["return_time"] = jnp.where(returned, run.cross_time - last, end - last)
     out["battery_speed"] = jnp.where(returned, -run.cross_state[1], 0.0)
-    out["residual_displacement"] = residual_at(run.final_state, run.final_time, end, smoothing)
+    final = residual_at(run.final_state, run.final_time, end, smoothing)
+    out["residual_displacement"] = final - rest
     out["stability_margin"] = jnp.where(mounted(params), out["stability_margin"], jnp.nan)
+    out["peak_pull_force"] = jnp.maximum(out["peak_pull_force"], 0.0)
     return out | {"returned": returned}
 
 
@@ -157,16 +160,20 @@ def residual_at(final_state, final_time, end, smoothing: Smoothing):
     return final_state[..., 0] + jnp.where(early, final_state[..., 1] * smoothing.stick_time, 0.0)
 
 
-def peaks_of_run(params: RecoilParams, smoothing: Smoothing, run: PeakRun, end) -> Peaks:
+def peaks_of_run(params: RecoilParams, smoothing: Smoothing, run: PeakRun, end, rest) -> Peaks:
     """The `Peaks` of a loop run that tracked `tracked_metrics` (maxima of `sign · signal`,
     so a minimum comes back with its sign restored), with the envelope's metrics
-    (`envelope_values`); `end` is the solve's end time `t1` (s)."""
+    (`envelope_values`); `end` is the solve's end time `t1` (s), `rest` the static rest
+    `x_r` (m) it started from (`ModelArgs.rest`)."""
     best, times = run.by_name(run.best), run.by_name(run.best_time)
     values = {name: m.sign * best[name] for name, m in EXTREMES.items()}
-    values = envelope_values(params, smoothing, run, values, end)
+    values = envelope_values(params, smoothing, run, values, end, rest)
     times = dict(times)
-    present = mounted(params) if has_envelope(params) else False
+    envelope = has_envelope(params)
+    present = mounted(params) if envelope else False
     times["stability_margin"] = jnp.where(present, times["stability_margin"], jnp.nan)
+    for name in ("peak_pull_force", "peak_mount_load"):
+        times[name] = jnp.where(envelope, times[name], jnp.nan)
     return Peaks.of(values, times, run.num_steps, run.num_attempts, run.status, values["returned"])
 
 
@@ -192,10 +199,9 @@ def peak_metrics(
     never raised here: see `peaks`).
     """
     t1 = end_time(params, options)
-    run = model_loop(params, options).integrate(
-        initial_state(params), model_args(params, smoothing), t1
-    )
-    return peaks_of_run(params, smoothing, run, t1)
+    args = model_args(params, smoothing)
+    run = model_loop(params, options).integrate(initial_state(args), args, t1)
+    return peaks_of_run(params, smoothing, run, t1, args.rest)
 
 
 @structure_jit
@@ -273,10 +279,10 @@ def _simulate_jit(params, smoothing, options, ts, throw: bool) -> History:
     args = model_args(params, smoothing)
     t1 = end_time(params, options)
     run = model_loop(params, options, stop_early=False).integrate(
-        initial_state(params), args, t1, save_ts=ts
+        initial_state(args), args, t1, save_ts=ts
     )
     ys = run.saved
-    f = jax.vmap(lambda t, y: forces(y, params, smoothing, args[2], t=t))(ts, ys)
+    f = jax.vmap(lambda t, y: forces(y, params, smoothing, args.contact_width, t=t))(ts, ys)
     history = History(
         ts=ts,
         x_M=ys[:, 0],
@@ -286,7 +292,7 @@ def _simulate_jit(params, smoothing, options, ts, throw: bool) -> History:
         anchoring_force=f.anchoring,
         contact_force=f.contact,
         forces=f,
-        peaks=peaks_of_run(params, smoothing, run, t1),
+        peaks=peaks_of_run(params, smoothing, run, t1, args.rest),
         status=run.status,
     )
     return raise_on_failure(history, run.status) if throw else history
@@ -335,12 +341,13 @@ def _peaks_batch(
 
     def setup(design):
         p, end = design
-        return initial_state(p), model_args(p, smoothing), end
+        args = model_args(p, smoothing)
+        return initial_state(args), args, end
 
     return queued_map(
         loop,
         setup,
-        lambda design, args, run: peaks_of_run(design[0], smoothing, run, design[1]),
+        lambda design, args, run: peaks_of_run(design[0], smoothing, run, design[1], args.rest),
         (params, t1),
         lanes,
         count,

@@ -12,6 +12,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .._campaigns.store import lowest_row, read_sweep_store
+from .._model.hazards import hazard_flags
 from .._model.metrics import METRICS, PEAK_FIELDS, gradient_key
 from .._model.registry import ParameterError
 from .._model.status import Status, status_codes, status_item, status_messages
@@ -79,13 +80,23 @@ class SweepResult:
             if not (simplified and name in ABSORBER and name != "m") and not np.isnan(v[index])
         }
 
+    def hazards(self) -> list[list[str]]:
+        """Each point's hazards by name (`rjx.HAZARDS`, named unasked: `envelope.md`), in
+        input order; none where its solve failed."""
+        shape = self.ok.shape
+        flags = {
+            n: np.broadcast_to(f, shape) for n, f in hazard_flags(self.values, self.peaks).items()
+        }
+        return [[n for n, f in flags.items() if f[i]] if ok else [] for i, ok in enumerate(self.ok)]
+
     def records(self, model: str = "smoothed") -> list[dict]:
         """One dict per point, in input order, with the keys of `recoil-jax simulate
         --json` (`PEAK_FIELDS`): the peaks (None where the solve failed), `status` ("ok" or
-        the reason), `model`, `parameters`; with gradients also `gradients`
-        ({metric key: {parameter: derivative}})."""
+        the reason), `hazards` (their names, `hazards`), `model`, `parameters`; with
+        gradients also `gradients` ({metric key: {parameter: derivative}})."""
         out = []
         messages = self.messages()
+        hazards = self.hazards()
         for i in range(len(self)):
             ok = bool(self.ok[i])
             record: dict[str, Any] = {
@@ -95,6 +106,7 @@ class SweepResult:
                 for field, key in PEAK_FIELDS.items()
             }
             record["status"] = messages[i]
+            record["hazards"] = hazards[i]
             record["model"] = model
             record["parameters"] = self.parameters(i)
             if self.gradients:

@@ -16,7 +16,7 @@ INFEASIBLE = 3
 
 def run_optimise(args) -> int:
     """Run `recoil-jax optimise` with the parsed `args`; its exit status."""
-    from .._studies.study import run_study, study_summary
+    from .._studies.study import hazard_lines, run_study, study_summary
 
     report = run_study(
         args.study,
@@ -31,6 +31,8 @@ def run_optimise(args) -> int:
         print(json_dumps(report))
     if not report["feasible"]:
         print(f"recoil-jax: infeasible: {report['message']}", file=sys.stderr)
+        for line in hazard_lines(report):  # the closest design's
+            print(f"recoil-jax: {line.strip()}", file=sys.stderr)
         return INFEASIBLE
     if not args.json:
         print(study_summary(report))

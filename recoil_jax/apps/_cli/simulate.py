@@ -46,11 +46,19 @@ def run_simulate(args) -> int:
         print(f"recoil-jax: solver failed: {rjx.status_messages(peaks.status)[0]}", file=sys.stderr)
         return 1
     result = peaks.to_dict()
+    hazards = rj.peaks_hazards(params, peaks)
     used = used_parameters(params, table, args.force_table)
     used["t1"] = t1
     if args.json:
         print(
-            json.dumps(result | {"model": "hard" if args.hard else "smoothed", "parameters": used})
+            json.dumps(
+                result
+                | {
+                    "hazards": hazards,
+                    "model": "hard" if args.hard else "smoothed",
+                    "parameters": used,
+                }
+            )
         )
     else:
         model = "simplified (no absorber)" if params.absorber is None else "with absorber"
@@ -86,6 +94,8 @@ def run_simulate(args) -> int:
         rows.append(("solver steps", f"{result['num_steps']}", ""))
         for name, value, when in rows:
             print(f"  {name:28s} {value:>22s}  {when}")
+        for hazard in hazards:
+            print(f"  hazard {hazard['name']}: {hazard['sentence']}")
     if plot is None and trace is None:
         return 0
     history = rj.simulate(params, smoothing, options, ts=np.linspace(0.0, t1, 20001))
@@ -134,11 +144,14 @@ def _envelope_rows(result: dict) -> list[tuple[str, str, str]]:
     if result["returned"]:
         back = f"{result[metrics['return_time'].key]:.4f} s"
         speed = f"{result[metrics['battery_speed'].key]:.4f} m/s"
-        rows = [("back in battery (x_M = 1 mm)", back, f"at {speed}")]
+        rows = [("back in battery (x_r + 1 mm)", back, f"at {speed}")]
     else:
-        rows = [("back in battery (x_M = 1 mm)", "never, by t1", "")]
+        rows = [("back in battery (x_r + 1 mm)", "never, by t1", "")]
     rest = result[metrics["residual_displacement"].key]
-    rows.append(("barrel at rest at t1", f"{rest:+.6f} m", ""))
+    rows.append(("barrel from its rest at t1", f"{rest:+.6f} m", ""))
+    for name in ("peak_pull_force", "peak_mount_load"):
+        m = metrics[name]
+        rows.append((m.meaning, f"{result[m.key]:.2f} N", f"at {result[m.time_key]:.4f} s"))
     margin = metrics["stability_margin"]
     if result[margin.key] is not None:
         rows.append(

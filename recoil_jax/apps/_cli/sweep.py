@@ -138,6 +138,7 @@ def write_results(result: rj.SweepResult, out: Path, meta: dict) -> list[Path]:
         parameters = record.pop("parameters")
         row = {name: parameters.get(name, "") for name in names}
         record.pop("gradients", None)
+        record["hazards"] = ";".join(record["hazards"])  # one CSV cell: names, ;-separated
         for metric, by_param in (result.gradients or {}).items():
             row |= {
                 rjx.gradient_key(metric, name): float(v[i]) if result.ok[i] else None

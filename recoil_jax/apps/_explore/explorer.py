@@ -366,7 +366,8 @@ class Explorer:
             names = [wrt[i] for i in order]
             self.bar_range.factors = names
             self.bars.data = {"name": names, "change": change[order]}
-            self.peaks_pane.object = self._peaks_html(peaks.to_dict())
+            hazards = rj.peaks_hazards(params, peaks)
+            self.peaks_pane.object = self._peaks_html(peaks.to_dict()) + _hazards_html(hazards)
         self.update_ms = 1e3 * (time.perf_counter() - start)
         self.timing.object = f'<span class="update-ms">updated in {self.update_ms:.1f} ms</span>'
 
@@ -439,6 +440,18 @@ class Explorer:
             heading, pn.Row(sidebar, self.views, sizing_mode="stretch_width"),
             sizing_mode="stretch_width",
         )  # fmt: skip
+
+
+def _hazards_html(hazards: list[dict[str, str]]) -> str:
+    """The design's hazards (`rj.peaks_hazards`), named unasked, one line each."""
+    if not hazards:
+        return '<div class="hazards">hazards: none</div>'
+    lines = "".join(
+        f'<li class="hazard" id="hazard-{h["name"]}"><b>{h["name"]}</b>: '
+        f"{html.escape(h['sentence'])}</li>"
+        for h in hazards
+    )
+    return f'<div class="hazards" style="color:#b35900">hazards:<ul>{lines}</ul></div>'
 
 
 def _off(values: dict[str, float]) -> dict[str, bool]:

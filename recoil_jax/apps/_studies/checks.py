@@ -19,6 +19,7 @@ from .study_file import Study
 __all__ = [
     "best_summary",
     "check_best",
+    "condition_hazards",
     "condition_params",
     "condition_peaks",
     "per_condition",
@@ -91,6 +92,27 @@ def _worst_case(problem: rj.DesignProblem, runs: list[rj.Peaks]) -> tuple[dict, 
     )
 
 
+def condition_hazards(problem: rj.DesignProblem, params, at: dict[str, rj.Peaks]) -> dict:
+    """The hazards of `params` at each condition by name (`rj.peaks_hazards`, from its
+    peaks `at` each, `condition_peaks`), each with `limited`: whether a limit on the
+    metric that measures it holds at that condition (`rjx.HAZARDS`); one that no limit
+    covers is a warning of the study's summary."""
+    limited: dict[str, set[str]] = {name: set() for name in at}
+    names = list(at)
+    for (metric, _, _), where in zip(
+        problem.metric_constraints, problem.limit_conditions, strict=True
+    ):
+        for j in where if problem.conditions else [0]:
+            limited[names[int(j)]].add(metric)
+    return {
+        name: [
+            h | {"limited": rjx.HAZARDS[h["name"]].metric in limited[name]}
+            for h in rj.peaks_hazards(p, at[name])
+        ]
+        for name, p in condition_params(problem, params).items()
+    }
+
+
 def best_summary(study: Study, result: rj.OptimiseResult, scenario: int) -> dict:
     problem = study.problem
     params = result.best_params(scenario)
@@ -111,8 +133,14 @@ def best_summary(study: Study, result: rj.OptimiseResult, scenario: int) -> dict
         summary["worst_condition"] = list(at)[int(np.argmax(objectives))]
         summary["metrics"] = runs[int(np.argmax(objectives))].to_dict()
         summary["worst_case_metrics"] = worst
+        hazards = condition_hazards(problem, params, at)
         summary["conditions"] = {
-            c.name: {"values": dict(c.values), "objective": objective, "metrics": r.to_dict()}
+            c.name: {
+                "values": dict(c.values),
+                "objective": objective,
+                "metrics": r.to_dict(),
+                "hazards": hazards[c.name],
+            }
             for c, r, objective in zip(problem.conditions, runs, objectives, strict=True)
         }
         summary["constraints"] = rj.constraint_report(problem, design, per_condition(runs), limits)
@@ -126,6 +154,8 @@ def best_summary(study: Study, result: rj.OptimiseResult, scenario: int) -> dict
         summary["constraints"] = rj.constraint_report(problem, design, by_name, limits)
     else:
         summary["constraints"] = rj.constraint_report(problem, design, best.metrics(), limits)
+    if not problem.conditions:
+        summary["hazards"] = condition_hazards(problem, params, {"": best})[""]
     return summary
 
 

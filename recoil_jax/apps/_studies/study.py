@@ -24,6 +24,7 @@ from .._files.json_writer import write as write_json
 from .checks import (
     best_summary,
     check_best,
+    condition_hazards,
     condition_peaks,
     per_condition,
     percent,
@@ -33,7 +34,7 @@ from .checks import (
 )
 from .study_file import Study, load_study, optimise_kwargs, search_kwargs
 
-__all__ = ["agreement_line", "run_study", "study_summary"]
+__all__ = ["agreement_line", "hazard_lines", "run_study", "study_summary"]
 
 
 def agreement_line(report: dict) -> str | None:
@@ -68,7 +69,26 @@ def study_summary(report: dict) -> str:
         lines.append(f"  {name}: {c['value']:.6g} {unit} (limit {c['limit']:g} {unit}) {state}")
     if line := agreement_line(report):
         lines.append(f"  {line}")
+    lines.extend(hazard_lines(report))
     return "\n".join(lines)
+
+
+def hazard_lines(report: dict) -> list[str]:
+    """The summary's warning lines: each hazard of the best design (or the closest) at
+    each condition that no limit covers (`condition_hazards`)."""
+    design = report.get("closest") if report.get("best") is None else report
+    if not design:
+        return []
+    at = {k: c.get("hazards", []) for k, c in design.get("conditions", {}).items()}
+    if not at:
+        at = {"": design.get("hazards", [])}
+    return [
+        f"  warning: {h['name']}{' at ' + name if name else ''}: {h['sentence']} "
+        "(no limit covers it)"
+        for name, hazards in at.items()
+        for h in hazards
+        if not h["limited"]
+    ]
 
 
 def _condition_keys(report: dict) -> list[str]:
@@ -289,6 +309,7 @@ def _infeasible_summary(study: Study, closest) -> dict:
     missed = rj.closest_miss(problem, rj.metric_violations(problem, metrics))
     design = {k: float(np.asarray(v)) for k, v in rj.params_to_values(closest).items()}
     objectives = [float(problem.objective(r.metrics())) for r in runs]
+    hazards = condition_hazards(problem, closest, at)
     summary["closest"] = {
         "design": design,
         "metrics": runs[int(np.argmax(objectives))].to_dict(),
@@ -296,7 +317,11 @@ def _infeasible_summary(study: Study, closest) -> dict:
         "missed": missed,
     }
     if problem.conditions:
-        summary["closest"]["conditions"] = {k: r.to_dict() for k, r in zip(at, runs, strict=True)}
+        summary["closest"]["conditions"] = {
+            k: r.to_dict() | {"hazards": hazards[k]} for k, r in zip(at, runs, strict=True)
+        }
+    else:
+        summary["closest"]["hazards"] = hazards[""]
     units = {
         label: rj.METRICS[name].unit
         for (name, _, _), label in zip(

@@ -3,7 +3,9 @@ a sweep's, a search's, an optimisation's and a calibration's, each small and fin
 They were made at 66a0bae, before issue 53 redrew the package, and made again when
 issue 54 changed every campaign's identity on purpose (the design's structure gained
 the firing envelope's groups, the smoothing its widths, the results their columns, a
-design problem its firing conditions), with
+design problem its firing conditions), and again for the firing envelope's revision 2
+(issue 62: a store's `model` revision; `sweep_revision1.sqlite` is the sweep's store as
+it was before, kept to show that such a store is refused), with
 
     PYTHONPATH=<a checkout of 66a0bae> python tests/data/stores/make_stores.py tests/data/stores
 
