@@ -70,7 +70,10 @@ def test_explorer_shows_simulate_numbers_and_errors():
     assert explorer.field_errors["gap"].object == "" and explorer.message.object == ""
     assert "peak_anchoring_force" in explorer.peaks_pane.object
     # Each card says whether its part is on.
-    assert explorer.cards["recuperator"].title == "Gas recuperator (off: recuperator_force = 0)"
+    assert (
+        explorer.cards["recuperator"].title
+        == "Gas recuperator (off: recuperator_force = recuperator_preload = 0)"
+    )
     # A failed solve (the barrel bottoms out the recuperator): why, and no peaks, limits
     # or gradient bars.
     explorer.set("m", 0.0)
@@ -178,7 +181,9 @@ def test_explorer_page_in_headless_chromium():
             force.wait_for(timeout=30_000)
             # A new structure (the recuperator on) compiles for seconds: a spinner shows
             # at once; then a failed solve says why, with no peaks.
-            page.get_by_text("Gas recuperator (off: recuperator_force = 0)").click()
+            page.get_by_text(
+                "Gas recuperator (off: recuperator_force = recuperator_preload = 0)"
+            ).click()
             page.locator(".field-recuperator_length input").fill("0.15")  # 0.95 L_r < 0.175 m
             page.locator(".field-recuperator_length input").press("Enter")
             force.wait_for(timeout=60_000)
@@ -189,6 +194,112 @@ def test_explorer_page_in_headless_chromium():
             page.get_by_text("compiling the program of this structure").wait_for(timeout=5_000)
             page.get_by_text("no peaks: the solve failed").wait_for(timeout=120_000)
             page.locator(".message .error", has_text="bottomed out").wait_for(timeout=5_000)
+            browser.close()
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+
+
+#: The envelope study's hand design (issue 62) and the first study's violent one.
+HOWITZER = dict(
+    M=1800.0, v0=10.0, m=0.0, pulse_time=0.004, k=0.0, friction_force=1500.0,
+    friction_coefficient=0.05, stop_stiffness=2.1e8, recuperator_length=1.8,
+    buffer_length=0.15, mount_mass=8000.0, cg_distance=3.2, trunnion_height=1.1,
+    spade_distance=3.6, c_out=16000.0, c_ret=30000.0, recuperator_preload=30000.0,
+    buffer_damping=40000.0,
+)  # fmt: skip
+VIOLENT = dict(c_out=7574.0, c_ret=2292.0, recuperator_preload=51225.0, buffer_damping=100215.0)
+
+
+def _at(design, elevation, duration=2.0):
+    """What the envelope view shows of `design` at `elevation`: `simulate`'s peaks."""
+    params = rj.params_from_values(design | {"elevation": elevation})
+    peaks = rj.simulate(params, ts=np.linspace(0.0, duration, 400)).peaks
+    return peaks.to_dict(), [h["name"] for h in rj.peaks_hazards(params, peaks)]
+
+
+@pytest.mark.slow  # compiles the explorer's programs of the envelope's structure
+def test_the_envelope_view_shows_each_elevation_and_its_hazards():
+    """A design with the firing envelope: each elevation's metrics are `simulate`'s, held
+    against their limits, and its hazards are named; they follow the fields; bad
+    elevations say why; a design without the envelope says how to get the view."""
+    from recoil_jax.apps._explore.explorer import Explorer
+
+    explorer = Explorer(HOWITZER)
+    table = explorer.envelope.table.object
+    for k, elevation in enumerate((0.0, 35.0, 70.0)):
+        report, hazards = _at(HOWITZER, elevation)
+        for name in ("peak_mount_load", "peak_pull_force", "stability_margin", "return_time"):
+            key = rj.METRICS[name].key
+            assert f'id="env-{name}-{k}" class="within">{report[key]:.6g}<' in table or (
+                f'id="env-{name}-{k}" class="">{report[key]:.6g}<' in table
+            ), (name, elevation)
+        assert hazards == [] and f"{elevation:g}°: no hazard" in explorer.envelope.hazards.object
+    assert len(explorer.envelope.forces.objects) == 3
+    # The violent design: it slams at every elevation and lifts the gun at 35 and 70.
+    for name, value in VIOLENT.items():
+        explorer.set(name, value)
+    shown = explorer.envelope.hazards.object
+    for k, elevation in enumerate((0.0, 35.0, 70.0)):
+        _, hazards = _at(HOWITZER | VIOLENT, elevation)
+        assert "slams" in hazards and (elevation == 0.0 or "lifts" in hazards)
+        for hazard in hazards:
+            assert f'id="env-hazard-{k}-{hazard}"' in shown
+    assert 'class="over"' in explorer.envelope.table.object  # the margin's limit, 0.1
+    # The elevations are a field: two conditions, then a bad one.
+    explorer.envelope.elevations.value = "10, 60"
+    assert len(explorer.envelope.forces.objects) == 2 and "10°" in explorer.envelope.table.object
+    explorer.envelope.elevations.value = "10, 95"
+    assert "elevation = 95 deg is invalid" in explorer.envelope.message.object
+    assert explorer.envelope.table.object == "" and not explorer.envelope.forces.objects
+    # Without the envelope, the view says what would give it.
+    paper = Explorer()
+    assert "no firing envelope" in paper.envelope.message.object
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed")
+def test_the_envelope_view_in_headless_chromium():
+    """Served with the howitzer: the page shows each elevation's mount load as
+    `simulate` gives it; typing a return damper updates the pull at 70° and names the
+    hazards it brings."""
+    playwright = pytest.importorskip("playwright.sync_api")
+    port = _free_port()
+    assignments = [f"{k}={v}" for k, v in HOWITZER.items()]
+    server = subprocess.Popen(
+        [sys.executable, "-m", "recoil_jax.apps._cli", "explore", *assignments,
+         "--port", str(port), "--no-browser"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    try:
+        url = f"http://localhost:{port}/"
+        deadline = time.time() + 300
+        while True:
+            try:
+                urllib.request.urlopen(url, timeout=5)
+                break
+            except OSError:
+                assert server.poll() is None, server.stdout.read() if server.stdout else ""
+                assert time.time() < deadline, "the explorer did not start"
+                time.sleep(1)
+        with playwright.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, headless=True)
+            page = browser.new_page()
+            page.goto(url)
+            for k, elevation in enumerate((0.0, 35.0, 70.0)):
+                report, _ = _at(HOWITZER, elevation)
+                expected = f"{report['peak_mount_load_N']:.6g}"
+                page.evaluate(_WAIT_FOR_TEXT, [f"env-peak_mount_load-{k}", expected])
+            field = page.locator(".field-c_ret input")
+            field.fill("2292")
+            field.press("Enter")
+            report, hazards = _at(HOWITZER | {"c_ret": 2292.0}, 70.0)
+            page.evaluate(
+                _WAIT_FOR_TEXT, ["env-peak_pull_force-2", f"{report['peak_pull_force_N']:.6g}"]
+            )
+            for hazard in hazards:
+                page.locator(f"#env-hazard-2-{hazard}").wait_for(timeout=30_000)
+            assert "Traceback" not in page.content()
             browser.close()
     finally:
         server.terminate()

@@ -520,8 +520,11 @@ def _envelope_gradients(args, run: PeakRun, wrt, extremes: dict, scales, n) -> d
     speed_rate = -(tangents[:, 1] + f[1] * crossing_move)
     out["battery_speed"] = jnp.where(returned, speed_rate / scales, 0.0)
     out["stability_margin"] = jnp.where(mounted(params), out["stability_margin"], nan)
-    pulled = run.by_name(run.best)["peak_pull_force"] > 0
+    best = run.by_name(run.best)
+    pulled = best["peak_pull_force"] > 0
     out["peak_pull_force"] = jnp.where(pulled, out["peak_pull_force"], 0.0)
+    pushed = best["peak_anchoring_force"] >= jnp.maximum(best["peak_pull_force"], 0.0)
+    out["peak_mount_load"] = jnp.where(pushed, out["peak_anchoring_force"], out["peak_pull_force"])
     return out
 
 

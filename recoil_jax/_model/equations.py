@@ -7,7 +7,7 @@ absorber-free case (`params.absorber is None`): the absorber states stay at zero
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import diffrax
 import jax
@@ -478,8 +478,8 @@ _SWITCH_POWER = 0.0215
 def signals(t, y, args: ModelArgs) -> dict[str, jnp.ndarray]:
     """The time signals whose extremes are the metrics (`Metric.signal`): the recoil
     `x_M − x_r` from the static rest (m), anchoring force `F_AN` (N), its pull on the
-    mount `−F_AN` and its size `|F_AN|` (N; 0 for a design without the firing envelope,
-    whose solve stops before the return), contact force `F_ct` (N), the absorber's
+    mount `−F_AN` (N; 0 for a design without the firing envelope, whose solve stops
+    before the return), contact force `F_ct` (N), the absorber's
     travel `stroke = x_m − x_M` (m; 0 for the simplified model) and the mount's
     stability `margin`. `args = model_args(params, smoothing)`; the time `t` (s) for the
     breech force, which the friction's sticking sees."""
@@ -493,10 +493,7 @@ def signals(t, y, args: ModelArgs) -> dict[str, jnp.ndarray]:
         lead = counter_recoil_force(y, counter, args.smoothing, lead=True)
         anchoring = anchoring - f.counter_recoil + lead
     out = {"recoil": y[0] - args.rest, "F_AN": anchoring, "F_ct": f.contact, "stroke": stroke}
-    if has_envelope(params):
-        out |= {"pull": -anchoring, "mount_load": jnp.abs(anchoring)}
-    else:
-        out |= {"pull": jnp.zeros_like(anchoring), "mount_load": jnp.zeros_like(anchoring)}
+    out["pull"] = -anchoring if has_envelope(params) else jnp.zeros_like(anchoring)
     out["margin"] = stability(y, params, anchoring, args.rest)
     return out
 
@@ -576,7 +573,6 @@ def future_metric_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
     untracked = {
         "stability_margin": margin,
         "peak_pull_force": jnp.full_like(displacement, -jnp.inf),
-        "peak_mount_load": jnp.full_like(displacement, -jnp.inf),
     }
     if params.absorber is None:
         zero = jnp.zeros_like(displacement)
@@ -672,7 +668,6 @@ def held_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
         "peak_displacement": creep,
         "peak_anchoring_force": force_change,
         "peak_pull_force": force_change,
-        "peak_mount_load": force_change,
         "peak_contact_force": jnp.zeros_like(y[0]),  # (`quiet`: out of reach)
         "min_stroke": travel,
         "max_stroke": travel,
@@ -826,8 +821,8 @@ class ModelArgs(NamedTuple):
 
     params: RecoilParams
     smoothing: Smoothing
-    contact_width: jnp.ndarray
-    rest: jnp.ndarray
+    contact_width: Any
+    rest: Any  # None where only the vector field reads them (it does not read the rest)
 
 
 def model_args(params: RecoilParams, smoothing: Smoothing, rest_guess=None) -> ModelArgs:
@@ -884,6 +879,7 @@ def rest_root(params: RecoilParams, smoothing: Smoothing, width_contact):
         return static_anchoring(x, params, smoothing, width_contact) - axial_weight(params)
 
     stop = params.battery_stop
+    assert stop is not None  # (its static structure, unchanged by stop_gradient)
     excess = balance(jnp.zeros(()))
     stiff = stop.stop_stiffness > 0
     held = stiff & (excess > 0)

@@ -43,7 +43,10 @@ class Metric:
       `signal` (see `tracked_metrics`);
     - `"return"`: taken where the barrel comes back into battery after the last round
       (`return_time`, `battery_speed`; the firing envelope's designs only);
-    - `"final"`: taken at `t1` (`residual_displacement`; likewise).
+    - `"final"`: taken at `t1` (`residual_displacement`; likewise);
+    - `"either"`: the larger of the push and the pull, `max(peak_anchoring_force,
+      peak_pull_force) = max |F_AN|`, with its time and gradient (`peak_mount_load`; not
+      tracked on its own: each tracked quantity costs every step its share).
 
     `extreme` is also the direction in which it is worst (`worst_case`)."""
 
@@ -54,7 +57,7 @@ class Metric:
     timed: bool  # the time of the extreme is reported too
     smoothable: bool  # has a smooth maximum over time (`SmoothMax`)
     meaning: str
-    kind: Literal["extreme", "return", "final"] = "extreme"
+    kind: Literal["extreme", "return", "final", "either"] = "extreme"
     envelope: bool = False  # reported for the firing envelope's designs only (else null)
 
     @property
@@ -189,11 +192,12 @@ METRICS: dict[str, Metric] = {
         Metric(
             name="peak_mount_load",
             unit="N",
-            signal="mount_load",
+            signal=None,
             extreme="max",
             timed=True,
-            smoothable=True,
+            smoothable=False,
             meaning="peak load on the mount either way, max |F_AN|",
+            kind="either",
             envelope=True,
         ),
     )

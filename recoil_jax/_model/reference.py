@@ -196,9 +196,10 @@ class _HardModel:
                 break
             low *= 2.0
         root = scipy.optimize.brentq(
-            balance, low, 0.0, xtol=1e-300, rtol=4 * np.finfo(float).eps, maxiter=500
-        )
-        return float(root)
+            balance, low, 0.0, xtol=1e-300, rtol=4 * np.finfo(float).eps, maxiter=500,
+            full_output=False,
+        )  # fmt: skip
+        return float(root)  # pyright: ignore[reportArgumentType]
 
     # --- forces -----------------------------------------------------------------------
     def firing_times(self) -> np.ndarray:

@@ -148,6 +148,7 @@ def envelope_values(
     out["residual_displacement"] = final - rest
     out["stability_margin"] = jnp.where(mounted(params), out["stability_margin"], jnp.nan)
     out["peak_pull_force"] = jnp.maximum(out["peak_pull_force"], 0.0)
+    out["peak_mount_load"] = jnp.maximum(out["peak_anchoring_force"], out["peak_pull_force"])
     return out | {"returned": returned}
 
 
@@ -172,8 +173,10 @@ def peaks_of_run(params: RecoilParams, smoothing: Smoothing, run: PeakRun, end, 
     envelope = has_envelope(params)
     present = mounted(params) if envelope else False
     times["stability_margin"] = jnp.where(present, times["stability_margin"], jnp.nan)
-    for name in ("peak_pull_force", "peak_mount_load"):
-        times[name] = jnp.where(envelope, times[name], jnp.nan)
+    pushed = values["peak_anchoring_force"] >= values["peak_pull_force"]
+    either = jnp.where(pushed, times["peak_anchoring_force"], times["peak_pull_force"])
+    times["peak_pull_force"] = jnp.where(envelope, times["peak_pull_force"], jnp.nan)
+    times["peak_mount_load"] = jnp.where(envelope, either, jnp.nan)
     return Peaks.of(values, times, run.num_steps, run.num_attempts, run.status, values["returned"])
 
 

@@ -26,6 +26,7 @@ import recoil_jax as rj
 import recoil_jax.extend as rjx
 
 from .._files.inputs import parse_assignments
+from .envelope_view import EnvelopeView
 
 __all__ = ["EXPLORER_KNOTS", "Explorer", "check_listen", "explorer", "main_explore"]
 
@@ -39,7 +40,12 @@ _GROUPS = {
     "contact": ("Contact", "m = 0"),
     "load": ("Breech load", None),
     "buffer": ("Throttling orifice", "piston_area = 0"),
-    "recuperator": ("Gas recuperator", "recuperator_force = 0"),
+    "recuperator": ("Gas recuperator", "recuperator_force = recuperator_preload = 0"),
+    # The firing envelope (`envelope.md`): each part its card, and the envelope view.
+    "rails": ("Rails: elevation and friction", "elevation = friction = 0"),
+    "battery_stop": ("Battery stop", "stop_stiffness = 0"),
+    "counter_recoil_buffer": ("Counter-recoil buffer", "buffer_damping = 0"),
+    "mount": ("Mount", "mount_mass = 0"),
 }
 
 #: The sidebar's width (px): every card takes all of it.
@@ -80,12 +86,7 @@ def _start_values(values: dict[str, float] | None) -> dict[str, float]:
     defaults = {name: float(p.default) for name, p in rj.PARAMETERS.items()}
     defaults |= {f"orifice_{i}": 4e-4 for i in range(EXPLORER_KNOTS)}
     defaults |= {k: float(np.asarray(v)) for k, v in start.items()}
-    # The firing envelope's parameters (issue 54) have no card yet: their fields stay out.
-    return {
-        k: v
-        for k, v in defaults.items()
-        if rj.PARAMETERS[k].group in _GROUPS and k != "recuperator_preload"
-    }
+    return {k: v for k, v in defaults.items() if rj.PARAMETERS[k].group in _GROUPS}
 
 
 def _time_plot(title: str, y_axis_label: str, x_range=None):
@@ -145,6 +146,7 @@ class Explorer:
         self._add_history_plots()
         self.measured = None if trace is None else self._overlay(trace)
         self._add_bar_plot()
+        self.envelope = EnvelopeView(pn, self._watched, self.limits["peak_displacement"])
         self.peaks_pane = pn.pane.HTML("", css_classes=["peaks"])
         self.message = pn.pane.HTML("", css_classes=["message"])
         self.timing = pn.pane.HTML("", css_classes=["timing"])
@@ -158,6 +160,7 @@ class Explorer:
             self.force_plot,
             self.contact_plot,
             self.bar_plot,
+            self.envelope.panel,
             sizing_mode="stretch_width",
         )
         self._structure: tuple | None = None
@@ -368,6 +371,7 @@ class Explorer:
             self.bars.data = {"name": names, "change": change[order]}
             hazards = rj.peaks_hazards(params, peaks)
             self.peaks_pane.object = self._peaks_html(peaks.to_dict()) + _hazards_html(hazards)
+        self.envelope.update(values, duration)
         self.update_ms = 1e3 * (time.perf_counter() - start)
         self.timing.object = f'<span class="update-ms">updated in {self.update_ms:.1f} ms</span>'
 
@@ -391,6 +395,7 @@ class Explorer:
         self.bar_range.factors = []
         self.bars.data = {"name": [], "change": []}
         self.peaks_pane.object = '<div class="failed">no results until the design is valid</div>'
+        self.envelope.clear()
         self.timing.object = ""
 
     def _titles(self, values: dict[str, float]) -> None:
@@ -429,8 +434,13 @@ class Explorer:
         the sidebar), views on the right."""
         pn = self.pn
         sidebar = pn.Column(
-            self.duration, *self.limits.values(), *self.cards.values(), width=_SIDEBAR
-        )
+            self.duration,
+            *self.limits.values(),
+            *self.cards.values(),
+            pn.Card(*self.envelope.sidebar(), title="Firing envelope: elevations and limits",
+                    collapsed=False, sizing_mode="stretch_width"),
+            width=_SIDEBAR,
+        )  # fmt: skip
         heading = pn.pane.Markdown(
             "## recoil-jax design explorer\n"
             "Type a value and press Enter: the histories, the peaks and the gradient follow.",
@@ -461,7 +471,14 @@ def _off(values: dict[str, float]) -> dict[str, bool]:
         "contact": not values.get("m"),
         "load": values.get("pulse_time") == 0 and values.get("shots") == 1,
         "buffer": not values.get("piston_area"),
-        "recuperator": not values.get("recuperator_force"),
+        "recuperator": not values.get("recuperator_force")
+        and not values.get("recuperator_preload"),
+        "rails": not any(
+            values.get(name) for name in ("elevation", "friction_force", "friction_coefficient")
+        ),
+        "battery_stop": not values.get("stop_stiffness"),
+        "counter_recoil_buffer": not values.get("buffer_damping"),
+        "mount": not values.get("mount_mass"),
     }
 
 
