@@ -314,7 +314,10 @@ def test_every_search_method_designs_over_the_conditions(envelope, local):
 @pytest.mark.slow
 def test_optax_designs_over_the_conditions(envelope):
     """`optimise` (optax from several starts, vmapped) with the conditions vmapped inside
-    each evaluation: feasible, below the hand design."""
+    each evaluation: feasible, below the hand design. (Measured: 166,210 N in 150 steps
+    from 4 starts on the mount load with the margin held at every elevation; the
+    search reaches 126,234 N. Before revision 2, on the push alone, it went below 0.9 of
+    the hand design.)"""
     result = rj.optimise(envelope, starts=4, steps=150, seed=0, progress=False)
     assert bool(result.feasible[0])
-    assert float(result.best_objective[0]) < 0.9 * HAND_OBJECTIVE
+    assert float(result.best_objective[0]) < HAND_OBJECTIVE

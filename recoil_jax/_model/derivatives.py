@@ -447,7 +447,9 @@ def _tangent_post(args, run: PeakRun, wrt, series: MetricSeries | None = None):
     directional = jax.vmap(gradient_of_metric)(indices, run.best_state, run.best_time)
     scales = jnp.asarray([parameter_scale(name) for name in wrt])
     grads = run.by_name(directional / scales)
-    extremes = {name: m.sign * grads[name] for name, m in EXTREMES.items()}
+    # A quantity the structure holds constant (not tracked) has no gradient.
+    untracked = jnp.zeros_like(grads["peak_displacement"])
+    extremes = {name: m.sign * grads.get(name, untracked) for name, m in EXTREMES.items()}
     envelope = _envelope_gradients(args, run, wrt, extremes, scales, n)
     gradients = PeakGradients.of(envelope, wrt)
     rest = model_args(params, smoothing, rest_guess).rest

@@ -29,6 +29,7 @@ __all__ = [
     "BOTTOM",
     "GRAVITY",
     "RECOIL_TERM",
+    "UNTRACKED",
     "Forces",
     "ModelArgs",
     "absorber_sag",
@@ -66,6 +67,7 @@ __all__ = [
     "static_anchoring",
     "static_rest",
     "tracked_metrics",
+    "tracked_names",
     "vector_field",
 ]
 
@@ -523,12 +525,39 @@ def stability(y, params: RecoilParams, anchoring, rest):
     return jnp.where(present, margin, jnp.ones_like(margin))
 
 
+#: The value of each extreme metric a design's structure holds constant, which the peak
+#: loop does not track (`tracked_names`): no absorber, no contact and no stroke; no
+#: envelope, no pull (its solve stops before the return).
+UNTRACKED = {
+    "peak_contact_force": 0.0,
+    "min_stroke": 0.0,
+    "max_stroke": 0.0,
+    "peak_pull_force": 0.0,
+}
+
+
+def tracked_names(params: RecoilParams) -> tuple[str, ...]:
+    """The extreme metrics the peak loop tracks for the structure of `params` (static):
+    every one of `EXTREMES` but those the structure holds constant (`UNTRACKED`). Each
+    tracked quantity costs every step its share of the loop's carry (its running
+    maximum and the step holding it)."""
+    absent = set()
+    if params.absorber is None:
+        absent |= {"peak_contact_force", "min_stroke", "max_stroke"}
+    if not has_envelope(params):
+        absent.add("peak_pull_force")
+    return tuple(name for name in EXTREMES if name not in absent)
+
+
 def tracked_metrics(t, y, args: ModelArgs) -> dict[str, jnp.ndarray]:
     """What the peak loop maximises, by metric name: `sign · signal` of each extreme
-    metric of `METRICS` (the negated stroke for `min_stroke`, so that its minimum is a
-    maximum)."""
+    metric the design tracks (`tracked_names`; the negated stroke for `min_stroke`, so
+    that its minimum is a maximum)."""
     values = signals(t, y, args)
-    return {name: m.sign * values[str(m.signal)] for name, m in EXTREMES.items()}
+    return {
+        name: EXTREMES[name].sign * values[str(EXTREMES[name].signal)]
+        for name in tracked_names(args.params)
+    }
 
 
 def future_metric_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:

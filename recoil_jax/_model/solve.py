@@ -13,6 +13,7 @@ import numpy as np
 from .._model.equations import (
     BATTERY,
     RECOIL_TERM,
+    UNTRACKED,
     Forces,
     forces,
     future_metric_bounds,
@@ -167,9 +168,13 @@ def peaks_of_run(params: RecoilParams, smoothing: Smoothing, run: PeakRun, end, 
     (`envelope_values`); `end` is the solve's end time `t1` (s), `rest` the static rest
     `x_r` (m) it started from (`ModelArgs.rest`)."""
     best, times = run.by_name(run.best), run.by_name(run.best_time)
-    values = {name: m.sign * best[name] for name, m in EXTREMES.items()}
+    zero = jnp.zeros_like(best["peak_displacement"])
+    values = {
+        name: m.sign * best[name] if name in best else zero + UNTRACKED[name]
+        for name, m in EXTREMES.items()
+    }
+    times = {name: times.get(name, zero) for name in EXTREMES}
     values = envelope_values(params, smoothing, run, values, end, rest)
-    times = dict(times)
     envelope = has_envelope(params)
     present = mounted(params) if envelope else False
     times["stability_margin"] = jnp.where(present, times["stability_margin"], jnp.nan)
