@@ -3,6 +3,7 @@ error message, an update after the first compilation is fast; and, in a real hea
 browser (Debian's chromium), the served page loads, typing a value updates the shown
 peak to the value `simulate` gives, and a bad value shows the message, no traceback."""
 
+import contextlib
 import shutil
 import socket
 import subprocess
@@ -116,26 +117,16 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-@pytest.mark.slow
-@pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed")
-def test_explorer_page_in_headless_chromium():
-    playwright = pytest.importorskip("playwright.sync_api")
+@contextlib.contextmanager
+def _explorer_served(*arguments):
+    """`recoil-jax explore *arguments` served on a free port, without a browser: its
+    address once it answers (5 minutes at most); stopped on leaving."""
     port = _free_port()
     server = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "recoil_jax.apps._cli",
-            "explore",
-            "--port",
-            str(port),
-            "--no-browser",
-            "--no-cache",  # a new structure compiles for seconds: the spinner shows
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
+        [sys.executable, "-m", "recoil_jax.apps._cli", "explore", *arguments,
+         "--port", str(port), "--no-browser"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
     try:
         url = f"http://localhost:{port}/"
         deadline = time.time() + 300
@@ -147,6 +138,18 @@ def test_explorer_page_in_headless_chromium():
                 assert server.poll() is None, server.stdout.read() if server.stdout else ""
                 assert time.time() < deadline, "the explorer did not start"
                 time.sleep(1)
+        yield url
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed")
+def test_explorer_page_in_headless_chromium():
+    playwright = pytest.importorskip("playwright.sync_api")
+    # A new structure compiles for seconds: the spinner shows.
+    with _explorer_served("--no-cache") as url:
         with playwright.sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, headless=True)
             page = browser.new_page()
@@ -195,9 +198,6 @@ def test_explorer_page_in_headless_chromium():
             page.get_by_text("no peaks: the solve failed").wait_for(timeout=120_000)
             page.locator(".message .error", has_text="bottomed out").wait_for(timeout=5_000)
             browser.close()
-    finally:
-        server.terminate()
-        server.wait(timeout=30)
 
 
 #: The envelope study's hand design (issue 62) and the first study's violent one.
@@ -264,24 +264,8 @@ def test_the_envelope_view_in_headless_chromium():
     `simulate` gives it; typing a return damper updates the pull at 70° and names the
     hazards it brings."""
     playwright = pytest.importorskip("playwright.sync_api")
-    port = _free_port()
     assignments = [f"{k}={v}" for k, v in HOWITZER.items()]
-    server = subprocess.Popen(
-        [sys.executable, "-m", "recoil_jax.apps._cli", "explore", *assignments,
-         "--port", str(port), "--no-browser"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-    )  # fmt: skip
-    try:
-        url = f"http://localhost:{port}/"
-        deadline = time.time() + 300
-        while True:
-            try:
-                urllib.request.urlopen(url, timeout=5)
-                break
-            except OSError:
-                assert server.poll() is None, server.stdout.read() if server.stdout else ""
-                assert time.time() < deadline, "the explorer did not start"
-                time.sleep(1)
+    with _explorer_served(*assignments) as url:
         with playwright.sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, headless=True)
             page = browser.new_page()
@@ -301,6 +285,3 @@ def test_the_envelope_view_in_headless_chromium():
                 page.locator(f"#env-hazard-2-{hazard}").wait_for(timeout=30_000)
             assert "Traceback" not in page.content()
             browser.close()
-    finally:
-        server.terminate()
-        server.wait(timeout=30)

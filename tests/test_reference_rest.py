@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 import scipy.optimize
+from test_reference_envelope import HOWITZER as HAND, SLAMMING
 
 from recoil_jax._model.reference import (
     GRAVITY,
@@ -18,28 +19,9 @@ from recoil_jax._model.reference import (
 
 g = GRAVITY
 
-#: The light howitzer's hand design (`optimise/envelope.toml`): no recoil spring, a
-#: 30 kN preload on a stop, a counter-recoil buffer it returns into, and its mount.
-HOWITZER = dict(
-    M=1800.0,
-    v0=10.0,
-    m=0.0,
-    pulse_time=0.004,
-    k=0.0,
-    friction_force=1500.0,
-    friction_coefficient=0.05,
-    stop_stiffness=2.1e8,
-    recuperator_length=1.8,
-    buffer_length=0.15,
-    mount_mass=8000.0,
-    cg_distance=3.2,
-    trunnion_height=1.1,
-    spade_distance=3.6,
-    c_out=16000.0,
-    c_ret=15000.0,
-    recuperator_preload=30000.0,
-    buffer_damping=150000.0,
-)  # issue 54's hand design: it returns into a stiff buffer (`SLAMMING`)
+#: Issue 54's hand design of the light howitzer: no recoil spring, a 30 kN preload on a
+#: stop, a counter-recoil buffer it returns into at speed, and its mount.
+HOWITZER = HAND | SLAMMING
 
 ABSORBER = dict(m=200.0, gap=0.05, k_r=5e4, c_r=1e3)
 

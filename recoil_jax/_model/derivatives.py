@@ -40,6 +40,7 @@ from .._model.equations import (
     mounted,
     rest_root,
     restart_step,
+    static_rest,
     tracked_metrics,
     vector_field,
 )
@@ -218,19 +219,38 @@ def _field_args(params, smoothing) -> ModelArgs:
     return ModelArgs(params, smoothing, contact_width(params, smoothing), None)
 
 
-def _augmented_vf(t, y, params, smoothing, smooth_max, t1, rest_guess):
+class _Rest(NamedTuple):
+    """The static rest of a tangent solve, found once (`_tangent_setup`): its root by
+    bisection (`guess`, `rest_root`) and its value after the Newton step (`value`,
+    `static_rest`), both m."""
+
+    guess: Any
+    value: Any
+
+
+def _rest_args(params, smoothing, rest: _Rest, differentiate: bool) -> ModelArgs:
+    """The model's `args` with the static rest `rest`. With `differentiate` (static:
+    where parameters are traced), the Newton step from its root again (`model_args`),
+    which carries its derivatives in them, the implicit function's; without, its value,
+    nothing solved again."""
+    if not differentiate:
+        return ModelArgs(params, smoothing, contact_width(params, smoothing), rest.value)
+    return model_args(params, smoothing, rest.guess)
+
+
+def _augmented_vf(t, y, params, smoothing, smooth_max, t1, rest):
     f = vector_field(t, y[:_N_STATE], _field_args(params, smoothing))
     if smooth_max is None:
         return f
-    args = model_args(params, smoothing, rest_guess)
+    args = _rest_args(params, smoothing, rest, differentiate=True)
     g = _smoothed(tracked_metrics(t, y[:_N_STATE], args), smooth_max)
     # Clipped so that a sudden rise far above the running integral cannot overflow.
     exponent = jnp.minimum(g / smooth_max.temperatures - y[_N_STATE:], 700.0)
     return jnp.concatenate([f, jnp.exp(exponent) / t1])
 
 
-def _augmented_metrics(t, y, params, smoothing, smooth_max, rest_guess) -> dict[str, Any]:
-    values = tracked_metrics(t, y[:_N_STATE], model_args(params, smoothing, rest_guess))
+def _augmented_metrics(t, y, args: ModelArgs, smooth_max) -> dict[str, Any]:
+    values = tracked_metrics(t, y[:_N_STATE], args)
     if smooth_max is not None:
         # The log-integrals increase monotonically: their maximum is their value at t1.
         for j, name in enumerate(smooth_max.metrics):
@@ -238,8 +258,8 @@ def _augmented_metrics(t, y, params, smoothing, smooth_max, rest_guess) -> dict[
     return values
 
 
-def _augmented_initial_state(params, smoothing, smooth_max, rest_guess):
-    args = model_args(params, smoothing, rest_guess)
+def _augmented_initial_state(params, smoothing, smooth_max, rest):
+    args = _rest_args(params, smoothing, rest, differentiate=True)
     y0 = initial_state(args)
     if smooth_max is None:
         return y0
@@ -252,14 +272,14 @@ def _state_size(smooth_max) -> int:
 
 
 def _tangent_vf(t, z, args, wrt):
-    params, smoothing, smooth_max, t1, rest_guess = args
+    params, smoothing, smooth_max, t1, rest = args
     n = _state_size(smooth_max)
     y, tangents = z[:n], z[n:].reshape(-1, n)
     # Linearised in the parameters `wrt` only: the others are constants here, so no
     # tangent flows through them.
     f_y, f_jvp = jax.linearize(
         lambda y_, theta: _augmented_vf(
-            t, y_, with_values(params, wrt, theta), smoothing, smooth_max, t1, rest_guess
+            t, y_, with_values(params, wrt, theta), smoothing, smooth_max, t1, rest
         ),
         y,
         values_of(params, wrt),
@@ -280,18 +300,17 @@ _STATE_TERM = diffrax.ODETerm(lambda t, y, args: _augmented_vf(t, y, *args))
 
 
 def _tangent_metrics(t, z, args):
-    params, smoothing, smooth_max, _, rest_guess = args
-    return _augmented_metrics(
-        t, z[: _state_size(smooth_max)], params, smoothing, smooth_max, rest_guess
-    )
+    params, smoothing, smooth_max, _, rest = args
+    model = _rest_args(params, smoothing, rest, differentiate=False)
+    return _augmented_metrics(t, z[: _state_size(smooth_max)], model, smooth_max)
 
 
 def _tangent_bounds(z, args, t, t1):
     """`future_metric_bounds` (`held_bounds` with the firing envelope) of the state part
     of `z` (without smooth maxima)."""
-    params, smoothing, _, _, rest_guess = args
+    params, smoothing, _, _, rest = args
     bounds = held_bounds if has_envelope(params) else future_metric_bounds
-    return bounds(z[:_N_STATE], model_args(params, smoothing, rest_guess), t, t1)
+    return bounds(z[:_N_STATE], _rest_args(params, smoothing, rest, differentiate=False), t, t1)
 
 
 #: A smooth maximum stops integrating once the rest of `[t, t1]` can add less than this to
@@ -330,7 +349,7 @@ def _tangent_jump(before, t, z, f_before, args, wrt):
     `y⁺ = g(y⁻, θ)` at a time `τ(θ)`, the tangents jump
     by `S⁺ = g_y (S⁻ + f⁻ τ_θ) + g_θ − f⁺ τ_θ`: the round's firing time moves with
     `fire_interval`, and `f⁻ ≠ f⁺` where a force table starts or ends off zero."""
-    params, smoothing, smooth_max, t1, rest_guess = args
+    params, smoothing, smooth_max, t1, rest = args
     n = _state_size(smooth_max)
     y, tangents = z[:n], z[n:].reshape(-1, n)
     theta = values_of(params, wrt)
@@ -344,7 +363,7 @@ def _tangent_jump(before, t, z, f_before, args, wrt):
 
     after = jump(y, theta)
     f_before = f_before[:n]
-    f_after = _augmented_vf(t, after, params, smoothing, smooth_max, t1, rest_guess)
+    f_after = _augmented_vf(t, after, params, smoothing, smooth_max, t1, rest)
 
     def column(s, d):
         moved = jax.jvp(stop_time, (theta,), (d,))[1]
@@ -372,20 +391,23 @@ def _events(params, wrt):
 def _tangent_setup(params, smoothing, wrt, smooth_max, t1):
     """`(z0, args)` of the tangent system up to `t1`: the state, then one tangent
     column per parameter in `wrt` (scaled by its range). `args = (params, smoothing,
-    smooth_max, t1, rest_guess)`: the static rest's root is found once, here; each use
-    polishes it (`model_args`), which carries its derivatives."""
-    rest_guess = rest_root(params, smoothing, contact_width(params, smoothing))
+    smooth_max, t1, rest)`: the static rest (`_Rest`) is found once, here (as the
+    model's own solve finds it, `model_args`); where parameters are traced, its Newton
+    step is taken again and carries its derivatives (`_rest_args`)."""
+    width = contact_width(params, smoothing)
+    guess = jax.lax.stop_gradient(rest_root(params, smoothing, width))
+    rest = _Rest(guess, jax.lax.stop_gradient(static_rest(params, smoothing, width, guess)))
 
     def initial(theta):
         return _augmented_initial_state(
-            with_values(params, wrt, theta), smoothing, smooth_max, rest_guess
+            with_values(params, wrt, theta), smoothing, smooth_max, rest
         )
 
     theta = values_of(params, wrt)
     y0 = initial(theta)
     s0 = jax.vmap(lambda d: jax.jvp(initial, (theta,), (d,))[1])(_directions(wrt))
     z0 = jnp.concatenate([y0, s0.reshape(-1)])
-    return z0, (params, smoothing, smooth_max, t1, rest_guess)
+    return z0, (params, smoothing, smooth_max, t1, rest)
 
 
 class ForwardSensitivities(NamedTuple):
@@ -410,16 +432,15 @@ class ForwardSensitivities(NamedTuple):
 def _tangent_post(args, run: PeakRun, wrt, series: MetricSeries | None = None):
     """Gradients at the located peaks by the envelope theorem: `∇_y g · S(t*) + ∂g/∂θ`,
     as `ForwardSensitivities`."""
-    params, smoothing, smooth_max, t1, rest_guess = args
+    params, smoothing, smooth_max, t1, rest = args
     n = _state_size(smooth_max)
     theta = values_of(params, wrt)
     stops = None if params.load is None else load_stops(params)
 
     def metric(i, t_, y_, theta_):
         """Tracked quantity `i` (in the order of `run.names`) at time `t_`, state `y_`."""
-        values = _augmented_metrics(
-            t_, y_, with_values(params, wrt, theta_), smoothing, smooth_max, rest_guess
-        )
+        model = _rest_args(with_values(params, wrt, theta_), smoothing, rest, differentiate=True)
+        values = _augmented_metrics(t_, y_, model, smooth_max)
         return jnp.stack([values[name] for name in run.names])[i]
 
     def gradient_of_metric(i, state, time):
@@ -432,7 +453,7 @@ def _tangent_post(args, run: PeakRun, wrt, series: MetricSeries | None = None):
         # A peak right after a round's firing (a velocity jump) stays at that instant,
         # which moves with the parameters: add the metric's rate times the move.
         index = jnp.argmin(jnp.abs(stops - time))
-        f = _augmented_vf(time, y, params, smoothing, smooth_max, t1, rest_guess)
+        f = _augmented_vf(time, y, params, smoothing, smooth_max, t1, rest)
         rate = jax.jvp(
             lambda t_, y_: metric(i, t_, y_, theta), (time, y), (jnp.ones_like(time), f)
         )[1]
@@ -452,8 +473,7 @@ def _tangent_post(args, run: PeakRun, wrt, series: MetricSeries | None = None):
     extremes = {name: m.sign * grads.get(name, untracked) for name, m in EXTREMES.items()}
     envelope = _envelope_gradients(args, run, wrt, extremes, scales, n)
     gradients = PeakGradients.of(envelope, wrt)
-    rest = model_args(params, smoothing, rest_guess).rest
-    peaks = peaks_of_run(params, smoothing, run, t1, rest)
+    peaks = peaks_of_run(params, smoothing, run, t1, rest.value)
     smooth_values = smooth_grads = None
     if smooth_max is not None:
         best = run.by_name(run.best)
@@ -493,7 +513,7 @@ def _envelope_gradients(args, run: PeakRun, wrt, extremes: dict, scales, n) -> d
     barrel's acceleration). Zero where there is no return, NaN without the envelope (as
     the values); the margin is an extreme, NaN without a mount; the pull's is 0 where
     `F_AN` never goes negative (the pull is then 0)."""
-    params, smoothing, smooth_max, t1, rest_guess = args
+    params, smoothing, smooth_max, t1, rest = args
     out = dict(extremes)
     nan = jnp.full_like(out["peak_displacement"], jnp.nan)
     if not has_envelope(params):
@@ -501,7 +521,9 @@ def _envelope_gradients(args, run: PeakRun, wrt, extremes: dict, scales, n) -> d
     theta = values_of(params, wrt)
     rest_move = jax.vmap(
         lambda d: jax.jvp(
-            lambda th: model_args(with_values(params, wrt, th), smoothing, rest_guess).rest,
+            lambda th: (
+                _rest_args(with_values(params, wrt, th), smoothing, rest, differentiate=True).rest
+            ),
             (theta,),
             (d,),
         )[1]
@@ -510,7 +532,7 @@ def _envelope_gradients(args, run: PeakRun, wrt, extremes: dict, scales, n) -> d
     residual = residual_at(final, run.final_time, t1, smoothing) - rest_move
     out["residual_displacement"] = residual / scales
     y, tangents = run.cross_state[:n], run.cross_state[n:].reshape(-1, n)
-    f = _augmented_vf(run.cross_time, y, params, smoothing, smooth_max, t1, rest_guess)
+    f = _augmented_vf(run.cross_time, y, params, smoothing, smooth_max, t1, rest)
     moving = y[1] != 0
     # dt*/dθ, per direction
     crossing_move = -(tangents[:, 0] - rest_move) / jnp.where(moving, y[1], 1.0)
@@ -560,7 +582,7 @@ def tangent_loop(params, options, wrt, smooth_max=None, stop_early: bool = True)
         model_ceilings,
         **model_samples(params),
         leading_term=(_STATE_TERM, _state_size(smooth_max)),
-        crossing_fn=(lambda args: battery_crossing(args[0], args[4])) if envelope else None,
+        crossing_fn=(lambda args: battery_crossing(args[0], args[4].guess)) if envelope else None,
     )
 
 

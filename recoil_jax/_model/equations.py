@@ -885,6 +885,11 @@ def static_anchoring(x_M, params: RecoilParams, smoothing: Smoothing, width_cont
     return f.anchoring - (0.0 if f.friction is None else f.friction)
 
 
+def _rest_balance(x_M, params: RecoilParams, smoothing: Smoothing, width_contact):
+    """`F_AN(x_M, 0) − (M + m) g sin θ` (N): the static rest's balance, zero at `x_r`."""
+    return static_anchoring(x_M, params, smoothing, width_contact) - axial_weight(params)
+
+
 #: Bisections of the rest's bracket (each halves it): 2^-64 of a bracket of millimetres.
 _REST_BISECTIONS = 64
 
@@ -905,7 +910,7 @@ def rest_root(params: RecoilParams, smoothing: Smoothing, width_contact):
     params, smoothing, width_contact = jax.lax.stop_gradient((params, smoothing, width_contact))
 
     def balance(x):
-        return static_anchoring(x, params, smoothing, width_contact) - axial_weight(params)
+        return _rest_balance(x, params, smoothing, width_contact)
 
     stop = params.battery_stop
     assert stop is not None  # (its static structure, unchanged by stop_gradient)
@@ -937,11 +942,11 @@ def static_rest(params: RecoilParams, smoothing: Smoothing, width_contact, guess
     if params.battery_stop is None:
         return jnp.zeros(())
     guess = jax.lax.stop_gradient(jnp.asarray(guess, dtype=float))
-
-    def balance(x):
-        return static_anchoring(x, params, smoothing, width_contact) - axial_weight(params)
-
-    value, slope = jax.jvp(balance, (guess,), (jnp.ones_like(guess),))
+    value, slope = jax.jvp(
+        lambda x: _rest_balance(x, params, smoothing, width_contact),
+        (guess,),
+        (jnp.ones_like(guess),),
+    )
     held = (guess < 0) & (slope > 0)
     return jnp.where(held, guess - value / jnp.where(held, slope, 1.0), 0.0)
 

@@ -15,13 +15,12 @@ from typing import Any
 
 import numpy as np
 
+from .._model.equations import GRAVITY
 from .._model.parameter_table import PARAMETERS
 from .._model.params import params_to_values
 
 __all__ = ["HAZARDS", "Hazard", "design_hazards", "hazard_flags", "hazard_names", "peaks_hazards"]
 
-#: Standard gravity (m/s²), as `envelope.md` fixes it (the model's `GRAVITY`).
-_GRAVITY = 9.80665
 #: A barrel further than this from its rest at `t1` is out of battery (m).
 OUT_OF_BATTERY = 1e-3
 #: An absorber whose contact force never reaches this has not touched its wall (N): the
@@ -58,8 +57,8 @@ def _statics(values: Mapping[str, Any]) -> dict[str, Any]:
     M, m = given("M"), given("m")
     theta = np.radians(given("elevation"))
     mass = M + m
-    weight = mass * _GRAVITY * np.sin(theta)
-    hold = given("friction_force") + given("friction_coefficient") * mass * _GRAVITY * np.cos(theta)
+    weight = mass * GRAVITY * np.sin(theta)
+    hold = given("friction_force") + given("friction_coefficient") * mass * GRAVITY * np.cos(theta)
     preload = given("recuperator_preload")
     return {"weight": weight, "hold": hold, "preload": preload, "m": m}
 
