@@ -52,7 +52,8 @@ not need them; `docs/developers.md` shows how to plug a part in.
   derivatives); `FittedParameters` (a fit's hardware values with their covariance,
   from a result or its `result.json`) and `Prediction` (what `predict` gives);
   `reference_history` (time histories by the independent hard-switch scipy solver: a
-  synthetic firing test the library shares no code with).
+  synthetic firing test the library shares no code with); `Continuation` (the
+  smoothing widths a fit starts from, narrowed to the model's) and `DEFAULT_STARTS`.
 
 **Test planning's parts**
 
@@ -69,7 +70,8 @@ not need them; `docs/developers.md` shows how to plug a part in.
   `sensitivity_box` (the box of a design's ranges, absolute or relative, checked).
 """
 
-from ._calibration.calibrate import fit_many, validate
+from ._calibration.calibrate import DEFAULT_STARTS, fit_many, validate
+from ._calibration.continuation import Continuation
 from ._calibration.model_check import ModelCheck, SignalCheck, trace_noise
 from ._calibration.predict import FittedParameters, Prediction
 from ._calibration.result import Fitted
@@ -112,6 +114,7 @@ from ._sweeps.result import StoredSweep
 from ._sweeps.space import SearchSpace, log_coordinates
 
 __all__ = [
+    "DEFAULT_STARTS",
     "HAZARDS",
     "LOSSES",
     "MAX_TEXT_BYTES",
@@ -123,6 +126,7 @@ __all__ = [
     "T_SHIFT",
     "BatchEvaluation",
     "BatchEvaluator",
+    "Continuation",
     "DesignEvaluation",
     "Experiment",
     "Fitted",

@@ -407,8 +407,8 @@ def test_the_command_line_fits_a_calibration_file(tmp_path, capsys):
     # Again with its store: the fit and the profiles read back, the same report.
     assert main([*argv, *store]) == 0
     captured = capsys.readouterr()
-    # 1 start and 3 x 12 profile points.
-    assert "calibrate: resuming from" in captured.err and "37 fits already done" in captured.err
+    # 2 starts (the default) and 3 x 12 profile points.
+    assert "calibrate: resuming from" in captured.err and "38 fits already done" in captured.err
     again = json.loads(captured.out)
     assert {k: v for k, v in again.items() if k != "seconds"} == {
         k: v for k, v in report.items() if k != "seconds"

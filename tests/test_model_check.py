@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -19,7 +20,7 @@ import recoil_jax.extend as rjx
 from recoil_jax._calibration.model_check import check_signal
 from recoil_jax.apps._bench.calibration import _coloured, model_check_rates
 from recoil_jax.apps._cli import main
-from recoil_jax.apps._cli.calibrate import MODEL_MISFIT
+from recoil_jax.apps._cli.calibrate import LOCAL_MINIMUM, MODEL_MISFIT
 
 NOISE = {"x_M": 3e-4, "F_AN": 40.0}
 TS = np.linspace(0.0, 1.0, 1001)
@@ -145,6 +146,13 @@ def test_the_quick_form_fits_the_simplified_model_and_flags_it_fitted_with_an_ab
     text = (tmp_path / "wrong" / "result.json").read_text()
     report = json.loads(text)
     assert report["explains"] is False and report["model"]["defaults"]["m"] == 1500.0
+    # Both default starts reached the best: the verdict is the model's, and every part
+    # of the model a design can get wrong is a suspect, not only the absorber.
+    assert report["starts"] == 2 and report["starts_at_best"] == 2
+    assert report["verdict"] == "wrong_model"
+    for part in ("an absorber or none", "the load", "t_shift", "elevation", "friction_force",
+                 "recuperator", "battery stop", "counter-recoil buffer"):  # fmt: skip
+        assert part in out.err, part
     assert all(f["ci95"] is None and f["withheld"] for f in report["fitted"].values())
     failing = [s for s in report["model_check"]["signals"] if s["fails"]]
     assert {s["signal"] for s in failing} == {"x_M", "F_AN"}
@@ -153,6 +161,17 @@ def test_the_quick_form_fits_the_simplified_model_and_flags_it_fitted_with_an_ab
     # What such a fit gives is refused where an uncertainty is used.
     with pytest.raises(rj.ParameterError, match="does not explain its traces"):
         rjx.FittedParameters.from_json(tmp_path / "wrong" / "result.json").check_determined()
+
+    # From one start the same failed check cannot tell a wrong model from a stuck fit:
+    # exit 6, with what to try and its cost.
+    code = main(["calibrate", str(trace), "--fit", "k,c_out,c_ret", "--starts", "1",
+                 "--out", str(tmp_path / "one"), "--no-cache"])  # fmt: skip
+    out = capsys.readouterr()
+    assert code == LOCAL_MINIMUM
+    assert "the fit may be in a local minimum" in out.err and "from the one start run" in out.err
+    assert re.search(r"try --starts 16 \(about \d+ s at this fit's pace of \d+ s a start\)",
+                     out.err), out.err  # fmt: skip
+    assert json.loads((tmp_path / "one" / "result.json").read_text())["verdict"] == "local_minimum"
 
 
 def test_residuals_are_held_to_the_noise_the_user_gave():

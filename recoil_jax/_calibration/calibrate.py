@@ -28,6 +28,7 @@ from .._campaigns.progress import Progress
 from .._campaigns.store import CalibrationStore
 from .._model.derivatives import SIGNALS
 from .campaign import open_store, stored_part
+from .continuation import DEFAULT_CONTINUATION, Continuation
 from .layout import CalibrationData, Layout, estimates_noise, prepare
 from .least_squares import FitOutcome, FitSettings, evaluate_program, fit_program, u_of_z
 from .model_check import check_residuals
@@ -38,15 +39,19 @@ from .spec import Calibration, validation_problem
 from .starts import start_points
 from .traces import Experiment
 
-__all__ = ["calibrate", "fit_many", "validate"]
+__all__ = ["DEFAULT_STARTS", "calibrate", "fit_many", "validate"]
+
+#: The starts a calibration fits from unless told: the given start and one Sobol point.
+DEFAULT_STARTS = 2
 
 
 def calibrate(
     calibration: Calibration,
     *,
-    starts: int | np.ndarray = 1,
+    starts: int | np.ndarray = DEFAULT_STARTS,
     seed: int = 0,
     max_steps: int = 200,
+    continuation: Continuation | None = DEFAULT_CONTINUATION,
     profiles: bool = False,
     progress: bool | None = None,
     store: str | os.PathLike | None = None,
@@ -58,8 +63,12 @@ def calibrate(
     - `calibration`: the `Calibration` (experiments, parameters and bounds, loss).
     - `starts`: how many starts (the given start, then Sobol points in the box), or the
       start points themselves, `(N, P)` values in SI units (in the order of the fitted
-      labels, within the bounds); fitted as one batch, the best kept and the count
-      reaching it reported.
+      labels, within the bounds); the best kept and the count reaching it reported.
+      Default 2: the given start and one Sobol point, so that a best point reached
+      from both is known not to be a start's local minimum (`CalibrationResult.verdict`).
+    - `continuation`: the smoothing widths the fit starts from (`Continuation`), each
+      stage's optimum the next one's start, the last stage at the model's own widths;
+      None: at the model's widths only. Only the widths whose switch the design has.
     - `seed`: the Sobol points' scrambling; `max_steps`: Levenberg–Marquardt steps per
       pass; `progress`: a progress line on stderr (None: on a terminal).
     - `profiles`: also profile each value (refit the others with it held at 12 points
@@ -83,62 +92,119 @@ def calibrate(
     data = prepare(calibration, calibration.experiments, layout)
     static = FitSettings(layout.wrt, layout.signals, calibration.loss, calibration.f_scale,
                          max_steps, estimates_noise(data))  # fmt: skip
-    bar = Progress("calibrate", 4, "phases", progress, rates=False)
+    stages = None if continuation is None else continuation.for_design(data.params)
+    fits = len(z0) * (1 + (0 if stages is None else stages.stages))
+    bar = Progress("calibrate", fits + 3, "fits and phases", progress, rates=False)
+    bar.update(0, f"fitting from {len(z0)} start{'s' if len(z0) > 1 else ''}")
     # The store (and its writer lock) closed whatever happens.
-    with open_store(store, calibration, layout, data, static, z0, profiles, progress) as store_:
-        return _calibrate(calibration, layout, data, static, z0, profiles, bar, store_, clock)
+    with open_store(store, calibration, layout, data, static, z0, profiles, progress,
+                    stages) as store_:  # fmt: skip
+        return _calibrate(calibration, layout, data, static, z0, profiles, bar, store_, clock,
+                          stages)  # fmt: skip
 
 
 def _fit_starts(
-    u0: np.ndarray, data: CalibrationData, static: FitSettings, store: CalibrationStore | None
+    u0: np.ndarray,
+    data: CalibrationData,
+    static: FitSettings,
+    store: CalibrationStore | None,
+    continuation: Continuation | None,
+    bar: Progress,
+    measured: np.ndarray | None = None,
+    chunk: int | None = None,
 ) -> FitOutcome:
-    """Every start's fit, from `u0 (N, P)` (the fit's coordinates): one program for them
-    all, or with a store one part per `starts_per_chunk` of its plan (the last padded to
-    it), each read or committed."""
+    """Every start's fit, from `u0 (N, P)` (the fit's coordinates): at each stage of the
+    `continuation` (one Levenberg–Marquardt pass from the last stage's optimum, under the
+    noise given or guessed), then at the model's own widths (`_fit_one`: its passes).
+    Each stage runs `chunk` starts a call of one compiled program, the same for every
+    stage (the widths are leaves of `data`): one start a call (lanes of `static.lanes`),
+    or with a store one part per `starts_per_chunk` of its plan (the last padded to it),
+    each read or committed. The progress line says each stage's starts as they end.
+    `measured (N, E, S, n)`: each start's own data set (`fit_many`; default: the
+    calibration's, for every start); `chunk`: the starts a call without a store."""
+    if store is not None:
+        size = int(store.plan["starts_per_chunk"])
+    else:
+        size = max(static.lanes, 1) if chunk is None else chunk
+    stages = 0 if continuation is None else continuation.stages
+    warm = dataclasses.replace(static, estimate_noise=False)
 
-    size = len(u0) if store is None else int(store.plan["starts_per_chunk"])
+    if measured is None:
+        measured = np.broadcast_to(np.asarray(data.measured), (len(u0), *data.measured.shape))
 
-    def fit(u):
+    def pad(a):
+        return np.concatenate([a, np.repeat(a[-1:], size - len(a), axis=0)])
+
+    def fit(u, sets, data_, static_):
         # A short last part is padded with its last start: one program for every part
         # (a fit costs less than a compilation); the padding's fits are dropped.
-        padded = np.concatenate([u, np.repeat(u[-1:], size - len(u), axis=0)])
-        measured = jnp.broadcast_to(data.measured, (size, *data.measured.shape))
-        outcome = fit_program(jnp.asarray(padded), measured, data, static)
+        outcome = fit_program(jnp.asarray(pad(u)), jnp.asarray(pad(sets)), data_, static_)
         return {f.name: getattr(outcome, f.name)[: len(u)] for f in dataclasses.fields(outcome)}
 
-    parts = []
-    for begin in range(0, len(u0), size):
-        chunk = np.asarray(u0[begin : begin + size])
-        parts.append(stored_part(store, f"fit:{begin}", len(chunk), lambda u=chunk: fit(u)))
-    return FitOutcome(**{k: jnp.concatenate([p[k] for p in parts]) for k in parts[0]})
+    # Each stage: its data (the widths are leaves of it), settings and words.
+    plan = [
+        (eqx.tree_at(lambda d: d.smoothing, data, continuation.smoothing(data.smoothing, k)),
+         warm, continuation.describe(k))
+        for k in range(stages)
+    ] if continuation is not None else []  # fmt: skip
+    plan.append((data, static, "the model's widths"))
+    u, steps = np.asarray(u0), np.zeros(len(u0), dtype=np.int64)
+    outcome: dict[str, np.ndarray] = {}
+    for stage, (data_, static_, what) in enumerate(plan):
+        last = stage == stages
+        parts, best = [], np.inf
+        for begin in range(0, len(u), size):
+            starts_u = np.asarray(u[begin : begin + size])
+            sets = np.asarray(measured[begin : begin + size])
+            name = f"fit:{begin}" if last else f"stage{stage}:{begin}"
+            fits = len(starts_u) if last else 0  # a warm-up stage's parts hold no fit
+
+            def compute(u_=starts_u, m=sets, d=data_, s=static_):
+                return fit(u_, m, d, s)
+
+            part = stored_part(store, name, fits, compute)
+            parts.append(part)
+            score = np.asarray(part["score"] if last else part["cost"], dtype=float)
+            best = min(best, float(np.min(np.where(np.isfinite(score), score, np.inf))))
+            done = min(begin + size, len(u))
+            bar.update(stage * len(u) + done,
+                       f"stage {stage + 1} of {stages + 1} ({what}): {done} of {len(u)} "
+                       f"starts, {int(np.max(part['steps']))} steps, best "
+                       f"{'score' if last else 'χ²'} {best:.6g}")  # fmt: skip
+        outcome = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        steps = steps + outcome["steps"]
+        u = outcome["u"]
+    outcome["steps"] = steps
+    return FitOutcome(**{k: jnp.asarray(v) for k, v in outcome.items()})
 
 
-def _calibrate(calibration, layout, data, static, z0, profiles, bar, store_, clock):
+def _calibrate(calibration, layout, data, static, z0, profiles, bar, store_, clock, continuation):
     """`calibrate` once its inputs are checked and its store (if any) open."""
     starts = len(z0)
-    where = "one program" if store_ is None else f"parts of {store_.plan['starts_per_chunk']}"
-    bar.update(0, f"fitting from {starts} start{'s' if starts > 1 else ''} ({where})")
-    outcome = _fit_starts(u_of_z(z0), data, static, store_)
+    fitted = bar.total - 3  # the fits' share of the progress line
+    outcome = _fit_starts(u_of_z(z0), data, static, store_, continuation, bar)
     score = np.asarray(outcome.score)
     score = np.where(np.isfinite(score), score, np.inf)
     best = int(np.argmin(score))
     at_best = int(np.sum(score <= score[best] + REACHED))
-    bar.update(1, f"fitted in {int(outcome.steps[best])} steps; uncertainty")
+    bar.update(fitted, f"fitted in {int(outcome.steps[best])} steps; uncertainty")
     data = eqx.tree_at(lambda d: d.sigma, data, outcome.sigma[best])
     result = lane_report(calibration, layout, data, static, outcome, best, starts=starts,
                          at_best=at_best)  # fmt: skip
     if profiles:
-        bar.update(2, f"profiles ({len(layout.labels)} values)")
+        bar.update(fitted + 1, f"profiles ({len(layout.labels)} values)")
         grid = profile_grid(result, layout)
         u_best = outcome.u[best]
         refits = stored_part(
             store_, "profiles", len(grid.held), lambda: refit_profiles(grid, data, static, u_best)
         )
         result = with_profiles(result, layout, grid, refits)
-    bar.update(3, "validation")
+    bar.update(fitted + 2, "validation")
     validation = [validate(calibration, result, e) for e in calibration.validation]
-    bar.update(4, "done", final=True)
-    return dataclasses.replace(result, validation=validation, seconds=time.perf_counter() - clock)
+    bar.update(fitted + 3, "done", final=True)
+    stages = {} if continuation is None else continuation.to_json()
+    return dataclasses.replace(result, validation=validation, continuation=stages,
+                               seconds=time.perf_counter() - clock)  # fmt: skip
 
 
 def validate(
@@ -200,11 +266,16 @@ def validate(
 
 
 def fit_many(
-    calibration: Calibration, measured: Sequence[Sequence[Mapping[str, np.ndarray]]]
+    calibration: Calibration,
+    measured: Sequence[Sequence[Mapping[str, np.ndarray]]],
+    continuation: Continuation | None = DEFAULT_CONTINUATION,
+    progress: bool | None = False,
 ) -> list[dict[str, Any]]:
-    """Fit many data sets of the same experiments at once (one batched program): e.g.
-    noise draws of a synthetic test. `measured[b][e]`: the signals of experiment `e` in
-    data set `b`, on that experiment's sample times. Returns each set's fitted values
+    """Fit many data sets of the same experiments (one compiled program): e.g. noise
+    draws of a synthetic test, each from the calibration's start through the
+    `continuation`'s stages as `calibrate` fits. `measured[b][e]`: the signals of
+    experiment `e` in data set `b`, on that experiment's sample times; `progress`: a
+    progress line on stderr. Returns each set's fitted values
     by label with their standard errors (`"<label>.stderr"`; NaN where withheld), a
     `"converged"` flag, whether the model `"explains"` the set, the `"failing"` signals
     (`"x_M in firing.csv"`) and the whole `"check"` (`ModelCheck`)."""
@@ -220,7 +291,11 @@ def fit_many(
                     values = np.asarray(signals[name], dtype=float)
                     batch[b, e, s, : values.size] = values
     z0 = np.tile(start_points(layout, 1, 0), (len(measured), 1))
-    outcome = fit_program(jnp.asarray(u_of_z(z0)), jnp.asarray(batch), data, static)
+    stages = None if continuation is None else continuation.for_design(data.params)
+    fits = len(z0) * (1 + (0 if stages is None else stages.stages))
+    bar = Progress("fit_many", fits, "fits", progress, rates=False)
+    outcome = _fit_starts(u_of_z(z0), data, static, None, stages, bar, measured=batch,
+                          chunk=len(z0))  # fmt: skip
     rows = []
     for b in range(len(measured)):
         data_b = eqx.tree_at(

@@ -17,6 +17,7 @@ import numpy as np
 
 from .._campaigns.opener import open_campaign
 from .._campaigns.store import CalibrationStore, campaign_identity
+from .continuation import Continuation
 from .layout import CalibrationData, Layout
 from .least_squares import FitSettings
 from .profiles import PROFILE_POINTS
@@ -37,10 +38,13 @@ def open_store(
     z0: np.ndarray,
     profiles: bool,
     progress: bool | None,
+    continuation: Continuation | None = None,
 ):
     """The calibration's store at `path` (None: none), as a context manager
     (`open_campaign`): made, or checked to be this calibration's from its arrays,
-    settings, starts `z0 (N, P)` and whether it profiles; saying on stderr how many fits
+    settings, starts `z0 (N, P)`, whether it profiles and its `continuation`'s widths
+    (in the identity only where there is one, so that a store of a design without one
+    keeps its identity); saying on stderr how many fits
     it already holds (unless `progress` is False); closed on leaving.
 
     **Raises:** `ParameterError` for a store that holds another calibration.
@@ -53,8 +57,10 @@ def open_store(
     }
     return open_campaign(
         CalibrationStore, path, label="calibrate",
-        identity=lambda: campaign_identity("calibration", data, static, np.asarray(z0),
-                                           bool(profiles)),
+        identity=lambda: campaign_identity(
+            "calibration", data, static, np.asarray(z0), bool(profiles),
+            *(() if continuation is None else (continuation.to_json(),)),
+        ),
         total=total, plan={"starts_per_chunk": STARTS_PER_CHUNK}, description=description,
         progress=progress, columns=(),
     )  # fmt: skip

@@ -79,7 +79,9 @@ class CalibrationResult:
       signal, the noise used (given or estimated).
     - `converged`: the best start's fit converged; `starts`, `starts_at_best`: how many
       starts were run and how many reached the best (−2 log-likelihood within
-      `REACHED`, 0.01).
+      `REACHED`, 0.01); `continuation`: the widths fitted before the model's own.
+      `verdict`: the check and the starts together (`"explains"`, `"wrong_model"`,
+      `"local_minimum"`).
     - `experiments`: per experiment, its name, trace, samples, skipped samples and RMS
       per signal; `validation`: the same for the validation experiments.
     - `times`, `measured`, `model`: per experiment (a list), the sample times `(n,)` and
@@ -128,7 +130,20 @@ class CalibrationResult:
     profiles: dict[str, dict[str, np.ndarray]] = dataclasses.field(default_factory=dict)
     check: ModelCheck = dataclasses.field(default_factory=lambda: ModelCheck(()))
     structure: dict[str, Any] = dataclasses.field(default_factory=dict)
+    #: The continuation's widths before the model's own (`Continuation.to_json`; {}: none).
+    continuation: dict[str, list[float]] = dataclasses.field(default_factory=dict)
     defaults: dict[str, float] = dataclasses.field(default_factory=dict)
+
+    @property
+    def verdict(self) -> str:
+        """What the fit says of the model: `"explains"` (the check passed),
+        `"wrong_model"` (it failed at a best point reached from two starts or more: the
+        fit's global work is done, and the model does not explain the traces) or
+        `"local_minimum"` (it failed at a best point reached from one start only, or
+        from the one start run: the fit may be stuck, not the model wrong)."""
+        if self.explains:
+            return "explains"
+        return "wrong_model" if self.starts_at_best >= 2 else "local_minimum"
 
     @property
     def explains(self) -> bool:
@@ -180,6 +195,8 @@ class CalibrationResult:
             "converged": self.converged,
             "solved": self.solved,
             "explains": self.explains,
+            "verdict": self.verdict,
+            "continuation": self.continuation,
             "model": {"structure": self.structure, "defaults": self.defaults},
             "model_check": self.check.to_json(),
             "starts": self.starts,

@@ -395,6 +395,12 @@ def format_calibration_bench(result: dict) -> str:
 
 
 def main_calibration_bench(args) -> int:
+    if args.round_trip:
+        from .round_trip import format_round_trip, round_trip
+
+        trip = round_trip(draws=args.draws, compare=args.compare)
+        print(json.dumps(trip) if args.json else format_round_trip(trip))
+        return 0
     quick = args.quick
     result = run_calibration_bench(
         samples=1001 if quick else 5001,
@@ -429,4 +435,19 @@ def add_command(commands: Commands) -> None:
         metavar="K",
         help="also the burst's random starts from K more traces and sets of starts",
     )
+    calibration_bench.add_argument(
+        "--round-trip",
+        action="store_true",
+        help="instead: the round trip from the defaults (the shipped plan's firings, "
+        "reference traces with noise at 2 truths, each fitted by calibrate with no "
+        "option; beside it, on --compare draws, 1 start and 16 starts without "
+        "continuation); run from the repository's root",
+    )
+    calibration_bench.add_argument(
+        "--draws", type=int, default=20, metavar="N", help="with --round-trip: draws a truth"
+    )
+    calibration_bench.add_argument(
+        "--compare", type=int, default=1, metavar="N",
+        help="with --round-trip: draws a truth fitted the other ways too",
+    )  # fmt: skip
     calibration_bench.add_argument("--json", action="store_true", help="print JSON")

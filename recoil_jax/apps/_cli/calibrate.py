@@ -48,6 +48,11 @@ NOT_CONVERGED = 4
 #: The exit status when the fit converged but the model does not explain the traces:
 #: residuals far above the traces' own noise, or far from white (`rjx.ModelCheck`).
 MODEL_MISFIT = 5
+#: The exit status when the model check failed at a best point only one start reached:
+#: the fit may be stuck in a local minimum, not the model wrong (`result.verdict`).
+LOCAL_MINIMUM = 6
+#: The starts `calibrate` suggests when its fit may be stuck.
+SUGGESTED_STARTS = 16
 
 #: The most starts a calibration may have (`--starts`, `starts`): each is a fit.
 MAX_STARTS = 1024
@@ -175,7 +180,7 @@ def load_calibration(path) -> tuple[rj.Calibration, dict[str, Any]]:
         force_table=_force_table("force_table", config.get("force_table"), folder),
     )
     settings = {
-        "starts": config.get("starts", 1),
+        "starts": config.get("starts", rjx.DEFAULT_STARTS),
         "seed": config.get("seed", 0),
         "fit_steps": config.get("fit_steps", 200),
         "description": description,
@@ -326,7 +331,8 @@ def _read_calibration(args, source: Path) -> tuple[rj.Calibration, dict[str, Any
         calibration = _quick(
             source, args.fit, args.assignments, args.validate or [], args.force_table
         )
-        return calibration, {"starts": 1, "seed": 0, "fit_steps": 200, "description": ""}
+        return calibration, {"starts": rjx.DEFAULT_STARTS, "seed": 0, "fit_steps": 200,
+                             "description": ""}  # fmt: skip
     if args.fit:
         raise rj.ParameterError("--fit is for a trace (.csv); a calibration file has [fit]")
     if args.assignments:
@@ -372,12 +378,45 @@ def _exit_status(result: rj.CalibrationResult, predicted: bool) -> int:
         if bounds:  # the other way a fit fails to explain: bounds that leave out the truth
             said += (f"; {', '.join(bounds)} (bounds that leave out the true values "
                      "do this too)")  # fmt: skip
-        print(f"recoil-jax: the model does not explain the traces ({failing}): its values "
-              "are the best a wrong model gives, and have no intervals; check what the "
-              "design says of the test (an absorber or none, the load, the trigger delay "
-              f"t_shift){said}", file=sys.stderr)  # fmt: skip
+        if result.verdict == "local_minimum":
+            print(f"recoil-jax: {_stuck_line(result)}{said}", file=sys.stderr)
+            return LOCAL_MINIMUM
+        print(f"recoil-jax: the model does not explain the traces ({failing}) at the best "
+              f"point, reached from {result.starts_at_best} of {result.starts} starts: its "
+              "values are the best a wrong model gives, and have no intervals; check what "
+              f"the design says of the test: {WRONG_MODEL_SUSPECTS}{said}",
+              file=sys.stderr)  # fmt: skip
         return MODEL_MISFIT
     return 0
+
+
+#: Every part of the model a wrong design can get wrong, named when the model does not
+#: explain the traces.
+WRONG_MODEL_SUSPECTS = (
+    "an absorber or none (m, gap, k), the load (v0, a pulse or a force table, the rounds), "
+    "the trigger delay t_shift, the elevation, the rails' friction (friction_force, "
+    "friction_coefficient), the recuperator (its preload, length and index), the battery "
+    "stop and the counter-recoil buffer (their stiffness, length and damping)"
+)
+
+
+def _stuck_line(result: rj.CalibrationResult) -> str:
+    """What to say, and to try, when the fit's best point was reached from one start."""
+    others = result.starts - result.starts_at_best
+    reached = (f"reached from 1 of {result.starts} starts, the other{'s' if others > 1 else ''} "
+               "ending elsewhere" if result.starts > 1 else "from the one start run")  # fmt: skip
+    pace = result.seconds / max(result.starts, 1)
+    stages = result.continuation
+    widths = ", ".join(f"{n} {v[0]:g} to the model's" for n, v in stages.items())
+    count = len(next(iter(stages.values()), [])) + 1
+    ran = f"; each start ran {count} stages of continuation ({widths})" if stages else ""
+    return (
+        f"the fit may be in a local minimum: its best point, where the model check "
+        f"fails, was {reached}{ran}. A stuck fit and a wrong model look alike until "
+        f"more starts reach the same point: try --starts {SUGGESTED_STARTS} (about "
+        f"{pace * SUGGESTED_STARTS:.0f} s at this fit's pace of {pace:.0f} s a start) "
+        "or tighter bounds around what you know"
+    )
 
 
 def _check_line(check: rjx.ModelCheck) -> str:
@@ -504,7 +543,8 @@ def add_command(commands: Commands) -> None:
         "correlation, identifiability, chi2, AIC, BIC), fit.png and correlation.png. "
         "Exit 0 fitted, 1 a solve failed, 2 bad input, 4 the fit did not converge, 5 the "
         "model does not explain the traces (residuals far above the traces' own noise, "
-        "or far from white).",
+        "or far from white) at a best point two starts reached, 6 the same at a best point "
+        "one start reached (the fit may be in a local minimum: try more --starts).",
     )
     calibrate.add_argument("source", help="a calibration file (.toml) or a trace (.csv)")
     calibrate.add_argument("assignments", nargs="*", metavar="name=value",
@@ -519,7 +559,10 @@ def add_command(commands: Commands) -> None:
         "--out", help="output folder (default results/calibrate/<file name, no suffix>)"
     )
     calibrate.add_argument(
-        "--starts", type=int, metavar="N", help="fit from N starts (the given, then Sobol)"
+        "--starts",
+        type=int,
+        metavar="N",
+        help=f"fit from N starts (the given, then Sobol; default {rjx.DEFAULT_STARTS})",
     )
     calibrate.add_argument(
         "--validate",

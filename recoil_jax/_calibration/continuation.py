@@ -1,0 +1,130 @@
+"""Continuation over the smoothing widths (`Continuation`): a fit first made at wide
+switches, then narrowed stage by stage to the model's own widths.
+
+Why: a switch that makes a signal jump samples a step into χ². The counter-recoil
+buffer's engagement is the sharp one: the buffer's force `c_b v` comes on within
+`buffer_width` (1 µm), so the anchoring force jumps by ~100 kN in less than one sample.
+A parameter that moves the engagement across a sample time moves χ² by `(ΔF / σ)²`,
+~4·10⁵ for a 200 N noise, and Levenberg–Marquardt stops on that step (measured on the
+shipped plan `optimise/plans/envelope_friction.toml`: χ² rises from 1.8·10⁴ at the
+truth to 7.4·10⁵ with `c_out` 0.1 % higher). At a width of 1 cm the same jump is a ramp
+over ~10 samples, χ² is smooth, and the fit goes to the basin from far starts;
+each narrower stage starts where the wider one ended (`docs/calibration.md`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+from collections.abc import Mapping
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from .._model.params import RecoilParams
+from .._model.registry import ParameterError
+from .._model.settings import Smoothing
+
+__all__ = ["DEFAULT_CONTINUATION", "Continuation"]
+
+#: Each width continued, and the part of a design that has its switch: a width a design
+#: does not use is not continued (a stage there would refit the same χ²).
+_SWITCH_OF = {
+    "buffer_width": "counter_recoil_buffer",
+    "slip_width": "rails",
+    "friction_width": "rails",
+    "stop_width": "battery_stop",
+    "damping_width": "barrel",
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Continuation:
+    """The widths a fit starts from, narrowed stage by stage to the model's own.
+
+    - `widths`: smoothing width name → its value at each stage before the model's own,
+      widest first, in the width's unit (`Smoothing.LIMITS`); every name the same
+      number of stages. The fit runs Levenberg–Marquardt at each stage from the last
+      stage's optimum, then at the model's widths (where its result, its χ² and its
+      uncertainty are).
+
+    Default: `buffer_width` 1 cm then 0.1 mm (the counter-recoil buffer's engagement,
+    the switch whose jump in `F_AN` makes χ² stepped), and `slip_width` 1 cm/s then
+    0.1 mm/s (the friction's turn at `v_M = 0`, a jump of twice the friction force).
+    A design without the switch's part (no counter-recoil buffer, no rails) is fitted at
+    its own widths only.
+
+    **Raises:** `ParameterError` for a name that is not a continued smoothing width, or
+    widths that are not positive, finite and decreasing, or of different counts.
+    """
+
+    widths: Mapping[str, tuple[float, ...]] = dataclasses.field(
+        default_factory=lambda: {"buffer_width": (1e-2, 1e-4), "slip_width": (1e-2, 1e-4)}
+    )
+
+    def __post_init__(self):
+        widths = {}
+        for name, values in dict(self.widths).items():
+            if name not in _SWITCH_OF:
+                raise ParameterError(
+                    f"continuation: {name!r} is not a width it can continue: valid "
+                    f"{', '.join(_SWITCH_OF)}"
+                )
+            try:
+                stages = tuple(float(v) for v in values)
+            except (TypeError, ValueError):
+                raise ParameterError(
+                    f"continuation.{name} = {values!r}: give its widths as a list of numbers"
+                ) from None
+            if not stages or not all(math.isfinite(v) and v > 0 for v in stages):
+                raise ParameterError(
+                    f"continuation.{name} = {list(stages)}: give one width or more, each > 0"
+                )
+            if any(b >= a for a, b in itertools.pairwise(stages)):
+                raise ParameterError(
+                    f"continuation.{name} = {list(stages)}: the widths must decrease, widest first"
+                )
+            widths[name] = stages
+        counts = {len(v) for v in widths.values()}
+        if len(counts) > 1:
+            raise ParameterError(
+                "continuation: every width needs the same number of stages ("
+                + ", ".join(f"{n}: {len(v)}" for n, v in widths.items())
+                + ")"
+            )
+        # Sorted, as a tuple: hashable, and one order for a store's identity.
+        object.__setattr__(self, "widths", dict(sorted(widths.items())))
+
+    def __hash__(self):
+        return hash(tuple(self.widths.items()))
+
+    def for_design(self, params: RecoilParams) -> Continuation | None:
+        """The widths that act on the design `params` (whose parts have their switches);
+        None where none does."""
+        used = {n: v for n, v in self.widths.items() if getattr(params, _SWITCH_OF[n]) is not None}
+        return Continuation(used) if used else None
+
+    @property
+    def stages(self) -> int:
+        """How many stages come before the model's own widths."""
+        return len(next(iter(self.widths.values()), ()))
+
+    def smoothing(self, smoothing: Smoothing, stage: int) -> Smoothing:
+        """`smoothing` with the widths of stage `stage` (0: the widest): leaves of the
+        same dtype and shape, so that every stage runs the same compiled program."""
+        for name, values in self.widths.items():
+            value = jnp.asarray(values[stage], dtype=jnp.asarray(getattr(smoothing, name)).dtype)
+            smoothing = eqx.tree_at(lambda s, n=name: getattr(s, n), smoothing, value)
+        return smoothing
+
+    def describe(self, stage: int) -> str:
+        """Stage `stage`'s widths, for a progress line: `buffer_width 0.01, ...`."""
+        return ", ".join(f"{n} {v[stage]:g}" for n, v in self.widths.items())
+
+    def to_json(self) -> dict[str, list[float]]:
+        return {n: list(v) for n, v in self.widths.items()}
+
+
+#: The continuation `calibrate` and `fit_many` run unless told otherwise.
+DEFAULT_CONTINUATION = Continuation()

@@ -1,0 +1,84 @@
+"""The fit's continuation over the smoothing widths (`rjx.Continuation`): checked when
+made, applied only where a design has the switch, and what it is for: the counter-
+recoil buffer's jump in `F_AN` steps χ² as its engagement crosses a sample time, and a
+fit at the model's widths stops on a step that the continuation's wide widths smooth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import recoil_jax as rj
+import recoil_jax.extend as rjx
+
+#: The envelope gun of `optimise/plans/envelope_friction.toml`, and a truth for it.
+GUN = {"M": 1800.0, "m": 0.0, "k": 0.0, "v0": 10.0, "pulse_time": 0.004,
+       "stop_stiffness": 2.1e8, "recuperator_length": 1.8, "buffer_length": 0.15,
+       "buffer_damping": 150000.0, "c_out": 16000.0, "recuperator_preload": 30000.0,
+       "friction_force": 1500.0, "friction_coefficient": 0.05}  # fmt: skip
+TRUTH = {"c_ret": 29836.4, "recuperator_preload": 34273.5}
+BOX = {"c_ret": (5e3, 5e4), "recuperator_preload": (1e4, 6e4)}
+NOISE = {"x_M": 3e-4, "F_AN": 200.0}
+
+
+@pytest.mark.parametrize(
+    ("widths", "message"),
+    [
+        ({"gap_width": (1e-2,)}, "'gap_width' is not a width it can continue: valid"),
+        ({"buffer_width": (1e-4, 1e-2)}, "must decrease, widest first"),
+        ({"buffer_width": (0.0,)}, r"each > 0"),
+        ({"buffer_width": (1e-2, 1e-4), "slip_width": (1e-2,)}, "the same number of stages"),
+        ({"buffer_width": "wide"}, "give its widths as a list of numbers"),
+    ],
+)
+def test_a_bad_continuation_is_refused_naming_the_width(widths, message):
+    with pytest.raises(rj.ParameterError, match=message):
+        rjx.Continuation(widths)
+
+
+def test_a_continuation_acts_only_where_the_design_has_the_switch():
+    default = rjx.Continuation()
+    assert default.stages == 2
+    assert default.for_design(rj.params_from_values({"m": 0.0})) is None  # the paper's gun
+    gun = rj.params_from_values(GUN)
+    assert default.for_design(gun) == default
+    no_buffer = rj.params_from_values(
+        {k: v for k, v in GUN.items() if k not in ("buffer_length", "buffer_damping")}
+    )
+    assert no_buffer.counter_recoil_buffer is None
+    assert default.for_design(no_buffer).widths == {"slip_width": (1e-2, 1e-4)}
+    stage = default.smoothing(rj.Smoothing(), 0)
+    assert float(stage.buffer_width) == 1e-2 and float(stage.slip_width) == 1e-2
+    assert float(stage.stop_width) == float(rj.Smoothing().stop_width)
+
+
+def _firing(seed: int) -> rj.Calibration:
+    """One firing at 70°, 1 s of x_M and F_AN at 1 kHz from the independent hard-switch
+    solver with noise; c_ret and the preload fitted from the guess of the plan."""
+    ts = np.arange(0.0, 1.0 + 1e-12, 1e-3)
+    design = {**GUN, "elevation": 70.0, "v0": 8.0}
+    history = rjx.reference_history(design | TRUTH, ts)
+    rng = np.random.default_rng(seed)
+    noisy = {s: history[s] + sigma * rng.standard_normal(ts.size) for s, sigma in NOISE.items()}
+    experiment = rjx.Experiment(rjx.Trace.of(ts, **noisy), design={"elevation": 70.0, "v0": 8.0,
+                                "t1": 1.0}, sigma=NOISE)  # fmt: skip
+    known = {k: v for k, v in GUN.items() if k not in BOX}
+    return rj.Calibration([experiment], BOX, start={"c_ret": 15000.0,
+                          "recuperator_preload": 30000.0}, design=known)  # fmt: skip
+
+
+def test_the_continuation_reaches_the_truth_where_the_model_widths_stall():
+    """From the plan's guess, far from the truth: the default fit (two starts through
+    the continuation) reaches the truth within 3 standard errors and both starts agree;
+    one start at the model's widths alone ends on a step of χ², far above the noise."""
+    calibration = _firing(seed=3)
+    fitted = rj.calibrate(calibration, progress=False)
+    assert fitted.converged and fitted.explains and fitted.verdict == "explains"
+    assert fitted.starts_at_best == 2
+    assert fitted.continuation == {"buffer_width": [1e-2, 1e-4], "slip_width": [1e-2, 1e-4]}
+    for name, value in TRUTH.items():
+        assert abs(fitted.values[name] - value) < 3 * fitted.fitted[name].stderr, name
+    plain = rj.calibrate(calibration, starts=1, continuation=None, progress=False)
+    assert plain.continuation == {}
+    assert plain.reduced_chi2 > 10 * fitted.reduced_chi2, (plain.values, plain.reduced_chi2)
+    assert plain.verdict == "local_minimum"
