@@ -38,7 +38,7 @@ def test_a_bad_continuation_is_refused_naming_the_width(widths, message):
 
 def test_a_continuation_acts_only_where_the_design_has_the_switch():
     default = rjx.Continuation()
-    assert default.stages == 2
+    assert default.stages == 4
     assert default.for_design(rj.params_from_values({"m": 0.0})) is None  # the paper's gun
     gun = rj.params_from_values(GUN)
     assert default.for_design(gun) == default
@@ -46,9 +46,11 @@ def test_a_continuation_acts_only_where_the_design_has_the_switch():
         {k: v for k, v in GUN.items() if k not in ("buffer_length", "buffer_damping")}
     )
     assert no_buffer.counter_recoil_buffer is None
-    assert default.for_design(no_buffer).widths == {"slip_width": (1e-2, 1e-4)}
-    stage = default.smoothing(rj.Smoothing(), 0)
-    assert float(stage.buffer_width) == 1e-2 and float(stage.slip_width) == 1e-2
+    assert default.for_design(no_buffer) is None
+    both = rjx.Continuation({"buffer_width": (1e-2, 1e-4), "slip_width": (1e-2, 1e-4)})
+    assert both.for_design(no_buffer).widths == {"slip_width": (1e-2, 1e-4)}  # rails kept
+    stage = both.smoothing(rj.Smoothing(), 1)
+    assert float(stage.buffer_width) == 1e-4 and float(stage.slip_width) == 1e-4
     assert float(stage.stop_width) == float(rj.Smoothing().stop_width)
 
 
@@ -75,7 +77,7 @@ def test_the_continuation_reaches_the_truth_where_the_model_widths_stall():
     fitted = rj.calibrate(calibration, progress=False)
     assert fitted.converged and fitted.explains and fitted.verdict == "explains"
     assert fitted.starts_at_best == 2
-    assert fitted.continuation == {"buffer_width": [1e-2, 1e-4], "slip_width": [1e-2, 1e-4]}
+    assert fitted.continuation == {"buffer_width": [1e-2, 1e-3, 1e-4, 1e-5]}
     for name, value in TRUTH.items():
         assert abs(fitted.values[name] - value) < 3 * fitted.fitted[name].stderr, name
     plain = rj.calibrate(calibration, starts=1, continuation=None, progress=False)

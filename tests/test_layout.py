@@ -324,6 +324,8 @@ RJ_NAMES = (
 RJX_NAMES = (
     "BatchEvaluation",
     "BatchEvaluator",
+    "Continuation",
+    "DEFAULT_STARTS",
     "DesignEvaluation",
     "Experiment",
     "Fitted",

@@ -4,6 +4,7 @@ and the calibration skeleton read by `calibrate` with the independent reference 
 traces."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -62,6 +63,7 @@ def test_a_bad_plan_file_is_one_line(tmp_path, capsys, monkeypatch, old, new, fr
 
 def test_a_bad_check_count_and_a_missing_file_are_one_line(tmp_path, capsys):
     _refused(capsys, ["plan", str(EXAMPLE), "--check", "1"], "--check 1: valid 2 to 10,000")
+    _refused(capsys, ["plan", str(EXAMPLE), "--check", "0"], "--check 0: valid 2 to 10,000")
     _refused(capsys, ["plan", str(tmp_path / "none.toml")], "plan file")
     _refused(capsys, ["plan", str(EXAMPLE), "--check", "5", "--seed", "-1"], "--seed -1: valid")
 
@@ -131,6 +133,11 @@ def test_the_command_writes_its_files(planned):
         assert sum(problem.signals[s].cost for s in firing["signals"]) <= problem.cost
     text = (out / "summary.txt").read_text()
     assert "spread evenly" in text and "not determined" in text
+    # Every plan compared is listed, and each error has its unit and its share.
+    assert "  spread evenly: elevation 0, v0 8 (x_M, F_AN); elevation 45" in text
+    assert "  all at the first candidate: elevation 0, v0 8 (x_M, F_AN); elevation 0" in text
+    assert re.search(r"c_out +planned [0-9.]+ N\*s/m \([0-9.]+ %; 95 %: [0-9.]+ to ", text), text
+    assert re.search(r"friction_coefficient +planned [0-9.e-]+ \([0-9.]+ %; 95 %", text), text
     skeleton = tomllib.loads((out / "calibration.toml").read_text())
     assert len(skeleton["experiment"]) == problem.firings
     assert set(skeleton["fit"]) == set(problem.fit)
@@ -175,3 +182,16 @@ def test_the_prediction_holds_on_the_reference_solver_traces(planned):
     assert check.converged == 40
     for name, ratio in check.ratio.items():
         assert ratio is not None and 0.7 < ratio < 1.4, (name, ratio)
+
+
+def test_the_check_s_ratio_range_is_the_sample_deviation_s():
+    """The range printed beside `--check`'s ratios: where 99 % of the ratios of N
+    Gaussian fits' sample deviation to the true one fall (here against draws)."""
+    from recoil_jax.apps._cli.plan import ratio_range
+
+    low, high = ratio_range(40)
+    rng = np.random.default_rng(0)
+    ratios = rng.standard_normal((20_000, 40)).std(axis=1, ddof=1)
+    inside = np.mean((ratios > low) & (ratios < high))
+    assert abs(inside - 0.99) < 0.003, inside
+    assert ratio_range(100) == pytest.approx((0.82, 1.185), abs=0.002)

@@ -27,7 +27,7 @@ import numpy as np
 from .._campaigns.progress import Progress
 from .._campaigns.store import CalibrationStore
 from .._model.derivatives import SIGNALS
-from .campaign import open_store, stored_part
+from .campaign import STARTS_PER_CHUNK, open_store, stored_part
 from .continuation import DEFAULT_CONTINUATION, Continuation
 from .layout import CalibrationData, Layout, estimates_noise, prepare
 from .least_squares import FitOutcome, FitSettings, evaluate_program, fit_program, u_of_z
@@ -270,12 +270,15 @@ def fit_many(
     measured: Sequence[Sequence[Mapping[str, np.ndarray]]],
     continuation: Continuation | None = DEFAULT_CONTINUATION,
     progress: bool | None = False,
+    stream=None,
+    chunk: int = STARTS_PER_CHUNK,
 ) -> list[dict[str, Any]]:
     """Fit many data sets of the same experiments (one compiled program): e.g. noise
     draws of a synthetic test, each from the calibration's start through the
     `continuation`'s stages as `calibrate` fits. `measured[b][e]`: the signals of
     experiment `e` in data set `b`, on that experiment's sample times; `progress`: a
-    progress line on stderr. Returns each set's fitted values
+    progress line (on `stream`, default stderr) as each `chunk` of sets is fitted (one
+    program for every chunk, the last padded). Returns each set's fitted values
     by label with their standard errors (`"<label>.stderr"`; NaN where withheld), a
     `"converged"` flag, whether the model `"explains"` the set, the `"failing"` signals
     (`"x_M in firing.csv"`) and the whole `"check"` (`ModelCheck`)."""
@@ -293,9 +296,9 @@ def fit_many(
     z0 = np.tile(start_points(layout, 1, 0), (len(measured), 1))
     stages = None if continuation is None else continuation.for_design(data.params)
     fits = len(z0) * (1 + (0 if stages is None else stages.stages))
-    bar = Progress("fit_many", fits, "fits", progress, rates=False)
+    bar = Progress("fit_many", fits, "fits", progress, stream=stream, rates=False)
     outcome = _fit_starts(u_of_z(z0), data, static, None, stages, bar, measured=batch,
-                          chunk=len(z0))  # fmt: skip
+                          chunk=min(chunk, len(z0)))  # fmt: skip
     rows = []
     for b in range(len(measured)):
         data_b = eqx.tree_at(

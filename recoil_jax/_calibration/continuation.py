@@ -49,18 +49,20 @@ class Continuation:
       stage's optimum, then at the model's widths (where its result, its χ² and its
       uncertainty are).
 
-    Default: `buffer_width` 1 cm then 0.1 mm (the counter-recoil buffer's engagement,
-    the switch whose jump in `F_AN` makes χ² stepped), and `slip_width` 1 cm/s then
-    0.1 mm/s (the friction's turn at `v_M = 0`, a jump of twice the friction force).
-    A design without the switch's part (no counter-recoil buffer, no rails) is fitted at
-    its own widths only.
+    Default: `buffer_width` 1 cm, 1 mm, 0.1 mm and 10 µm, a decade a stage (the
+    counter-recoil buffer's engagement, the switch whose jump in `F_AN` makes χ²
+    stepped). Measured on the shipped plan's reference traces (`docs/calibration.md`):
+    two stages a hundredfold apart left 2 of 4 draws on a tread that four a decade apart
+    reached the truth from; continuing the friction's turn (`slip_width`) too changed
+    nothing but the time. A design without the switch's part (no counter-recoil
+    buffer) is fitted at its own widths only.
 
     **Raises:** `ParameterError` for a name that is not a continued smoothing width, or
     widths that are not positive, finite and decreasing, or of different counts.
     """
 
     widths: Mapping[str, tuple[float, ...]] = dataclasses.field(
-        default_factory=lambda: {"buffer_width": (1e-2, 1e-4), "slip_width": (1e-2, 1e-4)}
+        default_factory=lambda: {"buffer_width": (1e-2, 1e-3, 1e-4, 1e-5)}
     )
 
     def __post_init__(self):

@@ -81,6 +81,24 @@ def plan_calibration(
     )  # fmt: skip
 
 
+def _SILENT(line: str) -> None:
+    """No progress."""
+
+
+class _LineStream:
+    """A stream whose lines go to a progress logger (`fit_many`'s progress line)."""
+
+    def __init__(self, log: Callable[[str], Any]):
+        self.log = log
+
+    def write(self, text: str) -> None:
+        if text.strip():
+            self.log(text.strip())
+
+    def flush(self) -> None:
+        pass
+
+
 def check_plan(
     plan: FiringPlan,
     tests: int = 100,
@@ -104,7 +122,7 @@ def check_plan(
 
     **Returns:** `{name: PlanCheck}`.
     """
-    log = progress_logger(progress)
+    log = progress_logger(progress) if progress else _SILENT
     problem = plan.problem
     fit = tuple(problem.fit)
     space = plan_space(problem)
@@ -144,7 +162,10 @@ def check_plan(
             for _ in range(tests)
         ]
         log(f"check: {tests} simulated tests of the {name.replace('_', ' ')}, fitted in one batch")
-        rows = fit_many(calibration, measured)
+        # From the truth, at the model's widths: the spread the noise causes, not the
+        # way from a far start (a continuation's wide first stage would leave the truth).
+        rows = fit_many(calibration, measured, continuation=None, progress=log is not _SILENT,
+                        stream=_LineStream(log))  # fmt: skip
         ok = [r for r in rows if r["converged"]]
         spread, bias, ratio, fitted = {}, {}, {}, {}
         for j, p in enumerate(fit):

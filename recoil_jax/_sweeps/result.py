@@ -100,9 +100,7 @@ class SweepResult:
         for i in range(len(self)):
             ok = bool(self.ok[i])
             record: dict[str, Any] = {
-                key: None
-                if not ok
-                else (int if field == "num_steps" else float)(self.peaks[field][i])
+                key: None if not ok else _json_value(field, self.peaks[field][i])
                 for field, key in PEAK_FIELDS.items()
             }
             record["status"] = messages[i]
@@ -116,6 +114,16 @@ class SweepResult:
                 }
             out.append(record)
         return out
+
+
+def _json_value(field: str, value) -> Any:
+    """One peak as `simulate --json` gives it: `num_steps` an integer, `returned` true,
+    false or None (no firing envelope: NaN in the arrays), every other a float."""
+    if field == "num_steps":
+        return int(value)
+    if field == "returned":
+        return None if np.isnan(value) else bool(value)
+    return float(value)
 
 
 class StoredSweep(NamedTuple):

@@ -79,7 +79,7 @@ def round_trip(
     draws: int = 20, truths: int = 2, compare: int = 1, plan_path=ROUND_TRIP_PLAN, log=None
 ) -> dict:
     """The round trip's figures: per truth and way, each draw's fit (`_fit`)."""
-    from .._cli.plan import load_plan
+    from .._studies.plan_file import load_plan
 
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
     path = Path(plan_path)

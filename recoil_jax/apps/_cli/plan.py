@@ -14,7 +14,7 @@ from .._files.json_writer import dumps as json_dumps, write as write_json, write
 from .._files.options import Commands
 from .._studies.plan_file import load_plan
 
-__all__ = ["add_command", "calibration_skeleton", "run_plan", "summary"]
+__all__ = ["add_command", "calibration_skeleton", "ratio_range", "run_plan", "summary"]
 
 _NAMES = {
     "plan": "planned",
@@ -28,11 +28,28 @@ def _firing_line(i: int, condition: dict, signals) -> str:
     return f"    firing {i}: {values}; record {', '.join(signals)}"
 
 
-def _interval(report: rjx.PlanReport, name: str) -> str:
-    interval = report.ci95[name]
-    if interval is None:
+def _interval(report: rjx.PlanReport, name: str, guess: float) -> str:
+    """`1.56 N*s/m (0.0098 %; 95 %: 15996.9 to 16003.1)`: the standard error in its unit,
+    as a share of the guess, and the 95 % interval."""
+    interval, stderr = report.ci95[name], report.stderr[name]
+    if interval is None or stderr is None:
         return "not determined"
-    return f"{report.stderr[name]:.4g} ({interval[0]:.6g} to {interval[1]:.6g})"
+    unit = rj.PARAMETERS[name].unit if name in rj.PARAMETERS else "s"
+    unit = f" {unit}" if unit else ""  # none for a coefficient
+    share = f"{100 * stderr / abs(guess):.2g} %; " if guess else ""
+    return f"{stderr:.4g}{unit} ({share}95 %: {interval[0]:.6g} to {interval[1]:.6g})"
+
+
+def ratio_range(fits: int, level: float = 0.99) -> tuple[float, float]:
+    """The range that `level` of the ratios of `fits` fits' spread (their sample standard
+    deviation) to the true standard error fall in, for Gaussian fits:
+    `sqrt(χ²_{n−1} / (n − 1))` at its two tails."""
+    import scipy.stats  # when used: it takes 0.4 s to import
+
+    dof = max(fits - 1, 1)
+    tail = (1 - level) / 2
+    low, high = scipy.stats.chi2.ppf([tail, 1 - tail], dof)
+    return math.sqrt(low / dof), math.sqrt(high / dof)
 
 
 def summary(plan: rj.FiringPlan, checks: dict | None = None) -> str:
@@ -45,14 +62,23 @@ def summary(plan: rj.FiringPlan, checks: dict | None = None) -> str:
              f", {plan.seconds:.1f} s"]  # fmt: skip
     for i, (c, signals) in enumerate(plan.plan.firings, 1):
         lines.append(_firing_line(i, plan.conditions[c], signals))
+    for key in ("baseline", "first_candidate"):  # the hand-drawn plans, compared below
+        firings = "; ".join(
+            ", ".join(f"{k} {v:g}" for k, v in plan.conditions[c].items())
+            + f" ({', '.join(signals)})"
+            for c, signals in getattr(plan, key).firings
+        )
+        lines.append(f"  {_NAMES[key]}: {firings}")
     lines.append("  criterion (higher is better): " + ", ".join(
         f"{label} {_value(getattr(plan, key).criterion)}" for key, label in _NAMES.items()
     ) + f", greedy selection {_value(plan.greedy)}")  # fmt: skip
-    lines.append("  predicted standard error (95 % interval):")
+    lines.append("  predicted standard error (its share of the guess; 95 % interval):")
     width = max(len(n) for n in problem.fit)
+    guess = problem.guess
     for name in problem.fit:
         lines.append(f"    {name:<{width}}  " + "; ".join(
-            f"{label} {_interval(getattr(plan, key), name)}" for key, label in _NAMES.items()
+            f"{label} {_interval(getattr(plan, key), name, guess[name])}"
+            for key, label in _NAMES.items()
         ))  # fmt: skip
     for key, label in _NAMES.items():
         for text in getattr(plan, key).undetermined:
@@ -63,8 +89,10 @@ def summary(plan: rj.FiringPlan, checks: dict | None = None) -> str:
             ratios = ", ".join(
                 f"{n} {'undetermined' if r is None else f'{r:.2f}'}" for n, r in check.ratio.items()
             )
+            low, high = ratio_range(check.converged)
             lines.append(f"    {_NAMES[key]}: {check.converged} of {check.tests} fits "
-                         f"converged; {ratios}")  # fmt: skip
+                         f"converged; {ratios} (for {check.converged} fits, 99 % of ratios "
+                         f"fall in {low:.2f}-{high:.2f} where the prediction holds)")  # fmt: skip
     return "\n".join(lines)
 
 
@@ -112,7 +140,7 @@ def _toml_string(text: str) -> str:
 
 def run_plan(args) -> int:
     """The `plan` command."""
-    if args.check and not 2 <= args.check <= 10_000:
+    if args.check is not None and not 2 <= args.check <= 10_000:
         raise rj.ParameterError(f"--check {args.check}: valid 2 to 10,000 simulated tests")
     if args.seed < 0:
         raise rj.ParameterError(f"--seed {args.seed}: valid an integer >= 0")
@@ -166,7 +194,7 @@ def add_command(commands: Commands) -> None:
     plan.add_argument(
         "--check",
         type=int,
-        default=0,
+        default=None,
         metavar="N",
         help="simulate N noisy tests of the plan and of the evenly spread one at a truth "
         "drawn from the middle half of the [fit] box, fit each with the calibration and "

@@ -26,13 +26,15 @@ LEGEND_LINES = 7
 def plot_history(history: rj.History, path, title: str = "") -> Path:
     """Time histories, stacked: the barrel's and absorber's displacements; the anchoring
     force with each element that carries it (recoil spring, damper, hydraulic buffer,
-    gas recuperator); the breech force of each round and the contact force. Elements the
-    design does not have are left out. Saved as PNG at `path`."""
+    gas recuperator and its preload, counter-recoil buffer, rail friction, battery stop)
+    and gravity along the rails; the breech force of each round and the contact force.
+    Elements the design does not have are left out. Saved as PNG at `path`."""
     ts = np.asarray(history.ts)
     f = history.forces
     # Without an absorber (m = 0) its displacement and the contact force stay 0: not
     # drawn, and without a breech force either there is no third panel.
-    absorber = bool(np.any(np.asarray(history.x_m) != 0))
+    # (x_m alone does not tell: without an absorber it rests with the barrel, not at 0.)
+    absorber = not all(_all_zero(g) for g in (f.coupling_spring, f.coupling_damper, f.contact))
     panels = 3 if absorber or f.breech is not None else 2
     fig, axes = plt.subplots(panels, 1, figsize=(9, 3 * panels), sharex=True)
     axes[0].plot(ts, 1e3 * np.asarray(history.x_M), label="barrel $x_M$")
@@ -40,12 +42,18 @@ def plot_history(history: rj.History, path, title: str = "") -> Path:
         axes[0].plot(ts, 1e3 * np.asarray(history.x_m), label="absorber $x_m$")
     axes[0].set_ylabel("displacement (mm)")
     axes[0].legend(loc="upper right")
+    # Every part of F_AN the design has (`Forces.anchoring`: the stop enters with its
+    # minus sign), then gravity along the rails, which acts on the barrel, not the mount.
     parts = {
         "anchoring $F_{AN}$": history.anchoring_force,
-        "spring $k x_M$": f.recoil_spring,
+        "spring $k x_M$": None if _all_zero(f.recoil_spring) else f.recoil_spring,
         "damper $c(v)v$": f.recoil_damper,
         "orifice $F_h$": f.buffer,
-        "recuperator $F_g$": f.recuperator,
+        "recuperator gas $F_g$": None if _all_zero(f.recuperator) else f.recuperator,
+        "recuperator preload $F_p$": f.preload,
+        "counter-recoil buffer $F_{cb}$": f.counter_recoil,
+        "rail friction $F_f$": f.friction,
+        "battery stop $-F_s$": None if f.stop is None else -np.asarray(f.stop),
     }
     for i, (label, force) in enumerate(parts.items()):
         if force is not None:
@@ -56,8 +64,16 @@ def plot_history(history: rj.History, path, title: str = "") -> Path:
                 lw=2 if i == 0 else 1,
                 color="k" if i == 0 else None,
             )
+    if f.gravity is not None and not _all_zero(f.gravity):
+        axes[1].plot(ts, 1e-3 * np.asarray(f.gravity), ls="--", lw=1, color="0.5",
+                     label=r"gravity on the barrel $M g \sin\theta$ (not in $F_{AN}$)")  # fmt: skip
     axes[1].set_ylabel("force into the mounting (kN)")
-    axes[1].legend(loc="upper right", fontsize=8)
+    # Many parts: the legend beside the panel, not over its curves.
+    many = sum(v is not None for v in parts.values()) > 4
+    axes[1].legend(
+        loc="upper left" if many else "upper right", fontsize=8,
+        bbox_to_anchor=(1.01, 1.0) if many else None,
+    )  # fmt: skip
     if panels == 3:
         if f.breech is not None:
             axes[2].plot(ts, 1e-3 * np.asarray(f.breech), label="breech $F_b$", color="C4")
@@ -71,7 +87,8 @@ def plot_history(history: rj.History, path, title: str = "") -> Path:
     xlabel = "time (s)"
     if shown < ts[-1]:
         axes[-1].set_xlim(0.0, shown)
-        xlabel += f": the first {shown:.2g} of {ts[-1]:g} s (later, each signal < 5 % of its peak)"
+        xlabel += (f": the first {shown:.2g} of {ts[-1]:g} s (later, each signal stays within "
+                   "5 % of its peak of its final value)")  # fmt: skip
     axes[-1].set_xlabel(xlabel)
     if title:
         fig.suptitle(title)
@@ -79,13 +96,20 @@ def plot_history(history: rj.History, path, title: str = "") -> Path:
     return save(fig, path)
 
 
+def _all_zero(force) -> bool:
+    """A force the design carries as identically 0 (`k = 0`: no recoil spring)."""
+    return force is None or not np.any(np.asarray(force) != 0)
+
+
 def _active_until(history: rj.History) -> float:
     """Where a history's time axis may end: a fifth past the last time any drawn signal
-    (displacements, anchoring and contact force) is 5 % of its peak or more."""
+    (displacements, anchoring and contact force) is 5 % of its peak or more away from
+    where it ends (a gun at rest on elevated rails carries a static load to the end)."""
     ts = np.asarray(history.ts)
     last = 0.0
     for signal in (history.x_M, history.x_m, history.anchoring_force, history.contact_force):
-        size = np.abs(np.asarray(signal, dtype=float))
+        values = np.asarray(signal, dtype=float)
+        size = np.abs(values - values[-1]) if values.size else values
         peak = np.nanmax(size) if size.size else 0.0
         if peak > 0:
             last = max(last, float(ts[np.nonzero(size >= 0.05 * peak)[0][-1]]))

@@ -23,14 +23,22 @@ _PLANS = (
 
 
 def _condition_label(condition: dict) -> str:
-    return ", ".join(f"{k} {v:g}" for k, v in condition.items())
+    """`elevation 30°, v0 8 m/s`: each value with its unit."""
+
+    def unit(name: str) -> str:
+        if name == "elevation":
+            return "°"
+        text = rj.PARAMETERS[name].unit if name in rj.PARAMETERS else ""
+        return f" {text}" if text else ""
+
+    return ", ".join(f"{k} {v:g}{unit(k)}" for k, v in condition.items())
 
 
 @styled
 def plot_plan_intervals(plan: rj.FiringPlan, path) -> Path:
     """Each fitted parameter's 95 % interval half-width as a share of its `[fit]` range,
-    for the plan and the hand-drawn ones (log scale; a cross at the right edge where the
-    plan leaves the value undetermined)."""
+    for the plan and the hand-drawn ones (log scale; "not determined" written where a
+    bar would be, outside the scale, where a plan leaves the value undetermined)."""
     fit = list(plan.problem.fit)
     fig, ax = plt.subplots(figsize=(7.5, 2.0 + 0.6 * len(fit)))
     widths = {
@@ -41,8 +49,6 @@ def plot_plan_intervals(plan: rj.FiringPlan, path) -> Path:
         ]
         for key, _ in _PLANS
     }  # fmt: skip
-    shown = [w for ws in widths.values() for w in ws if w is not None and w > 0]
-    top = max(shown) * 10 if shown else 1.0
     y = np.arange(len(fit))
     for k, (key, label) in enumerate(_PLANS):
         offset = (k - 1) * 0.22
@@ -51,10 +57,10 @@ def plot_plan_intervals(plan: rj.FiringPlan, path) -> Path:
         unknown = [i for i, w in enumerate(values) if w is None]
         lengths = [float(values[i] or 0.0) for i in known]
         ax.barh(y[known] + offset, lengths, height=0.2, color=f"C{k}", label=label)
-        if unknown:
-            ax.scatter([top] * len(unknown), y[unknown] + offset, marker="x", color=f"C{k}",
-                       s=60, zorder=3,
-                       label=f"{label}: not determined" if k else "not determined")  # fmt: skip
+        for i in unknown:  # words, not a mark at some width: there is no width
+            ax.annotate(f"{label}: not determined", xy=(0.01, y[i] + offset),
+                        xycoords=("axes fraction", "data"), va="center", fontsize=7,
+                        color=f"C{k}", fontstyle="italic")  # fmt: skip
     ax.set_xscale("log")
     ax.set_yticks(y, fit)
     ax.invert_yaxis()
@@ -107,10 +113,12 @@ def plot_plan_information(plan: rj.FiringPlan, path) -> Path:
     colours = ["C1" if c in counts else "C0" for c in range(len(plan.conditions))]
     bars.barh(range(len(added)), added, color=colours)
     bars.axvline(len(fit) / problem.firings, color="0.3", ls="--", lw=1,
-                 label=f"P/n = {len(fit)}/{problem.firings}")  # fmt: skip
-    bars.set_xlabel("tr(M⁻¹ F): added to the plan")
+                 label=f"P/n = {len(fit)}/{problem.firings}: "
+                 "a D-optimal plan's firings")  # fmt: skip
+    bars.set_xlabel("information added, tr(M⁻¹F)\n(M: the plan's, F: this firing's)")
     bars.set_title("One more firing there")
-    bars.legend(fontsize=8, loc="lower right")
+    # Below the panel, not over a bar; P/n is where a D-optimal plan's firings sit.
+    bars.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.28))
     fig.tight_layout()
     return save(fig, path)
 

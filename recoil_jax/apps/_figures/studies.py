@@ -55,7 +55,7 @@ def plot_conditions(problem: rj.DesignProblem, report: dict, path, title: str = 
             ax.annotate(text, (k, 0 if np.isnan(v) else v), ha="center",
                         va="bottom" if not v < 0 else "top", fontsize=8)  # fmt: skip
         ax.set_xticks(x, names)
-        ax.set_title(metric.label, fontsize=9)
+        ax.set_title(metric.label + _MEANING.get(name, ""), fontsize=9)
         ax.axhline(0.0, color="k", lw=0.5)
     for ax in list(axes.flat)[len(metrics) :]:
         ax.set_visible(False)
@@ -64,7 +64,15 @@ def plot_conditions(problem: rj.DesignProblem, report: dict, path, title: str = 
         "objective's worst; red: a limit broken)",
         fontsize=10,
     )
+    fig.tight_layout(rect=(0.0, 0.0, 1.0, 0.95))  # the panels below the title, not under it
     return save(fig, path)
+
+
+#: What a dimensionless metric means, under its panel's title.
+_MEANING = {
+    "stability_margin": "\n(stabilising − overturning moment) / weight's moment:\n"
+    "1 at rest, 0 on the point of tipping, < 0 lifted",
+}
 
 
 def plot_front(vary: str, xlabel: str, x, force, displacement, out: Path) -> list[Path]:

@@ -55,6 +55,10 @@ def describe(values: dict) -> str:
         parts.append(f"{knots}-knot orifice")
     if values.get("recuperator_force", 0.0) > 0:
         parts.append(f"recuperator {values['recuperator_force']:g} N")
+    if values.get("recuperator_preload", 0.0) > 0:
+        parts.append(f"preload {values['recuperator_preload'] / 1e3:g} kN")
+    if "elevation" in values:
+        parts.append(f"elevation {values['elevation']:g}°")
     return ", ".join(parts)
 
 

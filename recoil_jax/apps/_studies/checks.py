@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import cast
 
 import jax
 import numpy as np
@@ -232,7 +233,8 @@ def check_best(study: Study, result, report: dict, simulations: dict, kwargs, ou
     at = condition_params(problem, result.best_params(0))
     with phase("history", "the best design's history"):
         title = f"{study.name}: best design" + (f" at {worst}" if worst else "")
-        history = _history(problem, at[worst or ""], 3.0)
+        params = cast(rj.RecoilParams, at[worst or ""])  # over the whole solve, as its peaks
+        history = _history(problem, params, float(rjx.end_time(params, problem.options)))
         plot_history(history, out / "best_history.png", title=title)
     if problem.conditions:
         from .._figures.studies import plot_conditions

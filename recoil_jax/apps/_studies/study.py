@@ -66,7 +66,8 @@ def study_summary(report: dict) -> str:
     for name, c in report["constraints"].items():
         unit = unit_of(name.split(" (", 1)[0])
         state = "ok" if c["satisfied"] else "VIOLATED"
-        lines.append(f"  {name}: {c['value']:.6g} {unit} (limit {c['limit']:g} {unit}) {state}")
+        u = f" {unit}" if unit else ""  # a margin has no unit: no space before the bracket
+        lines.append(f"  {name}: {c['value']:.6g}{u} (limit {c['limit']:g}{u}) {state}")
     if line := agreement_line(report):
         lines.append(f"  {line}")
     lines.extend(hazard_lines(report))
