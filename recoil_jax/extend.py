@@ -34,7 +34,8 @@ not need them; `docs/developers.md` shows how to plug a part in.
   `end_time`: a design's end time (refusing a load that does not
   fit); `Forces`: the model's forces; `StoredSweep`: a sweep read back from its store;
   `worst_case`: each metric's worst over a scatter of designs; `read_text`: a text
-  file, or one line saying why not (`MAX_TEXT_BYTES`: the most it reads);
+  file, or one line saying why not (`MAX_TEXT_BYTES`: the most it reads); `written`: a
+  file written whole or not at all, a failure naming it;
   `check_memory`: refuse a count whose arrays would take over half the free memory.
 - `HAZARDS`, `Hazard`, `design_hazards`, `hazard_flags`: the hazards every report names
   unasked (`envelope.md`), their registry, one design's from its values and metrics,
@@ -103,7 +104,7 @@ from ._model.reference import reference_history
 from ._model.registry import Parameter
 from ._model.settings import T1_LIMITS, end_time
 from ._model.status import OK_CODE, status_codes, status_messages, status_table
-from ._model.text_files import MAX_TEXT_BYTES, read_text
+from ._model.text_files import MAX_TEXT_BYTES, read_text, written
 from ._planning.check import PlanCheck, check_plan, plan_calibration
 from ._planning.information import candidate_information
 from ._planning.plan import PlanReport
@@ -185,4 +186,5 @@ __all__ = [
     "trace_noise",
     "validate",
     "worst_case",
+    "written",
 ]

@@ -43,6 +43,18 @@ def reference_cases():
     return recoil_jax.paper_cases()
 
 
+def documented_value(rng, name: str) -> float:
+    """A value of parameter `name` drawn over its documented range (`rj.PARAMETERS`, where
+    accuracy is tested): log-uniform where the range starts above 0 and spans a decade or
+    more, else uniform."""
+    import math
+
+    low, high = recoil_jax.PARAMETERS[name].documented
+    if low > 0 and high / low >= 10:
+        return float(10 ** rng.uniform(math.log10(low), math.log10(high)))
+    return float(rng.uniform(low, high))
+
+
 def batch_params(designs):
     """A list of flat-name dicts as one `RecoilParams` with a leading batch axis."""
     import recoil_jax.extend as rjx

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import all_ok, batch_peaks
+from conftest import all_ok, batch_peaks, documented_value
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
@@ -114,15 +114,15 @@ def _random_designs(count, seed):
     for _ in range(count):
         designs.append(
             dict(
-                M=float(10 ** rng.uniform(3, math.log10(2e4))),
-                v0=float(rng.uniform(0.1, 2.0)),
-                m=float(10 ** rng.uniform(1, math.log10(5000))),
-                gap=float(rng.uniform(0, 0.2)),
-                k_r=float(10 ** rng.uniform(3, 5)),
-                c_r=float(rng.uniform(0, 2e4)),
-                k_c=float(10 ** rng.uniform(6, 10)),
-                n_c=float(rng.uniform(1, 2)),
-                lambda_c=float(rng.uniform(0, 2)),
+                M=documented_value(rng, "M"),
+                v0=documented_value(rng, "v0"),
+                m=documented_value(rng, "m"),
+                gap=documented_value(rng, "gap"),
+                k_r=documented_value(rng, "k_r"),
+                c_r=documented_value(rng, "c_r"),
+                k_c=documented_value(rng, "k_c"),
+                n_c=documented_value(rng, "n_c"),
+                lambda_c=documented_value(rng, "lambda_c"),
             )
         )
     return designs

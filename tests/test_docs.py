@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -43,3 +45,28 @@ def test_every_public_name_has_its_api_entry():
     extended = set(re.findall(r":::\s*recoil_jax\.extend\.(\w+)", text))
     assert top == set(rj.__all__), top ^ set(rj.__all__)
     assert extended == set(rj.extend.__all__), extended ^ set(rj.extend.__all__)
+
+
+def _number(text: str) -> float:
+    return float(text.replace("−", "-").strip())
+
+
+def test_the_ranges_table_is_the_registry():
+    """`docs/numerics.md`'s documented ranges are the registry's, row for row, and every
+    parameter with a documented range has its row (the orifice knots as `orifice_<i>`)."""
+    import recoil_jax as rj
+
+    text = (ROOT / "docs" / "numerics.md").read_text()
+    table = text[text.index("## Valid and documented ranges") :]
+    seen = set()
+    for row in re.findall(r"^\| (`.+?) \| .+? \| (.+?) \|$", table, flags=re.M):
+        names = [n for n in re.findall(r"`([^`]+)`", row[0]) if n in rj.PARAMETERS]
+        if not names or row[1].startswith("damping"):
+            continue
+        low, high = (_number(part) for part in row[1].split("–"))
+        for name in names:
+            assert rj.PARAMETERS[name].documented == pytest.approx((low, high)), name
+            seen.add(name)
+    documented = {n for n, p in rj.PARAMETERS.items() if p.documented is not None}
+    assert documented - seen <= {n for n in documented if n.startswith("orifice_")}
+    assert "v0" in seen and "elevation" in seen

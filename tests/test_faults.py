@@ -616,7 +616,7 @@ def test_a_signal_the_fit_cannot_use_is_refused_naming_file_and_column(
     ("scale", "offset", "warning"),
     [
         (1000.0, 0.0, "t.csv spans 0 to 500 s, outside the documented range of t1 0.1 to 60 s"),
-        (1.0, 1.7e9, "t.csv starts at t = 1.7e+09 s: are its times epoch seconds?"),
+        (1.0, 3e7, "t.csv starts at t = 3e+07 s: are its times epoch seconds?"),
     ],
 )
 def test_a_trace_not_in_seconds_from_the_firing_is_warned_of(traces, capsys, scale, offset,
@@ -627,6 +627,17 @@ def test_a_trace_not_in_seconds_from_the_firing_is_warned_of(traces, capsys, sca
     with pytest.raises(_Reached):
         main(["calibrate", "t.csv", "--fit", "k"])
     assert f"recoil-jax: warning: {warning}" in capsys.readouterr().err
+
+
+def test_a_trace_in_epoch_seconds_is_refused(traces, capsys):
+    """Past the longest solve (1e6 times t1's documented top), a trace is refused, not
+    solved for 54 years."""
+    ts = np.linspace(0.0, 0.5, 51)
+    rows = [f"{1.7e9 + t:.12g},{0.01 * np.sin(9 * t):.6g}" for t in ts]
+    (traces / "t.csv").write_text("t,x_M\n" + "\n".join(rows) + "\n")
+    _refused(capsys, ["calibrate", "t.csv", "--fit", "k"],
+             "t.csv runs to t = 1.7e+09 s, past the longest solve (6e+07 s): are its times "
+             "epoch seconds?")  # fmt: skip
 
 
 def test_the_sensitivity_file_refuses_repeated_metrics(tmp_path, capsys):

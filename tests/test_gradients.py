@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import all_ok, batch_params
+from conftest import all_ok, batch_params, documented_value
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
@@ -138,18 +138,18 @@ def _random_designs(count, seed):
     designs = []
     for i in range(count):
         d = dict(
-            M=float(10 ** rng.uniform(3, np.log10(2e4))),
-            v0=float(rng.uniform(0.1, 2.0)),
-            k=float(10 ** rng.uniform(3, 6)),
-            c_out=float(rng.uniform(0, 5e4)),
-            c_ret=float(rng.uniform(0, 5e4)),
-            m=float(10 ** rng.uniform(1, np.log10(5000))),
-            gap=float(rng.uniform(0, 0.2)),
-            k_r=float(10 ** rng.uniform(3, 5)),
-            c_r=float(rng.uniform(0, 2e4)),
-            k_c=float(10 ** rng.uniform(6, 10)),
-            n_c=float(rng.uniform(1, 2)),
-            lambda_c=float(rng.uniform(0, 2)),
+            M=documented_value(rng, "M"),
+            v0=documented_value(rng, "v0"),
+            k=documented_value(rng, "k"),
+            c_out=documented_value(rng, "c_out"),
+            c_ret=documented_value(rng, "c_ret"),
+            m=documented_value(rng, "m"),
+            gap=documented_value(rng, "gap"),
+            k_r=documented_value(rng, "k_r"),
+            c_r=documented_value(rng, "c_r"),
+            k_c=documented_value(rng, "k_c"),
+            n_c=documented_value(rng, "n_c"),
+            lambda_c=documented_value(rng, "lambda_c"),
         )
         if i % 3 == 0:
             d.update(gap=0.0, c_r=0.0, n_c=1.0)

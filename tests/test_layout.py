@@ -375,6 +375,7 @@ RJX_NAMES = (
     "log_coordinates",
     "minimax_metric",
     "read_text",
+    "written",
     "reference_history",
     "run_local",
     "sensitivity_box",
@@ -422,6 +423,18 @@ def test_the_public_api_is_what_it_was_name_for_name():
     for module, names in ((rj, RJ_NAMES), (rjx, RJX_NAMES)):
         for name in names:
             assert getattr(module, name) is not None, name
+
+
+def test_the_docs_count_the_public_api_as_it_is():
+    """The README's and the developers' guide's size of the top level is the size of
+    `rj.__all__`: a figure in the docs that drifts from the code fails here."""
+    root = PACKAGE.parent
+    readme = re.findall(r"\(`rj`, (\d+) names\)", (root / "README.md").read_text())
+    guide = re.findall(
+        r"the public API: (\d+) names", (root / "docs" / "developers.md").read_text()
+    )
+    assert readme and guide
+    assert {int(n) for n in readme + guide} == {len(rj.__all__)}
 
 
 def test_no_module_imports_the_version_from_the_top_level():

@@ -60,3 +60,56 @@ def test_the_force_figure_shows_every_part_of_the_envelope_gun(tmp_path, monkeyp
     assert not any("absorber" in label or "contact" in label or "gas" in label for label in labels)
     assert "elevation 35°" in fig._suptitle.get_text()
     assert "of 6 s" in fig.axes[-1].get_xlabel() and fig.axes[-1].get_xlim()[1] < 3.0
+
+
+def test_the_shipped_files_are_inside_the_documented_ranges():
+    """What is shipped (every study, every plan) warns of nothing: its designs, bounds,
+    conditions and candidates lie in the documented ranges, or set a part to 0 (`k`, `m`)."""
+    from recoil_jax.apps._files.inputs import design_warnings, values_taken
+    from recoil_jax.apps._studies.plan_file import SHIPPED as PLANS, load_plan
+    from recoil_jax.apps._studies.study_file import SHIPPED as STUDIES, load_study
+
+    studies, plans = sorted(STUDIES.glob("*.toml")), sorted(PLANS.glob("*.toml"))
+    assert len(studies) >= 10 and plans
+    for path in studies:
+        problem = load_study(path).problem
+        values = values_taken(
+            rj.params_to_values(problem.params),
+            {name: problem.bounds[name] for name in problem.tune if name in problem.bounds},
+            *(dict(c.values) for c in problem.conditions),
+        )
+        assert design_warnings(values) == [], path.name
+    for path in plans:
+        plan, _ = load_plan(path)
+        values = values_taken(plan.design, plan.fit, plan.candidates)
+        assert design_warnings(values) == [], path.name
+    # (and a value outside does warn: the check is not empty)
+    assert design_warnings({"v0": 13.0, "k": 0.0, "m": 0.0}) == [
+        "v0=13 is outside the documented range 0.1 to 12 m/s, where the model's accuracy is tested"
+    ]
+
+
+def test_every_command_warns_of_a_value_outside_its_documented_range(tmp_path, capsys):
+    """`optimise`, `plan` and `calibrate` warn as `simulate` and `sweep` do, before their
+    work (here the output folder, a file, stops each at once)."""
+    from recoil_jax.apps._studies.plan_file import SHIPPED as PLANS
+    from recoil_jax.apps._studies.study_file import SHIPPED as STUDIES
+
+    blocked = tmp_path / "a file"
+    blocked.write_text("")
+    study = (STUDIES / "envelope.toml").read_text().replace("v0 = 10.0", "v0 = 13.0")
+    plan = (PLANS / "envelope_friction.toml").read_text().replace("v0 = 10.0", "v0 = 13.0")
+    (tmp_path / "study.toml").write_text(study)
+    (tmp_path / "plan.toml").write_text(plan)
+    trace = tmp_path / "trace.csv"
+    trace.write_text("t,x_M\n" + "".join(f"{i / 1000},{1e-3 * i}\n" for i in range(1, 50)))
+    (tmp_path / "calibration.toml").write_text(
+        '[design]\nv0 = 13.0\n[fit]\nc_out = [1e3, 4e4]\n[[experiment]]\ntrace = "trace.csv"\n'
+    )
+    for command in (["optimise", "study.toml"], ["plan", "plan.toml"],
+                    ["calibrate", "calibration.toml"]):  # fmt: skip
+        path = tmp_path / command[1]
+        assert main([command[0], str(path), "--out", str(blocked)]) == 2, command
+        err = capsys.readouterr().err
+        assert "warning: v0" in err and "v0=13" in err, command
+        assert "outside the documented range 0.1 to 12 m/s" in err, command

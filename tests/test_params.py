@@ -101,8 +101,8 @@ def test_range_message_gives_value_and_documented_range():
     with pytest.raises(rj.ParameterError) as info:
         rj.Absorber(gap=-0.25)
     assert str(info.value) == (
-        "Absorber.gap = -0.25 m is invalid (out of range): valid gap >= 0 m; "
-        "documented range 0 to 0.2 m (clearance to wall A)"
+        "Absorber.gap = -0.25 m is invalid (out of range): valid gap >= 0 m, at most "
+        "200000 m; documented range 0 to 0.2 m (clearance to wall A)"
     )
 
 

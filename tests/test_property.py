@@ -48,7 +48,7 @@ def _reached(*args, **kwargs):
 
 
 SOLVES = ["peaks", "simulate", "sweep", "sweep_grid", "sweep_to_store", "search",
-          "optimise", "calibrate", "sensitivity", "predict"]  # fmt: skip
+          "optimise", "calibrate", "sensitivity", "predict", "plan_firings"]  # fmt: skip
 
 # --- the grammar ----------------------------------------------------------------------
 
@@ -88,10 +88,10 @@ def _toml_file(sections: list[str], keys: list[str]):
                      tails)  # fmt: skip
 
 
-def _mutated(folder: str):
-    """A shipped file with one line dropped, or one value replaced by a mistake: the
-    checks deep inside a file that is otherwise right."""
-    texts = [p.read_text() for p in sorted((ROOT / folder).glob("*.toml"))]
+def _mutated(folder: str, texts: list[str] | None = None):
+    """A shipped file (or one of `texts`) with one line dropped, or one value replaced by
+    a mistake: the checks deep inside a file that is otherwise right."""
+    texts = texts or [p.read_text() for p in sorted((ROOT / folder).glob("*.toml"))]
 
     def mutate(text: str, line: int, value: str, drop: bool) -> str:
         lines = text.splitlines()
@@ -119,6 +119,45 @@ sensitivity_files = st.one_of(
                SENSITIVITY_KEYS),
     _mutated("sensitivity"),
 )  # fmt: skip
+PLAN_KEYS = [*rj.PARAMETERS, "description", "robust", "seed", "sigma", "cost", "rate",
+             "duration", "firings", "criterion", "x_M", "F_AN", "v_M"]  # fmt: skip
+plan_files = st.one_of(
+    _toml_file(["design", "fit", "candidates", "signals", "sampling", "budget", "bogus"],
+               PLAN_KEYS),
+    _mutated("optimise/plans"),
+)  # fmt: skip
+#: What `plan` writes for a test of the envelope gun (its `calibration.toml`), traces
+#: named as it names them: mutated, the skeleton a user edits.
+SKELETON = """description = "calibration of the planned test: the envelope gun"
+[design]
+M = 1800.0
+m = 0.0
+k = 0.0
+v0 = 10.0
+pulse_time = 0.004
+stop_stiffness = 210000000.0
+recuperator_length = 1.8
+buffer_length = 0.15
+buffer_damping = 150000.0
+[fit]
+c_out = { bounds = [5000.0, 50000.0], start = 16000.0 }
+c_ret = { bounds = [5000.0, 50000.0], start = 15000.0 }
+recuperator_preload = { bounds = [10000.0, 60000.0], start = 30000.0 }
+friction_force = { bounds = [0.0, 5000.0], start = 1500.0 }
+friction_coefficient = { bounds = [0.0, 0.2], start = 0.05 }
+[[experiment]]
+trace = "trace.csv"
+elevation = 0.0
+v0 = 10.0
+t1 = 3.0
+sigma = { x_M = 0.0003, F_AN = 200.0 }
+[[experiment]]
+trace = "trace.csv"
+elevation = 70.0
+v0 = 8.0
+t1 = 3.0
+sigma = { x_M = 0.0003 }
+"""
 CALIBRATION_KEYS = [*rj.PARAMETERS, "trace", "sigma", "per_experiment", "window", "name",
                     "starts", "seed", "fit_steps", "description", "loss", "f_scale",
                     "force_table"]  # fmt: skip
@@ -132,6 +171,7 @@ calibration_files = st.one_of(
         st.sampled_from(["k = [1e4, 1e5]", "k = [1e5, 1e4]", "v0 = [0.5, 0.8]"]),
         st.sampled_from([0, 1, 2, 300]),
     ),
+    _mutated("", [SKELETON]),
 )  # fmt: skip
 csv_files = st.one_of(
     junk,
@@ -168,7 +208,7 @@ def command_lines(draw, folder: Path):
                              *specials])  # fmt: skip
     inputs = st.sampled_from(specials)
     command = draw(st.sampled_from(["simulate", "sweep", "optimise", "sensitivity",
-                                    "calibrate", "progress"]))  # fmt: skip
+                                    "calibrate", "progress", "plan"]))  # fmt: skip
     argv = [command, "--no-cache"]
     if command == "simulate":
         argv += draw(st.lists(assignments, max_size=4))
@@ -192,6 +232,13 @@ def command_lines(draw, folder: Path):
             argv += ["--scheduler", draw(st.sampled_from(["", "garbage!!", "http://h:1"]))]
     elif command == "optimise":
         argv += [file("study.toml", study_files), "--out", str(folder / "out")]
+        if draw(st.booleans()):
+            argv += ["--seed", draw(number_texts)]
+    elif command == "plan":
+        argv += [file("plan.toml", plan_files), "--out",
+                 draw(st.one_of(st.just(str(folder / "out")), paths))]  # fmt: skip
+        if draw(st.booleans()):
+            argv += ["--check", draw(number_texts)]
         if draw(st.booleans()):
             argv += ["--seed", draw(number_texts)]
     elif command == "sensitivity":
@@ -251,11 +298,13 @@ def test_every_mistake_is_one_line_and_a_documented_status(stubbed, data):
             try:
                 status = main(argv)
             except Reached:
+                hypothesis.event(f"{argv[0]}: accepted")
                 return  # accepted: a solve would start
             except SystemExit as exit:  # argparse: its usage line and status 2
                 assert exit.code == 2, argv
                 return
         seconds = time.perf_counter() - started
+        hypothesis.event(f"{argv[0]}: status {status}")
         lines = [line for line in err.getvalue().splitlines() if line.strip()]
         errors = [line for line in lines if line.startswith("recoil-jax: error:")]
         assert status in (0, 1, 2), (argv, status, lines)

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import scipy.integrate
 import scipy.optimize
+from conftest import documented_value
 
 from recoil_jax._model.reference import (
     GRAVITY,
@@ -472,29 +473,30 @@ TABLE_SHAPE = np.array([0.0, 0.6, 1.0, 0.7, 0.25, 0.0])
 
 
 def random_envelope_design(rng):
-    """A design drawn over the documented ranges, with the envelope's parts each on or
+    """A design drawn over the documented ranges (`documented_value`; `k = 0`, no spring,
+    on a third of the designs with a stop), with the envelope's parts each on or
     off at random (friction and elevation always): `(values, force table or None)`."""
     d = dict(
-        M=float(10 ** rng.uniform(3, math.log10(2e4))),
-        k=float(10 ** rng.uniform(3, 6)),
-        c_out=float(rng.uniform(0, 5e4)),
-        c_ret=float(rng.uniform(0, 5e4)),
-        v0=float(rng.uniform(0.1, 2.0)),
+        M=documented_value(rng, "M"),
+        k=documented_value(rng, "k"),
+        c_out=documented_value(rng, "c_out"),
+        c_ret=documented_value(rng, "c_ret"),
+        v0=documented_value(rng, "v0"),
         shots=int(rng.integers(1, 4)),
         fire_interval=float(rng.uniform(0.3, 1.5)),
-        elevation=float(rng.uniform(0, 75)),
-        friction_force=float(rng.uniform(0, 5e3)),
-        friction_coefficient=float(rng.uniform(0, 0.3)),
+        elevation=documented_value(rng, "elevation"),
+        friction_force=documented_value(rng, "friction_force"),
+        friction_coefficient=documented_value(rng, "friction_coefficient"),
     )
     if rng.random() < 0.5:
         d |= dict(
-            m=float(10 ** rng.uniform(1, math.log10(5000))),
-            gap=float(rng.uniform(0.0, 0.2)),
-            k_r=float(10 ** rng.uniform(3, 5)),
-            c_r=float(rng.uniform(0, 2e4)),
-            k_c=float(10 ** rng.uniform(6, 10)),
-            n_c=float(rng.uniform(1, 2)),
-            lambda_c=float(rng.uniform(0, 2)),
+            m=documented_value(rng, "m"),
+            gap=documented_value(rng, "gap"),
+            k_r=documented_value(rng, "k_r"),
+            c_r=documented_value(rng, "c_r"),
+            k_c=documented_value(rng, "k_c"),
+            n_c=documented_value(rng, "n_c"),
+            lambda_c=documented_value(rng, "lambda_c"),
         )
     else:
         d["m"] = 0.0
@@ -504,24 +506,27 @@ def random_envelope_design(rng):
     if rng.random() < 0.7:
         d |= dict(
             stop_stiffness=float(10 ** rng.uniform(6, 10)),
-            stop_exponent=float(rng.uniform(1, 2)),
-            stop_damping=float(rng.uniform(0, 2)),
+            stop_exponent=documented_value(rng, "stop_exponent"),
+            stop_damping=documented_value(rng, "stop_damping"),
             recuperator_length=float(rng.uniform(0.8, 3)),
-            recuperator_preload=float(rng.uniform(0, 1e5)),
+            recuperator_preload=documented_value(rng, "recuperator_preload"),
         )
+        if rng.random() < 0.3:  # no spring: the stop and the preload hold the barrel
+            d["k"] = 0.0
     if rng.random() < 0.3:
         d["recuperator_force"] = float(rng.uniform(0, 2e4))
         d.setdefault("recuperator_length", float(rng.uniform(0.5, 3)))
     if rng.random() < 0.7:
         d |= dict(
-            buffer_damping=float(rng.uniform(0, 5e5)), buffer_length=float(rng.uniform(0.02, 0.5))
+            buffer_damping=documented_value(rng, "buffer_damping"),
+            buffer_length=float(rng.uniform(0.02, 0.5)),
         )
     if rng.random() < 0.5:
         d |= dict(
             mount_mass=float((d["M"] + d["m"]) * rng.uniform(1.2, 5)),
             cg_distance=float(rng.uniform(0.5, 6)),
             trunnion_height=float(rng.uniform(0.3, 3)),
-            spade_distance=float(rng.uniform(0, 6)),
+            spade_distance=documented_value(rng, "spade_distance"),
         )
     table = None
     if load == "table":

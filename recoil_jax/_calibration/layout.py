@@ -22,7 +22,13 @@ from .._model.derivatives import ABSORBER_SIGNALS, SIGNALS
 from .._model.parameter_table import PARAMETERS
 from .._model.params import ForceTable, RecoilParams, params_from_values, params_to_values
 from .._model.registry import ParameterError
-from .._model.settings import Smoothing, SolverOptions, end_time, with_default_tolerances
+from .._model.settings import (
+    T1_LIMITS,
+    Smoothing,
+    SolverOptions,
+    end_time,
+    with_default_tolerances,
+)
 from .._sweeps.batches import batch_params, with_table
 from .._sweeps.space import SearchSpace, log_coordinates
 from .model_check import trace_noise
@@ -148,6 +154,20 @@ def design_of(calibration, experiment: Experiment) -> dict[str, float]:
                 f"{experiment.label}: cannot fit {name}: this design does not have its "
                 f"{PARAMETERS[name].group} (give one of its parameters in [design])"
             )
+    # The design the fit will solve: the fitted values somewhere inside their bounds (a
+    # preload fitted needs a battery stop, whatever its value).
+    inside = {
+        name: float(calibration.start.get(name, 0.5 * (low + high)))
+        for name, (low, high) in calibration.fit.items()
+        if name != "t_shift"
+    }
+    try:
+        params_from_values(known | inside)
+    except ParameterError as error:
+        shown = ", ".join(f"{name} = {value:g}" for name, value in inside.items())
+        raise ParameterError(
+            f"{experiment.label}: with the fitted values inside their bounds ({shown}): {error}"
+        ) from None
     if params.absorber is None:
         absent = [s for s in experiment.trace.signals if s in ABSORBER_SIGNALS]
         if absent:
@@ -306,6 +326,12 @@ def _end_times(calibration, experiments, traces, layout: Layout) -> np.ndarray:
                     f"{trace.t[row]:g} s): give a larger t1 or a window"
                 )
             needed = max(needed, float(t1_given))
+        if needed > T1_LIMITS.ceiling:
+            raise ParameterError(
+                f"{trace.source} runs to t = {trace.t[-1]:g} s, past the longest solve "
+                f"({T1_LIMITS.ceiling:g} s): are its times epoch seconds? The model's t = 0 "
+                "is the firing: give times from it"
+            )
         t1[e] = max(needed, 1e-6)
     return t1
 

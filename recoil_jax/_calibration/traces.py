@@ -22,7 +22,7 @@ from .._model.parameter_table import parameter
 from .._model.params import ForceTable, RecoilParams
 from .._model.registry import Limits, ParameterError, check_value
 from .._model.solve import History
-from .._model.text_files import read_text
+from .._model.text_files import read_text, written
 
 __all__ = [
     "TIME_COLUMNS",
@@ -105,7 +105,8 @@ class Trace:
         rows = zip(self.t.tolist(), *(self.signals[n].tolist() for n in names), strict=True)
         lines = [",".join(["t", *names])]
         lines += [",".join(repr(v) if math.isfinite(v) else "" for v in row) for row in rows]
-        path.write_text("\n".join(lines) + "\n")
+        with written(path) as temporary:
+            temporary.write_text("\n".join(lines) + "\n")
         return path
 
     def within(self, start: float, end: float) -> Trace:

@@ -40,9 +40,11 @@ from .._model.feasibility import (
     feasible,
     largest_violation,
 )
+from .._model.metrics import METRICS
 from .._model.params import RecoilParams, values_of
 from .._model.registry import ParameterError
 from .._model.status import OK_CODE
+from .._sweeps.memory import check_memory
 from .._sweeps.space import SearchSpace
 
 __all__ = ["Stopping", "default_optimiser", "optimise"]
@@ -319,6 +321,11 @@ def optimise(
     stopping = Stopping() if stopping is None else stopping
     optimiser = default_optimiser(0.1, steps) if optimiser is None else optimiser
     params, limits = _scenarios(problem, scenarios, scenario_limits)
+    # Each run keeps its history, every step's point, metrics and multipliers.
+    check_memory(
+        limits.shape[0] * starts, 8 * steps * (2 * len(problem.tune) + len(METRICS) + 8),
+        "optax runs", "give fewer starts (or steps)", unit="runs",
+    )  # fmt: skip
     space = SearchSpace.of(problem)
     u0 = jnp.asarray(_to_u(space, _start_points(problem, params, limits.shape[0], starts, seed)))
     state = _initial_state(optimiser, lagrangian, u0, limits.shape[1])

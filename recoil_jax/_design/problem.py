@@ -30,7 +30,14 @@ from .._model.equations import check_envelope_metrics
 from .._model.feasibility import FEASIBILITY_TOLERANCE
 from .._model.metrics import METRICS, metric, worst_case
 from .._model.parameter_table import PARAMETERS, parameter
-from .._model.params import RecoilParams, check_present, values_of, with_values
+from .._model.params import (
+    RecoilParams,
+    check_present,
+    params_from_values,
+    params_to_values,
+    values_of,
+    with_values,
+)
 from .._model.registry import ParameterError, check_value, is_concrete
 from .._model.settings import Smoothing, SolverOptions, end_time
 from .._model.solve import last_firing
@@ -78,8 +85,12 @@ class Objective(eqx.Module):
     def __check_init__(self):
         if not self.weights:
             raise ParameterError("Objective.weights is empty: weight at least one metric")
-        for name in self.weights:
+        for name, weight in self.weights.items():
             metric(name)
+            if not _finite_number(weight):
+                raise ParameterError(
+                    f"Objective.weights[{name!r}] = {weight!r} is not a finite number"
+                )
         for name in self.temperatures:
             if name not in self.weights:
                 raise ParameterError(
@@ -149,6 +160,18 @@ class Objective(eqx.Module):
         return total
 
 
+def _finite_number(value: Any) -> bool:
+    """A real number (not a bool), finite: a limit's or a weight's value (a tracer
+    passes: it is checked where it is concrete)."""
+    if isinstance(value, bool) or not is_concrete(value):
+        return not isinstance(value, bool)
+    try:
+        array = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        return False
+    return array.ndim == 0 and bool(np.isfinite(array))
+
+
 def _condition_names(names: Any) -> Any:
     """A list of condition names as a tuple (a static field must hash); anything else
     as given, for `Constraint`'s check."""
@@ -185,6 +208,12 @@ class Constraint(eqx.Module):
             )
         if self.upper is None and self.lower is None:
             raise ParameterError(f"Constraint on {self.name} has neither upper nor lower")
+        for kind, limit in (("max", self.upper), ("min", self.lower)):
+            if limit is not None and not _finite_number(limit):
+                raise ParameterError(
+                    f"Constraint on {self.name}: {kind} = {limit!r} is not a finite number "
+                    "(leave a side out for no limit there)"
+                )
         if self.upper is not None and self.lower is not None and self.lower > self.upper:
             raise ParameterError(
                 f"Constraint on {self.name}: lower {self.lower} > upper {self.upper}"
@@ -308,6 +337,7 @@ class DesignProblem(eqx.Module):
                     raise ParameterError(
                         f"condition {condition.name!r}: {error}; give {name} in the design too"
                     ) from None
+            self._check_condition_design(condition)
         for c in self.constraints:
             for name in c.conditions or ():
                 if name not in names:
@@ -315,6 +345,27 @@ class DesignProblem(eqx.Module):
                     raise ParameterError(
                         f"the limit on {c.name} names condition {name!r}; conditions: {known}"
                     )
+
+    def _check_condition_design(self, condition: Condition) -> None:
+        """The whole design `condition` makes, checked as a design is (its values
+        together: a mount heavier than the gun on it) and for the metrics asked of it
+        there (a stability limit needs a mount), before anything compiles."""
+        if not is_concrete(self.params):
+            return
+        asked = [*self.objective.weights]
+        asked += [
+            c.name
+            for c in self.constraints
+            if c.is_metric and (c.conditions is None or condition.name in c.conditions)
+        ]
+        try:
+            design = params_from_values(params_to_values(self.params) | dict(condition.values))
+            check_envelope_metrics(design, asked, f"condition {condition.name!r}")
+        except ParameterError as error:
+            message = str(error)
+            if not message.startswith(f"condition {condition.name!r}"):
+                message = f"condition {condition.name!r}: {message}"
+            raise ParameterError(message) from None
 
     def _check_return_limits(self) -> None:
         """A design that has not come back by `t1` is reported with the time it was seen

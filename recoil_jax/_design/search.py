@@ -24,6 +24,7 @@ from __future__ import annotations
 import abc
 import contextlib
 import dataclasses
+import itertools
 import os
 import sys
 import threading
@@ -68,7 +69,7 @@ from .._model.feasibility import (
 )
 from .._model.params import values_of
 from .._model.registry import ParameterError
-from .._sweeps.memory import default_workers
+from .._sweeps.memory import check_memory, default_workers
 from .._sweeps.space import SearchSpace
 
 __all__ = [
@@ -175,6 +176,12 @@ class SobolStarts(GlobalPhase):
                 f"SobolStarts: need samples >= 0, starts >= 0 and 0 < spacing <= 1 (got "
                 f"{self.samples}, {self.starts}, {self.spacing})"
             )
+        # Each sample's point, its solve's results and its evaluation's record (up to 40
+        # tuned values and 64 outputs, a few copies, and the record's Python objects).
+        check_memory(
+            self.points, 8 * 3 * (40 + 64) + 1024, "a global phase", "give fewer samples",
+            unit="samples",
+        )  # fmt: skip
 
     @property
     def points(self) -> int:
@@ -199,7 +206,9 @@ class SobolStarts(GlobalPhase):
         order = np.lexsort((np.where(held, sampled["objective"], sampled["violation"]), key))
         order = order[key[order] < 2]
         chosen: list[np.ndarray] = []
-        for spacing in [self.spacing, self.spacing / 10] * self.starts:
+        # (At most one start a sample: the alternation is no longer than that.)
+        tries = 2 * min(self.starts, len(order))
+        for spacing in itertools.islice(itertools.cycle((self.spacing, self.spacing / 10)), tries):
             for i in order:
                 z = sampled["z"][i]
                 if all(np.max(np.abs(z - c)) > spacing for c in chosen):

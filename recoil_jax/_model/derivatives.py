@@ -10,9 +10,10 @@ error control). The gradient of a peak `g(y(t*), θ)` then follows from the enve
 theorem, `dg/dθ = ∇_y g · S(t*) + ∂g/∂θ`, with `y(t*)` and `S(t*)` taken from the
 solver's dense polynomial at the located peak (`docs/model.md`, *Gradients*).
 
-Each tangent direction is scaled by its parameter's documented range, so that all
-tangent columns have the size of the state and one error norm suits them all. (The
-global sensitivity analysis over a box is another thing: `_global_sensitivity`.)
+Each tangent direction is scaled by its parameter's `parameter_scale` (its documented
+range's width, or its `tangent_scale`), so that all tangent columns have the size of the
+state and one error norm suits them all. (The global sensitivity analysis over a box is
+another thing: `_global_sensitivity`.)
 """
 
 from __future__ import annotations
@@ -95,10 +96,13 @@ GRADIENT_OPTIONS = SolverOptions(rtol=1e-7, atol=1e-10)
 
 
 def parameter_scale(name: str) -> float:
-    """Width of a parameter's documented range (the tangent scaling; SI units)."""
-    documented = PARAMETERS[name].documented
-    assert documented is not None
-    lo, hi = documented
+    """The tangent scaling of a parameter (SI units): its `tangent_scale`, else the width
+    of its documented range."""
+    p = PARAMETERS[name]
+    if p.tangent_scale is not None:
+        return p.tangent_scale
+    assert p.documented is not None
+    lo, hi = p.documented
     return hi - lo
 
 
@@ -140,7 +144,7 @@ def check_wrt(params: RecoilParams, wrt: tuple[str, ...]) -> None:
 
 def _directions(wrt: tuple[str, ...]):
     """Tangent directions in the space of the parameters `wrt`, shape `(k, k)`: direction
-    j moves parameter wrt[j] by its documented range."""
+    j moves parameter wrt[j] by its `parameter_scale`."""
     return jnp.diag(jnp.asarray([parameter_scale(name) for name in wrt]))
 
 

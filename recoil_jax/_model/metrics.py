@@ -365,8 +365,8 @@ def reported_value(field: str, value: Any, returned: Any) -> Any:
     back."""
     if field == "num_steps":
         return int(value)
-    if field == "returned":
-        return bool(value)
+    if field == "returned":  # NaN in a sweep's arrays where there is no envelope
+        return None if np.isnan(float(value)) else bool(value)
     value = float(value)
     name = field if field in METRICS else field.removesuffix("_time")
     if name in METRICS and METRICS[name].envelope:

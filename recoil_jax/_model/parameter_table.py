@@ -42,6 +42,7 @@ _SCALARS = (
         lower=0.0,
         documented=(1e3, 1e6),
         meaning="recoil spring stiffness",
+        zero_means="no recoil spring (a recuperator returns the barrel)",
     ),
     Parameter(
         name="c_out",
@@ -49,7 +50,8 @@ _SCALARS = (
         default=6239.0,
         unit="N*s/m",
         lower=0.0,
-        documented=(0.0, 5e4),
+        documented=(0.0, 1e5),
+        tangent_scale=5e4,
         meaning="recoil damping, v_M > 0",
     ),
     Parameter(
@@ -58,7 +60,8 @@ _SCALARS = (
         default=14050.0,
         unit="N*s/m",
         lower=0.0,
-        documented=(0.0, 5e4),
+        documented=(0.0, 1e5),
+        tangent_scale=5e4,
         meaning="return damping, v_M < 0",
     ),
     Parameter(
@@ -68,7 +71,8 @@ _SCALARS = (
         unit="m/s",
         lower=0.0,
         lower_open=True,
-        documented=(0.1, 2.0),
+        documented=(0.1, 12.0),
+        tangent_scale=1.9,
         meaning="initial barrel velocity",
     ),
     Parameter(
@@ -80,6 +84,7 @@ _SCALARS = (
         lower_open=True,
         documented=(10.0, 5000.0),
         meaning="absorber mass",
+        zero_means="no absorber (the simplified model)",
     ),
     Parameter(
         name="gap",

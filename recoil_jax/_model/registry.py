@@ -44,6 +44,10 @@ class ParameterError(ValueError):
     valid range."""
 
 
+#: How far above its documented range a value without an upper bound stays valid.
+CEILING_FACTOR = 1e6
+
+
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class Limits:
     """Unit, valid range and documented range of one scalar.
@@ -58,12 +62,26 @@ class Limits:
     lower_open: bool = False  # True: the lower bound itself is invalid (> lower)
     documented: tuple[float, float] | None = None
     meaning: str = ""
+    # What 0 means where it is a part left out, not a value (`m`: no absorber; `k`: no
+    # spring): no warning for 0 outside the documented range, which is the part's.
+    zero_means: str = ""
+
+    @property
+    def ceiling(self) -> float:
+        """The largest valid value: `upper`, or where that is unbounded `CEILING_FACTOR`
+        times the documented range's top (a value past it means no gun, and the model's
+        products, `(M + m)·g·d` or `k_c·δ^n_c`, would overflow before it did)."""
+        if math.isinf(self.upper) and self.documented is not None and self.documented[1] > 0:
+            return CEILING_FACTOR * self.documented[1]
+        return self.upper
 
     def describe(self) -> str:
         low = f"> {self.lower:g}" if self.lower_open else f">= {self.lower:g}"
-        valid = low if math.isinf(self.upper) else f"{low} and <= {self.upper:g}"
         unit = f" {self.unit}" if self.unit else ""
-        return f"{valid}{unit}"
+        if math.isinf(self.upper):
+            ceiling = "" if math.isinf(self.ceiling) else f", at most {self.ceiling:g}{unit}"
+            return f"{low}{unit}{ceiling}"
+        return f"{low} and <= {self.upper:g}{unit}"
 
 
 #: The pytree of `RecoilParams` that holds each group of parameters (`Parameter.group`),
@@ -93,6 +111,10 @@ class Parameter(Limits):
     field: str = ""  # attribute in the group's pytree (default: the name)
     index: int | None = None  # position in an array field (an orifice knot)
     integer: bool = False  # an integer count (static: one compilation per value)
+    # A change of typical size, scaling the parameter's tangent in the gradients' error
+    # norm (default: the documented range's width; kept where that range grew later, so
+    # that the solver's steps, and the gradients to the bit, stay as they were).
+    tangent_scale: float | None = None
 
     @property
     def attribute(self) -> str:
@@ -182,7 +204,7 @@ def check_value(owner: str, name: str, value: Any, limits: Limits) -> None:
         bad_range = flat <= limits.lower
     else:
         bad_range = flat < limits.lower
-    bad_range |= flat > limits.upper
+    bad_range |= flat > limits.ceiling
     bad = bad_finite | bad_range
     if not bad.any():
         return

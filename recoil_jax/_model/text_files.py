@@ -1,16 +1,19 @@
 """The one reader of text files: every file the command line reads (a trace, a force
 table, a TOML file, a points file, a calibration's result) comes through `read_text`,
-which refuses what is not a regular text file of at most `MAX_TEXT_BYTES`."""
+which refuses what is not a regular text file of at most `MAX_TEXT_BYTES`; and the one
+way a file is written whole or not at all (`written`)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import stat
+from collections.abc import Iterator
 from pathlib import Path
 
 from .._model.registry import ParameterError
 
-__all__ = ["MAX_TEXT_BYTES", "read_text"]
+__all__ = ["MAX_TEXT_BYTES", "read_text", "written"]
 
 
 #: The most bytes a text file may hold (a trace, a force table, a TOML file, a points
@@ -63,3 +66,22 @@ def read_text(path, what: str) -> str:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError:
         raise ParameterError(f"{what} {path} is not a text file (UTF-8)") from None
+
+
+@contextlib.contextmanager
+def written(path) -> Iterator[Path]:
+    """Write the file `path` whole or not at all: yields a temporary path beside it to
+    write, renamed over `path` once the block ends; on any failure the temporary file is
+    removed (a full disk leaves no truncated or empty file), and an `OSError` without a
+    file name is raised again naming `path` (what was being written)."""
+    path = Path(path)
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.part")
+    try:
+        yield temporary
+        os.replace(temporary, path)
+    except BaseException as error:
+        with contextlib.suppress(OSError):
+            os.unlink(temporary)
+        if isinstance(error, OSError) and not error.filename:
+            raise OSError(error.errno, error.strerror, str(path)) from None
+        raise

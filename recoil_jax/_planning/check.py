@@ -20,6 +20,7 @@ from .._model.derivatives import SIGNAL_ALIASES
 from .._model.params import params_from_values, values_of, with_values
 from .._model.reference import reference_history
 from .._model.solve import simulate
+from .._sweeps.memory import check_memory
 from .information import candidate_information
 from .plan import FiringPlan, PlanReport, plan_space, predicted_stderr, progress_logger
 
@@ -124,6 +125,11 @@ def check_plan(
     """
     log = progress_logger(progress) if progress else _SILENT
     problem = plan.problem
+    # Each test's noisy traces, held for the batched fit (their copies in its arrays too).
+    samples = sum(len(signals) for _, signals in plan.plan.firings) * len(problem.times)
+    check_memory(
+        tests, 8 * 4 * samples, "a check", "give fewer simulated tests", unit="simulated tests"
+    )
     fit = tuple(problem.fit)
     space = plan_space(problem)
     rng = np.random.default_rng(seed)

@@ -33,6 +33,11 @@ MAX_CANDIDATES = 1000
 MAX_BYTES = 2 * 2**30
 
 
+#: A signal's noise, SI units: below a picometre (piconewton) the information `J/σ²`
+#: loses its digits (at 1e-160 it overflows), above 1e12 no test measures anything.
+MIN_SIGMA, MAX_SIGMA = 1e-12, 1e12
+
+
 def _real(where: str, value) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
         raise ParameterError(f"{where} = {value!r}: give a number")
@@ -145,6 +150,12 @@ class PlanProblem:
                 )
         if not candidates:
             raise ParameterError("plan: no candidate condition ([candidates] is empty)")
+        count = math.prod(len(values) for values in candidates.values())
+        if count > MAX_CANDIDATES:  # before each value is checked (a million take 20 s)
+            raise ParameterError(
+                f"candidates: {count:,} combinations; valid at most {MAX_CANDIDATES:,} (fewer "
+                "values, or fewer conditions)"
+            )
         for name, values in candidates.items():
             if name in self.fit:
                 raise ParameterError(
@@ -223,8 +234,11 @@ class PlanProblem:
                 )
             if name in ABSORBER_SIGNALS and not absorber:
                 raise ParameterError(f"signals.{name}: a signal of the absorber, and m = 0")
-            if not (math.isfinite(sensor.sigma) and sensor.sigma > 0):
-                raise ParameterError(f"signals.{name}.sigma = {sensor.sigma!r}: valid > 0")
+            if not (math.isfinite(sensor.sigma) and MIN_SIGMA <= sensor.sigma <= MAX_SIGMA):
+                raise ParameterError(
+                    f"signals.{name}.sigma = {sensor.sigma!r}: valid {MIN_SIGMA:g} to "
+                    f"{MAX_SIGMA:g} (the signal's SI unit; the information goes as 1/sigma²)"
+                )
             if not (math.isfinite(sensor.cost) and sensor.cost >= 0):
                 raise ParameterError(f"signals.{name}.cost = {sensor.cost!r}: valid >= 0")
         if self.cost is not None:

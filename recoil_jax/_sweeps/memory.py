@@ -15,8 +15,9 @@ __all__ = ["check_memory", "default_workers"]
 
 
 def _available_memory() -> int | None:
-    """Bytes of memory this process may still use: Linux's MemAvailable, or less where a
-    container's memory limit (cgroup v2) leaves less; None where neither is known."""
+    """Bytes of memory this process may still use: Linux's MemAvailable, or less where an
+    address-space limit or a container's memory limit (cgroup v2) leaves less; None
+    where none is known."""
     free = []
     try:
         with open("/proc/meminfo") as meminfo:
@@ -24,6 +25,17 @@ def _available_memory() -> int | None:
                 if line.startswith("MemAvailable:"):
                     free.append(int(line.split()[1]) * 1024)
     except (OSError, ValueError, IndexError):
+        pass
+    try:  # an address-space limit (`ulimit -v`), less what the process has mapped
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+        if soft != resource.RLIM_INFINITY:
+            with open("/proc/self/status") as status:
+                mapped = next(int(line.split()[1]) * 1024 for line in status
+                              if line.startswith("VmSize:"))  # fmt: skip
+            free.append(soft - mapped)
+    except (ImportError, OSError, ValueError, StopIteration):
         pass
     try:
         limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()

@@ -13,7 +13,7 @@ import numpy as np
 
 from .._campaigns.store import lowest_row, read_sweep_store
 from .._model.hazards import hazard_flags
-from .._model.metrics import METRICS, PEAK_FIELDS, gradient_key
+from .._model.metrics import METRICS, PEAK_FIELDS, gradient_key, reported_value
 from .._model.registry import ParameterError
 from .._model.status import Status, status_codes, status_item, status_messages
 from .batches import ABSORBER
@@ -91,16 +91,20 @@ class SweepResult:
 
     def records(self, model: str = "smoothed") -> list[dict]:
         """One dict per point, in input order, with the keys of `recoil-jax simulate
-        --json` (`PEAK_FIELDS`): the peaks (None where the solve failed), `status` ("ok" or
-        the reason), `hazards` (their names, `hazards`), `model`, `parameters`; with
-        gradients also `gradients` ({metric key: {parameter: derivative}})."""
+        --json` (`PEAK_FIELDS`, `reported_value`): the peaks (None where the solve failed,
+        where the design has no such metric, and a return's where the barrel has not
+        returned), `status` ("ok" or the reason), `hazards` (their names, `hazards`),
+        `model`, `parameters`; with gradients also `gradients` ({metric key: {parameter:
+        derivative}})."""
         out = []
         messages = self.messages()
         hazards = self.hazards()
         for i in range(len(self)):
             ok = bool(self.ok[i])
             record: dict[str, Any] = {
-                key: None if not ok else _json_value(field, self.peaks[field][i])
+                key: None
+                if not ok
+                else reported_value(field, self.peaks[field][i], self.peaks["returned"][i])
                 for field, key in PEAK_FIELDS.items()
             }
             record["status"] = messages[i]
@@ -114,16 +118,6 @@ class SweepResult:
                 }
             out.append(record)
         return out
-
-
-def _json_value(field: str, value) -> Any:
-    """One peak as `simulate --json` gives it: `num_steps` an integer, `returned` true,
-    false or None (no firing envelope: NaN in the arrays), every other a float."""
-    if field == "num_steps":
-        return int(value)
-    if field == "returned":
-        return None if np.isnan(value) else bool(value)
-    return float(value)
 
 
 class StoredSweep(NamedTuple):

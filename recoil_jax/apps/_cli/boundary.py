@@ -47,7 +47,8 @@ def run_command(args) -> int:
     read-only disk) becomes one line on stderr and a documented status. Anything else
     is a bug, and keeps its traceback."""
     try:
-        status = args.func(args)
+        with _marked_stdout():
+            status = args.func(args)
     except rj.ParameterError as error:
         print(f"recoil-jax: error: {error}", file=sys.stderr)
         return 2
@@ -70,6 +71,12 @@ def run_command(args) -> int:
         if _stdout_closed():
             return 1  # the reader went away (`| head`): nothing more to say, to anyone
         print(f"recoil-jax: error: a pipe closed: {error}", file=sys.stderr)
+        return 1
+    except StandardOutputError as error:  # `--json > /dev/full`: not the output folder
+        print(f"recoil-jax: error: cannot write standard output: {error.strerror}",
+              file=sys.stderr)  # fmt: skip
+        with contextlib.suppress(OSError, ValueError):
+            sys.stdout = open(os.devnull, "w")  # what it holds cannot be written, at exit
         return 1
     except OSError as error:
         if error.errno not in _ENVIRONMENT_ERRORS:
@@ -106,6 +113,53 @@ def run_command(args) -> int:
               file=sys.stderr)  # fmt: skip
         return 1
     return status
+
+
+class StandardOutputError(OSError):
+    """A write to standard output that failed (a full device), told apart from a write
+    into the output folder."""
+
+
+class _Marked(io.TextIOBase):
+    """Standard output whose failed writes are `StandardOutputError`s (a closed pipe
+    stays a `BrokenPipeError`)."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            raise
+        except OSError as error:
+            raise StandardOutputError(error.errno, error.strerror) from None
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            raise
+        except OSError as error:
+            raise StandardOutputError(error.errno, error.strerror) from None
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
+
+
+@contextlib.contextmanager
+def _marked_stdout():
+    """Standard output marked (`_Marked`) while a command runs."""
+    stream = sys.stdout
+    if stream is None:
+        yield
+        return
+    sys.stdout = _Marked(stream)
+    try:
+        yield
+    finally:
+        if isinstance(sys.stdout, _Marked):
+            sys.stdout = stream
 
 
 def _stdout_closed() -> bool:

@@ -46,7 +46,9 @@ def add_command(commands: Commands) -> None:
         run_optimise,
         help="run an optimisation study (optimise/<study>.toml)",
         description='Tune design parameters as the study file says (method "search": '
-        'global samples, then SLSQP with exact gradients; "adam": optax from many '
+        "global samples, then a local method with exact gradients: SLSQP, or for a worst "
+        "case (several conditions, or a peak over time with a temperature) the minimax by "
+        'trust-region linear programming; "adam": optax from many '
         "starts); write result.json, convergence.png, best_history.png (and front/robust "
         "figures). STUDY is a path, or the name of a study shipped in optimise/ (e.g. "
         "paper_gap). Exit status: 0 done, 1 a solve failed, 2 bad input, 3 no design met "

@@ -4,12 +4,20 @@ result.json, summary.txt, the figures and a calibration.toml skeleton written, a
 
 from __future__ import annotations
 
+import json
 import math
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-from .._files.inputs import output_folder, results_folder
+from .._files.inputs import (
+    check_not_input,
+    design_warnings,
+    output_folder,
+    results_folder,
+    values_taken,
+    warn,
+)
 from .._files.json_writer import dumps as json_dumps, write as write_json, write_text
 from .._files.options import Commands
 from .._studies.plan_file import load_plan
@@ -135,7 +143,9 @@ def calibration_skeleton(plan: rj.FiringPlan, description: str = "") -> str:
 
 
 def _toml_string(text: str) -> str:
-    return '"' + text.replace("\\", "\\\\").replace('"', '\\"').replace("\n", " ") + '"'
+    """`text` as a TOML basic string: JSON's escapes (quotes, backslashes, every control
+    character) are TOML's, but for DEL, which TOML does not take raw."""
+    return json.dumps(text, ensure_ascii=False).replace("\x7f", "\\u007f")
 
 
 def run_plan(args) -> int:
@@ -145,7 +155,14 @@ def run_plan(args) -> int:
     if args.seed < 0:
         raise rj.ParameterError(f"--seed {args.seed}: valid an integer >= 0")
     problem, description = load_plan(args.source)
+    if args.check:  # its traces, before the plan's work (every signal of every firing)
+        rjx.check_memory(
+            args.check, 8 * 4 * problem.firings * len(problem.signals) * problem.samples,
+            "plan --check", "give fewer simulated tests", unit="simulated tests",
+        )  # fmt: skip
+    warn(design_warnings(values_taken(problem.design, problem.fit, problem.candidates)))
     out = output_folder(results_folder(args.out, "plan", args.source))
+    check_not_input(out, ("result.json", "summary.txt", "calibration.toml"), args.source)
     plan = rj.plan_firings(problem, progress=True)
     checks = None
     if args.check:

@@ -85,7 +85,7 @@ def reproduce(out, log=None) -> list[dict]:
     out.mkdir(parents=True, exist_ok=True)
     log(f"reproducing {len(rj.paper_cases())} paper cases (default smoothed model)")
     rows = comparison_rows(log)
-    with open(out / "reproduce.csv", "w", newline="") as f:
+    with rjx.written(out / "reproduce.csv") as temporary, open(temporary, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=_COLUMNS)
         writer.writeheader()
         writer.writerows(rows)

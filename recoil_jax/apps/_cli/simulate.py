@@ -229,9 +229,8 @@ def add_command(commands: Commands) -> None:
         "simulate",
         run_simulate,
         help="simulate one design and print its peaks",
-        description="Simulate one design. Parameters as name=value (SI units): "
-        + names()
-        + ". m=0 gives the simplified model (no absorber).",
+        description="Simulate one design. Parameters as name=value (SI units; elevation "
+        "in degrees): " + names() + ". m=0 gives the simplified model (no absorber).",
     )
     sim.add_argument("assignments", nargs="*", metavar="name=value")
     sim.add_argument("--hard", action="store_true", help="exact model with hard switches")

@@ -145,12 +145,18 @@ def write_results(result: rj.SweepResult, out: Path, meta: dict) -> list[Path]:
                 for name, v in by_param.items()
             }
         rows.append(row | record)
-    with open(out / "sweep.csv", "w", newline="") as f:
+    with rjx.written(out / "sweep.csv") as temporary, open(temporary, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
     arrays: dict[str, Any] = {f"param_{k}": v for k, v in result.values.items()}
-    arrays |= {rjx.PEAK_FIELDS[field]: v for field, v in result.peaks.items()}
+    # As the rows: no return's metric for a barrel that has not returned (NaN).
+    away = np.asarray(result.peaks["returned"]) == 0
+    for field, v in result.peaks.items():
+        metric = rj.METRICS.get(field if field in rj.METRICS else field.removesuffix("_time"))
+        if metric is not None and metric.kind == "return":
+            v = np.where(away, np.nan, v)
+        arrays[rjx.PEAK_FIELDS[field]] = v
     arrays["status"] = rjx.status_codes(result.status)
     for name, by_param in (result.gradients or {}).items():
         for parameter, v in by_param.items():
@@ -163,7 +169,8 @@ def write_results(result: rj.SweepResult, out: Path, meta: dict) -> list[Path]:
         "status_codes": rjx.status_table(),
     }
     arrays["metadata"] = np.asarray(json.dumps(metadata))
-    np.savez(out / "sweep.npz", **arrays)
+    with rjx.written(out / "sweep.npz") as temporary, open(temporary, "wb") as f:
+        np.savez(f, **arrays)
     return [out / "sweep.csv", out / "sweep.npz"]
 
 
@@ -259,12 +266,12 @@ def run_sweep(args) -> int:
         )
     if asked.points is None:
         result.swept, result.grid_shape = tuple(asked.axes), asked.shape
+    if args.out:  # the files first: a failing standard output leaves them whole
+        _write_out(result, Path(args.out))
     if args.json:
         print(json_dumps(result.records()))
     else:
         _print_summary(result)
-    if args.out:
-        _write_out(result, Path(args.out))
     return 0
 
 

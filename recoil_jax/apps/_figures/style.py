@@ -12,6 +12,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
+import recoil_jax.extend as rjx
+
 __all__ = ["STYLE", "no_feasible_note", "save", "styled"]
 
 
@@ -52,6 +54,9 @@ def no_feasible_note(ax) -> None:
 def save(fig, path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    try:  # whole or not at all: a full disk leaves no empty figure
+        with rjx.written(path) as temporary:
+            fig.savefig(temporary, dpi=110, format=path.suffix.lstrip(".") or "png")
+    finally:
+        plt.close(fig)
     return path

@@ -31,6 +31,7 @@ __all__ = [
     "TooLarge",
     "check_figure_path",
     "check_keys",
+    "check_not_input",
     "check_output_file",
     "design_warnings",
     "file_error",
@@ -49,6 +50,7 @@ __all__ = [
     "results_folder",
     "split_assignment",
     "unknown_name",
+    "values_taken",
     "warn",
 ]
 
@@ -217,7 +219,9 @@ MADE_FOLDERS: list[Path] = []
 def output_folder(path, option: str = "--out") -> Path:
     """`path` as a folder to write into, made if missing (before any solve): a path that
     is a file, passes through one, or cannot be made or written is one line naming
-    `option`."""
+    `option`; so is an empty name (which would be the current folder: say `.`)."""
+    if isinstance(path, str) and not path.strip():
+        raise rj.ParameterError(f"{option} {path!r} is empty: give a folder (. for this one)")
     path = Path(path)
     missing = [p for p in (path, *path.parents) if not p.exists()]
     if path.exists() and not path.is_dir():
@@ -236,12 +240,27 @@ def output_folder(path, option: str = "--out") -> Path:
     return path
 
 
+def check_not_input(out: Path, names, *inputs) -> None:
+    """Refuse an output folder `out` where a file the command writes (`names`) is one of
+    its `inputs` (`plan DIR/calibration.toml --out DIR`): it would be overwritten."""
+    for name in names:
+        target = (out / name).resolve()
+        for given in inputs:
+            if given is not None and Path(given).resolve() == target:
+                raise rj.ParameterError(
+                    f"--out {out} would overwrite the input {given} with the {name} it "
+                    "writes: give another folder"
+                )
+
+
 def results_folder(out, command: str, source) -> Path:
     """A command's output folder: `out` (its `--out`) if given, else
     `results/<command>/<name>`, `name` the stem of `source` (a file, or a shipped
     example's name): each input its own folder, so that no run replaces the results of
     a run on another input."""
-    return Path(out) if out is not None else Path("results") / command / Path(source).stem
+    if out is not None:
+        return output_folder(out) if not str(out).strip() else Path(out)  # ('' refused)
+    return Path("results") / command / Path(source).stem
 
 
 def remove_unused_folders() -> None:
@@ -300,11 +319,11 @@ def design_warnings(values: Mapping[str, object], table: rj.ForceTable | None = 
             continue
         p = rjx.T1_LIMITS if name == "t1" else rj.PARAMETERS[name]
         array = np.asarray(value, dtype=float).reshape(-1)
-        if name == "m":  # m = 0 is the simplified model, not a mass
+        if p.zero_means:  # m = 0 is the simplified model, k = 0 no spring: not values
             array = array[array != 0]
         # A value the model refuses is refused (one line), not also warned about.
         lower_ok = array > p.lower if p.lower_open else array >= p.lower
-        array = array[np.isfinite(array) & lower_ok & (array <= p.upper)]
+        array = array[np.isfinite(array) & lower_ok & (array <= p.ceiling)]
         if p.documented is None or not array.size:
             continue
         lo, hi = p.documented
@@ -344,6 +363,18 @@ def design_warnings(values: Mapping[str, object], table: rj.ForceTable | None = 
                 f"t = {float(np.asarray(table.t)[i]):g} s"
             )
     return lines
+
+
+def values_taken(*tables: Mapping[str, object]) -> dict[str, np.ndarray]:
+    """Every value each name takes over `tables` (a design, tuned or fitted bounds,
+    conditions, candidates: flat name → a number or numbers), as one array per name:
+    what `design_warnings` checks for a file that gives more than one design."""
+    taken: dict[str, list[np.ndarray]] = {}
+    for table in tables:
+        for name, value in table.items():
+            if value is not None:
+                taken.setdefault(name, []).append(np.asarray(value, dtype=float).reshape(-1))
+    return {name: np.concatenate(parts) for name, parts in taken.items()}
 
 
 def warn(lines: list[str]) -> None:

@@ -10,14 +10,14 @@ made with `allow_nan=False`, so that nothing non-finite can slip through.
 
 from __future__ import annotations
 
-import contextlib
 import json as _json
 import math
-import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+import recoil_jax.extend as rjx
 
 __all__ = ["dumps", "finite", "loads", "write", "write_text"]
 
@@ -85,18 +85,9 @@ def write(path, value: Any) -> Path:
 
 
 def write_text(path, text: str) -> Path:
-    """Write `text` to `path` through a temporary file beside it, renamed once complete;
-    on failure the temporary file is removed and the `OSError` names `path`."""
+    """Write `text` to `path` whole or not at all (`rjx.written`); a failure names
+    `path`."""
     path = Path(path)
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.part")
-    try:
-        with open(temporary, "w", encoding="utf-8", newline="") as file:
-            file.write(text)
-        os.replace(temporary, path)
-    except BaseException as error:
-        with contextlib.suppress(OSError):
-            os.unlink(temporary)
-        if isinstance(error, OSError) and not error.filename:
-            raise OSError(error.errno, error.strerror, str(path)) from None
-        raise
+    with rjx.written(path) as temporary, open(temporary, "w", encoding="utf-8", newline="") as f:
+        f.write(text)
     return path

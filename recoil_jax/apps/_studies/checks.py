@@ -15,6 +15,7 @@ import numpy as np
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
+from .._files.json_writer import write_text
 from .study_file import Study
 
 __all__ = [
@@ -40,8 +41,17 @@ def problem_peaks(problem: rj.DesignProblem, params, smoothing=None) -> rj.Peaks
 def _history(problem: rj.DesignProblem, params, time: float) -> rj.History:
     """The history of `params` with the problem's smoothing and solver options, on 3001
     points over `[0, time]` (s): one grid size, so that the histories of a structure
-    are one compiled program. Its `peaks` are over the whole solve."""
-    return rj.simulate(params, problem.smoothing, problem.options, ts=np.linspace(0.0, time, 3001))
+    are one compiled program. Its `peaks` are over the whole solve.
+
+    **Raises:** `SolveError` with the solve's status where it fails (said once, not
+    through the program's runtime error)."""
+    history = rj.simulate(
+        params, problem.smoothing, problem.options, ts=np.linspace(0.0, time, 3001), throw=False
+    )
+    status = history.peaks.status
+    if not bool(np.all(np.asarray(status == rj.Status.ok))):
+        raise rj.SolveError(f"the history of the best design: {rj.Status[status]}")
+    return history
 
 
 def _scattered(problem: rj.DesignProblem, params, offsets) -> list[rj.Peaks]:
@@ -421,7 +431,7 @@ def write_front(table: dict, out: Path) -> None:
                 ]
             )
         )
-    (out / f"front_{vary}.csv").write_text("\n".join(lines) + "\n")
+    write_text(out / f"front_{vary}.csv", "\n".join(lines) + "\n")
 
 
 def _nominal_comparison(study: Study, result, kwargs: dict, out: Path) -> tuple[dict, int]:

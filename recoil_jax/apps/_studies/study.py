@@ -17,8 +17,12 @@ import recoil_jax.extend as rjx
 
 from .._files.cluster import check_cluster, dask_client
 from .._files.inputs import (
+    check_not_input,
+    design_warnings,
     file_integer,
     output_folder,
+    values_taken,
+    warn,
 )
 from .._files.json_writer import write as write_json
 from .checks import (
@@ -139,9 +143,11 @@ class _Phases:
     def __init__(self, name: str, enabled: bool | None):
         self.name, self.enabled = name, enabled is not False
         self.seconds: dict[str, float] = {}
+        self.current = ""  # the part under way (or last begun): what a failure was in
 
     @contextlib.contextmanager
     def __call__(self, part: str, what: str):
+        self.current = part
         if self.enabled:
             print(f"study {self.name}: {what} ...", file=sys.stderr, flush=True)
         began = time.perf_counter()
@@ -184,7 +190,14 @@ def run_study(
     (`message` says it in one line); the checks are skipped.
     """
     study = _prepared(path, seed, workers, scheduler)
+    problem = study.problem
+    warn(design_warnings(values_taken(
+        rj.params_to_values(problem.params),
+        {name: problem.bounds[name] for name in problem.tune if name in problem.bounds},
+        *(dict(condition.values) for condition in problem.conditions),
+    )))  # fmt: skip
     out = output_folder(out if out is not None else Path("results") / study.name)
+    check_not_input(out, ("result.json",), path)
     kwargs = optimise_kwargs(study, progress)
     started = time.perf_counter()
     phase = _Phases(study.name, progress)
@@ -203,17 +216,29 @@ def run_study(
     else:
         result, simulations, report["optimiser"] = _run_adam(study, out, phase, kwargs, store)
     report |= _outcome(study, result, phase)
-    if report["feasible"]:
-        check_best(study, result, report, simulations, kwargs, out, phase)
-    fronts = []
-    for front in study.fronts:
-        with phase(f"front_{front['vary']}", f"front over {front['vary']}"):
-            table, n = run_front(study, front, kwargs)
-        fronts.append(table)
-        simulations[f"front_{front['vary']}"] = n
-        write_front(table, out)
-    if fronts:
-        report["fronts"] = fronts
+    write_json(out / "result.json", report)  # the search's result, whatever follows
+    try:
+        if report["feasible"]:
+            check_best(study, result, report, simulations, kwargs, out, phase)
+        fronts = []
+        for front in study.fronts:
+            with phase(f"front_{front['vary']}", f"front over {front['vary']}"):
+                table, n = run_front(study, front, kwargs)
+            fronts.append(table)
+            simulations[f"front_{front['vary']}"] = n
+            write_front(table, out)
+        if fronts:
+            report["fronts"] = fronts
+    except Exception as error:  # the after-steps' failure beside the result, then raised
+        report["failed_after"] = {
+            "step": phase.current,
+            "error": rj.failure_message(error)
+            if isinstance(error, rj.SolveError)
+            else f"{type(error).__name__}: {error}",
+        }
+        report["seconds"] = round(time.perf_counter() - started, 2)
+        write_json(out / "result.json", report)
+        raise
     report["simulations"] = int(sum(simulations.values()))
     report["simulations_by_part"] = simulations
     report["seconds"] = round(time.perf_counter() - started, 2)

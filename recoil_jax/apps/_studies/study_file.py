@@ -81,6 +81,7 @@ from .._files.inputs import (
 
 __all__ = [
     "LOCAL_METHODS",
+    "MAX_CONDITIONS",
     "MAX_GRID_CHECK",
     "SHIPPED",
     "Study",
@@ -367,20 +368,28 @@ def _parse_objective(path, section: dict) -> rj.Objective:
     weights = dict(section)
     temperatures = weights.pop("temperatures", {})
     scatter = weights.pop("scatter", None)
+    if not isinstance(temperatures, dict):
+        raise _error(path, f"[objective.temperatures] = {temperatures!r}: give metric = number")
     if scatter is not None:
-        if len(scatter) != 1:
-            raise _error(path, "[objective.scatter] takes one parameter = [offsets]")
+        shape = "[objective.scatter] takes one parameter = [offsets], e.g. v0 = [-0.05, 0.05]"
+        if not isinstance(scatter, dict) or len(scatter) != 1:
+            raise _error(path, shape)
         ((scatter_name, offsets),) = scatter.items()
+        if not isinstance(offsets, list) or not offsets or not all(map(_is_number, offsets)):
+            raise _error(path, f"{shape}; got {scatter_name} = {offsets!r}")
         scatter = (scatter_name, tuple(float(o) for o in offsets))
     for table, values in (("objective", weights), ("objective.temperatures", temperatures)):
         for name, value in values.items():
             if not _is_number(value):
                 raise _error(path, f"[{table}] {name} = {value!r}: valid a number")
-    return rj.Objective(
-        weights={k: float(v) for k, v in weights.items()},
-        temperatures={k: float(v) for k, v in temperatures.items()},
-        scatter=scatter,
-    )
+    try:
+        return rj.Objective(
+            weights={k: float(v) for k, v in weights.items()},
+            temperatures={k: float(v) for k, v in temperatures.items()},
+            scatter=scatter,
+        )
+    except rj.ParameterError as error:
+        raise _error(path, f"[objective] {error}") from None
 
 
 def _parse_constraints(path, section: dict, where="[constraints]") -> tuple[rj.Constraint, ...]:
@@ -401,6 +410,8 @@ def _parse_constraints(path, section: dict, where="[constraints]") -> tuple[rj.C
 
 
 _CONDITION_KEYS = {"name", "constraints"}
+#: The most `[[condition]]`s a study takes.
+MAX_CONDITIONS = 100
 
 
 def _parse_conditions(
@@ -409,6 +420,10 @@ def _parse_conditions(
     """`[[condition]]`: each a `name` (default its values, `"elevation=70"`), values of
     untuned parameters, and its own limits (`constraints = {metric = {max = ..}}`)."""
     tables = [tables] if isinstance(tables, dict) else list(tables)
+    if len(tables) > MAX_CONDITIONS:
+        raise _error(path, f"{len(tables):,} [[condition]]s: valid at most {MAX_CONDITIONS} (each "
+                     "is a lane of every solve and a piece of the worst case): split the "
+                     "study, or sweep the design over the conditions")  # fmt: skip
     conditions, limits = [], []
     for i, table in enumerate(tables):
         if not isinstance(table, dict):
@@ -448,7 +463,7 @@ def _parse_t1(path, design: dict) -> float | None:
         return None
     t1 = design.pop("t1")
     limits = rjx.T1_LIMITS
-    if not _is_number(t1) or not limits.lower < t1 <= limits.upper:
+    if not _is_number(t1) or not limits.lower < t1 <= limits.ceiling:
         raise _error(path, f"[design] t1 = {t1!r}: valid {limits.describe()}")
     return float(t1)
 
@@ -505,6 +520,11 @@ def _parse_optimiser(path, optimiser: dict) -> dict:
             )
         if "minimax" in optimiser:
             raise _error(path, "[optimiser] give local or minimax, not both")
+    if method == "search":  # its counts against the free memory, now
+        try:
+            _part(rj.SobolStarts, optimiser, samples="samples", starts="starts")
+        except rj.ParameterError as error:
+            raise _error(path, f"[optimiser] {error}") from None
     return optimiser
 
 
