@@ -61,7 +61,8 @@ not need them; `docs/developers.md` shows how to plug a part in.
 - `PlanReport` (what one plan predicts: its firings, criterion, standard errors and
   what it leaves undetermined), `candidate_information` (`JᵀJ/σ²` of every candidate
   firing and signal from the exact sensitivities, in one program), `check_plan` (noisy
-  tests of a plan fitted by the calibration, against the prediction) with `PlanCheck`,
+  tests of a plan fitted by the calibration, against the prediction) with `PlanCheck`
+  and `check_tests_memory` (its traces against the free memory, refused before the work),
   and `plan_calibration` (the calibration of a plan's firings from their traces).
 
 **Global sensitivity's parts**
@@ -105,7 +106,7 @@ from ._model.registry import Parameter
 from ._model.settings import T1_LIMITS, end_time
 from ._model.status import OK_CODE, status_codes, status_messages, status_table
 from ._model.text_files import MAX_TEXT_BYTES, read_text, written
-from ._planning.check import PlanCheck, check_plan, plan_calibration
+from ._planning.check import PlanCheck, check_plan, check_tests_memory, plan_calibration
 from ._planning.information import candidate_information
 from ._planning.plan import PlanReport
 from ._sweeps.batches import batch_params, shard_batch
@@ -160,6 +161,7 @@ __all__ = [
     "candidate_information",
     "check_memory",
     "check_plan",
+    "check_tests_memory",
     "default_local",
     "default_workers",
     "design_hazards",

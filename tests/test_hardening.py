@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import time
 from pathlib import Path
 
@@ -188,7 +189,7 @@ def test_a_fitted_preload_needs_a_battery_stop(tmp_path, capsys):
     )
     refused(
         capsys, ["calibrate", path, "--out", str(tmp_path / "o")],
-        "with the fitted values inside their bounds (recuperator_preload = 35000)",
+        "at the fit's start (recuperator_preload = 35000)",
         "battery stop",
     )  # fmt: skip
 
@@ -214,6 +215,9 @@ def test_a_failed_write_leaves_no_file_and_names_it(tmp_path):
         raise OSError(errno.ENOSPC, "No space left on device")
     assert caught.value.filename == str(path) and caught.value.errno == errno.ENOSPC
     assert list(tmp_path.iterdir()) == []
+    with pytest.raises(OSError) as caught, rjx.written(tmp_path / "gone" / "f.csv") as temporary:
+        temporary.write_text("x")  # (its folder is missing: the error names the file)
+    assert caught.value.filename == str(tmp_path / "gone" / "f.csv")
     path.write_text("old")
     with rjx.written(path) as temporary:
         temporary.write_text("new")
@@ -247,6 +251,7 @@ def test_a_full_standard_output_is_not_blamed_on_the_output_folder(tmp_path):
             [sys.executable, "-m", "recoil_jax.apps._cli", "sweep", "m=0", "k=1e4,2e4",
              "--json", "--out", str(out)],
             stdout=full, stderr=subprocess.PIPE, text=True, timeout=300,
+            env=os.environ | {"PYTHONUNBUFFERED": "1"},  # the JSON's write fails, not the exit's
         )  # fmt: skip
     assert done.returncode == 1, done.stderr
     assert "cannot write standard output: No space left on device" in done.stderr, done.stderr
@@ -279,7 +284,7 @@ def test_a_description_of_any_characters_is_written_as_toml(text):
 @pytest.mark.parametrize(
     "argv_tail, edit, fragment",
     [
-        (["--check", "10000"], None, "plan --check of 10,000 simulated tests needs about"),
+        (["--check", "10000"], None, "a check of 10,000 simulated tests needs about"),
         ([], ("[sampling]", "[sampling]\n"), None),
     ],
 )
@@ -376,3 +381,18 @@ def test_a_trace_larger_than_memory_allows_is_refused_before_the_fit(tmp_path, c
     refused(capsys, ["calibrate", str(tmp_path / "long.csv"), "--fit", "k,c_out",
                      "--out", str(tmp_path / "o")],
             "a calibration of 2 starts at once needs about")  # fmt: skip
+
+
+def test_a_fit_whose_box_reaches_an_impossible_design_is_refused_before_it_starts():
+    """Checked at the fit's start (valid here: M = 3000 under a 20 t mount) and with each
+    fitted value at its upper bound, where the fit may go (M = 60 t: heavier than the
+    mount that carries it)."""
+    import recoil_jax.extend as rjx
+
+    ts = np.linspace(0.01, 1.0, 50)
+    experiment = rjx.Experiment(rjx.Trace.of(ts, x_M=np.sin(ts)), {})
+    design = {"M": 3000.0, "mount_mass": 2e4}
+    with pytest.raises(rj.ParameterError, match="with M at its upper bound 60000, where the fit"):
+        rj.Calibration([experiment], fit={"M": (1e3, 6e4)}, design=design)
+    calibration = rj.Calibration([experiment], fit={"M": (1e3, 1.5e4)}, design=design)
+    assert calibration.shared_start() == {"M": pytest.approx(3000.0)}

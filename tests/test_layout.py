@@ -393,6 +393,7 @@ RJX_NAMES = (
     "PlanReport",
     "candidate_information",
     "check_plan",
+    "check_tests_memory",
     "plan_calibration",
 )
 APPS_NAMES = (

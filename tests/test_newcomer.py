@@ -67,18 +67,12 @@ def test_the_shipped_files_are_inside_the_documented_ranges():
     conditions and candidates lie in the documented ranges, or set a part to 0 (`k`, `m`)."""
     from recoil_jax.apps._files.inputs import design_warnings, values_taken
     from recoil_jax.apps._studies.plan_file import SHIPPED as PLANS, load_plan
-    from recoil_jax.apps._studies.study_file import SHIPPED as STUDIES, load_study
+    from recoil_jax.apps._studies.study_file import SHIPPED as STUDIES, load_study, study_values
 
     studies, plans = sorted(STUDIES.glob("*.toml")), sorted(PLANS.glob("*.toml"))
     assert len(studies) >= 10 and plans
     for path in studies:
-        problem = load_study(path).problem
-        values = values_taken(
-            rj.params_to_values(problem.params),
-            {name: problem.bounds[name] for name in problem.tune if name in problem.bounds},
-            *(dict(c.values) for c in problem.conditions),
-        )
-        assert design_warnings(values) == [], path.name
+        assert design_warnings(study_values(load_study(path).problem)) == [], path.name
     for path in plans:
         plan, _ = load_plan(path)
         values = values_taken(plan.design, plan.fit, plan.candidates)

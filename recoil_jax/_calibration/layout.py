@@ -37,6 +37,7 @@ from .traces import Experiment, known_values
 __all__ = [
     "CalibrationData",
     "Layout",
+    "check_fitted_designs",
     "design_of",
     "estimates_noise",
     "prepare",
@@ -124,6 +125,17 @@ class Layout:
             known,
         )
 
+    def start_z(self) -> np.ndarray:
+        """The fit's first start `(P,)` in box coordinates: the given start, or the
+        design's value where it lies inside the bounds, else the box's middle."""
+        given = np.isfinite(self.start)
+        return np.where(given, self.space.z(np.where(given, self.start, self.lower)), 0.5)
+
+    def start_values(self) -> dict[str, float]:
+        """The fit's first start by label (SI units; `start_z`)."""
+        theta = np.asarray(self.space.theta(jnp.asarray(self.start_z())))
+        return dict(zip(self.labels, map(float, theta), strict=True))
+
     @property
     def space(self) -> SearchSpace:
         """The fitted values' box as a search space: linear between the bounds, or
@@ -133,6 +145,36 @@ class Layout:
             jnp.asarray(self.upper),
             jnp.asarray(log_coordinates(self.lower, self.upper)),
         )
+
+
+def check_fitted_designs(calibration, layout: Layout) -> None:
+    """Each experiment's design as the fit will solve it, checked whole before the fit:
+    at the fit's first start, and with each fitted value at its upper bound in turn (a
+    fitted preload needs a battery stop; a mount must outweigh the gun it carries).
+
+    **Raises:** `ParameterError` naming the experiment and the fitted values."""
+    start = layout.start_values()
+    fitted = list(calibration.experiments)
+    for experiment in (*calibration.experiments, *calibration.validation):
+        number = next((i for i, x in enumerate(fitted, 1) if x is experiment), None)
+        at_start = {}
+        for label, name in zip(layout.labels, layout.parameters, strict=True):
+            owner = int(label[label.index("[") + 1 : -1]) if "[" in label else None
+            if name != "t_shift" and ((owner is None and name not in at_start) or owner == number):
+                at_start[name] = start[label]
+        known = known_values(calibration.experiment_design(experiment))
+        trials = [("at the fit's start", at_start)]
+        trials += [
+            (f"with {name} at its upper bound {calibration.fit[name][1]:g}, where the fit may go",
+             at_start | {name: calibration.fit[name][1]})
+            for name in at_start
+        ]  # fmt: skip
+        for where, values in trials:
+            try:
+                params_from_values(known | values)
+            except ParameterError as error:
+                shown = ", ".join(f"{n} = {v:g}" for n, v in values.items())
+                raise ParameterError(f"{experiment.label}: {where} ({shown}): {error}") from None
 
 
 def design_of(calibration, experiment: Experiment) -> dict[str, float]:
@@ -154,20 +196,6 @@ def design_of(calibration, experiment: Experiment) -> dict[str, float]:
                 f"{experiment.label}: cannot fit {name}: this design does not have its "
                 f"{PARAMETERS[name].group} (give one of its parameters in [design])"
             )
-    # The design the fit will solve: the fitted values somewhere inside their bounds (a
-    # preload fitted needs a battery stop, whatever its value).
-    inside = {
-        name: float(calibration.start.get(name, 0.5 * (low + high)))
-        for name, (low, high) in calibration.fit.items()
-        if name != "t_shift"
-    }
-    try:
-        params_from_values(known | inside)
-    except ParameterError as error:
-        shown = ", ".join(f"{name} = {value:g}" for name, value in inside.items())
-        raise ParameterError(
-            f"{experiment.label}: with the fitted values inside their bounds ({shown}): {error}"
-        ) from None
     if params.absorber is None:
         absent = [s for s in experiment.trace.signals if s in ABSORBER_SIGNALS]
         if absent:

@@ -18,7 +18,7 @@ from .._model.parameter_table import PARAMETERS
 from .._model.params import ForceTable
 from .._model.registry import ParameterError, check_value
 from .._model.settings import Smoothing, SolverOptions
-from .layout import Layout, prepare
+from .layout import Layout, check_fitted_designs, prepare
 from .traces import T_SHIFT, Experiment
 
 __all__ = ["LOSSES", "Calibration", "check_fitted", "validation_problem"]
@@ -103,9 +103,19 @@ class Calibration:
                     f"fitted ones {fitted}: every experiment fires a table, or none does"
                 )
         layout = Layout.of(self)  # checks the designs and signals
+        check_fitted_designs(self, layout)  # and each as the fit will solve it
         prepare(self, self.experiments, layout)  # and the time spans
         for experiment in self.validation:  # the same checks, before the fit
             validation_problem(self, experiment)
+
+    def shared_start(self) -> dict[str, float]:
+        """The values the fit starts from for the parameters every experiment shares (those
+        a prediction takes from it), by name (SI units): the given start, or the design's
+        value inside the bounds, else the box's middle."""
+        start = Layout.of(self).start_values()
+        return {
+            name: value for name, value in start.items() if name in self.fit and name != "t_shift"
+        }
 
     def experiment_design(self, experiment: Experiment) -> dict[str, float]:
         """The known values of one experiment: the shared ones, then its own."""

@@ -16,10 +16,7 @@ __all__ = ["start_points"]
 def _starts(layout: Layout, starts: int, seed: int) -> np.ndarray:
     """`(starts, P)` points in box coordinates: the given start (or the box's middle where
     the design's value lies outside it), then scrambled Sobol points."""
-    space = layout.space
-    middle = np.full(len(layout.labels), 0.5)
-    given = np.isfinite(layout.start)
-    first = np.where(given, space.z(np.where(given, layout.start, layout.lower)), middle)
+    first = layout.start_z()
     if starts == 1:
         return first[None]
     import scipy.stats  # when used: it takes 0.4 s to import

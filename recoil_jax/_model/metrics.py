@@ -29,6 +29,7 @@ __all__ = [
     "PeakGradients",
     "Peaks",
     "gradient_key",
+    "is_return_field",
     "metric",
     "reported_value",
     "worst_case",
@@ -370,9 +371,16 @@ def reported_value(field: str, value: Any, returned: Any) -> Any:
     value = float(value)
     name = field if field in METRICS else field.removesuffix("_time")
     if name in METRICS and METRICS[name].envelope:
-        if np.isnan(value) or (METRICS[name].kind == "return" and not bool(returned)):
+        if np.isnan(value) or (is_return_field(field) and not bool(returned)):
             return None
     return value
+
+
+def is_return_field(field: str) -> bool:
+    """Whether a `Peaks` field (a metric or its time) is the return's: none is reported
+    for a barrel that has not returned."""
+    name = field if field in METRICS else field.removesuffix("_time")
+    return name in METRICS and METRICS[name].kind == "return"
 
 
 class PeakGradients(eqx.Module):

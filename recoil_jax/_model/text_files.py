@@ -72,8 +72,8 @@ def read_text(path, what: str) -> str:
 def written(path) -> Iterator[Path]:
     """Write the file `path` whole or not at all: yields a temporary path beside it to
     write, renamed over `path` once the block ends; on any failure the temporary file is
-    removed (a full disk leaves no truncated or empty file), and an `OSError` without a
-    file name is raised again naming `path` (what was being written)."""
+    removed (a full disk leaves no truncated or empty file), and an `OSError` naming no
+    file, or the temporary one, is raised again naming `path` (what was being written)."""
     path = Path(path)
     temporary = path.with_name(f".{path.name}.{os.getpid()}.part")
     try:
@@ -82,6 +82,6 @@ def written(path) -> Iterator[Path]:
     except BaseException as error:
         with contextlib.suppress(OSError):
             os.unlink(temporary)
-        if isinstance(error, OSError) and not error.filename:
+        if isinstance(error, OSError) and error.filename in (None, "", str(temporary)):
             raise OSError(error.errno, error.strerror, str(path)) from None
         raise

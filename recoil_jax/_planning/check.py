@@ -24,7 +24,7 @@ from .._sweeps.memory import check_memory
 from .information import candidate_information
 from .plan import FiringPlan, PlanReport, plan_space, predicted_stderr, progress_logger
 
-__all__ = ["PlanCheck", "check_plan", "plan_calibration"]
+__all__ = ["PlanCheck", "check_plan", "check_tests_memory", "plan_calibration"]
 
 #: `History`'s field of each signal.
 _FIELDS = {signal: field for field, signal in SIGNAL_ALIASES.items()}
@@ -100,6 +100,21 @@ class _LineStream:
         pass
 
 
+def check_tests_memory(problem, tests: int, report: PlanReport | None = None) -> None:
+    """Refuse (`ParameterError`) `tests` simulated tests whose noisy traces, held for
+    their batched fit with its copies (4 values a sample), would take over half the free
+    memory: the `report`'s firings and signals, or before a plan is made, `problem`'s
+    firings each recording every signal (the most a plan can hold)."""
+    if report is None:
+        signals = problem.firings * len(problem.signals)
+    else:
+        signals = sum(len(recorded) for _, recorded in report.firings)
+    check_memory(
+        tests, 8 * 4 * signals * len(problem.times), "a check", "give fewer simulated tests",
+        unit="simulated tests",
+    )  # fmt: skip
+
+
 def check_plan(
     plan: FiringPlan,
     tests: int = 100,
@@ -125,11 +140,7 @@ def check_plan(
     """
     log = progress_logger(progress) if progress else _SILENT
     problem = plan.problem
-    # Each test's noisy traces, held for the batched fit (their copies in its arrays too).
-    samples = sum(len(signals) for _, signals in plan.plan.firings) * len(problem.times)
-    check_memory(
-        tests, 8 * 4 * samples, "a check", "give fewer simulated tests", unit="simulated tests"
-    )
+    check_tests_memory(problem, tests, plan.plan)
     fit = tuple(problem.fit)
     space = plan_space(problem)
     rng = np.random.default_rng(seed)

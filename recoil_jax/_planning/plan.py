@@ -22,7 +22,6 @@ import numpy as np
 from .._calibration.report import BoxCovariance, box_covariance
 from .._model.params import values_of
 from .._model.status import OK_CODE, SolveError, status_item, status_messages
-from .._sweeps.memory import check_memory
 from .._sweeps.space import SearchSpace, log_coordinates
 from .choose import Options, exchange, greedy, options, plan_value
 from .information import candidate_information
@@ -171,13 +170,6 @@ def plan_firings(problem: PlanProblem, progress: bool | Callable[[str], Any] = F
     space = plan_space(problem)
     conditions = problem.conditions
     signals = tuple(problem.signals)
-    # Each truth's sensitivities of every candidate, signal and sample (measured: 4
-    # values a sample, signal and parameter in one array), and a copy of them.
-    check_memory(
-        1 + problem.robust,
-        8 * 2 * 4 * len(conditions) * len(signals) * (len(fit) + 1) * problem.samples,
-        "a plan", "give fewer robust draws (or candidates, or samples)", unit="truths",
-    )  # fmt: skip
     guess = np.asarray(values_of(params, fit))
     truths = guess[None]
     if problem.robust:

@@ -18,6 +18,7 @@ from .._model.parameter_table import PARAMETERS
 from .._model.params import RecoilParams, params_from_values
 from .._model.registry import ParameterError, check_value
 from .._model.settings import Smoothing, SolverOptions
+from .._sweeps.memory import check_memory
 
 __all__ = ["CRITERIA", "PlanProblem", "Sensor"]
 
@@ -29,8 +30,6 @@ CRITERIA = ("D", "A")
 MAX_SAMPLES = 100_000
 #: The most candidate firings (combinations of the conditions' values).
 MAX_CANDIDATES = 1000
-#: The most memory the sensitivities of every candidate and truth may hold at once.
-MAX_BYTES = 2 * 2**30
 
 
 #: A signal's noise, SI units: below a picometre (piconewton) the information `J/σ²`
@@ -206,22 +205,17 @@ class PlanProblem:
                 raise ParameterError(f"candidate {where}: {error}") from None
 
     def _check_size(self) -> None:
-        """The work a plan asks for, bounded before it starts: the candidates, and the
-        sensitivities held at once (`(robust + 1) × C × S × samples × P` values)."""
-        count = len(self.conditions)
-        if count > MAX_CANDIDATES:
-            raise ParameterError(
-                f"candidates: {count:,} combinations; valid at most {MAX_CANDIDATES:,} (fewer "
-                "values, or fewer conditions)"
-            )
-        held = (self.robust + 1) * count * len(self.signals) * self.samples * len(self.fit) * 8
-        if held > MAX_BYTES:
-            raise ParameterError(
-                f"plan: the sensitivities would take {held / 2**30:.1f} GiB at once (robust + 1 "
-                f"truths × {count} candidates × {len(self.signals)} signals × "
-                f"{self.samples:,} samples × {len(self.fit)} parameters); valid at most "
-                f"{MAX_BYTES / 2**30:.0f} GiB: sample less often, or fewer draws"
-            )
+        """The sensitivities a plan holds at once, bounded by the free memory before it
+        starts: per truth (the guess and each robust draw), 4 values a candidate, signal,
+        sample and parameter (the value's too) in one array (measured), and a copy."""
+        per_truth = (
+            8 * 2 * 4 * len(self.conditions) * len(self.signals) * (len(self.fit) + 1)
+            * self.samples
+        )  # fmt: skip
+        check_memory(
+            1 + self.robust, per_truth, "a plan",
+            "give fewer robust draws, candidates or samples (rate × duration)", unit="truths",
+        )  # fmt: skip
 
     def _check_signals(self) -> None:
         if not self.signals:

@@ -34,14 +34,14 @@ def _available_memory() -> int | None:
             with open("/proc/self/status") as status:
                 mapped = next(int(line.split()[1]) * 1024 for line in status
                               if line.startswith("VmSize:"))  # fmt: skip
-            free.append(soft - mapped)
+            free.append(max(0, soft - mapped))
     except (ImportError, OSError, ValueError, StopIteration):
         pass
     try:
         limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
         used = Path("/sys/fs/cgroup/memory.current").read_text().strip()
         if limit != "max":
-            free.append(int(limit) - int(used))
+            free.append(max(0, int(limit) - int(used)))
     except (OSError, ValueError):
         pass
     return min(free) if free else None

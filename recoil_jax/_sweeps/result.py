@@ -13,7 +13,13 @@ import numpy as np
 
 from .._campaigns.store import lowest_row, read_sweep_store
 from .._model.hazards import hazard_flags
-from .._model.metrics import METRICS, PEAK_FIELDS, gradient_key, reported_value
+from .._model.metrics import (
+    METRICS,
+    PEAK_FIELDS,
+    gradient_key,
+    is_return_field,
+    reported_value,
+)
 from .._model.registry import ParameterError
 from .._model.status import Status, status_codes, status_item, status_messages
 from .batches import ABSORBER
@@ -88,6 +94,15 @@ class SweepResult:
             n: np.broadcast_to(f, shape) for n, f in hazard_flags(self.values, self.peaks).items()
         }
         return [[n for n, f in flags.items() if f[i]] if ok else [] for i, ok in enumerate(self.ok)]
+
+    def reported_peaks(self) -> dict[str, np.ndarray]:
+        """The peaks' arrays as reported (`records`, `sweep.npz`): a return's metrics NaN
+        where the barrel has not returned."""
+        away = np.asarray(self.peaks["returned"]) == 0
+        return {
+            field: np.where(away, np.nan, v) if is_return_field(field) else v
+            for field, v in self.peaks.items()
+        }
 
     def records(self, model: str = "smoothed") -> list[dict]:
         """One dict per point, in input order, with the keys of `recoil-jax simulate

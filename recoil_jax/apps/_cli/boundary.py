@@ -120,9 +120,10 @@ class StandardOutputError(OSError):
     into the output folder."""
 
 
-class _Marked(io.TextIOBase):
+class _Marked:
     """Standard output whose failed writes are `StandardOutputError`s (a closed pipe
-    stays a `BrokenPipeError`)."""
+    stays a `BrokenPipeError`); everything else (`fileno`, `isatty`, `encoding`, `buffer`)
+    is the stream's own."""
 
     def __init__(self, stream):
         self._stream = stream

@@ -341,21 +341,18 @@ def run_calibration(args) -> int:
 
 def _check_prediction(calibration: rj.Calibration, given: dict[str, Any]) -> None:
     """`--predict`'s design, checked before the fit as the whole design it will be (the
-    calibration's, the fitted values at their starts, the given values): a value out of
-    range, a design that cannot be, or a fitted value given."""
+    calibration's, the shared fitted values at the fit's start, the given values): a value
+    out of range, a design that cannot be, or a shared fitted value given."""
+    start = calibration.shared_start()
     for name, value in given.items():
-        if name in calibration.fit:
+        if name in start:
             raise rj.ParameterError(
                 f"--predict {name}={value}: {name} is fitted, its value comes from the "
                 "calibration; leave it out"
             )
-    start = {
-        name: calibration.start.get(name, 0.5 * (low + high))
-        for name, (low, high) in calibration.fit.items()
-        if name in rj.PARAMETERS
-    }
     try:
-        rj.params_from_values(dict(calibration.design) | start | given)
+        known = {k: v for k, v in calibration.design.items() if k in rj.PARAMETERS}
+        rj.params_from_values(known | start | given)
     except rj.ParameterError as error:
         raise rj.ParameterError(f"--predict: {error}") from None
 

@@ -156,10 +156,7 @@ def run_plan(args) -> int:
         raise rj.ParameterError(f"--seed {args.seed}: valid an integer >= 0")
     problem, description = load_plan(args.source)
     if args.check:  # its traces, before the plan's work (every signal of every firing)
-        rjx.check_memory(
-            args.check, 8 * 4 * problem.firings * len(problem.signals) * problem.samples,
-            "plan --check", "give fewer simulated tests", unit="simulated tests",
-        )  # fmt: skip
+        rjx.check_tests_memory(problem, args.check)
     warn(design_warnings(values_taken(problem.design, problem.fit, problem.candidates)))
     out = output_folder(results_folder(args.out, "plan", args.source))
     check_not_input(out, ("result.json", "summary.txt", "calibration.toml"), args.source)

@@ -150,13 +150,7 @@ def write_results(result: rj.SweepResult, out: Path, meta: dict) -> list[Path]:
         writer.writeheader()
         writer.writerows(rows)
     arrays: dict[str, Any] = {f"param_{k}": v for k, v in result.values.items()}
-    # As the rows: no return's metric for a barrel that has not returned (NaN).
-    away = np.asarray(result.peaks["returned"]) == 0
-    for field, v in result.peaks.items():
-        metric = rj.METRICS.get(field if field in rj.METRICS else field.removesuffix("_time"))
-        if metric is not None and metric.kind == "return":
-            v = np.where(away, np.nan, v)
-        arrays[rjx.PEAK_FIELDS[field]] = v
+    arrays |= {rjx.PEAK_FIELDS[field]: v for field, v in result.reported_peaks().items()}
     arrays["status"] = rjx.status_codes(result.status)
     for name, by_param in (result.gradients or {}).items():
         for parameter, v in by_param.items():
@@ -249,9 +243,9 @@ def run_sweep(args) -> int:
     # The sweep's own options (tighter with gradients), with the step limit asked for.
     options = rj.GRADIENT_OPTIONS if asked.wrt else rj.SolverOptions()
     options = dataclasses.replace(options, max_steps=args.max_steps)
-    if args.out:
+    if args.out is not None:
         output_folder(args.out)  # once the input is known good, before any solve
-    if args.store and not args.out and not args.json:
+    if args.store and args.out is None and not args.json:
         # Nothing asks for the results here: they stream to the store, not into memory.
         return _sweep_to_store(args, asked.axes, asked.designs, asked.wrt, options, table)
     with dask_client(args.workers, args.scheduler) as client:
@@ -266,7 +260,7 @@ def run_sweep(args) -> int:
         )
     if asked.points is None:
         result.swept, result.grid_shape = tuple(asked.axes), asked.shape
-    if args.out:  # the files first: a failing standard output leaves them whole
+    if args.out is not None:  # the files first: a failing standard output leaves them whole
         _write_out(result, Path(args.out))
     if args.json:
         print(json_dumps(result.records()))

@@ -50,7 +50,7 @@ def _history(problem: rj.DesignProblem, params, time: float) -> rj.History:
     )
     status = history.peaks.status
     if not bool(np.all(np.asarray(status == rj.Status.ok))):
-        raise rj.SolveError(f"the history of the best design: {rj.Status[status]}")
+        raise rj.SolveError(f"the history over [0, {time:g}] s: {rj.Status[status]}")
     return history
 
 

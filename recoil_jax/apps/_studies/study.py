@@ -21,7 +21,6 @@ from .._files.inputs import (
     design_warnings,
     file_integer,
     output_folder,
-    values_taken,
     warn,
 )
 from .._files.json_writer import write as write_json
@@ -36,7 +35,7 @@ from .checks import (
     unit_of,
     write_front,
 )
-from .study_file import Study, load_study, optimise_kwargs, search_kwargs
+from .study_file import Study, load_study, optimise_kwargs, search_kwargs, study_values
 
 __all__ = ["agreement_line", "hazard_lines", "run_study", "study_summary"]
 
@@ -152,6 +151,7 @@ class _Phases:
             print(f"study {self.name}: {what} ...", file=sys.stderr, flush=True)
         began = time.perf_counter()
         yield
+        self.current = ""  # done: a failure after it is not this part's
         self.seconds[part] = round(self.seconds.get(part, 0.0) + time.perf_counter() - began, 2)
         if self.enabled:
             print(
@@ -190,12 +190,7 @@ def run_study(
     (`message` says it in one line); the checks are skipped.
     """
     study = _prepared(path, seed, workers, scheduler)
-    problem = study.problem
-    warn(design_warnings(values_taken(
-        rj.params_to_values(problem.params),
-        {name: problem.bounds[name] for name in problem.tune if name in problem.bounds},
-        *(dict(condition.values) for condition in problem.conditions),
-    )))  # fmt: skip
+    warn(design_warnings(study_values(study.problem)))
     out = output_folder(out if out is not None else Path("results") / study.name)
     check_not_input(out, ("result.json",), path)
     kwargs = optimise_kwargs(study, progress)
@@ -231,7 +226,7 @@ def run_study(
             report["fronts"] = fronts
     except Exception as error:  # the after-steps' failure beside the result, then raised
         report["failed_after"] = {
-            "step": phase.current,
+            "step": phase.current or "between the steps after the search",
             "error": rj.failure_message(error)
             if isinstance(error, rj.SolveError)
             else f"{type(error).__name__}: {error}",

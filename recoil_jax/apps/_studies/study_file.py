@@ -77,6 +77,7 @@ from .._files.inputs import (
     read_calibration_section,
     read_toml,
     resolve_shipped,
+    values_taken,
 )
 
 __all__ = [
@@ -90,6 +91,7 @@ __all__ = [
     "optimise_kwargs",
     "resolve_study",
     "search_kwargs",
+    "study_values",
 ]
 
 
@@ -187,6 +189,16 @@ class Study:
     check: dict = field(default_factory=dict)
     has_start: bool = True  # whether [design] gives a tuned parameter (a start)
     calibration: dict | None = None  # [calibration]: where from, which parameters, points
+
+
+def study_values(problem: rj.DesignProblem) -> dict[str, np.ndarray]:
+    """Every value each parameter takes in a study (`values_taken`): its design, its
+    tuned bounds and its conditions' values, for `design_warnings`."""
+    return values_taken(
+        rj.params_to_values(problem.params),
+        {name: problem.bounds[name] for name in problem.tune if name in problem.bounds},
+        *(dict(condition.values) for condition in problem.conditions),
+    )
 
 
 def resolve_study(study: str | Path) -> Path:
