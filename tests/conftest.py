@@ -55,6 +55,15 @@ def documented_value(rng, name: str) -> float:
     return float(rng.uniform(low, high))
 
 
+#: The absorber's parameters, in the order the random-design tests draw them.
+ABSORBER = ("m", "gap", "k_r", "c_r", "k_c", "n_c", "lambda_c")
+
+
+def documented_values(rng, names) -> dict[str, float]:
+    """`documented_value` of each of `names`, drawn in their order: `{name: value}`."""
+    return {name: documented_value(rng, name) for name in names}
+
+
 def batch_params(designs):
     """A list of flat-name dicts as one `RecoilParams` with a leading batch axis."""
     import recoil_jax.extend as rjx

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import all_ok, batch_peaks, documented_value
+from conftest import ABSORBER, all_ok, batch_peaks, documented_values
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
@@ -110,22 +110,7 @@ def test_scipy_reference_solver_matches_shared_reference(reference_cases):
 
 def _random_designs(count, seed):
     rng = np.random.default_rng(seed)
-    designs = []
-    for _ in range(count):
-        designs.append(
-            dict(
-                M=documented_value(rng, "M"),
-                v0=documented_value(rng, "v0"),
-                m=documented_value(rng, "m"),
-                gap=documented_value(rng, "gap"),
-                k_r=documented_value(rng, "k_r"),
-                c_r=documented_value(rng, "c_r"),
-                k_c=documented_value(rng, "k_c"),
-                n_c=documented_value(rng, "n_c"),
-                lambda_c=documented_value(rng, "lambda_c"),
-            )
-        )
-    return designs
+    return [documented_values(rng, ("M", "v0", *ABSORBER)) for _ in range(count)]
 
 
 def _corner_designs():

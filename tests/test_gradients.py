@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import all_ok, batch_params, documented_value
+from conftest import ABSORBER, all_ok, batch_params, documented_values
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
@@ -137,20 +137,7 @@ def _random_designs(count, seed):
     rng = np.random.default_rng(seed)
     designs = []
     for i in range(count):
-        d = dict(
-            M=documented_value(rng, "M"),
-            v0=documented_value(rng, "v0"),
-            k=documented_value(rng, "k"),
-            c_out=documented_value(rng, "c_out"),
-            c_ret=documented_value(rng, "c_ret"),
-            m=documented_value(rng, "m"),
-            gap=documented_value(rng, "gap"),
-            k_r=documented_value(rng, "k_r"),
-            c_r=documented_value(rng, "c_r"),
-            k_c=documented_value(rng, "k_c"),
-            n_c=documented_value(rng, "n_c"),
-            lambda_c=documented_value(rng, "lambda_c"),
-        )
+        d = documented_values(rng, ("M", "v0", "k", "c_out", "c_ret", *ABSORBER))
         if i % 3 == 0:
             d.update(gap=0.0, c_r=0.0, n_c=1.0)
         if i % 5 == 0:

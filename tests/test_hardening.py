@@ -94,6 +94,9 @@ def test_a_condition_is_checked_as_the_whole_design_it_makes(
             "samples = 1000000000000",
             ["a global phase of", "samples needs about", "give fewer samples"],
         ),
+        # A [design] value that is not a number, or out of range: the design's, at once.
+        ("spade_distance = 3.6", "spade_distance = [1, 2]", ["spade_distance = [1, 2]: valid a"]),
+        ("M = 1800.0", "M = 1e308", ["[design]", "Barrel.M = 1e+308 kg", "at most 2e+10 kg"]),
     ],
 )
 def test_a_bad_limit_weight_scatter_or_count_is_refused_at_once(

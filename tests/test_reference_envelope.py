@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import scipy.integrate
 import scipy.optimize
-from conftest import documented_value
+from conftest import ABSORBER, documented_value, documented_values
 
 from recoil_jax._model.reference import (
     GRAVITY,
@@ -489,15 +489,7 @@ def random_envelope_design(rng):
         friction_coefficient=documented_value(rng, "friction_coefficient"),
     )
     if rng.random() < 0.5:
-        d |= dict(
-            m=documented_value(rng, "m"),
-            gap=documented_value(rng, "gap"),
-            k_r=documented_value(rng, "k_r"),
-            c_r=documented_value(rng, "c_r"),
-            k_c=documented_value(rng, "k_c"),
-            n_c=documented_value(rng, "n_c"),
-            lambda_c=documented_value(rng, "lambda_c"),
-        )
+        d |= documented_values(rng, ABSORBER)
     else:
         d["m"] = 0.0
     load = rng.choice(["impulse", "pulse", "table"])

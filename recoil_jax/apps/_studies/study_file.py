@@ -489,6 +489,15 @@ def _parse_design(path, design: dict, tune: list[str], bounds: dict) -> tuple[An
             raise _error(
                 path, f"[design] unknown parameter {name!r}; known: {', '.join(rj.PARAMETERS)}"
             )
+    for name, value in design.items():
+        # each given value by itself first: a bad one is [design]'s, whatever the bounds
+        if not _is_number(value):
+            raise _error(path, f"[design] {name} = {value!r}: valid a number")
+        if name not in tune:
+            try:
+                rj.params_from_values({name: value})
+            except rj.ParameterError as error:
+                raise _error(path, f"[design] {error}") from None
     has_start = any(name in design for name in tune)
     for name in tune:
         if name not in design:
@@ -500,7 +509,10 @@ def _parse_design(path, design: dict, tune: list[str], bounds: dict) -> tuple[An
             rj.params_from_values(design | {name: bounds[name][end] for name in tune})
         except rj.ParameterError as error:
             raise _error(path, f"[tune] at the {side} bounds: {error}") from None
-    return rj.params_from_values(design), has_start
+    try:
+        return rj.params_from_values(design), has_start
+    except rj.ParameterError as error:
+        raise _error(path, f"[design] {error}") from None
 
 
 def _parse_optimiser(path, optimiser: dict) -> dict:
