@@ -130,6 +130,14 @@ class Parameter(Limits):
         """`name (unit)`, for axis labels."""
         return f"{self.name} ({self.unit})" if self.unit else self.name
 
+    def check(self, value: Any) -> None:
+        """Raise `ParameterError` if `value` is not a valid value of this parameter by
+        itself (`check_value`: a finite number in range, or 0 where 0 leaves its part
+        out, `zero_means`; what it needs of the others is the whole design's to check)."""
+        if self.zero_means and is_concrete(value) and np.all(np.asarray(value) == 0):
+            return
+        check_value(self.owner, self.attribute, value, self)
+
 
 #: Orifice knots: at least 2, at most this many (`orifice_0` ... `orifice_31`).
 MAX_KNOTS = 32

@@ -62,7 +62,10 @@ def run_simulate(args) -> int:
         params = rj.with_table(params, table)
     t1 = float(rjx.end_time(params, options))  # refuses a load that does not fit
     warn(design_warnings(values | {"t1": options.t1}, table))
-    smoothing = rj.Smoothing.exact() if args.hard else rj.Smoothing()
+    if args.hard:
+        smoothing = rj.Smoothing.exact()
+    else:  # a calibration's or plan's firing: the widths its calibration fits at
+        smoothing = rj.Smoothing() if source is None else source.smoothing
     # Checked here, not inside the program: a program that can raise holds a host
     # callback, and JAX does not keep those in the compilation cache.
     from .._files.exported import exported_peaks

@@ -495,7 +495,7 @@ def _parse_design(path, design: dict, tune: list[str], bounds: dict) -> tuple[An
             raise _error(path, f"[design] {name} = {value!r}: valid a number")
         if name not in tune:
             try:
-                rj.params_from_values({name: value})
+                rj.PARAMETERS[name].check(value)
             except rj.ParameterError as error:
                 raise _error(path, f"[design] {error}") from None
     has_start = any(name in design for name in tune)
