@@ -801,7 +801,8 @@ def test_a_calibration_store_keeps_its_identity(tmp_path):
     (issue 54 changed it on purpose: the design's structure gained the envelope; issue
     62 too: the counter-recoil buffer's smoothing width, and a store of the model's
     revision 1 is refused by its revision first; issue 63 too: a calibration fits at
-    `CALIBRATION_SMOOTHING`, so a store of a fit at the model's widths starts anew).
+    `CALIBRATION_SMOOTHING`, so a store of a fit at the model's widths is refused as
+    another calibration's).
     The trace is exact in binary (a polynomial on a linear grid) and its noise given, so
     that no transcendental function's rounding enters the digest."""
     import sqlite3

@@ -1,7 +1,8 @@
 """The fit's continuation over the smoothing widths (`rjx.Continuation`): checked when
 made, applied only where a design has the switch, and what it is for: the counter-
 recoil buffer's jump in `F_AN` steps χ² as its engagement crosses a sample time, and a
-fit at the model's widths stops on a step that the continuation's wide widths smooth."""
+fit at the calibration's widths alone stops on a step that the continuation's wide widths
+smooth."""
 
 from __future__ import annotations
 
@@ -82,7 +83,7 @@ def _firing(seed: int) -> rj.Calibration:
 def test_the_continuation_reaches_the_truth_where_the_model_widths_stall():
     """From the plan's guess, far from the truth: the default fit (two starts through
     the continuation) reaches the truth within 3 standard errors and both starts agree;
-    one start at the model's widths alone ends on a step of χ², far above the noise."""
+    one start at the calibration's widths alone ends on a step of χ², far above the noise."""
     calibration = _firing(seed=3)
     fitted = rj.calibrate(calibration, progress=False)
     assert fitted.converged and fitted.explains and fitted.verdict == "explains"

@@ -97,6 +97,7 @@ def test_a_condition_is_checked_as_the_whole_design_it_makes(
         # A [design] value that is not a number, or out of range: the design's, at once.
         ("spade_distance = 3.6", "spade_distance = [1, 2]", ["spade_distance = [1, 2]: valid a"]),
         ("M = 1800.0", "M = 1e308", ["[design]", "Barrel.M = 1e+308 kg", "at most 2e+10 kg"]),
+        ("M = 1800.0", "M = 1800.0\nshots = 2.5", ["[design]", "Load.shots = 2.5", "an integer"]),
     ],
 )
 def test_a_bad_limit_weight_scatter_or_count_is_refused_at_once(
@@ -399,3 +400,12 @@ def test_a_fit_whose_box_reaches_an_impossible_design_is_refused_before_it_start
         rj.Calibration([experiment], fit={"M": (1e3, 6e4)}, design=design)
     calibration = rj.Calibration([experiment], fit={"M": (1e3, 1.5e4)}, design=design)
     assert calibration.shared_start() == {"M": pytest.approx(3000.0)}
+
+
+def test_a_value_checked_by_itself_names_its_flat_name():
+    """`Parameter.check`: a knot by its own name, 0 where it leaves its part out."""
+    with pytest.raises(rj.ParameterError, match=r"Buffer\.orifice_3 = -1"):
+        rj.PARAMETERS["orifice_3"].check(-1.0)
+    rj.PARAMETERS["m"].check(0.0)  # no absorber
+    with pytest.raises(rj.ParameterError, match=r"Absorber\.m = -1"):
+        rj.PARAMETERS["m"].check(-1.0)

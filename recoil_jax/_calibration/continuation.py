@@ -66,6 +66,10 @@ class Continuation:
     nothing but the time; the calibration's friction from the plan's guess ends in a
     worse minimum (χ² 18,011 against 17,881) that the model's friction first avoids.
 
+    A width it does not name is at the fit's own at every stage: a continuation of
+    `buffer_width` alone fits every stage at the calibration's friction widths (name
+    `friction_width` and `stick_time` to fit the model's first, as the default does).
+
     `for_design` keeps what acts on one fit: the widths of the parts its design has, the
     stages that differ from the one before and from the fit's own widths. A design
     without a counter-recoil buffer or rails is fitted at its own widths only.

@@ -136,7 +136,12 @@ class Parameter(Limits):
         out, `zero_means`; what it needs of the others is the whole design's to check)."""
         if self.zero_means and is_concrete(value) and np.all(np.asarray(value) == 0):
             return
-        check_value(self.owner, self.attribute, value, self)
+        check_value(self.owner, self.name, value, self)
+        if self.integer and is_concrete(value) and np.any(np.asarray(value) % 1 != 0):
+            raise ParameterError(
+                f"{self.owner}.{self.name} = {value!r} is invalid: valid {self.name} is an "
+                f"integer {self.describe()}" + (f" ({self.meaning})" if self.meaning else "")
+            )
 
 
 #: Orifice knots: at least 2, at most this many (`orifice_0` ... `orifice_31`).

@@ -157,7 +157,7 @@ def check_plan(
     information, _ = candidate_information(
         params, fit, space, columns, plan.signals,
         [problem.signals[s].sigma for s in plan.signals], problem.times,
-        problem.smoothing, problem.options, theta[None],
+        CALIBRATION_SMOOTHING, problem.options, theta[None],
     )  # fmt: skip
     results = {}
     for name in which:

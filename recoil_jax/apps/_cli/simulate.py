@@ -91,7 +91,10 @@ def run_simulate(args) -> int:
         )
     else:
         model = "simplified (no absorber)" if params.absorber is None else "with absorber"
-        print(f"recoil-jax: {model}, {'hard' if args.hard else 'smoothed'} switches")
+        switches = "hard" if args.hard else "smoothed"
+        if not args.hard and source is not None and source.smoothing != rj.Smoothing():
+            switches += " (at the widths its calibration fits at)"
+        print(f"recoil-jax: {model}, {switches} switches")
         numbers = {k: v for k, v in used.items() if k != "force_table"}
         print("  parameters: " + ", ".join(f"{k}={v:g}" for k, v in numbers.items()))
         if table is not None:
