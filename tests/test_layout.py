@@ -322,7 +322,6 @@ RJ_NAMES = (
     "plan_firings",
 )
 RJX_NAMES = (
-    "CALIBRATION_SMOOTHING",
     "BatchEvaluation",
     "BatchEvaluator",
     "Continuation",

@@ -79,7 +79,7 @@ class CalibrationResult:
       signal, the noise used (given or estimated).
     - `converged`: the best start's fit converged; `starts`, `starts_at_best`: how many
       starts were run and how many reached the best (−2 log-likelihood within
-      `REACHED`, 0.01); `continuation`: the widths fitted before the calibration's own.
+      `REACHED`, 0.01); `continuation`: the widths fitted before the model's own.
       `verdict`: the check and the starts together (`"explains"`, `"wrong_model"`,
       `"local_minimum"`).
     - `experiments`: per experiment, its name, trace, samples, skipped samples and RMS
@@ -130,8 +130,7 @@ class CalibrationResult:
     profiles: dict[str, dict[str, np.ndarray]] = dataclasses.field(default_factory=dict)
     check: ModelCheck = dataclasses.field(default_factory=lambda: ModelCheck(()))
     structure: dict[str, Any] = dataclasses.field(default_factory=dict)
-    #: The continuation's widths before the calibration's own (`Continuation.to_json`; {}:
-    #: none).
+    #: The continuation's widths before the model's own (`Continuation.to_json`; {}: none).
     continuation: dict[str, list[float]] = dataclasses.field(default_factory=dict)
     defaults: dict[str, float] = dataclasses.field(default_factory=dict)
 
