@@ -54,7 +54,9 @@ not need them; `docs/developers.md` shows how to plug a part in.
   from a result or its `result.json`) and `Prediction` (what `predict` gives);
   `reference_history` (time histories by the independent hard-switch scipy solver: a
   synthetic firing test the library shares no code with); `Continuation` (the
-  smoothing widths a fit starts from, narrowed to the model's) and `DEFAULT_STARTS`.
+  smoothing widths a fit starts from, narrowed to the calibration's),
+  `CALIBRATION_SMOOTHING` (the widths a calibration fits at: the rails' friction
+  nearer the exact stick than the model's) and `DEFAULT_STARTS`.
 
 **Test planning's parts**
 
@@ -77,7 +79,7 @@ from ._calibration.continuation import Continuation
 from ._calibration.model_check import ModelCheck, SignalCheck, trace_noise
 from ._calibration.predict import FittedParameters, Prediction
 from ._calibration.result import Fitted
-from ._calibration.spec import LOSSES
+from ._calibration.spec import CALIBRATION_SMOOTHING, LOSSES
 from ._calibration.traces import T_SHIFT, Experiment, Trace
 from ._design.evaluators import (
     BatchEvaluation,
@@ -116,6 +118,7 @@ from ._sweeps.result import StoredSweep
 from ._sweeps.space import SearchSpace, log_coordinates
 
 __all__ = [
+    "CALIBRATION_SMOOTHING",
     "DEFAULT_STARTS",
     "HAZARDS",
     "LOSSES",

@@ -1,7 +1,8 @@
 """The fit's continuation over the smoothing widths (`rjx.Continuation`): checked when
 made, applied only where a design has the switch, and what it is for: the counter-
 recoil buffer's jump in `F_AN` steps χ² as its engagement crosses a sample time, and a
-fit at the model's widths stops on a step that the continuation's wide widths smooth."""
+fit at the calibration's widths alone stops on a step that the continuation's wide widths
+smooth."""
 
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ NOISE = {"x_M": 3e-4, "F_AN": 200.0}
     ("widths", "message"),
     [
         ({"gap_width": (1e-2,)}, "'gap_width' is not a width it can continue: valid"),
-        ({"buffer_width": (1e-4, 1e-2)}, "must decrease, widest first"),
+        ({"buffer_width": (1e-4, 1e-2)}, "must not widen, widest first"),
         ({"buffer_width": (0.0,)}, r"each > 0"),
         ({"buffer_width": (1e-2, 1e-4), "slip_width": (1e-2,)}, "the same number of stages"),
         ({"buffer_width": "wide"}, "give its widths as a list of numbers"),
@@ -38,17 +39,27 @@ def test_a_bad_continuation_is_refused_naming_the_width(widths, message):
 
 def test_a_continuation_acts_only_where_the_design_has_the_switch():
     default = rjx.Continuation()
-    assert default.stages == 4
-    assert default.for_design(rj.params_from_values({"m": 0.0})) is None  # the paper's gun
+    fitting = rjx.CALIBRATION_SMOOTHING
+    assert default.stages == 5
+    assert default.for_design(rj.params_from_values({"m": 0.0}), fitting) is None  # no rails
     gun = rj.params_from_values(GUN)
-    assert default.for_design(gun) == default
+    assert default.for_design(gun, fitting) == default
+    # At the model's own widths the last stage is the fit's: the buffer's four stages.
+    assert default.for_design(gun, rj.Smoothing()).widths == {
+        "buffer_width": (1e-2, 1e-3, 1e-4, 1e-5)
+    }
     no_buffer = rj.params_from_values(
         {k: v for k, v in GUN.items() if k not in ("buffer_length", "buffer_damping")}
     )
     assert no_buffer.counter_recoil_buffer is None
-    assert default.for_design(no_buffer) is None
+    # The rails' stages, one (the same five times), then the calibration's friction.
+    assert default.for_design(no_buffer, fitting).widths == {
+        "friction_width": (10.0,),
+        "stick_time": (3e-4,),
+    }
+    assert default.for_design(no_buffer, rj.Smoothing()) is None
     both = rjx.Continuation({"buffer_width": (1e-2, 1e-4), "slip_width": (1e-2, 1e-4)})
-    assert both.for_design(no_buffer).widths == {"slip_width": (1e-2, 1e-4)}  # rails kept
+    assert both.for_design(no_buffer, fitting).widths == {"slip_width": (1e-2, 1e-4)}
     stage = both.smoothing(rj.Smoothing(), 1)
     assert float(stage.buffer_width) == 1e-4 and float(stage.slip_width) == 1e-4
     assert float(stage.stop_width) == float(rj.Smoothing().stop_width)
@@ -72,14 +83,21 @@ def _firing(seed: int) -> rj.Calibration:
 def test_the_continuation_reaches_the_truth_where_the_model_widths_stall():
     """From the plan's guess, far from the truth: the default fit (two starts through
     the continuation) reaches the truth within 3 standard errors and both starts agree;
-    one start at the model's widths alone ends on a step of χ², far above the noise."""
+    one start at the calibration's widths alone ends on a step of χ², far above the noise."""
     calibration = _firing(seed=3)
     fitted = rj.calibrate(calibration, progress=False)
     assert fitted.converged and fitted.explains and fitted.verdict == "explains"
     assert fitted.starts_at_best == 2
-    assert fitted.continuation == {"buffer_width": [1e-2, 1e-3, 1e-4, 1e-5]}
+    assert fitted.continuation == {
+        "buffer_width": [1e-2, 1e-3, 1e-4, 1e-5, 1e-6],
+        "friction_width": [10.0] * 5,
+        "stick_time": [3e-4] * 5,
+    }
     for name, value in TRUTH.items():
         assert abs(fitted.values[name] - value) < 3 * fitted.fitted[name].stderr, name
+    # The result says the widths it is at (result.json's "smoothing").
+    assert fitted.smoothing["stick_time"] == float(rjx.CALIBRATION_SMOOTHING.stick_time)
+    assert fitted.to_json()["smoothing"]["buffer_width"] == float(rj.Smoothing().buffer_width)
     plain = rj.calibrate(calibration, starts=1, continuation=None, progress=False)
     assert plain.continuation == {}
     assert plain.reduced_chi2 > 10 * fitted.reduced_chi2, (plain.values, plain.reduced_chi2)

@@ -322,6 +322,7 @@ RJ_NAMES = (
     "plan_firings",
 )
 RJX_NAMES = (
+    "CALIBRATION_SMOOTHING",
     "BatchEvaluation",
     "BatchEvaluator",
     "Continuation",

@@ -67,8 +67,9 @@ def calibrate(
       Default 2: the given start and one Sobol point, so that a best point reached
       from both is known not to be a start's local minimum (`CalibrationResult.verdict`).
     - `continuation`: the smoothing widths the fit starts from (`Continuation`), each
-      stage's optimum the next one's start, the last stage at the model's own widths;
-      None: at the model's widths only. Only the widths whose switch the design has.
+      stage's optimum the next one's start, the last stage at the calibration's own
+      widths (`Calibration.smoothing`); None: at those widths only. Only the widths
+      whose switch the design has.
     - `seed`: the Sobol points' scrambling; `max_steps`: Levenberg–Marquardt steps per
       pass; `progress`: a progress line on stderr (None: on a terminal).
     - `profiles`: also profile each value (refit the others with it held at 12 points
@@ -92,7 +93,7 @@ def calibrate(
     data = prepare(calibration, calibration.experiments, layout)
     static = FitSettings(layout.wrt, layout.signals, calibration.loss, calibration.f_scale,
                          max_steps, estimates_noise(data))  # fmt: skip
-    stages = None if continuation is None else continuation.for_design(data.params)
+    stages = None if continuation is None else continuation.for_design(data.params, data.smoothing)
     fits = len(z0) * (1 + (0 if stages is None else stages.stages))
     bar = Progress("calibrate", fits + 3, "fits and phases", progress, rates=False)
     bar.update(0, f"fitting from {len(z0)} start{'s' if len(z0) > 1 else ''}")
@@ -115,7 +116,7 @@ def _fit_starts(
 ) -> FitOutcome:
     """Every start's fit, from `u0 (N, P)` (the fit's coordinates): at each stage of the
     `continuation` (one Levenberg–Marquardt pass from the last stage's optimum, under the
-    noise given or guessed), then at the model's own widths (`_fit_one`: its passes).
+    noise given or guessed), then at the calibration's own widths (`_fit_one`: its passes).
     Each stage runs `chunk` starts a call of one compiled program, the same for every
     stage (the widths are leaves of `data`): one start a call (lanes of `static.lanes`),
     or with a store one part per `starts_per_chunk` of its plan (the last padded to it),
@@ -147,7 +148,7 @@ def _fit_starts(
          warm, continuation.describe(k))
         for k in range(stages)
     ] if continuation is not None else []  # fmt: skip
-    plan.append((data, static, "the model's widths"))
+    plan.append((data, static, "the calibration's widths"))
     u, steps = np.asarray(u0), np.zeros(len(u0), dtype=np.int64)
     outcome: dict[str, np.ndarray] = {}
     for stage, (data_, static_, what) in enumerate(plan):
@@ -203,8 +204,12 @@ def _calibrate(calibration, layout, data, static, z0, profiles, bar, store_, clo
     validation = [validate(calibration, result, e) for e in calibration.validation]
     bar.update(fitted + 3, "done", final=True)
     stages = {} if continuation is None else continuation.to_json()
-    return dataclasses.replace(result, validation=validation, continuation=stages,
-                               seconds=time.perf_counter() - clock)  # fmt: skip
+    widths = {f.name: getattr(calibration.smoothing, f.name)
+              for f in dataclasses.fields(calibration.smoothing)}  # fmt: skip
+    return dataclasses.replace(
+        result, validation=validation, continuation=stages, seconds=time.perf_counter() - clock,
+        smoothing={n: None if w is None else float(w) for n, w in widths.items()},
+    )  # fmt: skip
 
 
 def validate(
@@ -294,7 +299,7 @@ def fit_many(
                     values = np.asarray(signals[name], dtype=float)
                     batch[b, e, s, : values.size] = values
     z0 = np.tile(start_points(layout, 1, 0), (len(measured), 1))
-    stages = None if continuation is None else continuation.for_design(data.params)
+    stages = None if continuation is None else continuation.for_design(data.params, data.smoothing)
     fits = len(z0) * (1 + (0 if stages is None else stages.stages))
     bar = Progress("fit_many", fits, "fits", progress, stream=stream, rates=False)
     outcome = _fit_starts(u_of_z(z0), data, static, None, stages, bar, measured=batch,

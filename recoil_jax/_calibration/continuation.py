@@ -1,5 +1,5 @@
 """Continuation over the smoothing widths (`Continuation`): a fit first made at wide
-switches, then narrowed stage by stage to the model's own widths.
+switches, then narrowed stage by stage to the calibration's own widths.
 
 Why: a switch that makes a signal jump samples a step into χ². The counter-recoil
 buffer's engagement is the sharp one: the buffer's force `c_b v` comes on within
@@ -10,6 +10,10 @@ shipped plan `optimise/plans/envelope_friction.toml`: χ² rises from 1.8·10⁴
 truth to 7.4·10⁵ with `c_out` 0.1 % higher). At a width of 1 cm the same jump is a ramp
 over ~10 samples, χ² is smooth, and the fit goes to the basin from far starts;
 each narrower stage starts where the wider one ended (`docs/calibration.md`).
+
+The rails' friction comes last. A calibration fits at friction widths nearer the exact
+stick than the model's (`CALIBRATION_SMOOTHING`), where χ² is rougher: the stages before
+fit at the model's friction widths, the last at the calibration's.
 """
 
 from __future__ import annotations
@@ -28,12 +32,15 @@ from .._model.settings import Smoothing
 
 __all__ = ["DEFAULT_CONTINUATION", "Continuation"]
 
+_MODEL = Smoothing()  # the model's own widths
+
 #: Each width continued, and the part of a design that has its switch: a width a design
 #: does not use is not continued (a stage there would refit the same χ²).
 _SWITCH_OF = {
     "buffer_width": "counter_recoil_buffer",
     "slip_width": "rails",
     "friction_width": "rails",
+    "stick_time": "rails",
     "stop_width": "battery_stop",
     "damping_width": "barrel",
 }
@@ -41,28 +48,42 @@ _SWITCH_OF = {
 
 @dataclasses.dataclass(frozen=True)
 class Continuation:
-    """The widths a fit starts from, narrowed stage by stage to the model's own.
+    """The widths a fit starts from, narrowed stage by stage to the calibration's own.
 
-    - `widths`: smoothing width name → its value at each stage before the model's own,
+    - `widths`: smoothing width name → its value at each stage before the fit's own,
       widest first, in the width's unit (`Smoothing.LIMITS`); every name the same
       number of stages. The fit runs Levenberg–Marquardt at each stage from the last
-      stage's optimum, then at the model's widths (where its result, its χ² and its
+      stage's optimum, then at the calibration's widths (where its result, its χ² and its
       uncertainty are).
 
-    Default: `buffer_width` 1 cm, 1 mm, 0.1 mm and 10 µm, a decade a stage (the
-    counter-recoil buffer's engagement, the switch whose jump in `F_AN` makes χ²
-    stepped). Measured on the shipped plan's reference traces (`docs/calibration.md`):
+    Default: `buffer_width` 1 cm, 1 mm, 0.1 mm, 10 µm and the model's 1 µm, a decade a
+    stage (the counter-recoil buffer's engagement, the switch whose jump in `F_AN` makes
+    χ² stepped), at the model's friction (`friction_width` 10 N, `stick_time` 0.3 ms);
+    then the calibration's widths (`CALIBRATION_SMOOTHING`: the friction nearer the
+    exact stick). Measured on the shipped plan's reference traces (`docs/calibration.md`):
     two stages a hundredfold apart left 2 of 4 draws on a tread that four a decade apart
     reached the truth from; continuing the friction's turn (`slip_width`) too changed
-    nothing but the time. A design without the switch's part (no counter-recoil
-    buffer) is fitted at its own widths only.
+    nothing but the time; the calibration's friction from the plan's guess ends in a
+    worse minimum (χ² 18,011 against 17,881) that the model's friction first avoids.
+
+    A width it does not name is at the fit's own at every stage: a continuation of
+    `buffer_width` alone fits every stage at the calibration's friction widths (name
+    `friction_width` and `stick_time` to fit the model's first, as the default does).
+
+    `for_design` keeps what acts on one fit: the widths of the parts its design has, the
+    stages that differ from the one before and from the fit's own widths. A design
+    without a counter-recoil buffer or rails is fitted at its own widths only.
 
     **Raises:** `ParameterError` for a name that is not a continued smoothing width, or
-    widths that are not positive, finite and decreasing, or of different counts.
+    widths that are not positive, finite and never widening, or of different counts.
     """
 
     widths: Mapping[str, tuple[float, ...]] = dataclasses.field(
-        default_factory=lambda: {"buffer_width": (1e-2, 1e-3, 1e-4, 1e-5)}
+        default_factory=lambda: {
+            "buffer_width": (1e-2, 1e-3, 1e-4, 1e-5, float(_MODEL.buffer_width)),
+            "friction_width": (float(_MODEL.friction_width),) * 5,
+            "stick_time": (float(_MODEL.stick_time),) * 5,
+        }
     )
 
     def __post_init__(self):
@@ -83,9 +104,9 @@ class Continuation:
                 raise ParameterError(
                     f"continuation.{name} = {list(stages)}: give one width or more, each > 0"
                 )
-            if any(b >= a for a, b in itertools.pairwise(stages)):
+            if any(b > a for a, b in itertools.pairwise(stages)):
                 raise ParameterError(
-                    f"continuation.{name} = {list(stages)}: the widths must decrease, widest first"
+                    f"continuation.{name} = {list(stages)}: the widths must not widen, widest first"
                 )
             widths[name] = stages
         counts = {len(v) for v in widths.values()}
@@ -101,15 +122,28 @@ class Continuation:
     def __hash__(self):
         return hash(tuple(self.widths.items()))
 
-    def for_design(self, params: RecoilParams) -> Continuation | None:
-        """The widths that act on the design `params` (whose parts have their switches);
-        None where none does."""
+    def for_design(self, params: RecoilParams, smoothing: Smoothing) -> Continuation | None:
+        """The stages that act on a fit of the design `params` at the widths `smoothing`:
+        the widths of the parts it has (whose switches it has), each stage kept where it
+        differs from the one before and from `smoothing`'s own, each width where it
+        differs from its own at some stage; None where none is left."""
         used = {n: v for n, v in self.widths.items() if getattr(params, _SWITCH_OF[n]) is not None}
-        return Continuation(used) if used else None
+        final = tuple(float(getattr(smoothing, n)) for n in used)
+        stages, last = [], None
+        for stage in zip(*used.values(), strict=True):
+            if stage not in (last, final):
+                stages.append(stage)
+            last = stage
+        kept = {
+            name: values
+            for name, values, own in zip(used, zip(*stages, strict=True), final, strict=False)
+            if any(v != own for v in values)  # a width at the fit's own at every stage
+        }
+        return Continuation(kept) if kept else None
 
     @property
     def stages(self) -> int:
-        """How many stages come before the model's own widths."""
+        """How many stages come before the calibration's own widths."""
         return len(next(iter(self.widths.values()), ()))
 
     def smoothing(self, smoothing: Smoothing, stage: int) -> Smoothing:

@@ -79,7 +79,8 @@ class CalibrationResult:
       signal, the noise used (given or estimated).
     - `converged`: the best start's fit converged; `starts`, `starts_at_best`: how many
       starts were run and how many reached the best (−2 log-likelihood within
-      `REACHED`, 0.01); `continuation`: the widths fitted before the model's own.
+      `REACHED`, 0.01); `continuation`: the widths fitted before the calibration's own;
+      `smoothing`: the calibration's own, where the result is.
       `verdict`: the check and the starts together (`"explains"`, `"wrong_model"`,
       `"local_minimum"`).
     - `experiments`: per experiment, its name, trace, samples, skipped samples and RMS
@@ -130,9 +131,13 @@ class CalibrationResult:
     profiles: dict[str, dict[str, np.ndarray]] = dataclasses.field(default_factory=dict)
     check: ModelCheck = dataclasses.field(default_factory=lambda: ModelCheck(()))
     structure: dict[str, Any] = dataclasses.field(default_factory=dict)
-    #: The continuation's widths before the model's own (`Continuation.to_json`; {}: none).
+    #: The continuation's widths before the calibration's own (`Continuation.to_json`; {}:
+    #: none).
     continuation: dict[str, list[float]] = dataclasses.field(default_factory=dict)
     defaults: dict[str, float] = dataclasses.field(default_factory=dict)
+    #: The smoothing widths the result is at (`Calibration.smoothing`, by name; None:
+    #: the width its rule derives).
+    smoothing: dict[str, float | None] = dataclasses.field(default_factory=dict)
 
     @property
     def verdict(self) -> str:
@@ -197,6 +202,7 @@ class CalibrationResult:
             "explains": self.explains,
             "verdict": self.verdict,
             "continuation": self.continuation,
+            "smoothing": self.smoothing,
             "model": {"structure": self.structure, "defaults": self.defaults},
             "model_check": self.check.to_json(),
             "starts": self.starts,

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._calibration.calibrate import fit_many
-from .._calibration.spec import Calibration
+from .._calibration.spec import CALIBRATION_SMOOTHING, Calibration
 from .._calibration.traces import Experiment, Trace
 from .._model.derivatives import SIGNAL_ALIASES
 from .._model.params import params_from_values, values_of, with_values
@@ -62,7 +62,8 @@ def plan_calibration(
     """The calibration of a plan's firings (`report`) from their `traces` (one per
     firing, in order): each experiment with its condition values, the sampled duration
     as `t1` and its signals' noise; the known values and bounds of the plan's problem,
-    starting from `start` (default the guess)."""
+    starting from `start` (default the guess), fitted at a calibration's widths
+    (`CALIBRATION_SMOOTHING`, as the plan's calibration file is by `calibrate`)."""
     problem = plan.problem
     guess = problem.guess
     experiments = [
@@ -78,7 +79,7 @@ def plan_calibration(
     start = {n: guess[n] for n in problem.fit} if start is None else dict(start)
     return Calibration(
         experiments, dict(problem.fit), start=start, design=known,
-        smoothing=problem.smoothing, options=problem.options,
+        smoothing=CALIBRATION_SMOOTHING, options=problem.options,
     )  # fmt: skip
 
 
@@ -156,7 +157,7 @@ def check_plan(
     information, _ = candidate_information(
         params, fit, space, columns, plan.signals,
         [problem.signals[s].sigma for s in plan.signals], problem.times,
-        problem.smoothing, problem.options, theta[None],
+        CALIBRATION_SMOOTHING, problem.options, theta[None],
     )  # fmt: skip
     results = {}
     for name in which:
@@ -179,7 +180,7 @@ def check_plan(
             for _ in range(tests)
         ]
         log(f"check: {tests} simulated tests of the {name.replace('_', ' ')}, fitted in one batch")
-        # From the truth, at the model's widths: the spread the noise causes, not the
+        # From the truth, at the calibration's widths: the spread the noise causes, not the
         # way from a far start (a continuation's wide first stage would leave the truth).
         rows = fit_many(calibration, measured, continuation=None, progress=log is not _SILENT,
                         stream=_LineStream(log))  # fmt: skip
@@ -200,7 +201,7 @@ def check_plan(
 
 def _signals_at(params, condition, signals, problem, reference) -> dict[str, np.ndarray]:
     """The signals of one firing at `condition`, without noise, at the sample times (by
-    the model, or by the `reference` solver)."""
+    the model at the calibration's widths, which fit them, or by the `reference` solver)."""
     if reference:
         values = (
             problem.guess
@@ -210,5 +211,7 @@ def _signals_at(params, condition, signals, problem, reference) -> dict[str, np.
         history = reference_history(values, problem.times)
         return {s: np.asarray(history[s]) for s in signals}
     p = with_values(params, tuple(condition), jnp.asarray(list(condition.values())))
-    history = simulate(p, problem.smoothing, problem.options, ts=jnp.asarray(problem.times))
+    # To the last sample, as the calibration solves it: not the model's default 10 s.
+    options = dataclasses.replace(problem.options, t1=float(problem.times[-1]))
+    history = simulate(p, CALIBRATION_SMOOTHING, options, ts=jnp.asarray(problem.times))
     return {s: np.asarray(getattr(history, str(_FIELDS.get(s) or s))) for s in signals}

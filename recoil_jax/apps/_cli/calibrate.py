@@ -449,7 +449,7 @@ def _stuck_line(result: rj.CalibrationResult) -> str:
                "ending elsewhere" if result.starts > 1 else "from the one start run")  # fmt: skip
     pace = result.seconds / max(result.starts, 1)
     stages = result.continuation
-    widths = ", ".join(f"{n} {v[0]:g} to the model's" for n, v in stages.items())
+    widths = ", ".join(f"{n} {v[0]:g} to the calibration's" for n, v in stages.items())
     count = len(next(iter(stages.values()), [])) + 1
     ran = f"; each start ran {count} stages of continuation ({widths})" if stages else ""
     return (

@@ -62,7 +62,10 @@ def run_simulate(args) -> int:
         params = rj.with_table(params, table)
     t1 = float(rjx.end_time(params, options))  # refuses a load that does not fit
     warn(design_warnings(values | {"t1": options.t1}, table))
-    smoothing = rj.Smoothing.exact() if args.hard else rj.Smoothing()
+    if args.hard:
+        smoothing = rj.Smoothing.exact()
+    else:  # a calibration's or plan's firing: the widths its calibration fits at
+        smoothing = rj.Smoothing() if source is None else source.smoothing
     # Checked here, not inside the program: a program that can raise holds a host
     # callback, and JAX does not keep those in the compilation cache.
     from .._files.exported import exported_peaks
@@ -88,7 +91,10 @@ def run_simulate(args) -> int:
         )
     else:
         model = "simplified (no absorber)" if params.absorber is None else "with absorber"
-        print(f"recoil-jax: {model}, {'hard' if args.hard else 'smoothed'} switches")
+        switches = "hard" if args.hard else "smoothed"
+        if not args.hard and source is not None and source.smoothing != rj.Smoothing():
+            switches += " (at the widths its calibration fits at)"
+        print(f"recoil-jax: {model}, {switches} switches")
         numbers = {k: v for k, v in used.items() if k != "force_table"}
         print("  parameters: " + ", ".join(f"{k}={v:g}" for k, v in numbers.items()))
         if table is not None:
