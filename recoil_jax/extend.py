@@ -38,7 +38,7 @@ not need them; `docs/developers.md` shows how to plug a part in.
   file written whole or not at all, a failure naming it;
   `check_memory`: refuse a count whose arrays would take over half the free memory.
 - `HAZARDS`, `Hazard`, `design_hazards`, `hazard_flags`: the hazards every report names
-  unasked (`envelope.md`), their registry, one design's from its values and metrics,
+  unasked (`docs/model.md`), their registry, one design's from its values and metrics,
   and a batch's as boolean arrays (`rj.peaks_hazards` takes a solved design).
 
 **Calibration's parts**

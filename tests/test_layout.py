@@ -519,3 +519,15 @@ def test_no_module_imports_itself_through_others():
     for name in sorted(graph):
         if name not in finished:
             visit(name, [name])
+
+
+def test_the_package_cites_only_its_own_documents():
+    """The code's comments and docstrings cite `docs/model.md` and the other pages of
+    `docs/`, never a design note outside the repository (`envelope.md`,
+    `extensions.md`, `model.md` of `../shared`), which a user does not have."""
+    outside = re.compile(r"(?<![\w/])(envelope|extensions)\.md|\.\./shared")
+    cited = [f"{path.relative_to(PACKAGE)}:{number}: {line.strip()}"
+             for path in sorted(PACKAGE.rglob("*.py"))
+             for number, line in enumerate(path.read_text().splitlines(), 1)
+             if outside.search(line)]  # fmt: skip
+    assert not cited, cited

@@ -74,7 +74,7 @@ __all__ = [
 #: The layout of the tables; a store of another format is refused, not misread.
 STORE_FORMAT = 1
 #: The revision of the model's semantics a store's results were made by (`meta`'s
-#: `model`): 2 since the firing envelope's revision 2 (`envelope.md`: the gun fires from
+#: `model`): 2 since the firing envelope's revision 2 (`docs/model.md`: the gun fires from
 #: its static rest, displacements are measured from it, the whole gun's stability margin,
 #: the pull and the mount load). A store made by another is refused, never resumed or read
 #: on its semantics (`check_model_revision`).

@@ -19,7 +19,7 @@ from .._model.params import Buffer, CounterRecoilBuffer, Load, RecoilParams, Rec
 from .._model.registry import ParameterError, is_concrete
 from .._model.settings import Smoothing
 
-#: Standard gravity (m/s²), as `envelope.md` fixes it.
+#: Standard gravity (m/s²), as `docs/model.md` fixes it.
 GRAVITY = 9.80665
 #: The barrel is back in battery once it comes forward through this `x_M` (m).
 BATTERY = 1e-3
@@ -140,7 +140,7 @@ class Forces(NamedTuple):
     buffer: jnp.ndarray | None = None  # F_h, the hydraulic buffer's orifice force
     recuperator: jnp.ndarray | None = None  # F_g, the gas recuperator
     breech: jnp.ndarray | None = None  # F_b(t), the breech force (pulse or table loads)
-    # The firing envelope (`envelope.md`):
+    # The firing envelope (`docs/model.md`):
     preload: jnp.ndarray | None = None  # F_p, the recuperator's preload on its gas column
     counter_recoil: jnp.ndarray | None = None  # F_cb, the counter-recoil buffer (<= 0)
     stop: jnp.ndarray | None = None  # F_s (>= 0), the battery stop pushing the barrel back
@@ -504,7 +504,7 @@ def stability(y, params: RecoilParams, anchoring, rest):
     """The mount's stability margin at state `y` with anchoring force `anchoring` (N),
     the gun having started at its static rest `rest` (m, `x_r`):
     `(S − K d) / (m_g g L_w)`, the stabilising moment about the spade less the
-    overturning one, over the gun's weight's moment (`envelope.md`, revision 2). The
+    overturning one, over the gun's weight's moment (`docs/model.md`, revision 2). The
     whole gun's moments: the overturning force is the resistance to recoil net of the
     recoiling parts' axial weight, `K = F_AN − (M + m) g sin θ` (that weight is in the
     stabilising moment already), on the bore axis's arm `d = h cos θ − L_s sin θ`, and
@@ -904,7 +904,7 @@ def rest_root(params: RecoilParams, smoothing: Smoothing, width_contact):
     the difference. `F_AN(x, 0)` rises with `x`, so the root is unique and the bracket
     `[−2 ((F_AN(0, 0) − W) / k_s)^(1/n_s) − 2 w_s, 0]` holds it. 0 where there is no root
     (no stop, or a preload that cannot hold the weight): the barrel starts at battery and
-    may sag (`envelope.md`)."""
+    may sag (`docs/model.md`)."""
     if params.battery_stop is None:
         return 0.0
     params, smoothing, width_contact = jax.lax.stop_gradient((params, smoothing, width_contact))

@@ -1,4 +1,4 @@
-"""Hazards, named unasked (`envelope.md`, revision 2): what a design at a condition would
+"""Hazards, named unasked (`docs/model.md`, revision 2): what a design at a condition would
 do in the field that a forgotten limit could hide.
 
 `HAZARDS` is the one registry: each hazard's name, its rule and the sentence that reports

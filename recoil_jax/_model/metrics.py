@@ -277,7 +277,7 @@ class Peaks(eqx.Module):
       when there is no contact or no absorber).
     - `min_stroke`, `max_stroke` (m): min and max of the absorber's travel relative to the
       barrel, x_m − x_M (both 0 for the simplified model).
-    - The firing envelope's metrics (`envelope.md`), for designs with any part of it
+    - The firing envelope's metrics (`docs/model.md`), for designs with any part of it
       (rails, the battery stop, the counter-recoil buffer, a mount; NaN for the others,
       whose solve stops once the peaks are certain): `return_time` (s), from the last
       round's firing until the barrel comes forward through `x_M = x_r + 1 mm`, and

@@ -240,7 +240,7 @@ _SCALARS = (
         documented=(1.0, 1.67),
         meaning="polytropic index of the recuperator gas",
     ),
-    # The firing envelope (docs/model.md; the design note envelope.md of issue 54).
+    # The firing envelope (`docs/model.md`).
     Parameter(
         name="recuperator_preload",
         group="recuperator",

@@ -9,7 +9,7 @@ as events of their time derivatives (and checked at every segment end), not read
 grid. A barrel that reaches 0.95 of the recuperator's gas column is reported
 (`status`), like the JAX model does.
 
-The firing envelope (`envelope.md`, issue 54) is in it with hard switches too: gravity
+The firing envelope (`docs/model.md`) is in it with hard switches too: gravity
 along the rails, the recuperator preload, the battery stop (Hunt–Crossley, its onset and
 its no-pull clamp events), the counter-recoil buffer (events at `x_M = L_b` and
 `v_M = 0`) and **exact stick–slip** Coulomb friction. Sliding, the friction is
@@ -21,12 +21,13 @@ friction takes `N`, and ends at the event `|N| = F_max`, where the barrel slips 
 parameters have no effect (zero elevation, friction, stop, buffer and preload) runs the
 paper's code path, operation for operation.
 
-Revision 2 of `envelope.md`: the gun fires from its **static rest** `x_r <= 0`, the root of
-`F_AN(x, v = 0) = (M + m) g sin θ` (friction aside) in the battery stop where a preload
-above the axial weight presses the barrel into it (`reference_rest`; else `x_r = 0`);
-displacements and the return are measured from it; the **stability margin** takes the
-recoiling parts' axial weight out of the overturning force, `K = F_AN − (M + m) g sin θ`,
-and the stabilising moment counts their travel from the start; and two metrics join,
+Revision 2 of the envelope (`docs/model.md`): the gun fires from its **static rest**
+`x_r <= 0`, the root of `F_AN(x, v = 0) = (M + m) g sin θ` (friction aside) in the
+battery stop where a preload above the axial weight presses the barrel into it
+(`reference_rest`; else `x_r = 0`); displacements and the return are measured from it;
+the **stability margin** takes the recoiling parts' axial weight out of the overturning
+force, `K = F_AN − (M + m) g sin θ`, and the stabilising moment counts their travel from
+the start; and two metrics join,
 `peak_pull_force` (the largest `−F_AN`, located at the rising zeros of `dF_AN/dt`) and
 `peak_mount_load` (the largest `|F_AN|`).
 
@@ -47,7 +48,7 @@ from .._model.params import params_from_values, params_to_values
 __all__ = ["reference_energy", "reference_history", "reference_peaks", "reference_rest"]
 
 _BOTTOM = 0.95  # the recuperator's gas column may be compressed to this fraction
-#: Standard gravity (m/s²), as envelope.md fixes it.
+#: Standard gravity (m/s²), as `docs/model.md` fixes it.
 GRAVITY = 9.80665
 #: In battery to within this (m): the return is the barrel coming forward through it.
 BATTERY = 1e-3
@@ -855,7 +856,7 @@ def reference_peaks(
     (`peak_anchoring_force`, `peak_anchoring_force_time`, ..., `min_stroke`,
     `max_stroke`), `segments`, and `status`: `"ok"`, or `"bottomed_out"` when x_M
     reaches 0.95 of the recuperator's gas column (the peaks are then those up to there).
-    Also the firing envelope's metrics (`envelope.md`, revision 2): `rest_position` (m,
+    Also the firing envelope's metrics (`docs/model.md`, revision 2): `rest_position` (m,
     the static rest `x_r <= 0` the solve starts from, as `reference_rest`);
     `peak_displacement` is `max (x_M − x_r)`; `return_time` (s, from the last round's
     firing to the barrel's first forward crossing of `x_M = x_r + 1 mm` after it; None

@@ -87,7 +87,7 @@ class SweepResult:
         }
 
     def hazards(self) -> list[list[str]]:
-        """Each point's hazards by name (`rjx.HAZARDS`, named unasked: `envelope.md`), in
+        """Each point's hazards by name (`rjx.HAZARDS`, named unasked: `docs/model.md`), in
         input order; none where its solve failed."""
         shape = self.ok.shape
         flags = {

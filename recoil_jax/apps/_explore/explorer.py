@@ -41,7 +41,7 @@ _GROUPS = {
     "load": ("Breech load", None),
     "buffer": ("Throttling orifice", "piston_area = 0"),
     "recuperator": ("Gas recuperator", "recuperator_force = recuperator_preload = 0"),
-    # The firing envelope (`envelope.md`): each part its card, and the envelope view.
+    # The firing envelope (`docs/model.md`): each part its card, and the envelope view.
     "rails": ("Rails: elevation and friction", "elevation = friction = 0"),
     "battery_stop": ("Battery stop", "stop_stiffness = 0"),
     "counter_recoil_buffer": ("Counter-recoil buffer", "buffer_damping = 0"),
