@@ -204,8 +204,7 @@ def _calibrate(calibration, layout, data, static, z0, profiles, bar, store_, clo
     validation = [validate(calibration, result, e) for e in calibration.validation]
     bar.update(fitted + 3, "done", final=True)
     stages = {} if continuation is None else continuation.to_json()
-    widths = {f.name: getattr(calibration.smoothing, f.name)
-              for f in dataclasses.fields(calibration.smoothing)}  # fmt: skip
+    widths = {f.name: getattr(data.smoothing, f.name) for f in dataclasses.fields(data.smoothing)}
     return dataclasses.replace(
         result, validation=validation, continuation=stages, seconds=time.perf_counter() - clock,
         smoothing={n: None if w is None else float(w) for n, w in widths.items()},

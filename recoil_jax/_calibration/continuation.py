@@ -30,7 +30,7 @@ from .._model.params import RecoilParams
 from .._model.registry import ParameterError
 from .._model.settings import Smoothing
 
-__all__ = ["DEFAULT_CONTINUATION", "Continuation"]
+__all__ = ["DEFAULT_CONTINUATION", "Continuation", "acting_smoothing"]
 
 _MODEL = Smoothing()  # the model's own widths
 
@@ -44,6 +44,15 @@ _SWITCH_OF = {
     "stop_width": "battery_stop",
     "damping_width": "barrel",
 }
+
+
+def acting_smoothing(params: RecoilParams, smoothing: Smoothing) -> Smoothing:
+    """`smoothing` with each width of `_SWITCH_OF` whose part the design `params` lacks at
+    the model's own: it acts on nothing there, and a fit (and its store's identity) is
+    then the one it was before a calibration had widths of its own."""
+    unused = [n for n, part in _SWITCH_OF.items() if getattr(params, part) is None]
+    return eqx.tree_at(lambda s: [getattr(s, n) for n in unused], smoothing,
+                       [getattr(_MODEL, n) for n in unused])  # fmt: skip
 
 
 @dataclasses.dataclass(frozen=True)

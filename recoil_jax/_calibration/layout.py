@@ -31,6 +31,7 @@ from .._model.settings import (
 )
 from .._sweeps.batches import batch_params, with_table
 from .._sweeps.space import SearchSpace, log_coordinates
+from .continuation import acting_smoothing
 from .model_check import trace_noise
 from .traces import Experiment, known_values
 
@@ -249,13 +250,6 @@ def prepare(calibration, experiments, layout: Layout) -> _Data:
     t1 = _end_times(calibration, experiments, traces, layout)
     _check_end_times(calibration, experiments, params, t1)
     options = with_default_tolerances(params, calibration.options)
-    smoothing = calibration.smoothing
-    if params.rails is None:
-        # The rails' widths act on nothing here: the model's, so that the fit (and its
-        # store's identity) is the one it was before a calibration had its own.
-        model = Smoothing()
-        smoothing = eqx.tree_at(lambda s: (s.friction_width, s.stick_time), smoothing,
-                                (model.friction_width, model.stick_time))  # fmt: skip
     return _Data(
         params,
         jnp.asarray(samples.times),
@@ -267,7 +261,7 @@ def prepare(calibration, experiments, layout: Layout) -> _Data:
         jnp.asarray(layout.index),
         jnp.asarray(layout.known),
         layout.space,
-        smoothing,
+        acting_smoothing(params, calibration.smoothing),
         dataclasses.replace(options, t1=None),
     )
 

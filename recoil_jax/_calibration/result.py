@@ -135,8 +135,9 @@ class CalibrationResult:
     #: none).
     continuation: dict[str, list[float]] = dataclasses.field(default_factory=dict)
     defaults: dict[str, float] = dataclasses.field(default_factory=dict)
-    #: The smoothing widths the result is at (`Calibration.smoothing`, by name; None:
-    #: the width its rule derives).
+    #: The smoothing widths the result is at, by name (`Calibration.smoothing`, those of
+    #: parts the design lacks at the model's: `acting_smoothing`; None: the width its
+    #: rule derives).
     smoothing: dict[str, float | None] = dataclasses.field(default_factory=dict)
 
     @property
