@@ -309,6 +309,46 @@ def test_exact_jacobian_matches_finite_differences():
         assert np.max(np.abs(exact - difference)) <= 1e-3 * np.max(np.abs(exact)), name
 
 
+def elevated_calibration(shift: float = 0.05) -> tuple[rj.Calibration, dict[str, float]]:
+    """The envelope's howitzer at 35°, its `c_out` fitted from one reference trace (`x_M`,
+    `F_AN` at 1 kHz, noise 0.3 mm and 300 N) begun `shift` s before its trigger: before
+    it the load cell reads the axial weight and the barrel sits at its rest in the stop,
+    the reference's. Returns the calibration and the design (the truth)."""
+    from test_reference_envelope import HOWITZER
+
+    from recoil_jax._model.reference import GRAVITY, reference_history, reference_rest
+
+    design = HOWITZER | {"elevation": 35.0}
+    ts = np.arange(0.0, 0.4 + 1e-12, 1e-3)
+    fired = ts >= shift
+    history = reference_history(design, ts[fired] - shift)
+    weight = 1800.0 * GRAVITY * math.sin(math.radians(35.0))
+    at_rest = {"x_M": reference_rest(design), "F_AN": weight}
+    sigma = {"x_M": 3e-4, "F_AN": 300.0}
+    rng = np.random.default_rng(3)
+    signals = {}
+    for name, noise in sigma.items():
+        signals[name] = np.full(ts.shape, at_rest[name])
+        signals[name][fired] = history[name]
+        signals[name] += noise * rng.standard_normal(ts.size)
+    known = {k: v for k, v in design.items() if k != "c_out"} | {"t_shift": shift}
+    experiment = rjx.Experiment(rjx.Trace.of(ts, **signals), design=known, sigma=sigma)
+    fit, start = {"c_out": (5e3, 4e4)}, {"c_out": 2e4}
+    return rj.Calibration([experiment], fit=fit, start=start), design
+
+
+def test_a_trace_begun_before_its_trigger_records_the_gun_at_rest():
+    """Before its trigger (`elevated_calibration`'s 50 ms) the load cell reads the axial
+    weight (11 kN, 37 noise sds): the fit compares those samples with the model's rest
+    (its static rest, no velocity yet), not with 0, and the model explains the trace
+    (with 0 it was rejected)."""
+    calibration, design = elevated_calibration()
+    result = rj.calibrate(calibration, starts=1, progress=False)
+    assert result.explains
+    fitted = result.fitted["c_out"]
+    assert abs(fitted.value - design["c_out"]) <= 3.0 * fitted.stderr
+
+
 def write_trace(path, ts, signals, header=None):
     names = list(signals)
     lines = [header or ",".join(["t", *names])]
@@ -585,6 +625,14 @@ def test_a_prediction_band_from_the_fit_holds_the_true_peaks(tmp_path):
     path.write_text(json.dumps(result.to_json()))
     read = rjx.FittedParameters.from_json(path)
     assert read.names == hardware.names and np.allclose(read.covariance, hardware.covariance)
+    # A prediction solves at the widths the fit was at (its values belong to them).
+    assert hardware.smoothing == rj.Smoothing(**result.smoothing) == read.smoothing
+    wide = dataclasses.replace(hardware, smoothing=rj.Smoothing(contact_width=2e-3))
+    nominal = rj.predict(wide, {"m": 800.0}, samples=8, progress=False).nominal
+    design = rj.params_from_values(TRUTH | {"m": 800.0} | hardware.fitted_design)
+    for smoothing, same in ((wide.smoothing, True), (rj.Smoothing(), False)):
+        at = float(rj.peaks(design, smoothing).peak_anchoring_force)
+        assert (nominal["peak_anchoring_force"] == pytest.approx(at, rel=1e-9)) is same
     # Faults: a fitted value given, too few samples, a file that is not a result.
     with pytest.raises(rj.ParameterError, match="k is fitted"):
         rj.predict(hardware, {"k": 1e4})
@@ -871,6 +919,38 @@ def test_a_stored_calibration_resumes_to_the_same_result(tmp_path, monkeypatch, 
     other = dataclasses.replace(calibration, fit={"k": (1e4, 1e5), "c_out": (1e3, 3e4)})
     with pytest.raises(rj.ParameterError, match="holds the results of a different calibration"):
         rj.calibrate(other, starts=12, store=store, progress=False)
+
+
+@pytest.mark.slow  # two fit programs compiled (1 start and a store's 8)
+def test_a_calibration_stopped_inside_its_continuation_resumes_to_the_same_result(
+    tmp_path, monkeypatch
+):
+    """A calibration through the continuation's stages (the howitzer's buffer and rails,
+    `elevated_calibration`) stopped in its third stage resumes from its store with the
+    stages it stored (not fitted again) to the uninterrupted result, bit for bit."""
+    import recoil_jax._calibration.calibrate as calibrate_module
+
+    calibration, _ = elevated_calibration()
+    plain = rj.calibrate(calibration, starts=1, progress=False)
+    stages = len(plain.continuation["buffer_width"])
+    assert stages == 5
+    real, calls, stop_at = calibrate_module.fit_program, [], [3]
+
+    def stopped_in_the_third_stage(u0, *args):
+        calls.append(len(u0))
+        if len(calls) in stop_at:
+            raise KeyboardInterrupt
+        return real(u0, *args)
+
+    store = tmp_path / "fit.sqlite"
+    monkeypatch.setattr(calibrate_module, "fit_program", stopped_in_the_third_stage)
+    with pytest.raises(KeyboardInterrupt):
+        rj.calibrate(calibration, starts=1, store=store, progress=False)
+    calls.clear(), stop_at.clear()
+    resumed = rj.calibrate(calibration, starts=1, store=store, progress=False)
+    assert len(calls) == stages + 1 - 2  # the two stages stored are read, not fitted
+    assert resumed.values == plain.values and resumed.chi2 == plain.chi2
+    assert resumed.fitted["c_out"].stderr == plain.fitted["c_out"].stderr
 
 
 def test_a_prediction_names_the_design_it_predicts():

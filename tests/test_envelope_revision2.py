@@ -7,6 +7,7 @@ every report names unasked. The random designs against the reference are in
 import json
 import math
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from test_reference_envelope import HOWITZER, SLAMMING
@@ -94,6 +95,42 @@ def test_the_rest_is_the_references_root_and_its_derivative_the_implicit_functio
         expected = reference_rest(design)
         assert float(history.x_M[0]) == pytest.approx(expected, abs=1e-7), design
     assert reference_rest(cases[3]) == 0.0 and reference_rest(cases[4]) == 0.0
+
+
+def test_before_its_trigger_a_trace_records_the_gun_at_rest():
+    """The signals before the shot (`signal_sensitivities`' `rest_values`, what a fit
+    compares a trace's samples before its trigger with): `x_M` the reference's rest, the
+    absorber at its sag on the barrel, `F_AN` the axial weight, and their derivatives
+    the reference rest's finite differences and the weight's closed form. The paper's gun
+    rests at 0."""
+    design = HOWITZER | ABSORBER | {"elevation": 35.0}
+    wrt = ("recuperator_preload", "elevation", "M")
+    names = ("x_M", "x_m", "F_AN")
+    ts = jnp.linspace(0.0, 0.01, 3)
+
+    def at_rest(values, wrt=wrt):
+        params, options = rj.params_from_values(values), rj.SolverOptions(t1=0.01)
+        solved = rjx.signal_sensitivities(params, rj.Smoothing(), options, wrt, ts, 0.01, names)
+        return np.asarray(solved.rest_values), np.asarray(solved.rest_gradients)
+
+    (x_M, x_m, F_AN), gradients = at_rest(design)
+    x_r, weight = reference_rest(design), _weight(design)
+    assert x_M == pytest.approx(x_r, abs=1e-7) and x_M < -1e-5
+    theta = math.radians(35.0)
+    assert x_m - x_M == pytest.approx(200.0 * GRAVITY * math.sin(theta) / 5e4, abs=1e-12)
+    assert F_AN == pytest.approx(weight, rel=1e-6)
+    for j, name in enumerate(wrt):
+        h = 1e-4 * abs(design[name])
+        moved = [reference_rest(design | {name: design[name] + s * h}) for s in (1, -1)]
+        difference = (moved[0] - moved[1]) / (2 * h)
+        assert gradients[0, j] == pytest.approx(difference, rel=1e-3, abs=1e-12), name
+    per_degree = 2000.0 * GRAVITY * math.cos(theta) * math.pi / 180
+    assert gradients[2, 1] == pytest.approx(per_degree, rel=1e-6)
+    assert gradients[2, 2] == pytest.approx(GRAVITY * math.sin(theta), rel=1e-6)
+    assert gradients[2, 0] == pytest.approx(0.0, abs=1e-6)  # the stop takes the preload
+    (x_M, x_m, F_AN), gradients = at_rest({}, wrt=("M", "k", "c_out"))
+    assert x_M == 0.0 and x_m == 0.0 and np.all(gradients[:2] == 0.0)
+    assert abs(F_AN) < 0.2  # the smoothed damper's force at rest, as in its histories
 
 
 def test_the_margin_is_the_whole_guns_at_every_instant():

@@ -115,8 +115,12 @@ def _experiment_signals(theta_e, params, times, t1, data: CalibrationData, stati
         static.signals,
     )
     gradients = jnp.concatenate([solved.gradients, -solved.rates[..., None]], axis=-1)
-    values = jnp.where(before, 0.0, solved.values)
-    gradients = jnp.where(before[:, None], 0.0, gradients)
+    # Before the trigger the trace records the gun at rest, which no delay moves.
+    rest_gradients = jnp.concatenate(
+        [solved.rest_gradients, jnp.zeros_like(solved.rest_values)[:, None]], axis=-1
+    )
+    values = jnp.where(before, solved.rest_values[:, None], solved.values)
+    gradients = jnp.where(before[:, None], rest_gradients[:, None, :], gradients)
     (code,) = jax.tree.leaves(solved.status)
     return values, gradients, code
 

@@ -34,7 +34,9 @@ class FittedParameters:
     - `names (k,)`, `values (k,)` (SI units), `covariance (k, k)`, the fit's bounds
       `lower`, `upper (k,)`, and `identifiable (k,)`;
     - `design`: the known values the calibration shared (`[design]`), which a prediction
-      starts from.
+      starts from;
+    - `smoothing`: the widths the fit was at (`CalibrationResult.smoothing`), which a
+      prediction solves at.
     """
 
     names: tuple[str, ...]
@@ -46,6 +48,7 @@ class FittedParameters:
     design: dict[str, float]
     #: The calibration's model explained its traces (`CalibrationResult.explains`).
     explains: bool = True
+    smoothing: Smoothing = dataclasses.field(default_factory=Smoothing)
 
     def __post_init__(self):
         if not self.names:
@@ -128,7 +131,10 @@ class FittedParameters:
         """Read the `hardware` entry of a calibration's `result.json`."""
         text = read_text(Path(path), "calibration result")
         try:
-            entry = json.loads(text)["hardware"]
+            report = json.loads(text)
+            entry = report["hardware"]
+            # Results written before a calibration had widths of its own: the model's.
+            widths = report.get("smoothing") or {}
             fitted = cls(
                 tuple(entry["names"]),
                 np.asarray(entry["values"], dtype=float),
@@ -138,8 +144,9 @@ class FittedParameters:
                 np.asarray(entry["identifiable"], dtype=bool),
                 {k: float(v) for k, v in entry["design"].items()},
                 bool(entry.get("explains", True)),  # results written before the check
+                Smoothing(**widths),
             )
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError, ParameterError):
             raise ParameterError(
                 f"{path} is not a calibration result (recoil-jax calibrate's result.json)"
             ) from None
@@ -199,7 +206,7 @@ def predict(
     *,
     samples: int = 10_000,
     seed: int = 0,
-    smoothing: Smoothing = Smoothing(),
+    smoothing: Smoothing | None = None,
     options: SolverOptions = SolverOptions(),
     progress: bool | None = None,
 ) -> Prediction:
@@ -212,12 +219,14 @@ def predict(
     - `fitted`: `CalibrationResult.hardware()` or `FittedParameters.from_json(path)`.
     - `design`: the design's values by flat name (the calibration's known values fill
       in; the fitted parameters take their fitted values and may not be given).
-    - `samples`, `seed`: the draws; `smoothing`, `options`: the solves'.
+    - `samples`, `seed`: the draws; `smoothing`, `options`: the solves' (`smoothing`
+      by default the fit's own, `fitted.smoothing`: its values belong to those widths).
 
     **Raises:** `ParameterError` for a fitted parameter given in `design`, a fitted value
     the data did not determine, or `samples < 2`.
     """
     design = _checked_design(fitted, design, samples)
+    smoothing = fitted.smoothing if smoothing is None else smoothing
     clock = time.perf_counter()
     values = {
         **fitted.design,

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from .._model.parameter_table import PARAMETERS
+from .._model.settings import Smoothing
 from .._model.status import OK_CODE
 from .model_check import ModelCheck, finite
 from .predict import FittedParameters
@@ -173,6 +174,7 @@ class CalibrationResult:
             np.asarray([self.fitted[n].identifiable for n in names], dtype=bool),
             dict(self.design),
             self.explains,
+            Smoothing(**self.smoothing) if self.smoothing else Smoothing(),
         )
 
     @property

@@ -718,12 +718,17 @@ def signal_values(t, y, params: RecoilParams, smoothing: Smoothing, names: tuple
 class SignalSensitivities(NamedTuple):
     """The signals of one solve at its save times, with their derivatives: `values (S,
     n)`, `gradients (S, n, k)` (with respect to the `k` parameters `wrt`, SI units),
-    `rates (S, n)` (with respect to time) and the solve's `status`."""
+    `rates (S, n)` (with respect to time) and the solve's `status`; and the signals of
+    the gun at rest before the shot, `rest_values (S,)`, with their derivatives
+    `rest_gradients (S, k)` (the static rest in battery, every velocity 0, no breech
+    force: what a trace records before its trigger)."""
 
     values: Any
     gradients: Any
     rates: Any
     status: Any
+    rest_values: Any
+    rest_gradients: Any
 
 
 def signal_sensitivities(
@@ -753,4 +758,17 @@ def signal_sensitivities(
         return values, gradients.T / scales, rate
 
     values, gradients, rates = jax.vmap(at)(ts, run.saved)
-    return SignalSensitivities(values.T, jnp.moveaxis(gradients, 0, 1), rates.T, run.status)
+    rest = args[-1]
+
+    def at_rest(theta_):
+        # The solve's own start (its rest, its derivatives the implicit function's), with
+        # the shot's velocity not yet given and no breech force (t = None).
+        design = with_values(params, wrt, theta_)
+        y0 = initial_state(_rest_args(design, smoothing, rest, differentiate=True))
+        return signal_values(None, y0.at[1].set(0.0).at[3].set(0.0), design, smoothing, names)
+
+    rest_values, rest_jvp = jax.linearize(at_rest, theta)
+    rest_gradients = jax.vmap(rest_jvp, out_axes=-1)(_directions(wrt)) / scales
+    return SignalSensitivities(
+        values.T, jnp.moveaxis(gradients, 0, 1), rates.T, run.status, rest_values, rest_gradients
+    )

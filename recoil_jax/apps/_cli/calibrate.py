@@ -325,7 +325,7 @@ def run_calibration(args) -> int:
     if args.predict is not None and result.explains:
         prediction = rj.predict(
             result.hardware(), parse_assignments(args.predict), seed=settings["seed"],
-            smoothing=calibration.smoothing, progress=True,
+            progress=True,
         )  # fmt: skip
         report["prediction"] = prediction.to_json()
         report["figures"].append(str(plot_prediction(prediction, out / "prediction.png")))
