@@ -349,6 +349,73 @@ def test_a_trace_begun_before_its_trigger_records_the_gun_at_rest():
     assert abs(fitted.value - design["c_out"]) <= 3.0 * fitted.stderr
 
 
+def test_a_sample_on_an_event_its_sampling_misses_is_flagged_alone():
+    """`unresolved_samples`: on a jump 1 µs wide sampled each ms, the sample on its ramp
+    (not its neighbours), however small the jump against the noise (its slope is the
+    width's); never a sine sampled 3 times a period, nor a flat signal whose rate is
+    rounding."""
+    from recoil_jax._calibration.report import unresolved_samples
+
+    t = np.arange(0.0, 0.1, 1e-3)
+    width, at = 1e-6, t[40] + 2e-7  # the jump's middle, just after a sample
+    jump = 4000.0 * 0.5 * (1.0 + np.tanh((t - at) / width))
+    jump_rate = 4000.0 * 0.5 / width * (1.0 - np.tanh((t - at) / width) ** 2)
+    omega = 2.0 * np.pi / 3e-3
+    signals = np.stack([jump, np.sin(omega * t), np.full_like(t, 2.0), 1e-3 * jump])
+    rates = np.stack([jump_rate, omega * np.cos(omega * t), 1e-12 * np.ones_like(t),
+                      1e-3 * jump_rate])  # fmt: skip
+    present = np.ones((1, 4, t.size), dtype=bool)
+    flagged = unresolved_samples(t[None], signals[None], rates[None], present,
+                                 np.array([[300.0, 1e-3, 1e-3, 300.0]]))  # fmt: skip
+    assert [np.flatnonzero(f).tolist() for f in flagged[0]] == [[40], [], [], [40]]
+
+
+def test_the_standard_errors_are_the_datas_not_the_smoothings(monkeypatch):
+    """A trace sampled on the friction's turn (the howitzer at 35°, its `F_AN` sample at
+    the middle of the turn's 1e-6 m/s ramp, the model's own signals with noise): that
+    sample's Jacobian is the ramp's slope (1 / the width), so the curvature with it
+    claims standard errors 2× (`c_out`) and 5× (`friction_force`) narrower than the rest
+    of the trace gives. The report leaves it out and names it: its standard errors are
+    those of the trace without that sample (1 %)."""
+    from test_reference_envelope import HOWITZER
+
+    import recoil_jax._calibration.report as report_module
+
+    design, smoothing = HOWITZER | {"elevation": 35.0}, rjx.CALIBRATION_SMOOTHING
+    params, options = rj.params_from_values(design), rj.SolverOptions(t1=0.4)
+    fine = np.linspace(0.0, 0.4, 40001)
+    v = np.asarray(rj.simulate(params, smoothing, options, fine).v_M)
+    turn = int(np.flatnonzero((v[:-1] > 0) & (v[1:] <= 0))[0])  # the outward stroke's end
+    around = np.linspace(fine[turn - 1], fine[turn + 2], 30001)
+    F = np.asarray(rj.simulate(params, smoothing, options, np.r_[around, 0.4]).F_AN)[:-1]
+    middle = around[np.argmin(np.abs(F - 0.5 * (F[0] + F[-1])))]
+    ts = middle + 1e-3 * np.arange(-int(middle / 1e-3), int((0.4 - middle) / 1e-3) + 1)
+    on_turn = int(np.argmin(np.abs(ts - middle)))
+    history = rj.simulate(params, smoothing, options, ts)
+    sigma = {"x_M": 3e-4, "F_AN": 300.0}
+    rng = np.random.default_rng(5)
+    signals = {n: np.asarray(getattr(history, n)) + s * rng.standard_normal(ts.size)
+               for n, s in sigma.items()}  # fmt: skip
+    fit = {"c_out": (5e3, 4e4), "friction_force": (500.0, 3000.0)}
+    known = {n: v for n, v in design.items() if n not in fit}
+
+    def stderr(measured):
+        experiment = rjx.Experiment(rjx.Trace.of(ts, **measured), design=known, sigma=sigma)
+        calibration = rj.Calibration([experiment], fit=fit, start={n: design[n] for n in fit})
+        result = rj.calibrate(calibration, starts=1, continuation=None, progress=False)
+        return np.asarray([result.fitted[n].stderr for n in fit]), result.unresolved
+
+    reported, unresolved = stderr(signals)
+    assert [(u["signal"], u["t"]) for u in unresolved] == [("F_AN", ts[on_turn])]
+    without = {n: a.copy() for n, a in signals.items()}
+    without["F_AN"][on_turn] = np.nan
+    np.testing.assert_allclose(reported, stderr(without)[0], rtol=0.01)
+    # The curvature with the sample on the turn kept.
+    monkeypatch.setattr(report_module, "UNRESOLVED_RATIO", math.inf)
+    with_it, _ = stderr(signals)
+    assert np.all(reported / with_it > [1.8, 4.0])
+
+
 def write_trace(path, ts, signals, header=None):
     names = list(signals)
     lines = [header or ",".join(["t", *names])]

@@ -100,8 +100,9 @@ FitSettings = _Static
 
 
 def _experiment_signals(theta_e, params, times, t1, data: CalibrationData, static: _Static):
-    """One experiment's signals at its sample times `(S, n)` and their Jacobian `(S, n,
-    K)` with respect to its K columns (`wrt`, then `t_shift`), and its status code."""
+    """One experiment's signals at its sample times `(S, n)`, their Jacobian `(S, n, K)`
+    with respect to its K columns (`wrt`, then `t_shift`) and their rates in time `(S,
+    n)`, and its status code."""
     params = with_values(params, static.wrt, theta_e[:-1])
     model_times = times - theta_e[-1]
     before = model_times < 0  # before the firing the gun is at rest
@@ -121,18 +122,22 @@ def _experiment_signals(theta_e, params, times, t1, data: CalibrationData, stati
     )
     values = jnp.where(before, solved.rest_values[:, None], solved.values)
     gradients = jnp.where(before[:, None], rest_gradients[:, None, :], gradients)
+    # At and before the firing the gun is at rest: the rate there is not an event's.
+    rates = jnp.where(model_times <= 0, 0.0, solved.rates)
     (code,) = jax.tree.leaves(solved.status)
-    return values, gradients, code
+    return values, gradients, rates, code
 
 
 class Evaluation(eqx.Module):
     """The fit's pieces at one point θ: the normalised residuals `(E, S, n)` (0 where
     no sample), their Jacobian with respect to θ `(E, S, n, P)`, the model's signals
-    `(E, S, n)` and each experiment's status code `(E,)`."""
+    `(E, S, n)`, their rates in time `(E, S, n)` (per second) and each experiment's
+    status code `(E,)`."""
 
     residuals: jax.Array
     jacobian: jax.Array
     signals: jax.Array
+    rates: jax.Array
     codes: jax.Array
 
 
@@ -146,7 +151,7 @@ def evaluate(theta, data: CalibrationData, static: _Static) -> Evaluation:
     # The experiments one after another (`lax.map`), not in lockstep: a vmapped solve
     # selects its whole carry, the saved signals included, at every step (measured, one
     # experiment of 5,001 samples: 13 ms vmapped, 3 ms alone).
-    values, gradients, codes = jax.lax.map(
+    values, gradients, rates, codes = jax.lax.map(
         lambda a: _experiment_signals(a[0], a[1], a[2], a[3], data, static),
         (columns, data.params, data.times, data.t1),
     )
@@ -156,7 +161,7 @@ def evaluate(theta, data: CalibrationData, static: _Static) -> Evaluation:
     residuals = (values - data.measured) / data.sigma[..., None]
     residuals = jnp.where(data.present & ok, residuals, jnp.where(data.present, FAILED_RESIDUAL, 0))
     jacobian = jnp.where((data.present & ok)[..., None], jacobian, 0.0)
-    return Evaluation(residuals, jacobian, values, codes)
+    return Evaluation(residuals, jacobian, values, rates, codes)
 
 
 def robust(r, loss: str, f_scale: float):

@@ -36,7 +36,23 @@ from .result import AT_BOUND, CalibrationResult, Fitted
 from .spec import Calibration
 from .traces import Experiment
 
-__all__ = ["BoxCovariance", "ExperimentFit", "box_covariance", "experiment_summary", "lane_report"]
+__all__ = [
+    "BoxCovariance",
+    "ExperimentFit",
+    "box_covariance",
+    "experiment_summary",
+    "lane_report",
+    "unresolved_samples",
+]
+
+#: A sample at which the model's signal moves, over the sample's own spacing, more than
+#: this many times its step to either neighbour (and more than the noise) lies on an
+#: event its sampling does not resolve: a friction's turn, a stick, an impact shorter
+#: than a sample. Its Jacobian is the slope of the model's smoothed switch there, which
+#: grows as 1 / the switch's width: the smoothing's information, not the data's, so the
+#: standard errors leave it out (a sine sampled 3 times a period moves 2.4 times its step
+#: at most; a ramp 30 µs wide sampled each ms, ~30 times).
+UNRESOLVED_RATIO = 3.0
 
 
 def lane_report(
@@ -90,6 +106,11 @@ def _report(
     """
     misfit = _misfit(calibration, data, evaluation, len(theta))
     uncertainty = _uncertainty(layout, theta, misfit)
+    unresolved = [
+        {"experiment": calibration.experiments[e].label, "signal": layout.signals[s],
+         "t": float(np.asarray(data.times)[e, i])}
+        for e, s, i in np.argwhere(misfit.unresolved)
+    ]  # fmt: skip
     fits = _experiment_fits(calibration, layout, data, evaluation, misfit)
     fitted = _fitted(layout, theta, uncertainty, fits.check.explains)
     present, residual_si = misfit.present, misfit.residual_si
@@ -108,6 +129,7 @@ def _report(
         correlation=uncertainty.correlation,
         covariance=uncertainty.covariance,
         unidentifiable=uncertainty.unidentifiable,
+        unresolved=unresolved,
         chi2=misfit.chi2,
         reduced_chi2=misfit.reduced_chi2,
         aic=minus_two_log_likelihood + 2 * estimated,
@@ -143,8 +165,9 @@ class _Misfit:
     which samples are `present (E, S, n)`, the noise `sigma (E, S)` and the residuals in
     the signals' units `residual_si (E, S, n)`, each experiment's status `codes (E,)`;
     the Jacobian of the residuals the fit minimised `jacobian (N, P)` (a robust loss
-    down-weights outliers there too), the `samples` N, `dof` (N − P, at least 1), `chi2`
-    (the robust cost) and `reduced_chi2`."""
+    down-weights outliers there too), the samples on an event their sampling does not
+    resolve `unresolved (E, S, n)` (`unresolved_samples`), the `samples` N, `dof` (N −
+    P, at least 1), `chi2` (the robust cost) and `reduced_chi2`."""
 
     residuals: np.ndarray
     present: np.ndarray
@@ -152,6 +175,7 @@ class _Misfit:
     residual_si: np.ndarray
     codes: np.ndarray
     jacobian: np.ndarray
+    unresolved: np.ndarray
     samples: int
     dof: int
     chi2: float
@@ -186,7 +210,29 @@ def _misfit(
     chi2 = float(np.sum(robust_r**2))
     sigma = np.asarray(data.sigma)
     residual_si = r * sigma[..., None]
-    return _Misfit(r, present, sigma, residual_si, codes, J, N, dof, chi2, chi2 / dof)
+    unresolved = unresolved_samples(
+        np.asarray(data.times), np.asarray(evaluation.signals), np.asarray(evaluation.rates),
+        present, sigma,
+    )  # fmt: skip
+    return _Misfit(r, present, sigma, residual_si, codes, J, unresolved, N, dof, chi2, chi2 / dof)
+
+
+def unresolved_samples(times, signals, rates, present, sigma) -> np.ndarray:
+    """Which samples `(E, S, n)` lie on an event their sampling does not resolve: where
+    the model's signal `signals (E, S, n)` moves at its rate `rates (E, S, n)` over the
+    sample's spacing (half the span to its neighbours; `times (E, n)`) by more than
+    `UNRESOLVED_RATIO` times its step to either present neighbour, plus the signal's
+    noise `sigma (E, S)`."""
+    unresolved = np.zeros(present.shape, dtype=bool)
+    for e, s in np.ndindex(present.shape[:2]):
+        (index,) = np.nonzero(present[e, s])
+        if index.size < 3:
+            continue
+        steps = np.abs(np.diff(signals[e, s, index]))
+        neighbour = np.maximum(np.r_[steps[0], steps], np.r_[steps, steps[-1]])
+        moved = np.abs(rates[e, s, index]) * np.gradient(times[e, index])
+        unresolved[e, s, index] = moved > UNRESOLVED_RATIO * neighbour + sigma[e, s]
+    return unresolved
 
 
 @dataclasses.dataclass(frozen=True)
@@ -253,14 +299,16 @@ def box_covariance(information: np.ndarray, labels, scale: float = 1.0) -> BoxCo
 
 
 def _uncertainty(layout: Layout, theta: np.ndarray, misfit: _Misfit) -> _Uncertainty:
-    """The Gauss–Newton covariance of `theta (P,)` scaled by the reduced χ², worked in
-    box coordinates (each bound range [0, 1]; logarithmic where the space is), with what
-    the data leave undetermined (`box_covariance`)."""
+    """The Gauss–Newton covariance of `theta (P,)` scaled by the reduced χ², from the
+    samples their sampling resolves (`unresolved_samples`), worked in box coordinates
+    (each bound range [0, 1]; logarithmic where the space is), with what the data leave
+    undetermined (`box_covariance`)."""
     P = len(theta)
     space = layout.space
     z = space.z(theta)
     dtheta_dz = np.asarray(jax.jvp(space.theta, (jnp.asarray(z),), (jnp.ones(P),))[1])
-    Jz = misfit.jacobian * dtheta_dz
+    resolved = ~misfit.unresolved[misfit.present]
+    Jz = misfit.jacobian[resolved] * dtheta_dz
     box = box_covariance(Jz.T @ Jz, layout.labels, misfit.reduced_chi2)
     identifiable = box.identifiable
     covariance = box.covariance * np.outer(dtheta_dz, dtheta_dz)

@@ -72,7 +72,9 @@ class CalibrationResult:
     - `correlation (P, P)`: of the fitted values (NaN rows for unidentifiable ones);
       `covariance (P, P)` (SI units).
     - `unidentifiable`: the combinations the data cannot confine within the bounds, in
-      words (`"k_c, n_c: 0.71·k_c − 0.70·n_c (box coordinates)"`).
+      words (`"k_c, n_c: 0.71·k_c − 0.70·n_c (box coordinates)"`); `unresolved`: the
+      samples the standard errors leave out, on an event their sampling does not
+      resolve (`{"experiment", "signal", "t"}` each).
     - `chi2`, `reduced_chi2`, `samples` (N), `dof` (N − P); `aic`, `bic`: −2
       log-likelihood of the Gaussian noise model (`chi2 + Σ n log σ²`, SI units, up to
       N log 2π) plus 2, or ln N, per estimated value (the fitted ones and each estimated
@@ -108,6 +110,9 @@ class CalibrationResult:
     correlation: np.ndarray
     covariance: np.ndarray
     unidentifiable: list[str]
+    #: The samples left out of the standard errors: on an event their sampling does not
+    #: resolve (`report.unresolved_samples`), each `{"experiment", "signal", "t"}`.
+    unresolved: list[dict[str, Any]]
     chi2: float
     reduced_chi2: float
     aic: float
@@ -192,6 +197,7 @@ class CalibrationResult:
                 for i, a in enumerate(names)
             },
             "unidentifiable": self.unidentifiable,
+            "unresolved": self.unresolved,
             "chi2": self.chi2,
             "reduced_chi2": self.reduced_chi2,
             "aic": self.aic,

@@ -543,6 +543,14 @@ def fit_report(result: rj.CalibrationResult) -> str:
         lines.append(line)
     for text in result.unidentifiable:
         lines.append(f"  not identifiable: {text}")
+    if result.unresolved:
+        where = ", ".join(f"{u['signal']} at {u['t']:.6g} s of {u['experiment']}"
+                          for u in result.unresolved[:3])  # fmt: skip
+        more = len(result.unresolved) - 3
+        lines.append(
+            f"  left out of the standard errors ({len(result.unresolved)} samples on an event "
+            f"the sampling does not resolve): {where}" + (f" and {more} more" if more > 0 else "")
+        )
     names = [n for n, f in result.fitted.items() if f.identifiable]
     pairs = [
         (a, b, result.correlation[i, j])
