@@ -67,15 +67,15 @@ class Continuation:
 
     Default: `buffer_width` 1 cm, 1 mm, 0.1 mm, 10 µm and the model's 1 µm, a decade a
     stage (the counter-recoil buffer's engagement, the switch whose jump in `F_AN` makes
-    χ² stepped), beside it the friction's turn (`slip_width` 1 cm/s to the model's 1
-    µm/s, the other jump in `F_AN`), at the model's friction (`friction_width` 10 N,
-    `stick_time` 0.3 ms); then the calibration's widths (`CALIBRATION_SMOOTHING`: the
-    friction nearer the exact stick). Measured on the shipped plan's reference traces
-    (`docs/calibration.md`): two stages a hundredfold apart left 2 of 4 draws on a tread
-    that four a decade apart reached the truth from; without the turn's stages 2 of 20
-    draws at truth 0 ended in a worse minimum (χ² 75 above the truth's) that they take
-    to the truth; the calibration's friction from the plan's guess ends in a worse
-    minimum (χ² 18,011 against 17,881) that the model's friction first avoids.
+    χ² stepped), at the model's friction (`friction_width` 10 N, `stick_time` 0.3 ms);
+    then the calibration's widths (`CALIBRATION_SMOOTHING`: the friction nearer the
+    exact stick). Measured on the shipped plan's reference traces (`docs/calibration.md`):
+    two stages a hundredfold apart left 2 of 4 draws on a tread that four a decade apart
+    reached the truth from; continuing the friction's turn (`slip_width` 1 cm/s to 1
+    µm/s) too took the 2 draws of 20 at truth 0 that end in a worse minimum to the
+    truth, and took another to a worse one the model check rejects (a false "wrong
+    model"); the calibration's friction from the plan's guess ends in a worse minimum
+    (χ² 18,011 against 17,881) that the model's friction first avoids.
 
     A width it does not name is at the fit's own at every stage: a continuation of
     `buffer_width` alone fits every stage at the calibration's friction widths (name
@@ -92,7 +92,6 @@ class Continuation:
     widths: Mapping[str, tuple[float, ...]] = dataclasses.field(
         default_factory=lambda: {
             "buffer_width": (1e-2, 1e-3, 1e-4, 1e-5, float(_MODEL.buffer_width)),
-            "slip_width": (1e-2, 1e-3, 1e-4, 1e-5, float(_MODEL.slip_width)),
             "friction_width": (float(_MODEL.friction_width),) * 5,
             "stick_time": (float(_MODEL.stick_time),) * 5,
         }
