@@ -54,7 +54,8 @@ not need them; `docs/developers.md` shows how to plug a part in.
   from a result or its `result.json`) and `Prediction` (what `predict` gives);
   `reference_history` (time histories by the independent hard-switch scipy solver: a
   synthetic firing test the library shares no code with); `Continuation` (the
-  smoothing widths a fit starts from, narrowed to the calibration's),
+  smoothing widths a fit starts from, narrowed to the calibration's; `calibrate`'s
+  `DEFAULT_CONTINUATION`, with a fallback path),
   `CALIBRATION_SMOOTHING` (the widths a calibration fits at: the rails' friction
   nearer the exact stick than the model's) and `DEFAULT_STARTS`.
 
@@ -75,7 +76,7 @@ not need them; `docs/developers.md` shows how to plug a part in.
 """
 
 from ._calibration.calibrate import DEFAULT_STARTS, fit_many, validate
-from ._calibration.continuation import Continuation
+from ._calibration.continuation import DEFAULT_CONTINUATION, Continuation
 from ._calibration.model_check import ModelCheck, SignalCheck, trace_noise
 from ._calibration.predict import FittedParameters, Prediction
 from ._calibration.result import Fitted
@@ -119,6 +120,7 @@ from ._sweeps.space import SearchSpace, log_coordinates
 
 __all__ = [
     "CALIBRATION_SMOOTHING",
+    "DEFAULT_CONTINUATION",
     "DEFAULT_STARTS",
     "HAZARDS",
     "LOSSES",

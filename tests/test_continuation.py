@@ -6,6 +6,8 @@ smooth."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -60,6 +62,16 @@ def test_a_continuation_acts_only_where_the_design_has_the_switch():
     assert default.for_design(no_buffer, rj.Smoothing()) is None
     both = rjx.Continuation({"buffer_width": (1e-2, 1e-4), "slip_width": (1e-2, 1e-4)})
     assert both.for_design(no_buffer, fitting).widths == {"slip_width": (1e-2, 1e-4)}
+    # The default: the friction's turn beside the buffer's stages, Continuation() as its
+    # fallback; a store of one without a fallback keeps its identity.
+    default_path = rjx.DEFAULT_CONTINUATION.for_design(gun, fitting)
+    assert default_path.widths["slip_width"] == (1e-2, 1e-3, 1e-4, 1e-5, 1e-6)
+    assert default_path.fallback == default
+    assert default.identity() == (default.to_json(),)
+    assert default_path.identity() == (default_path.to_json(), default.to_json())
+    assert rjx.DEFAULT_CONTINUATION.for_design(rj.params_from_values({"m": 0.0}), fitting) is None
+    with pytest.raises(rj.ParameterError, match="fallback = 'wide': give a Continuation"):
+        rjx.Continuation(fallback="wide")
     stage = both.smoothing(rj.Smoothing(), 1)
     assert float(stage.buffer_width) == 1e-4 and float(stage.slip_width) == 1e-4
     assert float(stage.stop_width) == float(rj.Smoothing().stop_width)
@@ -91,8 +103,10 @@ def test_the_continuation_reaches_the_truth_where_the_model_widths_stall():
     assert fitted.continuation == {
         "buffer_width": [1e-2, 1e-3, 1e-4, 1e-5, 1e-6],
         "friction_width": [10.0] * 5,
+        "slip_width": [1e-2, 1e-3, 1e-4, 1e-5, 1e-6],
         "stick_time": [3e-4] * 5,
     }
+    assert not fitted.fallback and fitted.starts == 2  # the model check passed: one path
     for name, value in TRUTH.items():
         assert abs(fitted.values[name] - value) < 3 * fitted.fitted[name].stderr, name
     # The result says the widths it is at (result.json's "smoothing").
@@ -102,3 +116,18 @@ def test_the_continuation_reaches_the_truth_where_the_model_widths_stall():
     assert plain.continuation == {}
     assert plain.reduced_chi2 > 10 * fitted.reduced_chi2, (plain.values, plain.reduced_chi2)
     assert plain.verdict == "local_minimum"
+
+
+def test_a_fit_the_model_check_rejects_takes_the_fallback_path_before_its_verdict():
+    """The wrong counter-recoil buffer (its damping 100,000 known, the truth's 150,000):
+    the check fails at the best point of the default path, so the fit runs its starts
+    through the fallback path too (4 fits) and says the model does not explain the
+    traces only then; without a fallback, one path."""
+    calibration = _firing(seed=4)
+    wrong = dataclasses.replace(calibration, design=calibration.design | {"buffer_damping": 1e5})
+    result = rj.calibrate(wrong, progress=False)
+    assert result.fallback and result.starts == 4
+    assert not result.explains and result.to_json()["fallback"] is True
+    alone = rjx.Continuation(rjx.DEFAULT_CONTINUATION.widths)  # no fallback
+    single = rj.calibrate(wrong, continuation=alone, progress=False)
+    assert not single.fallback and single.starts == 2 and not single.explains

@@ -323,6 +323,7 @@ RJ_NAMES = (
 )
 RJX_NAMES = (
     "CALIBRATION_SMOOTHING",
+    "DEFAULT_CONTINUATION",
     "BatchEvaluation",
     "BatchEvaluator",
     "Continuation",

@@ -18,9 +18,10 @@ import math
 import os
 import time
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -69,7 +70,9 @@ def calibrate(
     - `continuation`: the smoothing widths the fit starts from (`Continuation`), each
       stage's optimum the next one's start, the last stage at the calibration's own
       widths (`Calibration.smoothing`); None: at those widths only. Only the widths
-      whose switch the design has.
+      whose switch the design has. Where the model check fails at the best point, the
+      starts are fitted again through its `fallback` path (the default has one), and
+      the best of both is the result (`CalibrationResult.fallback`).
     - `seed`: the Sobol points' scrambling; `max_steps`: Levenberg–Marquardt steps per
       pass; `progress`: a progress line on stderr (None: on a terminal).
     - `profiles`: also profile each value (refit the others with it held at 12 points
@@ -113,6 +116,7 @@ def _fit_starts(
     bar: Progress,
     measured: np.ndarray | None = None,
     chunk: int | None = None,
+    fallback: bool = False,
 ) -> FitOutcome:
     """Every start's fit, from `u0 (N, P)` (the fit's coordinates): at each stage of the
     `continuation` (one Levenberg–Marquardt pass from the last stage's optimum, under the
@@ -122,7 +126,9 @@ def _fit_starts(
     or with a store one part per `starts_per_chunk` of its plan (the last padded to it),
     each read or committed. The progress line says each stage's starts as they end.
     `measured (N, E, S, n)`: each start's own data set (`fit_many`; default: the
-    calibration's, for every start); `chunk`: the starts a call without a store."""
+    calibration's, for every start); `chunk`: the starts a call without a store;
+    `fallback`: this is the continuation's fallback path (its parts stored under their
+    own names, its fits counted as phases, its progress after the first path's)."""
     if store is not None:
         size = int(store.plan["starts_per_chunk"])
     else:
@@ -151,6 +157,7 @@ def _fit_starts(
     plan.append((data, static, "the calibration's widths"))
     u, steps = np.asarray(u0), np.zeros(len(u0), dtype=np.int64)
     outcome: dict[str, np.ndarray] = {}
+    first = bar.done if fallback else 0  # the progress line's count where this path starts
     for stage, (data_, static_, what) in enumerate(plan):
         last = stage == stages
         parts, best = [], np.inf
@@ -158,7 +165,9 @@ def _fit_starts(
             starts_u = np.asarray(u[begin : begin + size])
             sets = np.asarray(measured[begin : begin + size])
             name = f"fit:{begin}" if last else f"stage{stage}:{begin}"
-            fits = len(starts_u) if last else 0  # a warm-up stage's parts hold no fit
+            name = f"fallback:{name}" if fallback else name
+            # A warm-up stage's parts hold no fit, nor does the fallback's.
+            fits = len(starts_u) if last and not fallback else 0
 
             def compute(u_=starts_u, m=sets, d=data_, s=static_):
                 return fit(u_, m, d, s)
@@ -168,8 +177,9 @@ def _fit_starts(
             score = np.asarray(part["score"] if last else part["cost"], dtype=float)
             best = min(best, float(np.min(np.where(np.isfinite(score), score, np.inf))))
             done = min(begin + size, len(u))
-            bar.update(stage * len(u) + done,
-                       f"stage {stage + 1} of {stages + 1} ({what}): {done} of {len(u)} "
+            bar.update(first + stage * len(u) + done,
+                       f"{'fallback: ' if fallback else ''}stage {stage + 1} of {stages + 1} "
+                       f"({what}): {done} of {len(u)} "
                        f"starts, {int(np.max(part['steps']))} steps, best "
                        f"{'score' if last else 'χ²'} {best:.6g}")  # fmt: skip
         outcome = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
@@ -181,17 +191,20 @@ def _fit_starts(
 
 def _calibrate(calibration, layout, data, static, z0, profiles, bar, store_, clock, continuation):
     """`calibrate` once its inputs are checked and its store (if any) open."""
-    starts = len(z0)
     fitted = bar.total - 3  # the fits' share of the progress line
     outcome = _fit_starts(u_of_z(z0), data, static, store_, continuation, bar)
-    score = np.asarray(outcome.score)
-    score = np.where(np.isfinite(score), score, np.inf)
-    best = int(np.argmin(score))
-    at_best = int(np.sum(score <= score[best] + REACHED))
-    bar.update(fitted, f"fitted in {int(outcome.steps[best])} steps; uncertainty")
-    data = eqx.tree_at(lambda d: d.sigma, data, outcome.sigma[best])
-    result = lane_report(calibration, layout, data, static, outcome, best, starts=starts,
-                         at_best=at_best)  # fmt: skip
+    report = _best_of(outcome, calibration, layout, data, static, bar, fitted)
+    path = None if continuation is None else continuation.fallback
+    if path is not None and not report.result.explains:
+        # Before saying the model does not explain the traces, the other path: the best
+        # of both paths' fits is the result (`Continuation.fallback`).
+        added = len(z0) * (1 + path.stages)
+        bar.total, fitted = bar.total + added, fitted + added
+        bar.update(bar.done, "the model check failed there: the fallback path")
+        second = _fit_starts(u_of_z(z0), data, static, store_, path, bar, fallback=True)
+        outcome = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), outcome, second)
+        report = _best_of(outcome, calibration, layout, data, static, bar, fitted)
+    result, best, data = report
     if profiles:
         bar.update(fitted + 1, f"profiles ({len(layout.labels)} values)")
         grid = profile_grid(result, layout)
@@ -208,7 +221,31 @@ def _calibrate(calibration, layout, data, static, z0, profiles, bar, store_, clo
     return dataclasses.replace(
         result, validation=validation, continuation=stages, seconds=time.perf_counter() - clock,
         smoothing={n: None if w is None else float(w) for n, w in widths.items()},
+        fallback=len(outcome.score) > len(z0),
     )  # fmt: skip
+
+
+class _Best(NamedTuple):
+    """The report at the best of a batch of fits, which fit it is, and the data with
+    that fit's noise."""
+
+    result: CalibrationResult
+    best: int
+    data: CalibrationData
+
+
+def _best_of(outcome, calibration, layout, data, static, bar, fitted) -> _Best:
+    """The report at the best (lowest score) of `outcome`'s fits, with how many reached
+    it (within `REACHED`) of all of them."""
+    score = np.asarray(outcome.score)
+    score = np.where(np.isfinite(score), score, np.inf)
+    best = int(np.argmin(score))
+    at_best = int(np.sum(score <= score[best] + REACHED))
+    bar.update(fitted, f"fitted in {int(outcome.steps[best])} steps; uncertainty")
+    data = eqx.tree_at(lambda d: d.sigma, data, outcome.sigma[best])
+    result = lane_report(calibration, layout, data, static, outcome, best, starts=len(score),
+                         at_best=at_best)  # fmt: skip
+    return _Best(result, best, data)
 
 
 def validate(
@@ -279,8 +316,9 @@ def fit_many(
 ) -> list[dict[str, Any]]:
     """Fit many data sets of the same experiments (one compiled program): e.g. noise
     draws of a synthetic test, each from the calibration's start through the
-    `continuation`'s stages as `calibrate` fits. `measured[b][e]`: the signals of
-    experiment `e` in data set `b`, on that experiment's sample times; `progress`: a
+    `continuation`'s stages as `calibrate` fits (its first path: no fallback).
+    `measured[b][e]`: the signals of experiment `e` in data set `b`, on that
+    experiment's sample times; `progress`: a
     progress line (on `stream`, default stderr) as each `chunk` of sets is fitted (one
     program for every chunk, the last padded). Returns each set's fitted values
     by label with their standard errors (`"<label>.stderr"`; NaN where withheld), a

@@ -59,7 +59,7 @@ def open_store(
         CalibrationStore, path, label="calibrate",
         identity=lambda: campaign_identity(
             "calibration", data, static, np.asarray(z0), bool(profiles),
-            *(() if continuation is None else (continuation.to_json(),)),
+            *(() if continuation is None else continuation.identity()),
         ),
         total=total, plan={"starts_per_chunk": STARTS_PER_CHUNK}, description=description,
         progress=progress, columns=(),

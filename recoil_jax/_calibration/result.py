@@ -81,7 +81,8 @@ class CalibrationResult:
       noise); `rms`: per signal, the RMS residual (its unit); `sigma`: per experiment and
       signal, the noise used (given or estimated).
     - `converged`: the best start's fit converged; `starts`, `starts_at_best`: how many
-      starts were run and how many reached the best (−2 log-likelihood within
+      starts were run (each again where the fallback path ran: `fallback`) and how many
+      reached the best (−2 log-likelihood within
       `REACHED`, 0.01); `continuation`: the widths fitted before the calibration's own;
       `smoothing`: the calibration's own, where the result is.
       `verdict`: the check and the starts together (`"explains"`, `"wrong_model"`,
@@ -145,6 +146,9 @@ class CalibrationResult:
     #: parts the design lacks at the model's: `acting_smoothing`; None: the width its
     #: rule derives).
     smoothing: dict[str, float | None] = dataclasses.field(default_factory=dict)
+    #: The model check failed at the best point of the continuation's path, so the fit
+    #: ran its fallback path too (`Continuation.fallback`); the result is the best of both.
+    fallback: bool = False
 
     @property
     def verdict(self) -> str:
@@ -212,6 +216,7 @@ class CalibrationResult:
             "verdict": self.verdict,
             "continuation": self.continuation,
             "smoothing": self.smoothing,
+            "fallback": self.fallback,
             "model": {"structure": self.structure, "defaults": self.defaults},
             "model_check": self.check.to_json(),
             "starts": self.starts,

@@ -69,6 +69,8 @@ def _fit(calibration, truth, options) -> dict:
         "converged": result.converged,
         "verdict": result.verdict,
         "starts_at_best": result.starts_at_best,
+        "fallback": result.fallback,
+        "unresolved": len(result.unresolved),
         "within": bool(result.converged and result.explains and worst <= WITHIN_STDERR),
         "apart_stderr": apart,
         "values": dict(result.values),
@@ -106,7 +108,8 @@ def round_trip(
                 where = "on the truth" if fit["within"] else "OFF the truth"
                 worst = max(fit["apart_stderr"].values())
                 log(f"  truth {t} draw {d} {way}: {fit['seconds']:.1f} s, {where} (worst "
-                    f"{worst:.2f} stderr), {fit['verdict']}")  # fmt: skip
+                    f"{worst:.2f} stderr), {fit['verdict']}"
+                    + (", through the fallback path too" if fit["fallback"] else ""))  # fmt: skip
     return {
         "plan": str(path),
         "firings": [plan.conditions[c] | {"signals": list(s)} for c, s in report.firings],
@@ -128,10 +131,12 @@ def format_round_trip(result: dict) -> str:
             on = sum(r["within"] for r in rows)
             verdicts = {v: sum(r["verdict"] == v for r in rows) for v in
                         ("explains", "local_minimum", "wrong_model")}  # fmt: skip
+            fallbacks = sum(r.get("fallback", False) for r in rows)
             lines.append(
                 f"  {way}, truth {t}: on the truth (within {result['within_stderr']:g} "
                 f"stderr) in {on} of {len(rows)} draws; {np.median(seconds):.1f} s a fit "
                 f"(median; {min(seconds):.1f}-{max(seconds):.1f}); verdicts "
                 + ", ".join(f"{k} {v}" for k, v in verdicts.items())
+                + f"; the fallback path in {fallbacks}"
             )
     return "\n".join(lines)
