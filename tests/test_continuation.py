@@ -128,6 +128,10 @@ def test_a_fit_the_model_check_rejects_takes_the_fallback_path_before_its_verdic
     result = rj.calibrate(wrong, progress=False)
     assert result.fallback and result.starts == 4
     assert not result.explains and result.to_json()["fallback"] is True
+    if result.verdict == "local_minimum":  # what the command line then says
+        from recoil_jax.apps._cli.calibrate import _stuck_line
+
+        assert "of 4 fits (2 starts through both continuation paths)" in _stuck_line(result)
     alone = rjx.Continuation(rjx.DEFAULT_CONTINUATION.widths)  # no fallback
     single = rj.calibrate(wrong, continuation=alone, progress=False)
     assert not single.fallback and single.starts == 2 and not single.explains

@@ -445,7 +445,9 @@ WRONG_MODEL_SUSPECTS = (
 def _stuck_line(result: rj.CalibrationResult) -> str:
     """What to say, and to try, when the fit's best point was reached from one start."""
     others = result.starts - result.starts_at_best
-    reached = (f"reached from 1 of {result.starts} starts, the other{'s' if others > 1 else ''} "
+    fits = (f"fits ({result.starts // 2} starts through both continuation paths)"
+            if result.fallback else "starts")  # fmt: skip
+    reached = (f"reached from 1 of {result.starts} {fits}, the other{'s' if others > 1 else ''} "
                "ending elsewhere" if result.starts > 1 else "from the one start run")  # fmt: skip
     pace = result.seconds / max(result.starts, 1)
     stages = result.continuation
