@@ -131,9 +131,11 @@ def test_a_calibration_s_file_draws_its_traces_at_the_widths_it_fits_at(tmp_path
 def test_the_calibration_s_friction_widths_take_the_bias_off_the_friction():
     """On the independent reference solver's traces of the shipped plan (truth 0 of
     `bench-calibration --round-trip`, its draw 0), fitted from the truth itself: at the
-    model's friction widths the friction coefficient lands more than 4 standard errors
+    model's friction widths the friction coefficient lands more than 2 standard errors
     high (the smoothed stick moves the return into battery), at the calibration's every
-    value is within 3 (measured: μ +5.6 and −0.3 standard errors)."""
+    value is within 3, and its `μ` more than 10 times nearer the truth (measured: μ +2.3
+    and −0.16 standard errors, 3.5e-4 and −2.4e-5 off; +5.6 before the standard errors
+    left out the samples on the stick, whose slope at 0.3 ms is the smoothing's)."""
     import dataclasses
 
     import recoil_jax as rj
@@ -148,12 +150,14 @@ def test_the_calibration_s_friction_widths_take_the_bias_off_the_friction():
     calibration = rjx.plan_calibration(plan, plan.plan, planned_traces(plan, plan.plan, truth, 0))
     assert calibration.smoothing == rjx.CALIBRATION_SMOOTHING
     start = np.asarray([[truth[n] for n in calibration.fit]])
-    apart = {}
+    apart, off = {}, {}
     for label, smoothing in (("model", rj.Smoothing()), ("calibration", calibration.smoothing)):
         fitted = rj.calibrate(dataclasses.replace(calibration, smoothing=smoothing),
                               starts=start, continuation=None, progress=False)  # fmt: skip
         assert fitted.converged and fitted.verdict == "explains", label
         apart[label] = {n: (fitted.values[n] - v) / fitted.fitted[n].stderr
                         for n, v in truth.items()}  # fmt: skip
-    assert apart["model"]["friction_coefficient"] > 4.0, apart
+        off[label] = fitted.values["friction_coefficient"] - truth["friction_coefficient"]
+    assert apart["model"]["friction_coefficient"] > 2.0, apart
     assert all(abs(a) < 3.0 for a in apart["calibration"].values()), apart
+    assert off["model"] > 10 * abs(off["calibration"]), off
