@@ -950,6 +950,22 @@ def test_a_calibration_store_keeps_its_identity(tmp_path):
     assert identity == campaign_identity("calibration", *parts)
 
 
+def stop_fit_program_at(monkeypatch, calibrate_module, call: int) -> list[int]:
+    """`calibrate`'s fit program interrupted (`KeyboardInterrupt`) at its `call`-th call,
+    once; returns the list of each call's start count, which the caller may clear."""
+    real, calls, armed = calibrate_module.fit_program, [], [True]
+
+    def stopped(u0, *args):
+        calls.append(len(u0))
+        if armed[0] and len(calls) == call:
+            armed[0] = False
+            raise KeyboardInterrupt
+        return real(u0, *args)
+
+    monkeypatch.setattr(calibrate_module, "fit_program", stopped)
+    return calls
+
+
 @pytest.mark.slow  # three fit programs compiled (12, 8 and 4 starts)
 def test_a_stored_calibration_resumes_to_the_same_result(tmp_path, monkeypatch, capsys):
     """With a store, the starts are fitted in parts of 8, each committed: a calibration
@@ -960,16 +976,8 @@ def test_a_stored_calibration_resumes_to_the_same_result(tmp_path, monkeypatch, 
 
     calibration = rj.Calibration([rjx.Experiment(trace(TRUTH, n=201))], fit=BOX)
     plain = rj.calibrate(calibration, starts=12, progress=False)
-    real, calls = calibrate_module.fit_program, []
-
-    def stopped_after_one(u0, *args):
-        calls.append(len(u0))
-        if len(calls) == 2:
-            raise KeyboardInterrupt
-        return real(u0, *args)
-
     store = tmp_path / "fit.sqlite"
-    monkeypatch.setattr(calibrate_module, "fit_program", stopped_after_one)
+    calls = stop_fit_program_at(monkeypatch, calibrate_module, 2)
     with pytest.raises(KeyboardInterrupt):
         rj.calibrate(calibration, starts=12, store=store, progress=False)
     assert rj.campaign_progress(store).line().startswith("calibration: 8/12 fits")
@@ -1001,19 +1009,11 @@ def test_a_calibration_stopped_inside_its_continuation_resumes_to_the_same_resul
     plain = rj.calibrate(calibration, starts=1, progress=False)
     stages = len(plain.continuation["buffer_width"])
     assert stages == 5
-    real, calls, stop_at = calibrate_module.fit_program, [], [3]
-
-    def stopped_in_the_third_stage(u0, *args):
-        calls.append(len(u0))
-        if len(calls) in stop_at:
-            raise KeyboardInterrupt
-        return real(u0, *args)
-
     store = tmp_path / "fit.sqlite"
-    monkeypatch.setattr(calibrate_module, "fit_program", stopped_in_the_third_stage)
+    calls = stop_fit_program_at(monkeypatch, calibrate_module, 3)  # the third stage's
     with pytest.raises(KeyboardInterrupt):
         rj.calibrate(calibration, starts=1, store=store, progress=False)
-    calls.clear(), stop_at.clear()
+    calls.clear()
     resumed = rj.calibrate(calibration, starts=1, store=store, progress=False)
     assert len(calls) == stages + 1 - 2  # the two stages stored are read, not fitted
     assert resumed.values == plain.values and resumed.chi2 == plain.chi2
