@@ -36,7 +36,8 @@ not need them; `docs/developers.md` shows how to plug a part in.
   `worst_case`: each metric's worst over a scatter of designs; `read_text`: a text
   file, or one line saying why not (`MAX_TEXT_BYTES`: the most it reads); `written`: a
   file written whole or not at all, a failure naming it;
-  `check_memory`: refuse a count whose arrays would take over half the free memory.
+  `check_memory`: refuse a count whose arrays would take over half the free memory;
+  `check_integer`: an integer setting (a count, a seed) in its range, or the one refusal.
 - `HAZARDS`, `Hazard`, `design_hazards`, `hazard_flags`: the hazards every report names
   unasked (`docs/model.md`), their registry, one design's from its values and metrics,
   and a batch's as boolean arrays (`rj.peaks_hazards` takes a solved design).
@@ -105,7 +106,7 @@ from ._model.hazards import HAZARDS, Hazard, design_hazards, hazard_flags
 from ._model.metrics import PEAK_FIELDS, Metric, gradient_key, worst_case
 from ._model.programs import live_programs, set_max_programs, structure_jit
 from ._model.reference import reference_history
-from ._model.registry import Parameter
+from ._model.registry import Parameter, check_integer
 from ._model.settings import T1_LIMITS, end_time
 from ._model.status import OK_CODE, status_codes, status_messages, status_table
 from ._model.text_files import MAX_TEXT_BYTES, read_text, written
@@ -164,6 +165,7 @@ __all__ = [
     "Trace",
     "batch_params",
     "candidate_information",
+    "check_integer",
     "check_memory",
     "check_plan",
     "check_tests_memory",

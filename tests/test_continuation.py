@@ -135,3 +135,51 @@ def test_a_fit_the_model_check_rejects_takes_the_fallback_path_before_its_verdic
     alone = rjx.Continuation(rjx.DEFAULT_CONTINUATION.widths)  # no fallback
     single = rj.calibrate(wrong, continuation=alone, progress=False)
     assert not single.fallback and single.starts == 2 and not single.explains
+
+
+def test_starts_at_one_point_are_fitted_once_from_it():
+    """The same start given twice: its first stage ends both at one point, and each later
+    stage fits that point once (4 calls of the fit's program, not 6), the outcome the second start's
+    too. The result is the single start's bit for bit, reached from both starts."""
+    from recoil_jax._calibration import calibrate as module
+
+    calibration = _firing(seed=3)
+    path = rjx.Continuation({"buffer_width": (1e-2, 1e-4)})
+    start = np.array([calibration.start[name] for name in BOX])
+    calls = []
+    program = module.fit_program
+
+    def counted(u0, *args):
+        calls.append(len(u0))
+        return program(u0, *args)
+
+    single = rj.calibrate(calibration, starts=start[None], continuation=path, progress=False)
+    module.fit_program = counted
+    try:
+        twice = rj.calibrate(calibration, starts=np.stack([start, start]), continuation=path,
+                             progress=False)  # fmt: skip
+    finally:
+        module.fit_program = program
+    assert calls == [1, 1, 1, 1]  # stage 1 from each start, then stage 2 and the fit once
+    assert twice.starts == 2 and twice.starts_at_best == 2
+    assert twice.values == single.values and twice.steps == single.steps
+    assert twice.chi2 == single.chi2
+
+
+@pytest.mark.parametrize(
+    ("cost", "z", "same", "expected"),
+    [
+        ([10.0, 10.005, 10.0], [0.5, 0.5005, 0.5], [0, 1, 2], [0, 0, 0]),
+        ([10.0, 10.02, 10.0], [0.5, 0.5, 0.5], [0, 1, 2], [0, 1, 0]),  # χ² apart
+        ([10.0, 10.0, 10.0], [0.5, 0.502, 0.5], [0, 1, 2], [0, 1, 0]),  # values apart
+        ([10.0, 11.0, 11.0], [0.5, 0.6, 0.6], [0, 1, 1], [0, 1, 1]),  # followers stay
+        ([11.0, 11.0, 11.0], [0.6, 0.6, 0.6], [0, 1, 1], [0, 0, 0]),  # ... and move with it
+        ([np.nan, np.nan, 10.0], [0.5, 0.5, 0.5], [0, 1, 2], [0, 1, 2]),  # failed: never
+    ],
+)
+def test_the_points_starts_share_after_a_stage(cost, z, same, expected):
+    from recoil_jax._calibration.calibrate import _same_points
+
+    u = np.arcsin(2.0 * np.asarray(z)[:, None] - 1.0)
+    out = _same_points(u, np.asarray(cost), np.asarray(same))
+    assert out.tolist() == expected

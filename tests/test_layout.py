@@ -366,6 +366,7 @@ RJX_NAMES = (
     "T_SHIFT",
     "Trace",
     "batch_params",
+    "check_integer",
     "check_memory",
     "default_local",
     "default_workers",

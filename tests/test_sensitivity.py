@@ -292,7 +292,7 @@ def test_bad_input_is_refused_before_anything_runs(kwargs, message):
 @pytest.mark.parametrize(
     ("make", "message"),
     [
-        (lambda: rj.SobolIndices(samples=32), "samples = 32: give an integer >= 64"),
+        (lambda: rj.SobolIndices(samples=32), "samples = 32: valid an integer >= 64"),
         (lambda: rj.SobolIndices(samples=1000), "a power of 2 .e.g. 512 or 1024"),
         (lambda: rj.MorrisEffects(levels=5), "levels = 5: give an even number"),
         (lambda: rj.MorrisEffects(trajectories=2), "trajectories = 2"),
@@ -421,7 +421,7 @@ def test_each_example_has_its_own_default_output_folder(tmp_path, monkeypatch, c
         (SMALL.replace('name = "sobol"', 'name = "fast"'), "name = 'fast': give one of \"sobol\""),
         (SMALL.replace("samples = 64", "trajectories = 8"), "'trajectories' is not a setting"),
         (SMALL.replace("samples = 64", "samples = 100"), "a power of 2"),
-        (SMALL.replace("samples = 64", "samples = 32"), r"samples = 32: give an integer >= 64"),
+        (SMALL.replace("samples = 64", "samples = 32"), r"samples = 32: valid an integer >= 64"),
         (
             SMALL.replace("gap = [0.059, 0.065]", "kk = [1.0, 2.0]"),
             "unknown parameter 'kk'; known: M, k,",
@@ -442,7 +442,7 @@ def test_each_example_has_its_own_default_output_folder(tmp_path, monkeypatch, c
         (SMALL.replace('name = "sobol"', 'name = ["sobol"]'), r"name = \['sobol'\]: give one of"),
         (SMALL.replace("samples = 64", "samples = 1073741824"), "more than 16,777,216"),
         (SMALL.replace("samples = 64", "samples = 64\nsecond_order = 'yes'"), "true or false"),
-        (SMALL.replace("samples = 64", "samples = 64\nresamples = 1000000"), "at most 10000"),
+        (SMALL.replace("samples = 64", "samples = 64\nresamples = 1000000"), "from 10 to 10,000"),
         (
             SMALL.replace("names = [", "objective = { bogus = 1.0 }\nnames = ["),
             r"\[metrics\] objective: unknown metric 'bogus'",

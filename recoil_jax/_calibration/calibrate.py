@@ -44,6 +44,10 @@ __all__ = ["DEFAULT_STARTS", "calibrate", "fit_many", "validate"]
 
 #: The starts a calibration fits from unless told: the given start and one Sobol point.
 DEFAULT_STARTS = 2
+#: Two starts ended a continuation's stage at the same point when their χ² there is
+#: within `REACHED` and every value within this of each other, in box coordinates (the
+#: bounds 0 and 1): the next stages fit that point once (`_same_points`).
+SAME_POINT = 1e-3
 
 
 def calibrate(
@@ -124,7 +128,9 @@ def _fit_starts(
     Each stage runs `chunk` starts a call of one compiled program, the same for every
     stage (the widths are leaves of `data`): one start a call (lanes of `static.lanes`),
     or with a store one part per `starts_per_chunk` of its plan (the last padded to it),
-    each read or committed. The progress line says each stage's starts as they end.
+    each read or committed. Starts that end a stage at one point (`_same_points`) are
+    fitted once from it in every later stage, its outcome theirs too (not where each
+    start has its own data set). The progress line says each stage's starts as they end.
     `measured (N, E, S, n)`: each start's own data set (`fit_many`; default: the
     calibration's, for every start); `chunk`: the starts a call without a store;
     `fallback`: this is the continuation's fallback path (its parts stored under their
@@ -136,9 +142,6 @@ def _fit_starts(
     stages = 0 if continuation is None else continuation.stages
     warm = dataclasses.replace(static, estimate_noise=False)
 
-    if measured is None:
-        measured = np.broadcast_to(np.asarray(data.measured), (len(u0), *data.measured.shape))
-
     def pad(a):
         return np.concatenate([a, np.repeat(a[-1:], size - len(a), axis=0)])
 
@@ -147,6 +150,13 @@ def _fit_starts(
         # (a fit costs less than a compilation); the padding's fits are dropped.
         outcome = fit_program(jnp.asarray(pad(u)), jnp.asarray(pad(sets)), data_, static_)
         return {f.name: getattr(outcome, f.name)[: len(u)] for f in dataclasses.fields(outcome)}
+
+    # Starts that ended a stage at the same point are fitted once from it in the next
+    # (`_same_points`), the one's outcome copied to the others: only where every start
+    # fits the same data.
+    merge = measured is None
+    if measured is None:
+        measured = np.broadcast_to(np.asarray(data.measured), (len(u0), *data.measured.shape))
 
     # Each stage: its data (the widths are leaves of it), settings and words.
     plan = [
@@ -158,16 +168,19 @@ def _fit_starts(
     u, steps = np.asarray(u0), np.zeros(len(u0), dtype=np.int64)
     outcome: dict[str, np.ndarray] = {}
     first = bar.done if fallback else 0  # the progress line's count where this path starts
+    same = np.arange(len(u))  # each start's representative: the start fitted for it
     for stage, (data_, static_, what) in enumerate(plan):
         last = stage == stages
-        parts, best = [], np.inf
-        for begin in range(0, len(u), size):
-            starts_u = np.asarray(u[begin : begin + size])
-            sets = np.asarray(measured[begin : begin + size])
+        fitted = np.unique(same)  # the starts this stage fits
+        parts, best, done = [], np.inf, 0
+        for begin in range(0, len(fitted), size):
+            starts = fitted[begin : begin + size]
+            starts_u, sets = np.asarray(u[starts]), np.asarray(measured[starts])
             name = f"fit:{begin}" if last else f"stage{stage}:{begin}"
             name = f"fallback:{name}" if fallback else name
+            represented = int(np.isin(same, starts).sum())
             # A warm-up stage's parts hold no fit, nor does the fallback's.
-            fits = len(starts_u) if last and not fallback else 0
+            fits = represented if last and not fallback else 0
 
             def compute(u_=starts_u, m=sets, d=data_, s=static_):
                 return fit(u_, m, d, s)
@@ -176,17 +189,40 @@ def _fit_starts(
             parts.append(part)
             score = np.asarray(part["score"] if last else part["cost"], dtype=float)
             best = min(best, float(np.min(np.where(np.isfinite(score), score, np.inf))))
-            done = min(begin + size, len(u))
+            done += represented
+            merged = (f" (at {len(fitted)} point{'s' if len(fitted) > 1 else ''}, each fitted "
+                      "once)" if len(fitted) < len(u) else "")  # fmt: skip
             bar.update(first + stage * len(u) + done,
                        f"{'fallback: ' if fallback else ''}stage {stage + 1} of {stages + 1} "
-                       f"({what}): {done} of {len(u)} "
-                       f"starts, {int(np.max(part['steps']))} steps, best "
+                       f"({what}): {done} of {len(u)} starts{merged}, "
+                       f"{int(np.max(part['steps']))} steps, best "
                        f"{'score' if last else 'χ²'} {best:.6g}")  # fmt: skip
         outcome = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        outcome = {k: v[np.searchsorted(fitted, same)] for k, v in outcome.items()}
         steps = steps + outcome["steps"]
         u = outcome["u"]
+        if merge and not last:
+            same = _same_points(u, outcome["cost"], same)
     outcome["steps"] = steps
     return FitOutcome(**{k: jnp.asarray(v) for k, v in outcome.items()})
+
+
+def _same_points(u: np.ndarray, cost: np.ndarray, same: np.ndarray) -> np.ndarray:
+    """Each start's representative after a stage, `(N,)`, from `same`, the one it had
+    before: a start fitted in the stage follows the first such start whose cost there
+    is within `REACHED` of its own and every value within `SAME_POINT` of its own (box
+    coordinates), its followers with it. Such starts reached one optimum; the next
+    stage from it is deterministic, and fitting it once for each would spend the same
+    steps to the same point."""
+    z = (np.sin(u) + 1.0) / 2.0
+    out = same.copy()
+    for i in np.unique(same):
+        for j in np.unique(out)[np.unique(out) < i]:
+            if (np.isfinite(cost[i]) and abs(cost[i] - cost[j]) <= REACHED
+                    and np.max(np.abs(z[i] - z[j])) <= SAME_POINT):  # fmt: skip
+                out[out == i] = j  # i's own followers with it
+                break
+    return out
 
 
 def _calibrate(calibration, layout, data, static, z0, profiles, bar, store_, clock, continuation):

@@ -17,7 +17,7 @@ from .._model.derivatives import GRADIENT_OPTIONS, peak_jacobian
 from .._model.metrics import METRICS
 from .._model.parameter_table import PARAMETERS
 from .._model.params import params_from_values
-from .._model.registry import ParameterError
+from .._model.registry import ParameterError, check_integer
 from .._model.settings import Smoothing, SolverOptions
 from .._model.solve import peaks
 from .._model.text_files import read_text
@@ -271,8 +271,7 @@ def _checked_design(
     the data did not determine (`FittedParameters.check_determined`), or a fitted
     parameter given in `design`.
     """
-    if not (isinstance(samples, int) and samples >= 2):
-        raise ParameterError(f"samples = {samples!r} is invalid: valid an integer >= 2")
+    check_integer("samples", samples, 2)
     fitted.check_determined()
     design = dict(design or {})
     for name in design:

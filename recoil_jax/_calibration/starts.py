@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from .._model.registry import ParameterError
+from .._model.registry import ParameterError, check_integer
 from .layout import Layout
 
 __all__ = ["start_points"]
@@ -50,9 +50,7 @@ def _given_starts(layout: Layout, starts, seed: int) -> np.ndarray:
     outside its bounds (or not finite).
     """
     if isinstance(starts, int) and not isinstance(starts, bool):
-        if starts < 1:
-            raise ParameterError(f"starts = {starts!r} is invalid: valid an integer >= 1")
-        return _starts(layout, starts, seed)
+        return _starts(layout, check_integer("starts", starts, 1), seed)
     points = np.asarray(starts, dtype=float)
     if points.ndim != 2 or points.shape[1] != len(layout.labels) or len(points) == 0:
         raise ParameterError(

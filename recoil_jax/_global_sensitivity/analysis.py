@@ -26,7 +26,7 @@ from .._design.problem import Objective
 from .._model.metrics import METRICS, metric
 from .._model.parameter_table import PARAMETERS
 from .._model.params import RecoilParams, params_from_values, params_to_values
-from .._model.registry import ParameterError
+from .._model.registry import ParameterError, check_integer
 from .._model.settings import Smoothing, SolverOptions
 from .._model.status import SolveError
 from .._sweeps.result import SweepResult
@@ -64,10 +64,7 @@ MAX_RESAMPLES = 10_000
 
 
 def _count(owner: str, key: str, value: Any, least: int, most: int | None = None) -> None:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < least:
-        raise ParameterError(f"{owner}.{key} = {value!r}: give an integer >= {least}")
-    if most is not None and value > most:
-        raise ParameterError(f"{owner}.{key} = {value!r}: give at most {most}")
+    check_integer(f"{owner}.{key}", value, least, most)
 
 
 class SensitivityMethod(eqx.Module):

@@ -23,7 +23,7 @@ import equinox as eqx
 import jax
 from jax.experimental.compilation_cache import compilation_cache
 
-from .._model.registry import ParameterError, is_concrete
+from .._model.registry import check_integer, is_concrete
 
 __all__ = [
     "CACHE_ENVIRONMENT",
@@ -157,8 +157,7 @@ def set_max_programs(count: int) -> int:
     Each program maps several hundred memory regions, and Linux allows a process about
     65,000: without a bound, a notebook or the explorer that visits a few hundred model
     structures would fail to compile the next one."""
-    if not isinstance(count, int) or count < 1:
-        raise ParameterError(f"max programs = {count!r} is invalid: valid is an integer >= 1")
+    check_integer("max programs", count, 1)
     with _lock:
         previous, _limit[0] = _limit[0], count
         while len(_programs) > count:

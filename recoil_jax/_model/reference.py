@@ -480,24 +480,7 @@ class _HardModel:
                 kind="velocity",
             )
         ]
-        if self.absorber:
-            events.append(
-                _Event(
-                    lambda t, y, mode: y[0] - y[2] - self.gap,
-                    direction=-1.0 if mode.contact else 1.0,
-                    terminal=True,
-                    kind="contact",
-                )
-            )
-            if mode.contact and self.lam > 0:
-                events.append(
-                    _Event(
-                        lambda t, y, mode: 1.0 + self.lam * (y[1] - y[3]),
-                        direction=1.0 if mode.clamped else -1.0,
-                        terminal=True,
-                        kind="clamp",
-                    )
-                )
+        events += self.absorber_events(mode)
         if self.buffer:
             K = len(self.knots)
             if mode.piece >= 0:
@@ -538,6 +521,30 @@ class _HardModel:
             )
         return events
 
+    def absorber_events(self, mode: _Mode) -> list[_Event]:
+        """The absorber's switches, held barrel or not: its contact with the barrel
+        closing or opening, and within contact the Hunt–Crossley clamp."""
+        if not self.absorber:
+            return []
+        events = [
+            _Event(
+                lambda t, y, mode: y[0] - y[2] - self.gap,
+                direction=-1.0 if mode.contact else 1.0,
+                terminal=True,
+                kind="contact",
+            )
+        ]
+        if mode.contact and self.lam > 0:
+            events.append(
+                _Event(
+                    lambda t, y, mode: 1.0 + self.lam * (y[1] - y[3]),
+                    direction=1.0 if mode.clamped else -1.0,
+                    terminal=True,
+                    kind="clamp",
+                )
+            )
+        return events
+
     def stuck_events(self, mode: _Mode) -> list[_Event]:
         """A barrel held by friction: it slips when the net force on it reaches ±F_max;
         only the absorber moves (its contact and clamp switches)."""
@@ -555,25 +562,7 @@ class _HardModel:
                 kind="slip back",
             ),
         ]
-        if self.absorber:
-            events.append(
-                _Event(
-                    lambda t, y, mode: y[0] - y[2] - self.gap,
-                    direction=-1.0 if mode.contact else 1.0,
-                    terminal=True,
-                    kind="contact",
-                )
-            )
-            if mode.contact and self.lam > 0:
-                events.append(
-                    _Event(
-                        lambda t, y, mode: 1.0 + self.lam * (y[1] - y[3]),
-                        direction=1.0 if mode.clamped else -1.0,
-                        terminal=True,
-                        kind="clamp",
-                    )
-                )
-        return events
+        return events + self.absorber_events(mode)
 
     def piece(self, x, v) -> int:
         """The orifice piece of position `x` (on a knot, the one `v` moves into)."""

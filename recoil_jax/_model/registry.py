@@ -32,6 +32,7 @@ __all__ = [
     "ParameterRegistry",
     "Validated",
     "as_float_array",
+    "check_integer",
     "check_value",
     "element_label",
     "float_leaf",
@@ -42,6 +43,21 @@ __all__ = [
 class ParameterError(ValueError):
     """An invalid parameter value. The message names the parameter, its value and the
     valid range."""
+
+
+def check_integer(key: str, value: Any, least: int, most: int | None = None) -> int:
+    """`value`, an integer setting `key` (a count, a seed, a number of draws) of at
+    least `least` and at most `most`; else the one refusal, `key = value: valid an
+    integer >= least` (`from least to most`). A bool is not an integer here."""
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, int | np.integer)
+        or value < least
+        or (most is not None and value > most)
+    ):
+        valid = f">= {least}" if most is None else f"from {least} to {most:,}"
+        raise ParameterError(f"{key} = {value!r}: valid an integer {valid}")
+    return int(value)
 
 
 #: How far above its documented range a value without an upper bound stays valid.

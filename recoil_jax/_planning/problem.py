@@ -16,7 +16,7 @@ from .._calibration.spec import check_fitted
 from .._model.derivatives import ABSORBER_SIGNALS, GRADIENT_OPTIONS, SIGNALS
 from .._model.parameter_table import PARAMETERS
 from .._model.params import RecoilParams, params_from_values
-from .._model.registry import ParameterError, check_value
+from .._model.registry import ParameterError, check_integer, check_value
 from .._model.settings import Smoothing, SolverOptions
 from .._sweeps.memory import check_memory
 
@@ -180,21 +180,14 @@ class PlanProblem:
                 f"sampling: rate × duration = {self.samples:,} samples a signal: valid 1 to "
                 f"{MAX_SAMPLES:,}"
             )
-        if isinstance(self.firings, bool) or not isinstance(self.firings, int):
-            raise ParameterError(f"budget.firings = {self.firings!r}: valid an integer >= 1")
-        if not 1 <= self.firings <= 50:
-            raise ParameterError(f"budget.firings = {self.firings}: valid 1 to 50")
+        check_integer("budget.firings", self.firings, 1, 50)
         if self.criterion not in (*CRITERIA, *self.fit):
             raise ParameterError(
                 f"criterion = {self.criterion!r}: valid {', '.join(CRITERIA)} or a fitted "
                 f"parameter ({', '.join(self.fit)})"
             )
-        if isinstance(self.robust, bool) or not isinstance(self.robust, int):
-            raise ParameterError(f"robust = {self.robust!r}: valid an integer from 0 to 256")
-        if not 0 <= self.robust <= 256:
-            raise ParameterError(f"robust = {self.robust}: valid 0 to 256 draws")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ParameterError(f"seed = {self.seed!r}: valid an integer >= 0")
+        check_integer("robust", self.robust, 0, 256)
+        check_integer("seed", self.seed, 0)
         self._check_size()
         # The design as a whole at every candidate (e.g. a mount lighter than the gun).
         for condition in self.conditions:

@@ -30,7 +30,7 @@ if TYPE_CHECKING:
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-from .._files.options import Commands
+from .._files.options import Commands, add_json
 from .speed import host_description
 
 __all__ = [
@@ -452,4 +452,4 @@ def add_command(commands: Commands) -> None:
         "--compare", type=int, default=1, metavar="N",
         help="with --round-trip: draws a truth fitted the other ways too",
     )  # fmt: skip
-    calibration_bench.add_argument("--json", action="store_true", help="print JSON")
+    add_json(calibration_bench, "JSON")

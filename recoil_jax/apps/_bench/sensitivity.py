@@ -23,7 +23,7 @@ import numpy as np
 
 import recoil_jax as rj
 
-from .._files.options import Commands
+from .._files.options import Commands, add_json
 from .._studies.sensitivity_file import load_sensitivity
 from .speed import SCIPY_SETTINGS, host_description
 
@@ -202,4 +202,4 @@ def add_command(commands: Commands) -> None:
         "same designs, its time for all of them and how far its peaks are from ours.",
     )
     sensitivity_bench.add_argument("--quick", action="store_true", help="small sizes")
-    sensitivity_bench.add_argument("--json", action="store_true", help="print JSON")
+    add_json(sensitivity_bench, "JSON")

@@ -18,7 +18,7 @@ import numpy as np
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-from .._files.options import Commands
+from .._files.options import Commands, add_json
 
 __all__ = [
     "CLI_COMMANDS",
@@ -646,7 +646,7 @@ def add_command(commands: Commands) -> None:
         "for 1 to 22 parameters, and the first and second run of simulate, sweep and "
         "optimise (the compilation cache): about 10 minutes more.",
     )
-    bench.add_argument("--json", action="store_true", help="print one JSON object")
+    add_json(bench, "one JSON object")
     bench.add_argument("--quick", action="store_true", help="small batches (a smoke run)")
     bench.add_argument(
         "--full", action="store_true", help="add the gradient modes and the CLI cache timings"

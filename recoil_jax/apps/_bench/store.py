@@ -13,7 +13,7 @@ from pathlib import Path
 
 import recoil_jax as rj
 
-from .._files.options import Commands
+from .._files.options import Commands, add_json
 
 __all__ = ["add_command", "format_store_bench", "main_store_bench", "run_store_bench"]
 
@@ -154,4 +154,4 @@ def add_command(commands: Commands) -> None:
     store_bench.add_argument(
         "--designs", type=int, default=1_000_000, metavar="N", help="designs (default 1000000)"
     )
-    store_bench.add_argument("--json", action="store_true", help="print one JSON object")
+    add_json(store_bench, "one JSON object")

@@ -33,7 +33,7 @@ import recoil_jax as rj
 import recoil_jax.extend as rjx
 
 from .._files.cluster import dask_client
-from .._files.options import Commands
+from .._files.options import Commands, add_cluster, add_json
 from .._studies.study_file import load_study, search_kwargs
 
 __all__ = [
@@ -473,7 +473,7 @@ def add_command(commands: Commands) -> None:
     tuning.add_argument(
         "problems", nargs="*", help="shipped study names (default: all five problems)"
     )
-    tuning.add_argument("--json", action="store_true", help="print one JSON object")
+    add_json(tuning, "one JSON object")
     tuning.add_argument("--seed", type=int, default=0, help="seed of every method (default 0)")
     tuning.add_argument(
         "--seeds",
@@ -497,14 +497,4 @@ def add_command(commands: Commands) -> None:
         "cma_es (default: all four)",
     )
     tuning.add_argument("--out", help="folder for the convergence figures (default: none)")
-    tuning.add_argument(
-        "--workers",
-        type=int,
-        metavar="N",
-        help="run every batch of plain solves on a local Dask cluster of N worker processes",
-    )
-    tuning.add_argument(
-        "--scheduler",
-        metavar="ADDRESS",
-        help="run every batch of plain solves on the running Dask cluster at ADDRESS",
-    )
+    add_cluster(tuning, "every batch of plain solves")

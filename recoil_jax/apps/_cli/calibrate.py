@@ -30,7 +30,7 @@ from .._files.inputs import (
     warn,
 )
 from .._files.json_writer import dumps, write as write_json
-from .._files.options import Commands, add_max_steps
+from .._files.options import Commands, add_json, add_max_steps, add_store
 
 __all__ = [
     "MAX_EXPERIMENTS",
@@ -635,16 +635,12 @@ def add_command(commands: Commands) -> None:
         help="then predict this design's peaks with 95%% bands from the fitted "
         "uncertainty (10,000 samples and linear propagation; prediction.png)",
     )
-    calibrate.add_argument(
-        "--store",
-        metavar="FILE.sqlite",
-        help="commit each finished part of the fit (8 starts, the profiles) to this "
-        "SQLite file; the same command with the same store resumes a stopped calibration",
-    )
+    add_store(calibrate, "commit each finished part of the fit (8 starts, the profiles)",
+              "calibration")  # fmt: skip
     calibrate.add_argument(
         "--force-table",
         metavar="FILE.csv",
         help="with a trace: the breech force of one round it fired (header t_s,F_N)",
     )
-    calibrate.add_argument("--json", action="store_true", help="print result.json")
+    add_json(calibrate)
     add_max_steps(calibrate)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 
 from .._files.json_writer import dumps as json_dumps
-from .._files.options import Commands
+from .._files.options import Commands, add_cluster, add_json, add_store
 
 __all__ = ["INFEASIBLE", "add_command", "run_optimise"]
 
@@ -57,27 +57,12 @@ def add_command(commands: Commands) -> None:
     )
     opt.add_argument("study", help="study file or name, e.g. optimise/paper_gap.toml")
     opt.add_argument("--out", help="output folder (default results/<study name>)")
-    opt.add_argument("--json", action="store_true", help="print result.json to stdout")
+    add_json(opt)
     opt.add_argument(
         "--seed",
         type=int,
         metavar="N",
         help="seed of the optimiser's samples and starts (default: the study's, else 0)",
     )
-    opt.add_argument(
-        "--store",
-        metavar="FILE.sqlite",
-        help="commit every evaluation of the optimiser to this SQLite file; the same "
-        "command with the same store resumes a stopped study (docs/campaigns.md)",
-    )
-    opt.add_argument(
-        "--workers",
-        type=int,
-        metavar="N",
-        help='run the global phase (method "search") on a local Dask cluster of N worker processes',
-    )
-    opt.add_argument(
-        "--scheduler",
-        metavar="ADDRESS",
-        help='run the global phase (method "search") on the running Dask cluster at ADDRESS',
-    )
+    add_store(opt, "commit every evaluation of the optimiser", "study")
+    add_cluster(opt, 'the global phase (method "search")')

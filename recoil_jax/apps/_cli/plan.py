@@ -19,7 +19,7 @@ from .._files.inputs import (
     warn,
 )
 from .._files.json_writer import dumps as json_dumps, write as write_json, write_text
-from .._files.options import Commands
+from .._files.options import Commands, add_json
 from .._studies.plan_file import load_plan
 
 __all__ = ["add_command", "calibration_skeleton", "ratio_range", "run_plan", "summary"]
@@ -204,7 +204,7 @@ def add_command(commands: Commands) -> None:
     )
     plan.add_argument("source", help="a plan file (.toml) or a shipped example's name")
     plan.add_argument("--out", help="output folder (default results/plan/<example or file name>)")
-    plan.add_argument("--json", action="store_true", help="print result.json")
+    add_json(plan)
     plan.add_argument(
         "--check",
         type=int,

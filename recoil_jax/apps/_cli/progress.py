@@ -6,7 +6,7 @@ import json
 
 import recoil_jax as rj
 
-from .._files.options import Commands
+from .._files.options import Commands, add_json
 
 __all__ = ["add_command", "run_progress"]
 
@@ -33,4 +33,4 @@ def add_command(commands: Commands) -> None:
         "left.",
     )
     prog.add_argument("store", metavar="FILE.sqlite", help="the store")
-    prog.add_argument("--json", action="store_true", help="print one JSON object")
+    add_json(prog, "one JSON object")

@@ -17,7 +17,7 @@ from .._files.inputs import (
     results_folder,
 )
 from .._files.json_writer import dumps as json_dumps, write as write_json, write_text
-from .._files.options import Commands, add_max_steps
+from .._files.options import Commands, add_cluster, add_json, add_max_steps, add_store
 from .._studies.sensitivity_file import load_sensitivity
 
 __all__ = ["add_command", "run_sensitivity", "summary", "write_samples"]
@@ -108,17 +108,7 @@ def add_command(commands: Commands) -> None:
     sens.add_argument(
         "--out", help="output folder (default results/sensitivity/<example or file name>)"
     )
-    sens.add_argument("--json", action="store_true", help="print result.json")
-    sens.add_argument(
-        "--store",
-        metavar="FILE.sqlite",
-        help="keep every design's result in this SQLite file; the same command resumes "
-        "a stopped run (docs/campaigns.md)",
-    )
-    sens.add_argument(
-        "--workers", type=int, metavar="N", help="solve on a local Dask cluster of N processes"
-    )
-    sens.add_argument(
-        "--scheduler", metavar="ADDRESS", help="solve on the running Dask cluster at ADDRESS"
-    )
+    add_json(sens)
+    add_store(sens, "keep every design's result", "run")
+    add_cluster(sens, "the solves")
     add_max_steps(sens)

@@ -18,7 +18,7 @@ from .._files.inputs import (
     parse_assignments,
     warn,
 )
-from .._files.options import Commands, add_force_table, add_max_steps
+from .._files.options import Commands, add_force_table, add_json, add_max_steps
 
 __all__ = ["MAX_TRACE_SAMPLES", "add_command", "run_simulate"]
 
@@ -240,7 +240,7 @@ def add_command(commands: Commands) -> None:
     )
     sim.add_argument("assignments", nargs="*", metavar="name=value")
     sim.add_argument("--hard", action="store_true", help="exact model with hard switches")
-    sim.add_argument("--json", action="store_true", help="print one JSON object")
+    add_json(sim, "one JSON object")
     sim.add_argument(
         "--plot", metavar="FILE.png", help="plot displacements and every force against time"
     )

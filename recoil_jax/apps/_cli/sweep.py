@@ -27,7 +27,14 @@ from .._files.inputs import (
     warn,
 )
 from .._files.json_writer import dumps as json_dumps
-from .._files.options import Commands, add_force_table, add_max_steps
+from .._files.options import (
+    Commands,
+    add_cluster,
+    add_force_table,
+    add_json,
+    add_max_steps,
+    add_store,
+)
 
 __all__ = [
     "MAX_AXIS",
@@ -344,28 +351,9 @@ def add_command(commands: Commands) -> None:
     )
     swp.add_argument("assignments", nargs="*", metavar="name=values")
     swp.add_argument("--points", metavar="FILE", help="designs from CSV or JSON")
-    swp.add_argument(
-        "--json",
-        action="store_true",
-        help="print a JSON list, in input order (keys as simulate --json + status)",
-    )
+    add_json(swp, "a JSON list, in input order (keys as simulate --json + status)")
     swp.add_argument("--out", metavar="DIR", help="folder for sweep.csv, sweep.npz, figures")
     add_force_table(swp)
-    swp.add_argument(
-        "--store",
-        metavar="FILE.sqlite",
-        help="commit each finished chunk to this SQLite file; the same command with the "
-        "same store resumes a stopped sweep (docs/campaigns.md)",
-    )
-    swp.add_argument(
-        "--workers",
-        type=int,
-        metavar="N",
-        help="run the chunks on a local Dask cluster of N worker processes",
-    )
-    swp.add_argument(
-        "--scheduler",
-        metavar="ADDRESS",
-        help="run the chunks on the running Dask cluster at ADDRESS (tcp://host:8786)",
-    )
+    add_store(swp, "commit each finished chunk", "sweep")
+    add_cluster(swp, "the chunks")
     add_max_steps(swp)

@@ -91,16 +91,10 @@ def file_integer(where, key: str, value, least: int, most: int | None = None) ->
     """An integer setting from a loaded file, at least `least` (at most `most`), or the
     one refusal: `{where}: key = value: valid an integer >= least` (`from least to
     most`; `where` None: no file to name)."""
-    if (
-        isinstance(value, bool)
-        or not isinstance(value, int)
-        or value < least
-        or (most is not None and value > most)
-    ):
-        valid = f">= {least}" if most is None else f"from {least} to {most:,}"
-        message = f"{key} = {value!r}: valid an integer {valid}"
-        raise rj.ParameterError(message) if where is None else file_error(where, message)
-    return value
+    try:
+        return rjx.check_integer(key, value, least, most)
+    except rj.ParameterError as refused:
+        raise refused if where is None else file_error(where, str(refused)) from None
 
 
 def read_calibration_section(

@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import recoil_jax as rj
 
-__all__ = ["Commands", "add_force_table", "add_max_steps"]
+__all__ = ["Commands", "add_cluster", "add_force_table", "add_json", "add_max_steps", "add_store"]
 
 
 class Commands:
@@ -43,3 +43,32 @@ def add_force_table(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--force-table", metavar="FILE.csv", help="breech force of one round (header t_s,F_N)"
     )
+
+
+def add_json(parser: argparse.ArgumentParser, prints: str = "result.json") -> None:
+    """`--json`: print what the command made as JSON (`prints` says what) on stdout."""
+    parser.add_argument("--json", action="store_true", help=f"print {prints}")
+
+
+def add_store(parser: argparse.ArgumentParser, keeps: str, campaign: str) -> None:
+    """`--store FILE.sqlite`: keep each finished part (`keeps`) of a `campaign` in an
+    SQLite file that the same command resumes from."""
+    parser.add_argument(
+        "--store",
+        metavar="FILE.sqlite",
+        help=f"{keeps} in this SQLite file; the same command with the same store resumes a "
+        f"stopped {campaign} (docs/campaigns.md)",
+    )
+
+
+def add_cluster(parser: argparse.ArgumentParser, runs: str) -> None:
+    """`--workers N` and `--scheduler ADDRESS`: run `runs` on a Dask cluster, local or
+    running."""
+    parser.add_argument(
+        "--workers", type=int, metavar="N",
+        help=f"run {runs} on a local Dask cluster of N worker processes",
+    )  # fmt: skip
+    parser.add_argument(
+        "--scheduler", metavar="ADDRESS",
+        help=f"run {runs} on the running Dask cluster at ADDRESS (tcp://host:8786)",
+    )  # fmt: skip

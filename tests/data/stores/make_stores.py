@@ -5,7 +5,9 @@ issue 54 changed every campaign's identity on purpose (the design's structure ga
 the firing envelope's groups, the smoothing its widths, the results their columns, a
 design problem its firing conditions), and again for the firing envelope's revision 2
 (issue 62: a store's `model` revision; `sweep_revision1.sqlite` is the sweep's store as
-it was before, kept to show that such a store is refused), with
+it was before, kept to show that such a store is refused), and the calibration's alone
+for issue 63 (the fit's third stopping test, a field of its settings, is in every
+calibration store's identity), with
 
     PYTHONPATH=<a checkout of 66a0bae> python tests/data/stores/make_stores.py tests/data/stores
 
