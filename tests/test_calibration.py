@@ -1085,3 +1085,56 @@ def test_the_fit_stops_where_a_rough_chi2_refuses_every_step():
     # vanishes (measured: 5 steps against 39), and ends no nearer.
     assert endless.result == optx.RESULTS.successful
     assert int(endless.stats["num_steps"]) > 4 * int(stopped.stats["num_steps"])
+
+
+def test_a_refused_step_in_a_sloppy_valley_does_not_stop_the_fit():
+    """A curved valley, stiff across and sloppy along (Rosenbrock's, residuals linear in
+    `(u₁ − u₀², 1 − u₀)` with weights 100 and 1), rippled as above, from a far start:
+    where the damping set by the stiff direction makes a damped step's gain small, the
+    fit does not stop along the valley (the gain test also asks for a Gauss–Newton step
+    under a standard error), and ends where the same fit without the gain test ends,
+    within 0.1 standard errors."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+    import optimistix as optx
+
+    from recoil_jax._calibration.least_squares import FAILED_RESIDUAL, _LevenbergMarquardt
+
+    rng = np.random.default_rng(7)
+    weights = jnp.asarray(np.repeat([[100.0, 0.0], [0.0, 1.0]], 20, axis=0))
+    offsets = jnp.asarray(rng.standard_normal(40))
+
+    class Data(eqx.Module):
+        present: jax.Array
+
+    def valley(u):
+        return jnp.stack([u[1] - u[0] ** 2, 1.0 - u[0]])
+
+    @jax.custom_jvp
+    def rough(u, args):
+        smooth = weights @ valley(u) - offsets
+        return smooth + 1e-2 * jnp.sin(1e6 * smooth)
+
+    @rough.defjvp
+    def _(primals, tangents):
+        u = primals[0]
+        return rough(*primals), weights @ jax.jvp(valley, (u,), (tangents[0],))[1]
+
+    args = (Data(jnp.ones(40, dtype=bool)), jnp.zeros(2, dtype=bool), jnp.zeros(2))
+
+    def fit(gain):
+        solver = _LevenbergMarquardt(rtol=1e-4, atol=1e-4, standard_errors=1e-3, gain=gain,
+                                     failed=0.5 * FAILED_RESIDUAL)  # fmt: skip
+        solution = optx.least_squares(rough, solver, jnp.array([-1.2, 1.0]), args=args,
+                                      max_steps=500, throw=False)  # fmt: skip
+        assert solution.result == optx.RESULTS.successful
+        return np.asarray(solution.value)
+
+    stopped, endless = fit(1e-3), fit(0.0)
+    J = np.asarray(jax.jacfwd(lambda u: weights @ valley(u))(jnp.asarray(endless)))
+    residuals = np.asarray(rough(jnp.asarray(endless), args))
+    variance = np.sum(residuals**2) / (40 - 2)
+    stderr = np.sqrt(variance * np.diag(np.linalg.inv(J.T @ J)))
+    assert np.all(np.abs(stopped - endless) < 0.1 * stderr), (stopped, endless, stderr)
+    assert abs(endless[0] - 1.0 + np.mean(offsets[20:])) < 3 * stderr[0]  # the valley's floor

@@ -280,9 +280,9 @@ def test_a_description_of_any_characters_is_written_as_toml(text):
     same, control characters included (`calibrate` once refused the file)."""
     import tomllib
 
-    from recoil_jax.apps._cli.plan import _toml_string
+    from recoil_jax.apps._files.calibration_file import toml_string
 
-    assert tomllib.loads(f"description = {_toml_string(text)}\n")["description"] == text
+    assert tomllib.loads(f"description = {toml_string(text)}\n")["description"] == text
 
 
 @pytest.mark.parametrize(

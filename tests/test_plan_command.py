@@ -147,7 +147,7 @@ def test_calibrate_reads_the_skeleton_with_the_traces(planned):
     """Once the traces exist (here by the reference solver), the skeleton is a
     calibration file: each experiment at its firing's conditions, with its noise."""
     out, problem, result = planned
-    from recoil_jax.apps._cli.calibrate import load_calibration
+    from recoil_jax.apps._files.calibration_file import load_calibration
 
     for i, firing in enumerate(result["plan"], 1):
         conditions = {k: v for k, v in firing.items() if k != "signals"}

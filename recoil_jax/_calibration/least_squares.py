@@ -70,13 +70,20 @@ _LM_TOLERANCE = 1e-4
 #: 16–37 steps a fit before, 6–7 after; the values the same within 0.001 standard
 #: errors).
 _LM_STANDARD_ERRORS = 1e-3
-#: ... or once a step was refused and the next is predicted to gain under this share
-#: of the residual variance in χ² (the cost of ~0.03 standard errors): on a χ² the
-#: solve's rounding and the friction's stick make rough at that scale, the Gauss–Newton
-#: step stays long and the trust region shrinks fourfold a step to nothing (measured on
-#: the round trip's last stage, truth 0 draw 0: 22 of its 45 steps refused one by one
-#: at χ² within 0.004 of the optimum).
+#: ... or once a step was refused, the next is predicted to gain under this share of
+#: the residual variance in χ² (the cost of ~0.03 standard errors), and the Gauss–Newton
+#: step would move the fit by under `_LM_GAIN_STANDARD_ERRORS`: on a χ² the solve's
+#: rounding and the friction's stick make rough at that scale, the Gauss–Newton step
+#: stays longer than the first test's 0.001 and the trust region shrinks fourfold a step
+#: to nothing (measured on the round trip's last stage, truth 0 draw 0: 22 of its 45
+#: steps refused one by one at χ² within 0.004 of the optimum, the step 0.02 standard
+#: errors long).
 _LM_GAIN = 1e-3
+#: The second half of that test: a damped step's gain is small wherever the damping is
+#: large, also with standard errors to go along a sloppy valley; the Gauss–Newton step
+#: bounds the distance left (on a rough χ² its length is mostly the ripples', so a
+#: bound much under 1 would keep the test from ever passing there).
+_LM_GAIN_STANDARD_ERRORS = 1.0
 #: Marquardt's first damping, a fraction of the largest diagonal of `JᵀJ` at the start
 #: (Madsen, Nielsen and Tingleff's τ for a start that may be far), instead of
 #: optimistix's damping of 1 whatever the residuals' scale: in noise units `JᵀJ` is
@@ -260,9 +267,9 @@ class _LevenbergMarquardt(optx.AbstractGaussNewton):
     """Levenberg–Marquardt (optimistix's Gauss–Newton with a damped Newton descent)
     with `_MarquardtTrustRegion` and two more stopping tests: the Gauss–Newton step from
     the last accepted point would move the fit by under `standard_errors`; or a step was
-    refused and the next is predicted to gain under `gain` of the residual variance in
-    χ². Never at a point where an experiment's solve failed (a residual of at least
-    `failed`)."""
+    refused, the next is predicted to gain under `gain` of the residual variance in χ²,
+    and the Gauss–Newton step is under `_LM_GAIN_STANDARD_ERRORS`. Never at a point
+    where an experiment's solve failed (a residual of at least `failed`)."""
 
     rtol: float
     atol: float
@@ -276,8 +283,9 @@ class _LevenbergMarquardt(optx.AbstractGaussNewton):
     verbose: Any = _quiet
 
     def terminate(self, fn, y, args, options, state, tags):
-        """optimistix's test, or the Gauss–Newton step left is under `standard_errors`
-        (not at the first step, nor where an experiment's solve failed)."""
+        """optimistix's test, or the Gauss–Newton step left is under `standard_errors`,
+        or a refused step leaves nothing to gain (not at the first step, nor where an
+        experiment's solve failed)."""
         done, result = super().terminate(fn, y, args, options, state, tags)
         data, held, _ = args
         jacobian, residuals = state.f_info.jac.as_matrix(), state.f_info.residual
@@ -292,6 +300,7 @@ class _LevenbergMarquardt(optx.AbstractGaussNewton):
         proposed = jacobian @ (state.y_eval - y)
         predicted = -jnp.sum(proposed * (2.0 * residuals + proposed))
         spent = (state.num_steps_since_acceptance > 0) & (predicted < self.gain * variance)
+        spent &= length2 <= _LM_GAIN_STANDARD_ERRORS**2 * variance
         near = (near | spent) & jnp.all(jnp.abs(residuals) < self.failed) & ~state.first_step
         return done | near, result
 

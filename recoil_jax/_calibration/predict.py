@@ -271,7 +271,7 @@ def _checked_design(
     the data did not determine (`FittedParameters.check_determined`), or a fitted
     parameter given in `design`.
     """
-    check_integer("samples", samples, 2)
+    samples = check_integer("samples", samples, 2)
     fitted.check_determined()
     design = dict(design or {})
     for name in design:

@@ -157,7 +157,7 @@ def set_max_programs(count: int) -> int:
     Each program maps several hundred memory regions, and Linux allows a process about
     65,000: without a bound, a notebook or the explorer that visits a few hundred model
     structures would fail to compile the next one."""
-    check_integer("max programs", count, 1)
+    count = check_integer("max programs", count, 1)
     with _lock:
         previous, _limit[0] = _limit[0], count
         while len(_programs) > count:

@@ -180,14 +180,14 @@ class PlanProblem:
                 f"sampling: rate × duration = {self.samples:,} samples a signal: valid 1 to "
                 f"{MAX_SAMPLES:,}"
             )
-        check_integer("budget.firings", self.firings, 1, 50)
+        object.__setattr__(self, "firings", check_integer("budget.firings", self.firings, 1, 50))
         if self.criterion not in (*CRITERIA, *self.fit):
             raise ParameterError(
                 f"criterion = {self.criterion!r}: valid {', '.join(CRITERIA)} or a fitted "
                 f"parameter ({', '.join(self.fit)})"
             )
-        check_integer("robust", self.robust, 0, 256)
-        check_integer("seed", self.seed, 0)
+        object.__setattr__(self, "robust", check_integer("robust", self.robust, 0, 256))
+        object.__setattr__(self, "seed", check_integer("seed", self.seed, 0))
         self._check_size()
         # The design as a whole at every candidate (e.g. a mount lighter than the gun).
         for condition in self.conditions:

@@ -14,17 +14,18 @@ import numpy as np
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
+from .._files.calibration_file import (
+    MAX_SIGNAL,
+    MAX_STARTS,
+    check_experiments,
+    load_calibration,
+)
 from .._files.describe import structure_line
 from .._files.inputs import (
-    check_keys,
     check_not_input,
     design_warnings,
-    file_error as _error,
-    file_integer,
-    file_number as _number,
     output_folder,
     parse_assignments,
-    read_toml,
     results_folder,
     values_taken,
     warn,
@@ -33,14 +34,11 @@ from .._files.json_writer import dumps, write as write_json
 from .._files.options import Commands, add_json, add_max_steps, add_store
 
 __all__ = [
-    "MAX_EXPERIMENTS",
-    "MAX_FIT_STEPS",
-    "MAX_SIGNAL",
-    "MAX_STARTS",
+    "LOCAL_MINIMUM",
     "MODEL_MISFIT",
     "NOT_CONVERGED",
     "add_command",
-    "load_calibration",
+    "prediction_report",
     "run_calibrate",
     "run_calibration",
 ]
@@ -56,150 +54,6 @@ MODEL_MISFIT = 5
 LOCAL_MINIMUM = 6
 #: The starts `calibrate` suggests when its fit may be stuck.
 SUGGESTED_STARTS = 16
-
-#: The most starts a calibration may have (`--starts`, `starts`): each is a fit.
-MAX_STARTS = 1024
-#: The most Levenberg–Marquardt steps per fit (`fit_steps`; the default is 200, and a
-#: fit converges in under 50).
-MAX_FIT_STEPS = 10_000
-#: The most experiments, fitted and validation together (each has its panels in the
-#: figures).
-MAX_EXPERIMENTS = 50
-#: The largest magnitude a measured value may have: beyond it the squares of the
-#: residuals overflow (a unit mistake, or a broken export).
-MAX_SIGNAL = 1e150
-
-#: The keys of a calibration file, and of one `[[experiment]]` besides design values.
-_FILE_KEYS = {"description", "design", "fit", "experiment", "validation", "loss", "f_scale",
-              "starts", "seed", "fit_steps", "force_table"}  # fmt: skip
-_EXPERIMENT_KEYS = {"trace", "sigma", "per_experiment", "window", "name", "force_table"}
-
-
-def _force_table(where: str, value: Any, folder: Path) -> rj.ForceTable | None:
-    """`force_table = "file.csv"` (relative to the calibration file), or None."""
-    if value is None:
-        return None
-    if not isinstance(value, str):
-        raise _error(where, 'give force_table = "file.csv" (header t_s,F_N)')
-    return rj.ForceTable.from_csv(folder / value)
-
-
-def _bounds(where: str, value: Any) -> tuple[tuple[float, float], float | None]:
-    """`[lo, hi]` or `{bounds = [lo, hi], start = x}`."""
-    start = None
-    if isinstance(value, dict):
-        unknown = set(value) - {"bounds", "start"}
-        if unknown or "bounds" not in value:
-            raise _error(where, "give [lower, upper] or { bounds = [lower, upper], start = x }")
-        if "start" in value:
-            start = _number(f"{where}.start", value["start"])
-        value = value["bounds"]
-    if not isinstance(value, list) or len(value) != 2:
-        raise _error(where, f"{value!r}: give bounds as [lower, upper]")
-    return (_number(where, value[0]), _number(where, value[1])), start
-
-
-def _experiment(where: str, entry: Any, folder: Path) -> rjx.Experiment:
-    if not isinstance(entry, dict):
-        raise _error(where, 'each experiment is a table with a trace = "file.csv"')
-    if "trace" not in entry or not isinstance(entry["trace"], str):
-        raise _error(where, 'names no trace (trace = "file.csv", relative to the file)')
-    trace = rj.read_trace(folder / entry["trace"])
-    design = {}
-    for name, value in entry.items():
-        if name in _EXPERIMENT_KEYS:
-            continue
-        if name not in rj.PARAMETERS and name not in ("t_shift", "t1"):
-            raise rj.PARAMETERS.unknown(name, also=("t_shift", "t1", *_EXPERIMENT_KEYS))
-        design[name] = _number(f"{where}.{name}", value)
-    sigma = entry.get("sigma", {})
-    if not isinstance(sigma, dict):
-        raise _error(f"{where}.sigma", "give { signal = noise, ... }")
-    window = entry.get("window")
-    if window is not None:
-        window = _bounds(f"{where}.window", window)[0]
-    per = entry.get("per_experiment", [])
-    if not isinstance(per, list) or not all(isinstance(n, str) for n in per):
-        raise _error(f"{where}.per_experiment", "give a list of parameter names")
-    twice = sorted({n for n in per if per.count(n) > 1})
-    if twice:
-        raise _error(f"{where}.per_experiment", f"{twice[0]} is given twice")
-    return rjx.Experiment(
-        trace,
-        design=design,
-        sigma={k: _number(f"{where}.sigma.{k}", v) for k, v in sigma.items()},
-        per_experiment=tuple(per),
-        window=window,
-        name=str(entry.get("name", "")),
-        force_table=_force_table(f"{where}.force_table", entry.get("force_table"), folder),
-    )
-
-
-def load_calibration(path) -> tuple[rj.Calibration, dict[str, Any]]:
-    """A calibration file as a `Calibration`, and its settings (`starts`, `seed`,
-    `description`). Every fault is a `ParameterError` naming the file and the key."""
-    path = Path(path)
-    config = read_toml(path, "calibration file")
-    check_keys(path, "", config, _FILE_KEYS)
-    description = config.get("description", "")
-    if not isinstance(description, str):
-        raise _error(str(path), f"description = {description!r}: give a string")
-    design = config.get("design", {})
-    for name in design:
-        if name not in rj.PARAMETERS and name != "t1":
-            raise rj.PARAMETERS.unknown(name, also=("t1",))
-    design = {k: _number(f"[design] {k}", v) for k, v in design.items()}
-    fit, start = {}, {}
-    for name, value in config.get("fit", {}).items():
-        fit[name], s = _bounds(f"[fit] {name}", value)
-        if s is not None:
-            start[name] = s
-        if name in design:
-            raise _error(str(path), f"{name} is given both in [design] ({name} = "
-                         f"{design[name]:g}) and in [fit]: give it in one place")  # fmt: skip
-    experiments = config.get("experiment", [])
-    if not isinstance(experiments, list):
-        raise _error(str(path), "write each experiment as [[experiment]]")
-    validations = config.get("validation", [])
-    if not isinstance(validations, list):
-        raise _error(str(path), "write each validation experiment as [[validation]]")
-    _check_experiments(len(experiments) + len(validations), str(path))
-    for key, least, most in (("starts", 1, MAX_STARTS), ("seed", 0, 2**63 - 1),
-                             ("fit_steps", 1, MAX_FIT_STEPS)):  # fmt: skip
-        file_integer(path, key, config.get(key, least), least, most)
-    folder = path.parent
-    fitted = [_experiment(f"[[experiment]] {i}", e, folder) for i, e in enumerate(experiments, 1)]
-    validation = [
-        _experiment(f"[[validation]] {i}", e, folder) for i, e in enumerate(validations, 1)
-    ]
-    for kind, entries in (("experiment", fitted), ("validation", validation)):
-        for i, e in enumerate(entries, 1):
-            held = [n for n in e.design if n in fit and n not in e.per_experiment]
-            if held:
-                name = held[0]
-                raise _error(
-                    str(path),
-                    f"[[{kind}]] {i}: {name} = {e.design[name]:g} is fitted ([fit]), so it "
-                    f"would not be held there: give a start in [fit] ({name} = {{ bounds = "
-                    f"[..], start = .. }}), or fit it in each experiment (per_experiment)",
-                )
-    calibration = rj.Calibration(
-        fitted,
-        fit=fit,
-        start=start,
-        design=design,
-        loss=config.get("loss", "linear"),
-        f_scale=_number("f_scale", config.get("f_scale", 3.0)),
-        validation=validation,
-        force_table=_force_table("force_table", config.get("force_table"), folder),
-    )
-    settings = {
-        "starts": config.get("starts", rjx.DEFAULT_STARTS),
-        "seed": config.get("seed", 0),
-        "fit_steps": config.get("fit_steps", 200),
-        "description": description,
-    }
-    return calibration, settings
 
 
 def _quick(trace_path, fit_names: str | None, assignments, validate, force_table) -> rj.Calibration:
@@ -224,12 +78,6 @@ def _quick(trace_path, fit_names: str | None, assignments, validate, force_table
     validation = [rjx.Experiment(rj.read_trace(v), design=design) for v in validate]
     table = rj.ForceTable.from_csv(force_table) if force_table else None
     return rj.Calibration([experiment], fit=fit, validation=validation, force_table=table)
-
-
-def _check_experiments(count: int, where: str) -> None:
-    if count > MAX_EXPERIMENTS:
-        raise _error(where, f"{count:,} experiments (fitted and validation), more than "
-                     f"{MAX_EXPERIMENTS}: fit fewer at a time")  # fmt: skip
 
 
 def _check_fit_names(fit_names: str | None, assignments) -> None:
@@ -367,7 +215,7 @@ def _read_calibration(args, source: Path) -> tuple[rj.Calibration, dict[str, Any
             raise rj.ParameterError(f"--predict: {error}") from None
     if args.starts is not None and not 1 <= args.starts <= MAX_STARTS:
         raise rj.ParameterError(f"--starts {args.starts}: give an integer from 1 to {MAX_STARTS:,}")
-    _check_experiments(1 + len(args.validate or []), "the command line")
+    check_experiments(1 + len(args.validate or []), "the command line")
     if source.suffix.lower() != ".toml":
         _check_fit_names(args.fit, args.assignments)
         calibration = _quick(
@@ -635,8 +483,8 @@ def add_command(commands: Commands) -> None:
         help="then predict this design's peaks with 95%% bands from the fitted "
         "uncertainty (10,000 samples and linear propagation; prediction.png)",
     )
-    add_store(calibrate, "commit each finished part of the fit (8 starts, the profiles)",
-              "calibration")  # fmt: skip
+    add_store(calibrate, "commit each finished part of the fit (8 starts, or the points "
+              "they met at, a stage; the profiles)", "calibration")  # fmt: skip
     calibrate.add_argument(
         "--force-table",
         metavar="FILE.csv",

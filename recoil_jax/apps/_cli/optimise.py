@@ -57,7 +57,7 @@ def add_command(commands: Commands) -> None:
     )
     opt.add_argument("study", help="study file or name, e.g. optimise/paper_gap.toml")
     opt.add_argument("--out", help="output folder (default results/<study name>)")
-    add_json(opt)
+    add_json(opt, "result.json to stdout")
     opt.add_argument(
         "--seed",
         type=int,

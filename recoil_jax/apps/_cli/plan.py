@@ -4,12 +4,12 @@ result.json, summary.txt, the figures and a calibration.toml skeleton written, a
 
 from __future__ import annotations
 
-import json
 import math
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
+from .._files.calibration_file import calibration_skeleton
 from .._files.inputs import (
     check_not_input,
     design_warnings,
@@ -22,7 +22,7 @@ from .._files.json_writer import dumps as json_dumps, write as write_json, write
 from .._files.options import Commands, add_json
 from .._studies.plan_file import load_plan
 
-__all__ = ["add_command", "calibration_skeleton", "ratio_range", "run_plan", "summary"]
+__all__ = ["add_command", "ratio_range", "run_plan", "summary"]
 
 _NAMES = {
     "plan": "planned",
@@ -106,46 +106,6 @@ def summary(plan: rj.FiringPlan, checks: dict | None = None) -> str:
 
 def _value(value: float) -> str:
     return f"{value:.4g}" if math.isfinite(value) else "undetermined"
-
-
-def calibration_skeleton(plan: rj.FiringPlan, description: str = "") -> str:
-    """A calibration file for the plan (`recoil-jax calibrate` reads it once the
-    traces exist): the known values, the fitted bounds starting from the guess, and one
-    `[[experiment]]` per firing with its condition values, `t1` and signals' noise."""
-    problem = plan.problem
-    guess = problem.guess
-    lines = [
-        f"description = {_toml_string('calibration of the planned test: ' + description)}",
-        "# Written by `recoil-jax plan`. Record each firing's traces as a CSV file (a t",
-        "# column and one per signal) under the name below, then run",
-        "#   recoil-jax calibrate calibration.toml",
-        "",
-        "[design]",
-        *(f"{k} = {float(v)!r}" for k, v in guess.items() if k not in problem.fit),
-        "",
-        "[fit]",
-        *(
-            f"{k} = {{ bounds = [{float(lo)!r}, {float(hi)!r}], start = {float(guess[k])!r} }}"
-            for k, (lo, hi) in problem.fit.items()
-        ),
-    ]
-    for i, (c, signals) in enumerate(plan.plan.firings, 1):
-        noise = ", ".join(f"{s} = {float(problem.signals[s].sigma)!r}" for s in signals)
-        lines += [
-            "",
-            "[[experiment]]",
-            f'trace = "firing_{i}.csv"          # record: {", ".join(signals)}',
-            *(f"{k} = {float(v)!r}" for k, v in plan.conditions[c].items()),
-            f"t1 = {float(problem.duration)!r}",
-            f"sigma = {{ {noise} }}",
-        ]
-    return "\n".join(lines) + "\n"
-
-
-def _toml_string(text: str) -> str:
-    """`text` as a TOML basic string: JSON's escapes (quotes, backslashes, every control
-    character) are TOML's, but for DEL, which TOML does not take raw."""
-    return json.dumps(text, ensure_ascii=False).replace("\x7f", "\\u007f")
 
 
 def run_plan(args) -> int:

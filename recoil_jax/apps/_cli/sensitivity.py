@@ -109,6 +109,6 @@ def add_command(commands: Commands) -> None:
         "--out", help="output folder (default results/sensitivity/<example or file name>)"
     )
     add_json(sens)
-    add_store(sens, "keep every design's result", "run")
+    add_store(sens, "commit every design's result", "run")
     add_cluster(sens, "the solves")
     add_max_steps(sens)

@@ -56,7 +56,7 @@ def add_store(parser: argparse.ArgumentParser, keeps: str, campaign: str) -> Non
     parser.add_argument(
         "--store",
         metavar="FILE.sqlite",
-        help=f"{keeps} in this SQLite file; the same command with the same store resumes a "
+        help=f"{keeps} to this SQLite file; the same command with the same store resumes a "
         f"stopped {campaign} (docs/campaigns.md)",
     )
 
