@@ -173,6 +173,8 @@ def _fit_starts(
         last = stage == stages
         fitted = np.unique(same)  # the starts this stage fits
         parts, best, done = [], np.inf, 0
+        merged = (f" (at {len(fitted)} point{'s' if len(fitted) > 1 else ''}, each fitted "
+                  "once)" if len(fitted) < len(u) else "")  # fmt: skip
         for begin in range(0, len(fitted), size):
             starts = fitted[begin : begin + size]
             starts_u, sets = np.asarray(u[starts]), np.asarray(measured[starts])
@@ -190,8 +192,6 @@ def _fit_starts(
             score = np.asarray(part["score"] if last else part["cost"], dtype=float)
             best = min(best, float(np.min(np.where(np.isfinite(score), score, np.inf))))
             done += represented
-            merged = (f" (at {len(fitted)} point{'s' if len(fitted) > 1 else ''}, each fitted "
-                      "once)" if len(fitted) < len(u) else "")  # fmt: skip
             bar.update(first + stage * len(u) + done,
                        f"{'fallback: ' if fallback else ''}stage {stage + 1} of {stages + 1} "
                        f"({what}): {done} of {len(u)} starts{merged}, "
@@ -215,13 +215,14 @@ def _same_points(u: np.ndarray, cost: np.ndarray, same: np.ndarray) -> np.ndarra
     stage from it is deterministic, and fitting it once for each would spend the same
     steps to the same point."""
     z = (np.sin(u) + 1.0) / 2.0
-    out = same.copy()
-    for i in np.unique(same):
-        for j in np.unique(out)[np.unique(out) < i]:
-            if (np.isfinite(cost[i]) and abs(cost[i] - cost[j]) <= REACHED
-                    and np.max(np.abs(z[i] - z[j])) <= SAME_POINT):  # fmt: skip
-                out[out == i] = j  # i's own followers with it
-                break
+    out, kept = same.copy(), []
+    for i in np.unique(same):  # in order: an earlier start is kept before a later one
+        j = next((j for j in kept if np.isfinite(cost[i]) and abs(cost[i] - cost[j]) <= REACHED
+                  and np.max(np.abs(z[i] - z[j])) <= SAME_POINT), None)  # fmt: skip
+        if j is None:
+            kept.append(i)
+        else:
+            out[out == i] = j  # i's own followers with it
     return out
 
 
