@@ -339,7 +339,7 @@ def _energy_run(params, smoothing, t1):
 
     def augmented(t, z, args):
         y = z[:4]
-        f = forces(y, params, smoothing, args[2], t=t)
+        f = forces(y, params, smoothing, args.contact_width, t=t)
         rate = y[1] - y[3]
         loss = f.recoil_damper * y[1] + f.coupling_damper * rate
         loss = loss + (f.contact - f.contact_elastic) * rate

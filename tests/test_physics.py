@@ -27,7 +27,7 @@ def _energy_history(params, smoothing, t1=3.0, n=3001):
 
     def augmented(t, z, args):
         y = z[:4]
-        f = forces(y, params, smoothing, args[2])
+        f = forces(y, params, smoothing, args.contact_width)
         rate = y[1] - y[3]
         power = (
             f.recoil_damper * y[1]

@@ -288,7 +288,7 @@ def test_stopping_when_the_peaks_are_certain_changes_no_peak():
     """The loop stops once the energy bounds show no metric can rise again: the peaks
     and their times are exactly those of the run to t1, in far fewer steps."""
     from recoil_jax._model.solve import peaks_of_run
-    from recoil_jax._model.stepping import integrate_peaks
+    from recoil_jax._model.stepping import StopWhenCertain, integrate_peaks
 
     rng = np.random.default_rng(7)
     designs = [
@@ -307,8 +307,9 @@ def test_stopping_when_the_peaks_are_certain_changes_no_peak():
     def solve(bounds_fn):
         def one(params):
             args = model_args(params, smoothing)
+            stop = None if bounds_fn is None else StopWhenCertain(bounds_fn)
             run = integrate_peaks(
-                RECOIL_TERM, initial_state(args), args, 10.0, tracked_metrics, options, bounds_fn
+                RECOIL_TERM, initial_state(args), args, 10.0, tracked_metrics, options, stop=stop
             )
             return peaks_of_run(params, smoothing, run, 10.0, args.rest)
 

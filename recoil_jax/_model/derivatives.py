@@ -53,15 +53,22 @@ from .._model.programs import structure_jit
 from .._model.registry import ParameterError, is_concrete
 from .._model.settings import Smoothing, SolverOptions, end_time, with_default_tolerances
 from .._model.solve import (
+    MODEL_CEILINGS,
     battery_crossing,
     last_firing,
-    model_ceilings,
-    model_samples,
+    model_sampling,
     peaks_of_run,
     residual_at,
 )
 from .._model.status import raise_on_failure
-from .._model.stepping import Events, PeakLoop, PeakRun
+from .._model.stepping import (
+    Crossing,
+    Events,
+    LeadingTerm,
+    PeakLoop,
+    PeakRun,
+    StopWhenCertain,
+)
 
 __all__ = [
     "ABSORBER_SIGNALS",
@@ -242,15 +249,35 @@ def _rest_args(params, smoothing, rest: _Rest, differentiate: bool) -> ModelArgs
     return model_args(params, smoothing, rest.guess)
 
 
-def _augmented_vf(t, y, params, smoothing, smooth_max, t1, rest):
+class TangentArgs(eqx.Module):
+    """The `args` of the tangent system (`_tangent_setup`):
+
+    - `params`, `smoothing`: the design and its switch widths;
+    - `smooth_max`: the smooth maxima integrated beside the state (`SmoothMax`), or None;
+    - `t1` (s): the end time, which scales the smooth maxima's integrals;
+    - `rest`: the static rest, found once (`_Rest`)."""
+
+    params: Any
+    smoothing: Any
+    smooth_max: Any
+    t1: Any
+    rest: _Rest
+
+    def at(self, params) -> TangentArgs:
+        """The same `args` for the design `params` (its parameters moved)."""
+        return TangentArgs(params, self.smoothing, self.smooth_max, self.t1, self.rest)
+
+
+def _augmented_vf(t, y, args: TangentArgs):
+    params, smoothing, smooth_max = args.params, args.smoothing, args.smooth_max
     f = vector_field(t, y[:_N_STATE], _field_args(params, smoothing))
     if smooth_max is None:
         return f
-    args = _rest_args(params, smoothing, rest, differentiate=True)
-    g = _smoothed(tracked_metrics(t, y[:_N_STATE], args), smooth_max)
+    model = _rest_args(params, smoothing, args.rest, differentiate=True)
+    g = _smoothed(tracked_metrics(t, y[:_N_STATE], model), smooth_max)
     # Clipped so that a sudden rise far above the running integral cannot overflow.
     exponent = jnp.minimum(g / smooth_max.temperatures - y[_N_STATE:], 700.0)
-    return jnp.concatenate([f, jnp.exp(exponent) / t1])
+    return jnp.concatenate([f, jnp.exp(exponent) / args.t1])
 
 
 def _augmented_metrics(t, y, args: ModelArgs, smooth_max) -> dict[str, Any]:
@@ -275,16 +302,14 @@ def _state_size(smooth_max) -> int:
     return _N_STATE + (0 if smooth_max is None else len(smooth_max.metrics))
 
 
-def _tangent_vf(t, z, args, wrt):
-    params, smoothing, smooth_max, t1, rest = args
-    n = _state_size(smooth_max)
+def _tangent_vf(t, z, args: TangentArgs, wrt):
+    params = args.params
+    n = _state_size(args.smooth_max)
     y, tangents = z[:n], z[n:].reshape(-1, n)
     # Linearised in the parameters `wrt` only: the others are constants here, so no
     # tangent flows through them.
     f_y, f_jvp = jax.linearize(
-        lambda y_, theta: _augmented_vf(
-            t, y_, with_values(params, wrt, theta), smoothing, smooth_max, t1, rest
-        ),
+        lambda y_, theta: _augmented_vf(t, y_, args.at(with_values(params, wrt, theta))),
         y,
         values_of(params, wrt),
     )
@@ -300,21 +325,21 @@ def _tangent_term(wrt: tuple[str, ...]) -> diffrax.ODETerm:
 
 
 #: The state (and smooth maxima) of the tangent system alone, with its `args`.
-_STATE_TERM = diffrax.ODETerm(lambda t, y, args: _augmented_vf(t, y, *args))
+_STATE_TERM = diffrax.ODETerm(_augmented_vf)
 
 
-def _tangent_metrics(t, z, args):
-    params, smoothing, smooth_max, _, rest = args
-    model = _rest_args(params, smoothing, rest, differentiate=False)
-    return _augmented_metrics(t, z[: _state_size(smooth_max)], model, smooth_max)
+def _tangent_metrics(t, z, args: TangentArgs):
+    model = _rest_args(args.params, args.smoothing, args.rest, differentiate=False)
+    return _augmented_metrics(t, z[: _state_size(args.smooth_max)], model, args.smooth_max)
 
 
-def _tangent_bounds(z, args, t, t1):
+def _tangent_bounds(z, args: TangentArgs, t, t1):
     """`future_metric_bounds` (`held_bounds` with the firing envelope) of the state part
     of `z` (without smooth maxima)."""
-    params, smoothing, _, _, rest = args
+    params = args.params
     bounds = held_bounds if has_envelope(params) else future_metric_bounds
-    return bounds(z[:_N_STATE], _rest_args(params, smoothing, rest, differentiate=False), t, t1)
+    model = _rest_args(params, args.smoothing, args.rest, differentiate=False)
+    return bounds(z[:_N_STATE], model, t, t1)
 
 
 #: A smooth maximum stops integrating once the rest of `[t, t1]` can add less than this to
@@ -322,11 +347,11 @@ def _tangent_bounds(z, args, t, t1):
 _SMOOTH_TAIL = 1e-12
 
 
-def _smooth_tangent_bounds(z, args, t, t1):
+def _smooth_tangent_bounds(z, args: TangentArgs, t, t1):
     """`_tangent_bounds`, and for each smooth maximum its log-integral `L` where the
     rest of the run cannot raise it by `_SMOOTH_TAIL` (else `+inf`): with `B` bounding
     the metric from `t` on, `L(t1) <= L(t) + log(1 + (t1 - t)/t1 · exp(B/T - L(t)))`."""
-    smooth_max = args[2]
+    smooth_max = args.smooth_max
     bounds = _tangent_bounds(z, args, t, t1)
     for j, name in enumerate(smooth_max.metrics):
         log_integral = z[_N_STATE + j]
@@ -353,8 +378,8 @@ def _tangent_jump(before, t, z, f_before, args, wrt):
     `y⁺ = g(y⁻, θ)` at a time `τ(θ)`, the tangents jump
     by `S⁺ = g_y (S⁻ + f⁻ τ_θ) + g_θ − f⁺ τ_θ`: the round's firing time moves with
     `fire_interval`, and `f⁻ ≠ f⁺` where a force table starts or ends off zero."""
-    params, smoothing, smooth_max, t1, rest = args
-    n = _state_size(smooth_max)
+    params = args.params
+    n = _state_size(args.smooth_max)
     y, tangents = z[:n], z[n:].reshape(-1, n)
     theta = values_of(params, wrt)
     index = jnp.argmin(jnp.abs(_stops(params) - t))
@@ -367,7 +392,7 @@ def _tangent_jump(before, t, z, f_before, args, wrt):
 
     after = jump(y, theta)
     f_before = f_before[:n]
-    f_after = _augmented_vf(t, after, params, smoothing, smooth_max, t1, rest)
+    f_after = _augmented_vf(t, after, args)
 
     def column(s, d):
         moved = jax.jvp(stop_time, (theta,), (d,))[1]
@@ -382,9 +407,9 @@ def _tangent_jump(before, t, z, f_before, args, wrt):
 def _tangent_events(wrt: tuple[str, ...]) -> Events:
     """The load's stops, jumps and restarts for the tangent system (one per `wrt`)."""
     return Events(
-        stops=lambda args: load_stops(args[0]),
+        stops=lambda args: load_stops(args.params),
         jump=functools.partial(_tangent_jump, wrt=wrt),
-        restart=lambda args: restart_step(args[0]),
+        restart=lambda args: restart_step(args.params),
     )
 
 
@@ -394,8 +419,8 @@ def _events(params, wrt):
 
 def _tangent_setup(params, smoothing, wrt, smooth_max, t1):
     """`(z0, args)` of the tangent system up to `t1`: the state, then one tangent
-    column per parameter in `wrt` (scaled by its range). `args = (params, smoothing,
-    smooth_max, t1, rest)`: the static rest (`_Rest`) is found once, here (as the
+    column per parameter in `wrt` (scaled by its range). `args` (`TangentArgs`) holds
+    the static rest (`_Rest`), found once, here (as the
     model's own solve finds it, `model_args`); where parameters are traced, its Newton
     step is taken again and carries its derivatives (`_rest_args`)."""
     width = contact_width(params, smoothing)
@@ -411,7 +436,7 @@ def _tangent_setup(params, smoothing, wrt, smooth_max, t1):
     y0 = initial(theta)
     s0 = jax.vmap(lambda d: jax.jvp(initial, (theta,), (d,))[1])(_directions(wrt))
     z0 = jnp.concatenate([y0, s0.reshape(-1)])
-    return z0, (params, smoothing, smooth_max, t1, rest)
+    return z0, TangentArgs(params, smoothing, smooth_max, t1, rest)
 
 
 class ForwardSensitivities(NamedTuple):
@@ -433,10 +458,11 @@ class ForwardSensitivities(NamedTuple):
     series_gradients: Any = None
 
 
-def _tangent_post(args, run: PeakRun, wrt, series: MetricSeries | None = None):
+def _tangent_post(args: TangentArgs, run: PeakRun, wrt, series: MetricSeries | None = None):
     """Gradients at the located peaks by the envelope theorem: `∇_y g · S(t*) + ∂g/∂θ`,
     as `ForwardSensitivities`."""
-    params, smoothing, smooth_max, t1, rest = args
+    params, smoothing, smooth_max = args.params, args.smoothing, args.smooth_max
+    t1, rest = args.t1, args.rest
     n = _state_size(smooth_max)
     theta = values_of(params, wrt)
     stops = None if params.load is None else load_stops(params)
@@ -457,7 +483,7 @@ def _tangent_post(args, run: PeakRun, wrt, series: MetricSeries | None = None):
         # A peak right after a round's firing (a velocity jump) stays at that instant,
         # which moves with the parameters: add the metric's rate times the move.
         index = jnp.argmin(jnp.abs(stops - time))
-        f = _augmented_vf(time, y, params, smoothing, smooth_max, t1, rest)
+        f = _augmented_vf(time, y, args)
         rate = jax.jvp(
             lambda t_, y_: metric(i, t_, y_, theta), (time, y), (jnp.ones_like(time), f)
         )[1]
@@ -508,7 +534,7 @@ def _tangent_post(args, run: PeakRun, wrt, series: MetricSeries | None = None):
     )
 
 
-def _envelope_gradients(args, run: PeakRun, wrt, extremes: dict, scales, n) -> dict:
+def _envelope_gradients(args: TangentArgs, run: PeakRun, wrt, extremes, scales, n) -> dict:
     """The gradients of the envelope's metrics beside `extremes` (by metric name, scaled
     to parameter units): `residual_displacement = x_M(t1) − x_r` from the tangents at
     `t1` less the rest's derivative; the return's from those at the crossing
@@ -517,7 +543,7 @@ def _envelope_gradients(args, run: PeakRun, wrt, extremes: dict, scales, n) -> d
     barrel's acceleration). Zero where there is no return, NaN without the envelope (as
     the values); the margin is an extreme, NaN without a mount; the pull's is 0 where
     `F_AN` never goes negative (the pull is then 0)."""
-    params, smoothing, smooth_max, t1, rest = args
+    params, smoothing, t1, rest = args.params, args.smoothing, args.t1, args.rest
     out = dict(extremes)
     nan = jnp.full_like(out["peak_displacement"], jnp.nan)
     if not has_envelope(params):
@@ -536,7 +562,7 @@ def _envelope_gradients(args, run: PeakRun, wrt, extremes: dict, scales, n) -> d
     residual = residual_at(final, run.final_time, t1, smoothing) - rest_move
     out["residual_displacement"] = residual / scales
     y, tangents = run.cross_state[:n], run.cross_state[n:].reshape(-1, n)
-    f = _augmented_vf(run.cross_time, y, params, smoothing, smooth_max, t1, rest)
+    f = _augmented_vf(run.cross_time, y, args)
     moving = y[1] != 0
     # dt*/dθ, per direction
     crossing_move = -(tangents[:, 0] - rest_move) / jnp.where(moving, y[1], 1.0)
@@ -581,12 +607,14 @@ def tangent_loop(params, options, wrt, smooth_max=None, stop_early: bool = True)
         _tangent_term(wrt),
         _tangent_metrics,
         with_default_tolerances(params, options),
-        bounds if stop_early else None,
-        _events(params, wrt),
-        model_ceilings,
-        **model_samples(params),
-        leading_term=(_STATE_TERM, _state_size(smooth_max)),
-        crossing_fn=(lambda args: battery_crossing(args[0], args[4].guess)) if envelope else None,
+        stop=StopWhenCertain(bounds) if stop_early else None,
+        events=_events(params, wrt),
+        ceilings=MODEL_CEILINGS,
+        sampling=model_sampling(params),
+        crossing=Crossing(lambda args: battery_crossing(args.params, args.rest.guess))
+        if envelope
+        else None,
+        leading=LeadingTerm(_STATE_TERM, _state_size(smooth_max)),
     )
 
 
@@ -758,7 +786,7 @@ def signal_sensitivities(
         return values, gradients.T / scales, rate
 
     values, gradients, rates = jax.vmap(at)(ts, run.saved)
-    rest = args[-1]
+    rest = args.rest
 
     def at_rest(theta_):
         # The solve's own start (its rest, its derivatives the implicit function's), with

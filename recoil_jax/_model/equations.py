@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Any, NamedTuple
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -816,8 +817,8 @@ def metric_ceilings(params: RecoilParams) -> dict[str, jnp.ndarray] | None:
 def vector_field(t, y, args):
     """`dy/dt` for `args = model_args(params, smoothing)` (`ModelArgs`); the diffrax
     vector field."""
-    params, smoothing, width_contact = args[:3]
-    f = forces(y, params, smoothing, width_contact, t=t)
+    params = args.params
+    f = forces(y, params, args.smoothing, args.contact_width, t=t)
     internal = f.anchoring + f.coupling_spring + f.coupling_damper + f.contact
     if f.gravity is not None:
         internal = internal - f.gravity
@@ -839,19 +840,20 @@ def vector_field(t, y, args):
 RECOIL_TERM = diffrax.ODETerm(vector_field)
 
 
-class ModelArgs(NamedTuple):
+class ModelArgs(eqx.Module):
     """The `args` that `RECOIL_TERM` and the model's signals take (`model_args`):
 
     - `params`, `smoothing`: the design and its switch widths;
     - `contact_width` (m): the contact onset's smoothing width (`contact_width`);
     - `rest` (m): the barrel's static rest in battery `x_r` (`static_rest`), from which
       the displacement metrics and the mount's moments are measured; differentiable in
-      the parameters."""
+      the parameters. None where only the vector field reads them (it does not read
+      the rest)."""
 
     params: RecoilParams
     smoothing: Smoothing
     contact_width: Any
-    rest: Any  # None where only the vector field reads them (it does not read the rest)
+    rest: Any
 
 
 def model_args(params: RecoilParams, smoothing: Smoothing, rest_guess=None) -> ModelArgs:

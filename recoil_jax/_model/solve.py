@@ -36,18 +36,26 @@ from .._model.programs import structure_jit
 from .._model.registry import ParameterError, is_concrete
 from .._model.settings import Smoothing, SolverOptions, end_time, with_default_tolerances
 from .._model.status import raise_on_failure
-from .._model.stepping import Events, PeakLoop, PeakRun
+from .._model.stepping import (
+    Ceilings,
+    Crossing,
+    Events,
+    PeakLoop,
+    PeakRun,
+    Sampling,
+    StopWhenCertain,
+)
 
 __all__ = [
+    "MODEL_CEILINGS",
     "MODEL_EVENTS",
     "History",
     "battery_crossing",
     "envelope_values",
     "last_firing",
-    "model_ceilings",
     "model_events",
     "model_loop",
-    "model_samples",
+    "model_sampling",
     "peak_metrics",
     "peaks",
     "peaks_batch",
@@ -59,9 +67,9 @@ __all__ = [
 
 #: The model's load events, for `args = model_args(params, smoothing)`.
 MODEL_EVENTS = Events(
-    stops=lambda args: load_stops(args[0]),
-    jump=lambda before, t, y, f_before, args: load_jump(t, y, args[0]),
-    restart=lambda args: restart_step(args[0]),
+    stops=lambda args: load_stops(args.params),
+    jump=lambda before, t, y, f_before, args: load_jump(t, y, args.params),
+    restart=lambda args: restart_step(args.params),
 )
 
 
@@ -70,28 +78,24 @@ def model_events(params: RecoilParams) -> Events | None:
     return None if params.load is None else MODEL_EVENTS
 
 
-def model_samples(params: RecoilParams) -> dict:
-    """Where else in each step the peaks are looked for (`samples`, `kinks_fn` of
-    `PeakLoop`): with a throttling orifice, whose force (`∝ v²/A(x)²`) is far from cubic
-    over a step and has a corner at each knot (smoothed over a band narrower than a
-    step), at 3 interior points and where the barrel crosses a knot. With the firing
-    envelope, whose friction turns within microseconds as a sliding barrel reverses (a
-    step's end rates then make the cubic Hermite estimate overshoot), at 3 interior
-    points. Else nowhere."""
+def model_sampling(params: RecoilParams) -> Sampling:
+    """Where else in each step the peaks are looked for (`Sampling`): with a throttling
+    orifice, whose force (`∝ v²/A(x)²`) is far from cubic over a step and has a corner at
+    each knot (smoothed over a band narrower than a step), at 3 interior points and where
+    the barrel crosses a knot. With the firing envelope, whose friction turns within
+    microseconds as a sliding barrel reverses (a step's end rates then make the cubic
+    Hermite estimate overshoot), at 3 interior points. Else nowhere."""
     buffer = params.buffer
     if buffer is None or buffer.orifice is None:
-        return {"samples": 3} if has_envelope(params) else {}
-    return {
-        "samples": 3,
-        "kinks_fn": lambda t0, dt, evaluate, z0, z1, args: knot_crossing(
-            t0, dt, evaluate, z0, z1, args[0]
-        ),
-    }
+        return Sampling(3) if has_envelope(params) else Sampling()
+    return Sampling(
+        3,
+        lambda t0, dt, evaluate, z0, z1, args: knot_crossing(t0, dt, evaluate, z0, z1, args.params),
+    )
 
 
-def model_ceilings(args):
-    """`metric_ceilings` of the model's `args`."""
-    return metric_ceilings(args[0])
+#: The ceilings of the model's `args` (or the tangent system's): `metric_ceilings`.
+MODEL_CEILINGS = Ceilings(lambda args: metric_ceilings(args.params))
 
 
 def last_firing(params: RecoilParams):
@@ -103,7 +107,7 @@ def last_firing(params: RecoilParams):
 
 
 def battery_crossing(params: RecoilParams, rest):
-    """`(level, after)` of the barrel's return into battery (`PeakLoop.crossing_fn`):
+    """`(level, after)` of the barrel's return into battery (`Crossing`):
     `x_M = x_r + 1 mm` (`rest`: `x_r`, m), after the last round's firing."""
     return rest + BATTERY, last_firing(params)
 
@@ -120,11 +124,15 @@ def model_loop(params: RecoilParams, options: SolverOptions, stop_early: bool = 
         RECOIL_TERM,
         tracked_metrics,
         with_default_tolerances(params, options),
-        (held_bounds if envelope else future_metric_bounds) if stop_early else None,
-        model_events(params),
-        model_ceilings,
-        **model_samples(params),
-        crossing_fn=(lambda args: battery_crossing(args.params, args.rest)) if envelope else None,
+        stop=StopWhenCertain(held_bounds if envelope else future_metric_bounds)
+        if stop_early
+        else None,
+        events=model_events(params),
+        ceilings=MODEL_CEILINGS,
+        sampling=model_sampling(params),
+        crossing=Crossing(lambda args: battery_crossing(args.params, args.rest))
+        if envelope
+        else None,
     )
 
 

@@ -24,9 +24,14 @@ from .._model.settings import SolverOptions
 from .._model.status import Status
 
 __all__ = [
+    "Ceilings",
+    "Crossing",
     "Events",
+    "LeadingTerm",
     "PeakLoop",
     "PeakRun",
+    "Sampling",
+    "StopWhenCertain",
     "integrate_peaks",
     "make_controller",
     "make_solver",
@@ -39,7 +44,7 @@ _PCOEFF, _ICOEFF = 0.3, 0.4
 MetricsFn = Callable[[Any, Any, Any], dict[str, Any]]
 
 
-class Events(NamedTuple):
+class Events(eqx.Module):
     """Known times at which the dynamics change (a load's rounds, a force table's points),
     as three static functions of the loop's `args`:
 
@@ -78,7 +83,7 @@ class _Carry(eqx.Module):
     names: tuple[str, ...] = eqx.field(static=True)
     saved: Any = None  # (n_ts, n_state): the state at the save times, when saving
     save_index: Any = None  # the first save time not yet written
-    crossed: Any = None  # with a `crossing_fn`: whether the crossing was found
+    crossed: Any = None  # with a `Crossing`: whether the crossing was found
     cross_step: Any = None  # the dense info of the step that holds it
 
 
@@ -122,7 +127,7 @@ class PeakRun(eqx.Module):
     save_count: Any = None  # how many rows of `saved` were written (the run may stop early)
     final_time: Any = None  # where the run ended (s)
     final_state: Any = None  # (n_state,) the state there
-    crossed: Any = None  # with a `crossing_fn`: whether the crossing was found
+    crossed: Any = None  # with a `Crossing`: whether the crossing was found
     cross_time: Any = None  # its time (s)
     cross_state: Any = None  # (n_state,) the state there
 
@@ -181,37 +186,71 @@ def _before(t):
     return jnp.nextafter(t, jnp.full_like(t, -jnp.inf))
 
 
+class StopWhenCertain(eqx.Module):
+    """Stop (status ok) once no tracked quantity can beat its running maximum, since
+    the peaks over `[0, t1]` are then known: `bounds(z, args, t, t1)` returns upper
+    bounds on every tracked quantity (by name) for the rest of the run."""
+
+    bounds: Callable[[Any, Any, Any, Any], dict[str, Any]]
+
+
+class Ceilings(eqx.Module):
+    """Values a tracked quantity must stay below: `values(args)` returns them by name
+    (or None); reaching one ends the solve with `Status.bottomed_out`."""
+
+    values: Callable[[Any], dict[str, Any] | None]
+
+
+class Sampling(eqx.Module):
+    """Where else in each step the tracked quantities are looked for, beside the cubic
+    Hermite estimate from the step's ends (for quantities far from cubic over a step,
+    such as the orifice force), on the solver's dense polynomial:
+
+    - `samples`: interior points of each step; 0 for none;
+    - `kinks(t0, dt, evaluate, z0, z1, args)`, or None: times in the step (shape
+      `(m,)`) where a tracked quantity may have a corner (the barrel crossing an
+      orifice knot). `evaluate(t)` is the step's dense polynomial."""
+
+    samples: int = eqx.field(default=0, static=True)
+    kinks: Callable | None = None
+
+
+class Crossing(eqx.Module):
+    """Find the first time after `after` at which the state's first component comes down
+    through `level` (the barrel back into battery), with `(level, after) = where(args)`,
+    from the step that holds it, and the state there (`PeakRun.cross_time`,
+    `cross_state`). A step that crosses up and down within itself is not seen (steps
+    are short against a recoil)."""
+
+    where: Callable[[Any], tuple[Any, Any]]
+
+
+class LeadingTerm(eqx.Module):
+    """A term for the first `size` components of the state alone (their derivatives do
+    not depend on the rest, as the model's do not on its forward sensitivities). The
+    first step is then chosen on them: diffrax's initial-step rule evaluates the vector
+    field twice, and a gradient program's compile time grew by a whole copy of the
+    tangent system for it."""
+
+    term: Any
+    size: int = eqx.field(static=True)
+
+
 class PeakLoop:
     """The stepping loop of `integrate_peaks`, in pieces. `term`, `metrics_fn`, `options`
-    and the hooks are static; the end time `t1` is per design (it is carried).
+    and the configuration are static; the end time `t1` is per design (it is carried).
+    Each part of the configuration is a module, as diffrax's `SaveAt` and `Event` are,
+    and None (or the default) leaves it out:
 
-    - `bounds_fn(z, args, t, t1)`, if given, returns upper bounds on every tracked
-      quantity (by name) for the rest of the run; the loop stops (status ok) once none
-      can beat its running max, since the peaks over `[0, t1]` are then known.
-    - `events` (`Events`), if given: the stops, jumps and restarts of a load.
-    - `ceilings_fn(args)`, if given, returns values (by name) that a tracked quantity
-      must stay below (or None); reaching one ends the solve with
-      `Status.bottomed_out`.
-    - `samples`: interior points of each step at which the tracked quantities are also
-      evaluated on the dense polynomial, beside the cubic Hermite estimate from the step's
-      ends (for quantities that are far from cubic over a step, such as the orifice
-      force); 0 for none.
-    - `kinks_fn(t0, dt, evaluate, z0, z1, args)`, if given, returns times in the step
-      (shape `(m,)`) where a tracked quantity may have a corner (the barrel crossing an
-      orifice knot); they are evaluated like the samples. `evaluate(t)` is the step's
-      dense polynomial.
-    - `save_ts` (shape `(n,)`, sorted), if given: the state is also written at these
-      times (`PeakRun.saved`), from the solver's dense polynomial.
-    - `crossing_fn(args)`, if given, returns `(level, after)`: the loop finds the first
-      time after `after` at which the state's first component comes down through
-      `level` (the barrel back into battery), from the step that holds it, and its state
-      there (`PeakRun.cross_time`, `cross_state`). A step that crosses up and down
-      within itself is not seen (steps are short against a recoil).
-    - `leading_term`, if given, `(term, size)`: a term for the first `size` components of
-      the state alone (their derivatives do not depend on the rest, as the model's do
-      not on its forward sensitivities). The first step is then chosen on them: diffrax's
-      initial-step rule evaluates the vector field twice, and a gradient program's
-      compile time grew by a whole copy of the tangent system for it.
+    - `stop` (`StopWhenCertain`): stop once the peaks are certain;
+    - `events` (`Events`): the stops, jumps and restarts of a load;
+    - `ceilings` (`Ceilings`): values the tracked quantities must stay below;
+    - `sampling` (`Sampling`): where else in each step the peaks are looked for;
+    - `crossing` (`Crossing`): the barrel's return into battery, located;
+    - `leading` (`LeadingTerm`): the term the first step is chosen on.
+
+    `integrate(..., save_ts)` (shape `(n,)`, sorted), if given, also writes the state at
+    these times (`PeakRun.saved`), from the solver's dense polynomial.
     """
 
     def __init__(
@@ -219,18 +258,17 @@ class PeakLoop:
         term,
         metrics_fn: MetricsFn,
         options: SolverOptions,
-        bounds_fn=None,
+        *,
+        stop: StopWhenCertain | None = None,
         events: Events | None = None,
-        ceilings_fn=None,
-        samples: int = 0,
-        kinks_fn=None,
-        leading_term=None,
-        crossing_fn=None,
+        ceilings: Ceilings | None = None,
+        sampling: Sampling = Sampling(),
+        crossing: Crossing | None = None,
+        leading: LeadingTerm | None = None,
     ):
         self.term, self.metrics_fn, self.options = term, metrics_fn, options
-        self.bounds_fn, self.events, self.ceilings_fn = bounds_fn, events, ceilings_fn
-        self.samples, self.kinks_fn = samples, kinks_fn
-        self.leading_term, self.crossing_fn = leading_term, crossing_fn
+        self.stop, self.events, self.ceilings = stop, events, ceilings
+        self.sampling, self.crossing, self.leading = sampling, crossing, leading
         self.solver, self.controller = make_solver(options), make_controller(options)
         self.error_order = self.solver.order(term) + 1
 
@@ -270,9 +308,9 @@ class PeakLoop:
 
     def _certain(self, names, z, args, t, t1, best):
         """Whether no tracked quantity can exceed its running maximum `best` after `t`
-        (`bounds_fn` at state `z`)."""
-        assert self.bounds_fn is not None
-        bounds = self.bounds_fn(z, args, t, t1)
+        (`StopWhenCertain.bounds` at state `z`)."""
+        assert self.stop is not None
+        bounds = self.stop.bounds(z, args, t, t1)
         return jnp.all(jnp.stack([bounds[name] for name in names]) <= best)
 
     def _stops(self, args):
@@ -283,9 +321,8 @@ class PeakLoop:
         t0 = jnp.zeros((), dtype=float)
         t1, _ = _end_times(t1)
         first_term, first_state = term, z0
-        if self.leading_term is not None:
-            first_term, size = self.leading_term
-            first_state = z0[:size]
+        if self.leading is not None:
+            first_term, first_state = self.leading.term, z0[: self.leading.size]
         t_next, controller_state = self.controller.init(
             first_term, t0, t1, first_state, None, args, solver.func, self.error_order
         )
@@ -301,7 +338,7 @@ class PeakLoop:
             saved = jnp.full((save_ts.shape[0], *z0.shape), jnp.nan, z0.dtype)
             saved, save_index = _write_saves(save_ts, saved, jnp.array(0), t0, lambda t: z0)
         crossed = cross_step = None
-        if self.crossing_fn is not None:
+        if self.crossing is not None:
             crossed = jnp.array(False)
             cross_step = jax.tree.map(lambda x: x[0], placeholder_steps(t0, z0, 1))
         return _Carry(
@@ -388,11 +425,11 @@ class PeakLoop:
 
     def _crossing(self, c: _Carry, args, step: _Attempt):
         """`(crossed, cross_step)` after the step: the step kept as the one holding the
-        crossing (`crossing_fn`) if it is the first to come down through the level
-        after its time."""
-        if self.crossing_fn is None:
+        crossing (`Crossing`) if it is the first to come down through the level after
+        its time."""
+        if self.crossing is None:
             return c.crossed, c.cross_step
-        level, after = self.crossing_fn(args)
+        level, after = self.crossing.where(args)
         down = step.keep & ~c.crossed & (c.t >= after) & (c.y[0] > level) & (step.z1[0] <= level)
         new_step = dict(t0=c.t, t1=step.t_end, **step.dense_info)
         cross_step = jax.tree.map(
@@ -455,10 +492,10 @@ class PeakLoop:
     def _step_max(self, c: _Carry, args, step: _Attempt):
         """The largest value of each tracked quantity over the step and where it is,
         `(values, s)` with `s` the position in the step (0 to 1): the cubic Hermite
-        maximum from the step's ends, or with `samples` the maximum sampled on the dense
-        polynomial, and at the `kinks_fn`'s corners."""
+        maximum from the step's ends, or with `Sampling` the maximum sampled on the
+        dense polynomial, and at its kinks."""
         dt, metric0, metric1 = step.dt, step.metric0, step.metric1
-        if not self.samples:
+        if not self.sampling.samples:
             return hermite_max(metric0, step.rate0 * dt, metric1, step.rate1 * dt)
         interpolation = self.solver.interpolation_cls(t0=c.t, t1=step.t_end, **step.dense_info)
         # Sampled on the dense polynomial instead: the end rates of a quantity that is
@@ -468,12 +505,12 @@ class PeakLoop:
             lambda t: self._vector(c.names, t, interpolation.evaluate(t), args),
             c.t,
             dt,
-            self.samples,
+            self.sampling.samples,
             metric0,
             metric1,
         )
-        if self.kinks_fn is not None:
-            kinks = self.kinks_fn(c.t, dt, interpolation.evaluate, c.y, step.z1, args)
+        if self.sampling.kinks is not None:
+            kinks = self.sampling.kinks(c.t, dt, interpolation.evaluate, c.y, step.z1, args)
             at_kinks = jax.vmap(
                 lambda t: self._vector(c.names, t, interpolation.evaluate(t), args)
             )(kinks)
@@ -484,10 +521,10 @@ class PeakLoop:
         return step_best, s
 
     def _settled(self, c: _Carry, args, step: _Attempt, t1, best, check_bounds):
-        """Whether the peaks are certain after the step (with `bounds_fn`; tested only
-        where `check_bounds` is true, see `body`)."""
+        """Whether the peaks are certain after the step (with `StopWhenCertain`; tested
+        only where `check_bounds` is true, see `body`)."""
         settled = c.settled
-        if self.bounds_fn is None:
+        if self.stop is None:
             return settled
 
         def certain():
@@ -504,15 +541,15 @@ class PeakLoop:
 
     def _status(self, c: _Carry, args, step: _Attempt, t1, step_best):
         """The `Status` after the step: a kept step that is not finite, a step size that
-        underflows, or a tracked quantity that reaches its ceiling (`ceilings_fn`) ends
-        the solve."""
+        underflows, or a tracked quantity that reaches its ceiling (`Ceilings`) ends the
+        solve."""
         keep, t_prev = step.keep, step.t_prev
         finite = jnp.all(jnp.isfinite(step.z1)) & jnp.isfinite(step.dt)
         status = Status.where(keep & ~finite, Status.nonfinite, c.status)
         status = Status.where(
             (t_prev < t1) & (step.t_next <= t_prev), Status.step_underflow, status
         )
-        ceilings = None if self.ceilings_fn is None else self.ceilings_fn(args)
+        ceilings = None if self.ceilings is None else self.ceilings.values(args)
         if ceilings is not None:
             limits = jnp.stack([ceilings.get(name, jnp.inf) for name in c.names])
             status = Status.where(keep & jnp.any(step_best >= limits), Status.bottomed_out, status)
@@ -544,7 +581,7 @@ class PeakLoop:
 
     def finish(self, final: _Carry, args) -> PeakRun:
         settled = final.settled
-        if self.bounds_fn is not None:
+        if self.stop is not None:
             # A solve that tested its bounds only at some steps (`check_bounds`) and ran
             # out of attempts may have become certain since its last test.
             t1 = _end_times(final.t1)[0]
@@ -559,11 +596,11 @@ class PeakLoop:
             final.best,
             final.best_time,
             final.best_step,
-            search=self.samples > 0,
+            search=self.sampling.samples > 0,
         )
         cross_time = cross_state = None
-        if self.crossing_fn is not None:
-            level, _ = self.crossing_fn(args)
+        if self.crossing is not None:
+            level, _ = self.crossing.where(args)
             cross_time, cross_state = _crossing_point(self.solver, final.cross_step, level)
         return PeakRun(
             best=best,
@@ -670,22 +707,11 @@ def _write_saves(save_ts, saved, index, until, state_at):
 
 
 def integrate_peaks(
-    term,
-    z0,
-    args,
-    t1,
-    metrics_fn: MetricsFn,
-    options: SolverOptions,
-    bounds_fn=None,
-    events: Events | None = None,
-    ceilings_fn=None,
-    save_ts=None,
-    samples: int = 0,
-    kinks_fn=None,
+    term, z0, args, t1, metrics_fn: MetricsFn, options: SolverOptions, *, save_ts=None, **config
 ) -> PeakRun:
     """Integrate `term` from `z0` over `[0, t1]` with Tsit5 + PID in one while loop, keeping
     the running maxima of `metrics_fn(t, z, args)` (a dict of scalars) located between steps.
-    With `bounds_fn` (see `PeakLoop`) it stops once the peaks are certain; `events`,
-    `ceilings_fn`, `samples`, `kinks_fn` and `save_ts` as `PeakLoop`."""
-    loop = PeakLoop(term, metrics_fn, options, bounds_fn, events, ceilings_fn, samples, kinks_fn)
-    return loop.integrate(z0, args, t1, save_ts)
+    `config`: `PeakLoop`'s configuration (`stop=StopWhenCertain(bounds)` stops once the
+    peaks are certain; `events`, `ceilings`, `sampling`, ...); `save_ts` as
+    `PeakLoop.integrate`."""
+    return PeakLoop(term, metrics_fn, options, **config).integrate(z0, args, t1, save_ts)
