@@ -101,7 +101,7 @@ from ._design.result import RunRecord
 from ._design.search import GlobalPhase, default_local
 from ._global_sensitivity.analysis import SENSITIVITY_METHODS, SensitivityMethod, sensitivity_box
 from ._model.derivatives import SIGNALS, signal_sensitivities
-from ._model.equations import Forces
+from ._model.forces.system import Forces
 from ._model.hazards import HAZARDS, Hazard, design_hazards, hazard_flags
 from ._model.metrics import PEAK_FIELDS, Metric, gradient_key, worst_case
 from ._model.programs import live_programs, set_max_programs, structure_jit

@@ -14,16 +14,10 @@ import pytest
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
-from recoil_jax._model.equations import (
-    forces,
-    initial_state,
-    load_jump,
-    load_stops,
-    model_args,
-    recuperator_energy,
-    restart_step,
-    vector_field,
-)
+from recoil_jax._model.equations import initial_state, model_args, vector_field
+from recoil_jax._model.forces.loads import load_jump, load_stops, restart_step
+from recoil_jax._model.forces.recuperator import recuperator_energy
+from recoil_jax._model.forces.system import forces
 from recoil_jax._model.stepping import Events, integrate_peaks
 
 # Structure classes (one compilation each): with and without an absorber, 1 to 5

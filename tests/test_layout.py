@@ -14,21 +14,15 @@ import pytest
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
-from recoil_jax._model.equations import (
-    future_metric_bounds,
-    held_bounds,
-    initial_state,
-    model_args,
-    signals,
-    tracked_metrics,
-)
+from recoil_jax._model.bounds import future_metric_bounds, held_bounds
+from recoil_jax._model.equations import initial_state, model_args, signals, tracked_metrics
 
 PACKAGE = Path(rj.__file__).parent
 #: The engine: the private modules at the top (`_version`) and in the capability folders
 #: (`_model/`, `_campaigns/`, `_sweeps/`, `_design/`, `_calibration/`,
 #: `_global_sensitivity/`).
 ENGINE = sorted(
-    p for p in [*PACKAGE.glob("_*.py"), *PACKAGE.glob("_*/*.py")] if p.name != "__init__.py"
+    p for p in [*PACKAGE.glob("_*.py"), *PACKAGE.glob("_*/**/*.py")] if p.name != "__init__.py"
 )
 #: The applications: every module of `apps/`'s folders (`_cli/`, `_files/`, ...).
 APPS = sorted(
@@ -484,7 +478,7 @@ def test_no_engine_import_runs_up_a_layer():
     and its `__init__` names them on its `May import:` line."""
     assert {p.name for p in PACKAGE.glob("_*/")} == set(LAYERS)
     for folder, allowed in LAYERS.items():
-        for path in sorted((PACKAGE / folder).glob("*.py")):
+        for path in sorted((PACKAGE / folder).rglob("*.py")):
             for module, _ in _imports(path):
                 parts = module.split(".")
                 if parts[0] != "recoil_jax" or len(parts) < 2 or parts[1] == "_version":

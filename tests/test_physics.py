@@ -10,14 +10,10 @@ from scipy.integrate import quad
 from scipy.optimize import brentq
 
 import recoil_jax as rj
-from recoil_jax._model.equations import (
-    contact_width,
-    forces,
-    future_metric_bounds,
-    initial_state,
-    model_args,
-    vector_field,
-)
+from recoil_jax._model.bounds import future_metric_bounds
+from recoil_jax._model.equations import initial_state, model_args, vector_field
+from recoil_jax._model.forces.absorber import contact_width
+from recoil_jax._model.forces.system import forces
 
 
 def _energy_history(params, smoothing, t1=3.0, n=3001):

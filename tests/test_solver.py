@@ -13,10 +13,10 @@ from conftest import all_ok, batch_params, batch_peaks, compiled_programs
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
+from recoil_jax._model.bounds import future_metric_bounds
 from recoil_jax._model.dense import hermite_max
 from recoil_jax._model.equations import (
     RECOIL_TERM,
-    future_metric_bounds,
     initial_state,
     model_args,
     tracked_metrics,

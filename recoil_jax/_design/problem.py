@@ -26,8 +26,8 @@ import numpy as np
 
 from .._model.derivatives import GRADIENT_OPTIONS, MetricSeries, SmoothMax, check_wrt, smooth_name
 from .._model.differentiable import design_metrics
-from .._model.equations import check_envelope_metrics
 from .._model.feasibility import FEASIBILITY_TOLERANCE
+from .._model.forces.system import check_envelope_metrics
 from .._model.metrics import METRICS, metric, worst_case
 from .._model.parameter_table import PARAMETERS, parameter
 from .._model.params import (

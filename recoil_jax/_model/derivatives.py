@@ -27,30 +27,25 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._model.bounds import future_metric_bounds, held_bounds
 from .._model.equations import (
     ModelArgs,
-    contact_width,
-    forces,
-    future_metric_bounds,
-    has_envelope,
-    held_bounds,
     initial_state,
-    load_jump,
-    load_stops,
     model_args,
     mounted,
-    rest_root,
-    restart_step,
-    static_rest,
     tracked_metrics,
     vector_field,
 )
+from .._model.forces.absorber import contact_width
+from .._model.forces.loads import load_jump, load_stops, restart_step
+from .._model.forces.system import forces, has_envelope
 from .._model.lanes import queued_map
 from .._model.metrics import EXTREMES, METRICS, PeakGradients, Peaks
 from .._model.parameter_table import PARAMETERS
 from .._model.params import RecoilParams, values_of, with_values
 from .._model.programs import structure_jit
 from .._model.registry import ParameterError, is_concrete
+from .._model.rest import rest_root, static_rest
 from .._model.settings import Smoothing, SolverOptions, end_time, with_default_tolerances
 from .._model.solve import (
     MODEL_CEILINGS,

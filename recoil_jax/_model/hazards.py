@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from .._model.equations import GRAVITY
+from .._model.forces.rails import GRAVITY
 from .._model.parameter_table import PARAMETERS
 from .._model.params import params_to_values
 

@@ -10,25 +10,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._model.bounds import future_metric_bounds, held_bounds
 from .._model.equations import (
     BATTERY,
     RECOIL_TERM,
     UNTRACKED,
-    Forces,
-    forces,
-    future_metric_bounds,
-    has_envelope,
-    held_bounds,
     initial_state,
-    knot_crossing,
-    load_jump,
-    load_stops,
-    metric_ceilings,
     model_args,
     mounted,
-    restart_step,
     tracked_metrics,
 )
+from .._model.forces.loads import load_jump, load_stops, restart_step
+from .._model.forces.orifice import knot_crossing
+from .._model.forces.recuperator import metric_ceilings
+from .._model.forces.system import Forces, forces, has_envelope
 from .._model.lanes import queued_map
 from .._model.metrics import EXTREMES, METRICS, Peaks
 from .._model.params import RecoilParams

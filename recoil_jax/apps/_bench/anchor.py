@@ -216,7 +216,7 @@ class _Rows(NamedTuple):
 
 def _rows(columns: dict[str, np.ndarray], smoothing: rj.Smoothing) -> _Rows:
     """Each design's parameter row (`ANCHOR_PARAMETERS`, then the two widths) and `v0`."""
-    from recoil_jax._model.equations import contact_width
+    from recoil_jax._model.forces.absorber import contact_width
 
     params, _ = rjx.batch_params(columns)
     values = np.stack([np.asarray(v) for v in rj.values_of(params, ANCHOR_PARAMETERS)], axis=-1)

@@ -1,0 +1,47 @@
+"""The rails (`docs/model.md`, *Firing envelope*): gravity along them at the elevation,
+the absorber's sag and the recoiling parts' axial weight, and the most their friction
+holds."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from ..._model.params import RecoilParams
+
+#: Standard gravity (m/s²), as `docs/model.md` fixes it.
+GRAVITY = 9.80665
+
+__all__ = ["GRAVITY", "absorber_sag", "axial_weight", "friction_bound", "sin_cos"]
+
+
+def absorber_sag(params: RecoilParams):
+    """The absorber's static sag on the barrel, `m g sin θ / k_r` (m, rearward; 0 on level
+    rails or without an absorber): where it starts, and where it rests on a held barrel."""
+    if params.rails is None or params.absorber is None:
+        return 0.0
+    sin, _ = sin_cos(params)
+    return params.absorber.m * GRAVITY * sin / params.absorber.k_r
+
+
+def sin_cos(params: RecoilParams):
+    theta = jnp.deg2rad(params.rails.elevation) if params.rails is not None else 0.0
+    return jnp.sin(theta), jnp.cos(theta)
+
+
+def friction_bound(params: RecoilParams):
+    """`F_max = F_0 + μ (M + m) g cos θ` (N), the most the rails' friction holds."""
+    rails = params.rails
+    assert rails is not None
+    _, cos = sin_cos(params)
+    mass = params.barrel.M + (0.0 if params.absorber is None else params.absorber.m)
+    return rails.friction_force + rails.friction_coefficient * mass * GRAVITY * cos
+
+
+def axial_weight(params: RecoilParams):
+    """`(M + m) g sin θ` (N): the recoiling parts' weight along `+x` (0 on level rails or
+    without rails), which the mechanism holds at rest."""
+    if params.rails is None:
+        return 0.0
+    sin, _ = sin_cos(params)
+    mass = params.barrel.M + (0.0 if params.absorber is None else params.absorber.m)
+    return mass * GRAVITY * sin
