@@ -142,15 +142,6 @@ def _fit_starts(
     stages = 0 if continuation is None else continuation.stages
     warm = dataclasses.replace(static, estimate_noise=False)
 
-    def pad(a):
-        return np.concatenate([a, np.repeat(a[-1:], size - len(a), axis=0)])
-
-    def fit(u, sets, data_, static_):
-        # A short last part is padded with its last start: one program for every part
-        # (a fit costs less than a compilation); the padding's fits are dropped.
-        outcome = fit_program(jnp.asarray(pad(u)), jnp.asarray(pad(sets)), data_, static_)
-        return {f.name: getattr(outcome, f.name)[: len(u)] for f in dataclasses.fields(outcome)}
-
     # Starts that ended a stage at the same point are fitted once from it in the next
     # (`_same_points`), the one's outcome copied to the others: only where every start
     # fits the same data.
@@ -172,39 +163,76 @@ def _fit_starts(
     for stage, (data_, static_, what) in enumerate(plan):
         last = stage == stages
         fitted = np.unique(same)  # the starts this stage fits
-        parts, best, done = [], np.inf, 0
         merged = (f" (at {len(fitted)} point{'s' if len(fitted) > 1 else ''}, each fitted "
                   "once)" if len(fitted) < len(u) else "")  # fmt: skip
-        for begin in range(0, len(fitted), size):
-            starts = fitted[begin : begin + size]
-            starts_u, sets = np.asarray(u[starts]), np.asarray(measured[starts])
-            name = f"fit:{begin}" if last else f"stage{stage}:{begin}"
-            name = f"fallback:{name}" if fallback else name
-            represented = int(np.isin(same, starts).sum())
-            # A warm-up stage's parts hold no fit, nor does the fallback's.
-            fits = represented if last and not fallback else 0
+        words = (f"{'fallback: ' if fallback else ''}stage {stage + 1} of {stages + 1} "
+                 f"({what})")  # fmt: skip
 
-            def compute(u_=starts_u, m=sets, d=data_, s=static_):
-                return fit(u_, m, d, s)
-
-            part = stored_part(store, name, fits, compute)
-            parts.append(part)
-            score = np.asarray(part["score"] if last else part["cost"], dtype=float)
-            best = min(best, float(np.min(np.where(np.isfinite(score), score, np.inf))))
-            done += represented
-            bar.update(first + stage * len(u) + done,
-                       f"{'fallback: ' if fallback else ''}stage {stage + 1} of {stages + 1} "
-                       f"({what}): {done} of {len(u)} starts{merged}, "
+        def report(done, part, best, last=last, stage=stage, merged=merged, words=words):
+            bar.update(first + stage * len(u0) + done,
+                       f"{words}: {done} of {len(u0)} starts{merged}, "
                        f"{int(np.max(part['steps']))} steps, best "
                        f"{'score' if last else 'χ²'} {best:.6g}")  # fmt: skip
-        outcome = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-        outcome = {k: v[np.searchsorted(fitted, same)] for k, v in outcome.items()}
+
+        name = "fit:{}" if last else f"stage{stage}:{{}}"
+        stage_ = _Stage(data_, static_, last, f"fallback:{name}" if fallback else name, size)
+        outcome = _fit_stage(stage_, store, u, measured, same, fallback, report)
         steps = steps + outcome["steps"]
         u = outcome["u"]
         if merge and not last:
             same = _same_points(u, outcome["cost"], same)
     outcome["steps"] = steps
     return FitOutcome(**{k: jnp.asarray(v) for k, v in outcome.items()})
+
+
+class _Stage(NamedTuple):
+    """One stage of `_fit_starts`: its data and settings, whether it is the last (at the
+    calibration's own widths), its parts' names (`name.format(first start)`) and the
+    starts a part."""
+
+    data: CalibrationData
+    static: FitSettings
+    last: bool
+    name: str
+    size: int
+
+
+def _fit_stage(stage: _Stage, store, u, measured, same, fallback: bool, report) -> dict:
+    """One stage's fits of the starts `np.unique(same)` from `u (N, P)` on their data sets
+    `measured`, a part of `stage.size` at a time, each read from `store` or committed;
+    `report(done, part, best)` after each. Returns the outcome by field, for every
+    start (a follower gets its representative's)."""
+    fitted = np.unique(same)
+    parts, best, done = [], np.inf, 0
+    for begin in range(0, len(fitted), stage.size):
+        starts = fitted[begin : begin + stage.size]
+        represented = int(np.isin(same, starts).sum())
+        # A warm-up stage's parts hold no fit, nor does the fallback's.
+        fits = represented if stage.last and not fallback else 0
+
+        def compute(u_=np.asarray(u[starts]), m=np.asarray(measured[starts])):
+            return _fit_padded(u_, m, stage.data, stage.static, stage.size)
+
+        part = stored_part(store, stage.name.format(begin), fits, compute)
+        parts.append(part)
+        score = np.asarray(part["score"] if stage.last else part["cost"], dtype=float)
+        best = min(best, float(np.min(np.where(np.isfinite(score), score, np.inf))))
+        done += represented
+        report(done, part, best)
+    outcome = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    return {k: v[np.searchsorted(fitted, same)] for k, v in outcome.items()}
+
+
+def _fit_padded(u, sets, data: CalibrationData, static: FitSettings, size: int) -> dict:
+    """The fits of the starts `u` on their data `sets` in one call of the fit program.
+    A short last part is padded with its last start: one program for every part (a fit
+    costs less than a compilation); the padding's fits are dropped."""
+
+    def pad(a):
+        return np.concatenate([a, np.repeat(a[-1:], size - len(a), axis=0)])
+
+    outcome = fit_program(jnp.asarray(pad(u)), jnp.asarray(pad(sets)), data, static)
+    return {f.name: getattr(outcome, f.name)[: len(u)] for f in dataclasses.fields(outcome)}
 
 
 def _same_points(u: np.ndarray, cost: np.ndarray, same: np.ndarray) -> np.ndarray:

@@ -65,10 +65,9 @@ __all__ = [
     "connect_read",
     "evaluation_row",
     "fingerprint",
-    "lowest_row",
+    "quote_name",
     "read_meta",
-    "read_sweep_store",
-    "store_failures",
+    "sql_names",
 ]
 
 #: The layout of the tables; a store of another format is refused, not misread.
@@ -101,11 +100,11 @@ def fingerprint(*parts: Any) -> str:
     return digest.hexdigest()
 
 
-def _quote(name: str) -> str:
+def quote_name(name: str) -> str:
     return '"' + name.replace('"', '""') + '"'
 
 
-def _sql_names(columns: list[str]) -> list[str]:
+def sql_names(columns: list[str]) -> list[str]:
     """The SQL names of a table's value columns. SQLite's names ignore case, and the
     barrel's `M` and the absorber's `m` are both parameters: the first keeps its name, a
     later one equal to it but for case is stored as `name~2` (`~3`, ...)."""
@@ -392,7 +391,7 @@ class SweepStore(_Store):
         )
 
     def _create_tables(self) -> None:
-        data = ", ".join(f"{_quote(name)} REAL" for name in _sql_names(self.columns))
+        data = ", ".join(f"{quote_name(name)} REAL" for name in sql_names(self.columns))
         self.db.execute(
             "CREATE TABLE chunks (chunk TEXT PRIMARY KEY, designs INTEGER, seconds REAL, "
             "finished REAL, run INTEGER)"
@@ -448,9 +447,9 @@ class SweepStore(_Store):
             np.asarray(codes).tolist(),
             strict=True,
         )
-        names = ["point", "chunk", *_sql_names(self.columns), "status", "status_code"]
+        names = ["point", "chunk", *sql_names(self.columns), "status", "status_code"]
         insert = (
-            f"INSERT INTO points ({', '.join(map(_quote, names))}) "
+            f"INSERT INTO points ({', '.join(map(quote_name, names))}) "
             f"VALUES ({', '.join('?' * len(names))})"
         )
 
@@ -476,9 +475,9 @@ class SweepStore(_Store):
         self.db.execute("CREATE TEMP TABLE IF NOT EXISTS wanted (chunk TEXT PRIMARY KEY)")
         self.db.execute("DELETE FROM wanted")
         self.db.executemany("INSERT INTO wanted VALUES (?)", [(c,) for c in chunks])
-        names = ["point", *_sql_names(self.columns), "status_code"]
+        names = ["point", *sql_names(self.columns), "status_code"]
         rows = self.db.execute(
-            f"SELECT {', '.join(map(_quote, names))} FROM points "
+            f"SELECT {', '.join(map(quote_name, names))} FROM points "
             "WHERE chunk IN (SELECT chunk FROM wanted)"
         ).fetchall()
         table = np.array(rows, dtype=float).reshape(len(rows), len(names))
@@ -540,89 +539,6 @@ def check_model_revision(path, meta: dict[str, str]) -> None:
         "gun's, and the pull and the mount load are metrics): its results are not this "
         "model's. Run the campaign again with a new store path (or delete the file)"
     )
-
-
-def _open_sweep(path) -> tuple[sqlite3.Connection, dict[str, str]]:
-    """A sweep's store, to read: its connection and `meta` (raises `ParameterError`)."""
-    path = Path(path)
-    db = connect_read(path)
-    meta = read_meta(db)
-    if meta.get("kind") != "sweep":
-        db.close()
-        what = f"a {meta['kind']}'s" if meta else "empty, not a recoil-jax"
-        raise ParameterError(f"store {path} is {what} store, not a sweep's")
-    try:
-        check_model_revision(path, meta)
-    except ParameterError:
-        db.close()
-        raise
-    return db, meta
-
-
-def read_sweep_store(path) -> tuple[dict[str, str], np.ndarray, dict[str, np.ndarray]]:
-    """A finished sweep's store: its `meta` (with `seconds`, the chunks' solve time),
-    every row's `point` and its columns (`status_code` as integers, NULL as NaN).
-    Raises `ParameterError` if the sweep has not finished."""
-    db, meta = _open_sweep(path)
-    try:
-        columns = json.loads(meta["columns"])
-        done, seconds = db.execute(
-            "SELECT COALESCE(SUM(designs), 0), COALESCE(SUM(seconds), 0) FROM chunks"
-        ).fetchone()
-        if done < int(meta["total"]):
-            raise ParameterError(
-                f"store {path} holds {done} of {meta['total']} designs: run the same sweep "
-                "with this store to finish it first"
-            )
-        names = ["point", *_sql_names(columns), "status_code"]
-        rows = db.execute(f"SELECT {', '.join(map(_quote, names))} FROM points").fetchall()
-    finally:
-        db.close()
-    table = np.array(rows, dtype=float).reshape(len(rows), len(names))
-    total = int(meta["total"])
-    if len(rows) != total or len(np.unique(table[:, 0])) != total:
-        raise ParameterError(
-            f"store {path} holds {len(np.unique(table[:, 0]))} distinct of its {total} designs "
-            f"in {len(rows)} rows (rows lost or doubled): run the same sweep with this store "
-            "to solve those chunks again"
-        )
-    data = {name: table[:, j + 1] for j, name in enumerate(columns)}
-    data["status_code"] = table[:, -1].astype(np.int32)
-    return meta | {"seconds": str(seconds)}, table[:, 0].astype(int), data
-
-
-def store_failures(path) -> dict[str, int]:
-    """A sweep store's failed designs: how many per reason (`status`)."""
-    db, _ = _open_sweep(path)
-    try:
-        rows = db.execute(
-            "SELECT status, COUNT(*) FROM points WHERE status != 'ok' GROUP BY status"
-        ).fetchall()
-    finally:
-        db.close()
-    return dict(rows)
-
-
-def lowest_row(path, column: str, ok_code: int) -> dict[str, float] | None:
-    """The row of a sweep store with the lowest `column` among the solves that
-    succeeded (`status_code == ok_code`), by column name; None if there is none."""
-    db, meta = _open_sweep(path)
-    columns = json.loads(meta["columns"])
-    by_name = dict(zip(columns, _sql_names(columns), strict=True))
-    sql = _quote(by_name.get(column, column))
-    try:
-        cursor = db.execute(
-            f"SELECT * FROM points WHERE status_code = ? AND {sql} IS NOT NULL "
-            f"ORDER BY {sql} LIMIT 1",
-            (ok_code,),
-        )
-        row = cursor.fetchone()
-        names = [d[0] for d in cursor.description]
-    finally:
-        db.close()
-    named = dict(zip(by_name.values(), by_name, strict=True))
-    names = [named.get(n, n) for n in names]
-    return None if row is None else dict(zip(names, row, strict=True))
 
 
 def pack(arrays: dict[str, Any]) -> bytes:
@@ -689,7 +605,7 @@ class StudyStore(_Store):
         )
 
     def _create_tables(self) -> None:
-        data = ", ".join(f"{_quote(name)} REAL" for name in _sql_names(self.columns))
+        data = ", ".join(f"{quote_name(name)} REAL" for name in sql_names(self.columns))
         self.db.execute(
             "CREATE TABLE evaluations (evaluation INTEGER PRIMARY KEY AUTOINCREMENT, "
             f"run INTEGER, seconds REAL, phase TEXT, start INTEGER, {data}, violation REAL, "
@@ -733,7 +649,7 @@ class StudyStore(_Store):
 
     def _insert(self, rows: list[dict[str, Any]]):
         names = [
-            "run", "seconds", "phase", "start", *_sql_names(self.columns), "violation", "feasible",
+            "run", "seconds", "phase", "start", *sql_names(self.columns), "violation", "feasible",
             "status", "status_code", "key", "outputs",
         ]  # fmt: skip
         values, blobs = [], {}
@@ -760,7 +676,7 @@ class StudyStore(_Store):
                 )
             )
         insert = (
-            f"INSERT INTO evaluations ({', '.join(map(_quote, names))}) "
+            f"INSERT INTO evaluations ({', '.join(map(quote_name, names))}) "
             f"VALUES ({', '.join('?' * len(names))})"
         )
         return insert, values, blobs

@@ -581,15 +581,7 @@ def evaluate_design(
     if objective.scatter is None and not problem.conditions:
         metrics, status = metrics_at(params)
     else:
-        if problem.conditions:
-            points = problem.at_conditions(params)
-        else:
-            names, offsets = objective.scatter_points
-            nominal = values_of(params, names)
-            points = jax.vmap(lambda o: with_values(params, names, nominal * (1.0 + o)))(
-                jnp.asarray(offsets)
-            )
-        per_point, statuses = jax.vmap(metrics_at)(points)
+        per_point, statuses = jax.vmap(metrics_at)(_points(problem, params))
         # Worst case (or quantile) over the scatter or the conditions: of the objective,
         # and of each limited metric (with conditions, over those each limit names).
         smooth_values = objective(per_point, smooth=True)
@@ -611,6 +603,16 @@ def evaluate_design(
         objective=objective(metrics),
         violations=_violations(problem, metrics, limits),
     )
+
+
+def _points(problem: DesignProblem, params):
+    """The designs the objective is the worst over, stacked: `params` at each of the
+    problem's conditions, or at each point of its objective's scatter."""
+    if problem.conditions:
+        return problem.at_conditions(params)
+    names, offsets = problem.objective.scatter_points
+    nominal = values_of(params, names)
+    return jax.vmap(lambda o: with_values(params, names, nominal * (1.0 + o)))(jnp.asarray(offsets))
 
 
 def _violations(problem: DesignProblem, metrics, limits) -> jax.Array:

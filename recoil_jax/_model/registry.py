@@ -138,7 +138,8 @@ class Parameter(Limits):
 
     @property
     def owner(self) -> str:
-        """The class holding it (`Barrel`, `Absorber`, `Contact`), for messages."""
+        """The class holding it (its group's, `GROUP_CLASSES`: `Barrel`, `Absorber`, ...),
+        for messages."""
         return GROUP_CLASSES[self.group]
 
     @property

@@ -149,10 +149,9 @@ _CHAIN_NORM_MAX = 20
 def _rms_norm(x):
     """Root mean square of the (1-D) scaled error. A short vector as a chain of adds:
     diffrax's default norm is a `dot`, which XLA:CPU sends to a library call per step,
-    several times slower for a 4–20-element vector under `vmap`. A longer one (the
-    forward sensitivities of many parameters) as a sum: the chain of 115 adds was 14 % of
-    the 22-parameter gradient program's operations, 2 s of its compile time, and made it
-    run 1.25× slower. Zero at zero with finite derivatives."""
+    slower for a 4–20-element vector under `vmap`. A longer one (the forward
+    sensitivities of many parameters) as a sum: a long chain bloats the gradient
+    program (`docs/speed.md` measures both). Zero at zero with finite derivatives."""
     if x.shape[0] > _CHAIN_NORM_MAX:
         total = jnp.sum(x * x)
     else:

@@ -185,18 +185,26 @@ def check_plan(
         rows = fit_many(calibration, measured, continuation=None, progress=log is not _SILENT,
                         stream=_LineStream(log))  # fmt: skip
         ok = [r for r in rows if r["converged"]]
-        spread, bias, ratio, fitted = {}, {}, {}, {}
-        for j, p in enumerate(fit):
-            values = fitted[p] = np.asarray([r[p] for r in ok])
-            spread[p] = float(np.std(values, ddof=1)) if len(values) > 1 else float("nan")
-            bias[p] = float(np.mean(values) - theta[j]) if len(values) else float("nan")
-            ratio[p] = None if predicted[p] is None else spread[p] / predicted[p]
+        spread, bias, ratio, fitted = _spread(ok, fit, theta, predicted)
         seconds = time.perf_counter() - clock
         log(f"check: {name.replace('_', ' ')}: {len(ok)} of {tests} fits converged, "
             f"{seconds:.1f} s")  # fmt: skip
         results[name] = PlanCheck(truth_values, tests, len(ok), predicted, spread, ratio, bias,
                                   seconds, fitted)  # fmt: skip
     return results
+
+
+def _spread(ok: list[dict], fit: tuple[str, ...], theta, predicted: dict):
+    """`(spread, bias, ratio, fitted)` by fitted name over the converged fits `ok`: the
+    values' standard deviation, their mean's offset from the truth `theta`, the spread
+    over the `predicted` standard error (None without one), and the values."""
+    spread, bias, ratio, fitted = {}, {}, {}, {}
+    for j, p in enumerate(fit):
+        values = fitted[p] = np.asarray([r[p] for r in ok])
+        spread[p] = float(np.std(values, ddof=1)) if len(values) > 1 else float("nan")
+        bias[p] = float(np.mean(values) - theta[j]) if len(values) else float("nan")
+        ratio[p] = None if predicted[p] is None else spread[p] / predicted[p]
+    return spread, bias, ratio, fitted
 
 
 def _signals_at(params, condition, signals, problem, reference) -> dict[str, np.ndarray]:

@@ -155,21 +155,7 @@ class PlanProblem:
                 f"candidates: {count:,} combinations; valid at most {MAX_CANDIDATES:,} (fewer "
                 "values, or fewer conditions)"
             )
-        for name, values in candidates.items():
-            if name in self.fit:
-                raise ParameterError(
-                    f"candidates.{name}: {name} is fitted; a firing's condition must be known"
-                )
-            if name not in PARAMETERS:
-                raise ParameterError(f"candidates: {PARAMETERS.unknown(name)}")
-            if PARAMETERS[name].integer:
-                raise ParameterError(f"candidates.{name}: an integer count cannot be a condition")
-            if not values:
-                raise ParameterError(f"candidates.{name}: give at least one value")
-            for value in values:
-                check_value("candidates", name, value, PARAMETERS[name])
-            if len(set(values)) != len(values):
-                raise ParameterError(f"candidates.{name}: a value is given twice")
+        _check_candidate_values(candidates, self.fit)
         self._check_signals()
         if not (math.isfinite(self.rate) and 0 < self.rate <= 1e6):
             raise ParameterError(f"sampling.rate = {self.rate!r}: valid > 0 to 1e6 samples/s")
@@ -267,3 +253,23 @@ class PlanProblem:
             dict(zip(names, row, strict=True))
             for row in itertools.product(*self.candidates.values())
         ]
+
+
+def _check_candidate_values(candidates: dict[str, tuple[float, ...]], fit) -> None:
+    """Each candidate condition is a parameter that is not fitted, not an integer count,
+    with at least one value, each valid and none twice (`ParameterError`)."""
+    for name, values in candidates.items():
+        if name in fit:
+            raise ParameterError(
+                f"candidates.{name}: {name} is fitted; a firing's condition must be known"
+            )
+        if name not in PARAMETERS:
+            raise ParameterError(f"candidates: {PARAMETERS.unknown(name)}")
+        if PARAMETERS[name].integer:
+            raise ParameterError(f"candidates.{name}: an integer count cannot be a condition")
+        if not values:
+            raise ParameterError(f"candidates.{name}: give at least one value")
+        for value in values:
+            check_value("candidates", name, value, PARAMETERS[name])
+        if len(set(values)) != len(values):
+            raise ParameterError(f"candidates.{name}: a value is given twice")

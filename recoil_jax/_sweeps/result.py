@@ -11,7 +11,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .._campaigns.store import lowest_row, read_sweep_store
+from .._campaigns.sweep_reader import lowest_row, read_sweep_store
 from .._model.hazards import hazard_flags
 from .._model.metrics import (
     METRICS,

@@ -19,7 +19,8 @@ import numpy as np
 
 from .._campaigns.opener import open_campaign
 from .._campaigns.progress import Progress
-from .._campaigns.store import SweepStore, campaign_identity, store_failures
+from .._campaigns.store import SweepStore, campaign_identity
+from .._campaigns.sweep_reader import store_failures
 from .._model.derivatives import GRADIENT_OPTIONS
 from .._model.metrics import METRICS, PEAK_FIELDS, gradient_key
 from .._model.params import ForceTable

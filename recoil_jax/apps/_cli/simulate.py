@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import sys
+from typing import Any
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
@@ -34,20 +35,7 @@ def run_simulate(args) -> int:
     """Run `recoil-jax simulate` with the parsed `args`; its exit status."""
     import numpy as np
 
-    values = parse_assignments(args.assignments)
-    source = None
-    if args.source is not None:
-        source = design_from_file(args.source, args.experiment)
-        missing = [n for n in source.required if n not in values]
-        if missing:
-            raise rj.ParameterError(
-                f"{source.label}: the study tunes {', '.join(missing)}; give "
-                + " ".join(f"{n}=..." for n in missing)
-                + " (its result.json's best design, or any you want to see)"
-            )
-        values = source.values | values  # the command line's win
-    elif args.experiment is not None:
-        raise rj.ParameterError("--experiment picks one of a file's: give the file with --from")
+    values, source = _design_values(args)
     plot = check_figure_path(args.plot) if args.plot else None  # before the solve
     trace = check_output_file(args.csv, "--csv") if args.csv else None
     sampling = _sampling(args, source, values, trace)
@@ -90,44 +78,7 @@ def run_simulate(args) -> int:
             )
         )
     else:
-        model = "simplified (no absorber)" if params.absorber is None else "with absorber"
-        switches = "hard" if args.hard else "smoothed"
-        if not args.hard and source is not None and source.smoothing != rj.Smoothing():
-            switches += " (at the widths its calibration fits at)"
-        print(f"recoil-jax: {model}, {switches} switches")
-        numbers = {k: v for k, v in used.items() if k != "force_table"}
-        print("  parameters: " + ", ".join(f"{k}={v:g}" for k, v in numbers.items()))
-        if table is not None:
-            t = used["force_table"]
-            print(
-                f"  force table: {t['file']}, {t['points']} points over {t['duration_s']:g} s, "
-                f"impulse {t['impulse_N_s']:g} N s per round"
-            )
-        metrics = rj.METRICS
-        rows = []
-        # Without an absorber there is no contact and no stroke to print (zeros).
-        absorber = params.absorber is not None
-        shown = ("peak_displacement", "peak_anchoring_force")
-        for name in shown + (("peak_contact_force",) if absorber else ()):
-            m = metrics[name]
-            digits = 6 if m.unit == "m" else 2
-            rows.append(
-                (
-                    m.meaning,
-                    f"{result[m.key]:.{digits}f} {m.unit}",
-                    f"at {result[m.time_key]:.4f} s",
-                )
-            )
-        low, high = metrics["min_stroke"], metrics["max_stroke"]
-        if absorber:
-            stroke = f"{result[low.key]:+.4f} .. {result[high.key]:+.4f} m"
-            rows.append(("absorber stroke x_m - x_M", stroke, ""))
-        rows.extend(_envelope_rows(result))
-        rows.append(("solver steps", f"{result['num_steps']}", ""))
-        for name, value, when in rows:
-            print(f"  {name:28s} {value:>22s}  {when}")
-        for hazard in hazards:
-            print(f"  hazard {hazard['name']}: {hazard['sentence']}")
+        _print_peaks(result, hazards, used, params, table, args.hard, source)
     if plot is None and trace is None:
         return 0
     history = rj.simulate(params, smoothing, options, ts=np.linspace(0.0, t1, 20001))
@@ -141,6 +92,69 @@ def run_simulate(args) -> int:
             history = rj.simulate(params, smoothing, options, ts=sampling)
         print(f"wrote {_trace(history, params, noise, args.seed).to_csv(trace)}", file=sys.stderr)
     return 0
+
+
+def _design_values(args) -> tuple[dict, Any]:
+    """The design's flat values: from `--from` (a study, calibration or plan file, its
+    `--experiment`), the command line's assignments winning; and the file's design
+    (None without one)."""
+    values = parse_assignments(args.assignments)
+    if args.source is None:
+        if args.experiment is not None:
+            raise rj.ParameterError("--experiment picks one of a file's: give the file with --from")
+        return values, None
+    source = design_from_file(args.source, args.experiment)
+    missing = [n for n in source.required if n not in values]
+    if missing:
+        raise rj.ParameterError(
+            f"{source.label}: the study tunes {', '.join(missing)}; give "
+            + " ".join(f"{n}=..." for n in missing)
+            + " (its result.json's best design, or any you want to see)"
+        )
+    return source.values | values, source  # the command line's win
+
+
+def _print_peaks(result: dict, hazards: list, used: dict, params, table, hard: bool, source):
+    """The text report of one design's peaks: the model, the parameters used, each
+    metric with its time, and the hazards."""
+    model = "simplified (no absorber)" if params.absorber is None else "with absorber"
+    switches = "hard" if hard else "smoothed"
+    if not hard and source is not None and source.smoothing != rj.Smoothing():
+        switches += " (at the widths its calibration fits at)"
+    print(f"recoil-jax: {model}, {switches} switches")
+    numbers = {k: v for k, v in used.items() if k != "force_table"}
+    print("  parameters: " + ", ".join(f"{k}={v:g}" for k, v in numbers.items()))
+    if table is not None:
+        t = used["force_table"]
+        print(
+            f"  force table: {t['file']}, {t['points']} points over {t['duration_s']:g} s, "
+            f"impulse {t['impulse_N_s']:g} N s per round"
+        )
+    metrics = rj.METRICS
+    rows = []
+    # Without an absorber there is no contact and no stroke to print (zeros).
+    absorber = params.absorber is not None
+    shown = ("peak_displacement", "peak_anchoring_force")
+    for name in shown + (("peak_contact_force",) if absorber else ()):
+        m = metrics[name]
+        digits = 6 if m.unit == "m" else 2
+        rows.append(
+            (
+                m.meaning,
+                f"{result[m.key]:.{digits}f} {m.unit}",
+                f"at {result[m.time_key]:.4f} s",
+            )
+        )
+    low, high = metrics["min_stroke"], metrics["max_stroke"]
+    if absorber:
+        stroke = f"{result[low.key]:+.4f} .. {result[high.key]:+.4f} m"
+        rows.append(("absorber stroke x_m - x_M", stroke, ""))
+    rows.extend(_envelope_rows(result))
+    rows.append(("solver steps", f"{result['num_steps']}", ""))
+    for name, value, when in rows:
+        print(f"  {name:28s} {value:>22s}  {when}")
+    for hazard in hazards:
+        print(f"  hazard {hazard['name']}: {hazard['sentence']}")
 
 
 def _sampling(args, source, values: dict, trace):
