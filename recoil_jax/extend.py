@@ -30,12 +30,14 @@ not need them; `docs/developers.md` shows how to plug a part in.
 - `status_codes`, `status_messages`, `status_table`, `OK_CODE`: a `Status` item's
   integer codes and messages, every code with its message, and the code of success.
 - `PEAK_FIELDS`, `gradient_key`, `Metric`, `Parameter`: the keys of the files and the
-  registries' entries; `T1_LIMITS`: the end time's valid and documented range;
-  `end_time`: a design's end time (refusing a load that does not
-  fit); `Forces`: the model's forces; `StoredSweep`: a sweep read back from its store;
-  `worst_case`: each metric's worst over a scatter of designs; `read_text`: a text
-  file, or one line saying why not (`MAX_TEXT_BYTES`: the most it reads); `written`: a
-  file written whole or not at all, a failure naming it;
+  registries' entries; `GROUPS`, `Group`: the parameters' groups, each a part of the
+  gun (its title, whether it is the paper's, hardware or the firing envelope's);
+  `T1_LIMITS`: the end time's valid and documented range; `end_time`: a design's end
+  time (refusing a load that does not fit); `Forces`: the model's forces;
+  `StoredSweep`: a sweep read back from its store; `worst_case`: each metric's worst
+  over a scatter of designs; `read_text`: a text file, or one line saying why not
+  (`MAX_TEXT_BYTES`: the most it reads); `written`: a file written whole or not at all,
+  a failure naming it;
   `check_memory`: refuse a count whose arrays would take over half the free memory;
   `check_integer`: an integer setting (a count, a seed) in its range, or the one refusal.
 - `HAZARDS`, `Hazard`, `design_hazards`, `hazard_flags`: the hazards every report names
@@ -106,7 +108,7 @@ from ._model.hazards import HAZARDS, Hazard, design_hazards, hazard_flags
 from ._model.metrics import PEAK_FIELDS, Metric, gradient_key, worst_case
 from ._model.programs import live_programs, set_max_programs, structure_jit
 from ._model.reference import reference_history
-from ._model.registry import Parameter, check_integer
+from ._model.registry import GROUPS, Group, Parameter, check_integer
 from ._model.settings import T1_LIMITS, end_time
 from ._model.status import OK_CODE, status_codes, status_messages, status_table
 from ._model.text_files import MAX_TEXT_BYTES, read_text, written
@@ -123,6 +125,7 @@ __all__ = [
     "CALIBRATION_SMOOTHING",
     "DEFAULT_CONTINUATION",
     "DEFAULT_STARTS",
+    "GROUPS",
     "HAZARDS",
     "LOSSES",
     "MAX_TEXT_BYTES",
@@ -143,6 +146,7 @@ __all__ = [
     "GlobalPhase",
     "GradientEvaluator",
     "Grid",
+    "Group",
     "Hazard",
     "LocalEvaluation",
     "LocalMethod",

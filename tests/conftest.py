@@ -169,3 +169,65 @@ def assert_complete_result(result, method: str, dimension: int):
         np.testing.assert_array_equal(best, result.best_objective[s])
         assert result.best_so_far(s)[-1] == (best if held.any() else np.inf)
     assert result.simulations == result.solves + result.gradient_solves
+
+
+def study_text(
+    *,
+    description: str | None = None,
+    design: str | None = None,
+    tune: str = "gap = [0.0, 0.1]",
+    objective: str = "peak_anchoring_force = 1.0",
+    constraints: str | None = None,
+    optimiser: str | None = None,
+    rest: str = "",
+) -> str:
+    """A study file's text, its sections' bodies given as TOML (None leaves one out): by
+    default the paper's absorber tuned in its gap for the lowest peak anchoring force,
+    with nothing else set. `rest`: more sections, as they are written (`[check]`,
+    `[[front]]`, ...). `SMALL_STUDY` holds the small gap study that several tests run."""
+    text = "" if description is None else f"description = {json.dumps(description)}\n"
+    sections = dict(
+        design=design, tune=tune, objective=objective, constraints=constraints,
+        optimiser=optimiser,
+    )  # fmt: skip
+    for name, body in sections.items():
+        if body is not None:
+            text += f"[{name}]\n{body.strip()}\n"
+    return text + rest
+
+
+#: The small gap study: the paper's absorber (m 1500 kg) tuned in its gap for the
+#: lowest peak anchoring force with the stroke within 0.15 m (`study_text`'s settings).
+SMALL_STUDY = dict(
+    design="m = 1500.0\ngap = 0.05",
+    tune="gap = [0.0, 0.12]",
+    constraints="max_stroke = { max = 0.15 }",
+)
+
+
+@pytest.fixture
+def write_study(tmp_path):
+    """`write_study(name="study.toml", **sections)`: a study file of `study_text` in the
+    test's folder, its path."""
+
+    def write(name: str = "study.toml", **sections) -> Path:
+        path = tmp_path / name
+        path.write_text(study_text(**sections))
+        return path
+
+    return write
+
+
+def gap_problem(limit: float = 0.15):
+    """The small gap study as a `DesignProblem` (`SMALL_STUDY`): the paper's absorber
+    (m 1500 kg) tuned in its gap for the lowest peak anchoring force, the stroke within
+    `limit` (m). One compiled program for every test that solves it."""
+    import recoil_jax as rj
+
+    return rj.DesignProblem(
+        params=rj.params_from_values(m=1500.0, gap=0.05),
+        objective=rj.Objective({"peak_anchoring_force": 1.0}),
+        tune=("gap",),
+        bounds={"gap": (0.0, 0.12)},
+        constraints=(rj.Constraint("max_stroke", upper=limit),),
+    )

@@ -328,6 +328,8 @@ RJX_NAMES = (
     "FittedParameters",
     "Forces",
     "GlobalPhase",
+    "GROUPS",
+    "Group",
     "GradientEvaluator",
     "Grid",
     "HAZARDS",
@@ -527,3 +529,43 @@ def test_the_package_cites_only_its_own_documents():
              for number, line in enumerate(path.read_text().splitlines(), 1)
              if outside.search(line)]  # fmt: skip
     assert not cited, cited
+
+
+def _group_lists(path: Path):
+    """`(line, names)` of each literal in `path` that lists two or more parameter groups:
+    a tuple, list or set of their names, or a dict whose keys are all group names."""
+    from recoil_jax.extend import GROUPS
+
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Tuple | ast.List | ast.Set):
+            items = node.elts
+        elif isinstance(node, ast.Dict) and all(k is not None for k in node.keys):
+            items = [k for k in node.keys if k is not None]
+            if not all(isinstance(k, ast.Constant) and k.value in GROUPS for k in items):
+                continue
+        else:
+            continue
+        names = [e.value for e in items if isinstance(e, ast.Constant) and e.value in GROUPS]
+        if len(names) >= 2:
+            yield node.lineno, names
+
+
+def test_the_groups_are_listed_once(tmp_path):
+    """The parameter groups are listed in one place, the registry's `GROUPS` (each with
+    its pytree, title, part of the gun and switches); every other form derives from it
+    (`GROUP_CLASSES`, `PAPER_GROUPS`, `HARDWARE_GROUPS`, `ENVELOPE_GROUPS`, the
+    explorer's cards). No other module lists two or more of them by hand."""
+    sample = tmp_path / "sample.py"  # what the check finds, and what it leaves
+    sample.write_text('A = ("rails", "mount")\nB = {"load": 1, "buffer": 2}\n'
+                      'C = {"load": 1, "shots": 2}\nD = ("rails",)\n')  # fmt: skip
+    assert [line for line, _ in _group_lists(sample)] == [1, 2]
+    registry = PACKAGE / "_model" / "registry.py"
+    assert list(_group_lists(registry)) == []  # `Group(...)` calls, not a literal list
+    found = [f"{path.relative_to(PACKAGE)}:{line}: {names}"
+             for path in sorted(PACKAGE.rglob("*.py"))
+             for line, names in _group_lists(path)]  # fmt: skip
+    assert not found, found
+    from recoil_jax._model.params import RecoilParams
+
+    fields = [f.name for f in dataclasses.fields(RecoilParams)]
+    assert fields == list(rjx.GROUPS)  # one pytree field a group, in its order

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
-from conftest import assert_complete_result
+from conftest import SMALL_STUDY, assert_complete_result, study_text
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
@@ -285,25 +285,14 @@ def test_study_command_writes_result_json(tmp_path, capsys):
     from recoil_jax.apps import main
 
     study = tmp_path / "small.toml"
-    study.write_text("""
-description = "small"
-[design]
-m = 1500.0
-gap = 0.04
-[tune]
-gap = [0.0, 0.12]
-c_r = [1000.0, 6000.0]
-[objective]
-peak_anchoring_force = 1.0
-[constraints]
-max_stroke = { max = 0.13 }
-[optimiser]
-starts = 2
-steps = 30
-[check]
-hard = true
-grid = { gap = [0.04, 0.08, 5] }
-""")
+    study.write_text(study_text(
+        description="small",
+        design="m = 1500.0\ngap = 0.04",
+        tune="gap = [0.0, 0.12]\nc_r = [1000.0, 6000.0]",
+        constraints="max_stroke = { max = 0.13 }",
+        optimiser="starts = 2\nsteps = 30",
+        rest="[check]\nhard = true\ngrid = { gap = [0.04, 0.08, 5] }\n",
+    ))  # fmt: skip
     out = tmp_path / "out"
     assert main(["optimise", str(study), "--out", str(out)]) == 0
     result = json.loads((out / "result.json").read_text())
@@ -366,22 +355,11 @@ def test_tuning_benchmark_smoke(tmp_path):
     from recoil_jax.apps._bench.tuning import METHODS, format_report, run_tuning_bench
 
     study = tmp_path / "tiny.toml"
-    study.write_text("""
-[design]
-m = 1500.0
-gap = 0.062
-[tune]
-gap = [0.0, 0.12]
-c_r = [1000.0, 6000.0]
-[objective]
-peak_anchoring_force = 1.0
-[constraints]
-max_stroke = { max = 0.15 }
-[optimiser]
-method = "search"
-samples = 32
-starts = 1
-""")
+    study.write_text(study_text(
+        **SMALL_STUDY | {"design": "m = 1500.0\ngap = 0.062",
+                         "tune": "gap = [0.0, 0.12]\nc_r = [1000.0, 6000.0]"},
+        optimiser='method = "search"\nsamples = 32\nstarts = 1',
+    ))  # fmt: skip
     budget = 2.5
     report = run_tuning_bench({str(study): budget}, seeds=(0, 1), out=tmp_path, log=lambda _: None)
     problem = report["problems"]["tiny"]  # keyed by the study's name

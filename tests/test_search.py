@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from conftest import assert_complete_result, compiled_programs
+from conftest import assert_complete_result, compiled_programs, gap_problem, study_text
 from scipy.optimize import brentq
 
 import recoil_jax as rj
@@ -420,18 +420,8 @@ def test_a_new_global_phase_plugs_in_without_touching_the_library():
     assert_complete_result(result, "minimise", 2)
 
 
-def _gap_problem(limit=0.15):
-    return rj.DesignProblem(
-        params=rj.params_from_values(m=1500.0, gap=0.05),
-        objective=rj.Objective({"peak_anchoring_force": 1.0}),
-        tune=("gap",),
-        bounds={"gap": (0.0, 0.12)},
-        constraints=(rj.Constraint("max_stroke", upper=limit),),
-    )
-
-
 def _grid_best(problem) -> float:
-    """The lowest feasible peak force of `_gap_problem` over a 0.2 mm grid of gaps."""
+    """The lowest feasible peak force of `gap_problem` over a 0.2 mm grid of gaps."""
     gaps = np.linspace(0.0, 0.12, 601)
     swept = rj.sweep({"gap": gaps, "m": np.full_like(gaps, 1500.0)}, options=problem.options)
     feasible = swept.ok & (swept.peaks["max_stroke"] <= 0.15)
@@ -439,7 +429,7 @@ def _grid_best(problem) -> float:
 
 
 def test_search_matches_a_dense_grid_with_one_compilation():
-    problem = _gap_problem()
+    problem = gap_problem()
     result = rj.search(problem, global_phase=rj.SobolStarts(32, 2), progress=False)
     assert result.feasible[0] and result.compilations == 1
     assert_complete_result(result, "search", 1)
@@ -469,7 +459,7 @@ def test_search_matches_a_dense_grid_with_one_compilation():
 def test_search_as_a_minimax_matches_the_dense_grid():
     # The same problem as a minimax with no smoothing (the signal at 1024 times and its
     # peak as constraints): the same optimum as the grid, one program compiled.
-    problem = _gap_problem()
+    problem = gap_problem()
     result = rj.search(problem, global_phase=rj.SobolStarts(32, 2), minimax=True, progress=False)
     assert result.feasible[0] and result.compilations == 1
     grid_best = _grid_best(problem)
@@ -482,7 +472,7 @@ def test_search_levels_narrow_peaks_on_the_epigraph():
     # the epigraph of the signal at 1024 times, its located peak and its local maxima at
     # the previous point. The same optimum as the grid; two programs (the smoothed
     # level's and the minimax's) and no more.
-    base = _gap_problem()
+    base = gap_problem()
     problem = dataclasses.replace(
         base,
         objective=rj.Objective(
@@ -520,7 +510,7 @@ def test_local_maxima_are_refined_onto_the_peaks():
 
 
 def test_search_reports_an_unmeetable_limit_as_infeasible():
-    problem = _gap_problem(limit=1e-4)  # no absorber stroke is that small
+    problem = gap_problem(limit=1e-4)  # no absorber stroke is that small
     result = rj.search(
         problem, global_phase=rj.SobolStarts(16, 0), use_design=False, progress=False
     )
@@ -606,45 +596,26 @@ def test_studies_choose_the_method_and_whether_the_design_is_a_start(tmp_path):
     assert search_kwargs(throttling, progress=False)["use_design"] is False
     assert len(load_study("burst_recuperator").problem.tune) >= 20
     study = tmp_path / "mixed.toml"
-    study.write_text(
-        "[tune]\ngap = [0.0, 0.1]\n[objective]\npeak_anchoring_force = 1.0\n"
-        '[optimiser]\nmethod = "search"\nsteps = 10\n'
-    )
+    study.write_text(study_text(optimiser='method = "search"\nsteps = 10'))
     with pytest.raises(rj.ParameterError, match=r"steps.*do not apply to method = 'search'"):
         load_study(study)
-    study.write_text(
-        "[tune]\ngap = [0.0, 0.1]\n[objective]\npeak_anchoring_force = 1.0\n"
-        '[optimiser]\nmethod = "newton"\n'
-    )
+    study.write_text(study_text(optimiser='method = "newton"'))
     with pytest.raises(rj.ParameterError, match=r'method = .newton.: valid "adam" or "search"'):
         load_study(study)
-    study.write_text(
-        "[tune]\ngap = [0.0, 0.1]\n[objective]\npeak_anchoring_force = 1.0\n"
-        '[optimiser]\nmethod = "search"\nminimax = "yes"\n'
-    )
+    study.write_text(study_text(optimiser='method = "search"\nminimax = "yes"'))
     with pytest.raises(rj.ParameterError, match=r"minimax = 'yes': valid true or false"):
         load_study(study)
-    study.write_text(
-        "[tune]\ngap = [0.0, 0.1]\n[objective]\npeak_anchoring_force = 1.0\n"
-        '[optimiser]\nmethod = "search"\nminimax = false\n'
-    )
+    study.write_text(study_text(optimiser='method = "search"\nminimax = false'))
     assert isinstance(search_kwargs(load_study(study), progress=False)["local"], rj.SLSQP)
     # A study names its local method, with its settings; a minimax needs one peak.
     study.write_text(
-        "[tune]\ngap = [0.0, 0.1]\n[objective]\npeak_anchoring_force = 1.0\n"
-        '[optimiser]\nmethod = "search"\nlocal = "trust_region_lp"\nmaxiter = 7\n'
+        study_text(optimiser='method = "search"\nlocal = "trust_region_lp"\nmaxiter = 7')
     )
     assert search_kwargs(load_study(study), progress=False)["local"] == rj.TrustRegionLP(maxiter=7)
-    study.write_text(
-        "[tune]\ngap = [0.0, 0.1]\n[objective]\npeak_anchoring_force = 1.0\n"
-        '[optimiser]\nmethod = "search"\nlocal = "newton"\n'
-    )
+    study.write_text(study_text(optimiser='method = "search"\nlocal = "newton"'))
     with pytest.raises(rj.ParameterError, match=r'local = .newton.: valid "slsqp", "epigraph'):
         load_study(study)
-    study.write_text(
-        "[tune]\ngap = [0.0, 0.1]\n[objective]\npeak_anchoring_force = 1.0\n"
-        '[optimiser]\nmethod = "search"\nhops = 12\nhop_step = 0.1\n'
-    )
+    study.write_text(study_text(optimiser='method = "search"\nhops = 12\nhop_step = 0.1'))
     hopping = search_kwargs(load_study(study), progress=False)["hopping"]
     assert hopping == rj.BasinHopping(hops=12, step=0.1)
     assert isinstance(
@@ -659,7 +630,7 @@ def test_studies_choose_the_method_and_whether_the_design_is_a_start(tmp_path):
 def test_search_takes_a_minimax_only_of_one_peak_over_time():
     # Which objectives are a minimax over time; asking for one otherwise is an error,
     # raised before anything is compiled.
-    problem = _gap_problem()
+    problem = gap_problem()
     assert minimax_metric(problem) == "peak_anchoring_force"
     two = rj.Objective({"peak_anchoring_force": 1.0, "peak_displacement": 1e4})
     stroke = rj.Objective({"min_stroke": -1.0})
@@ -724,10 +695,7 @@ def test_a_bad_optimiser_setting_names_the_file_and_section(tmp_path, settings, 
     """Every `[optimiser]` setting is checked as the study loads, before anything runs:
     the error names the file, the section and the setting."""
     study = tmp_path / "bad.toml"
-    study.write_text(
-        f"[tune]\ngap = [0.0, 0.1]\n[objective]\npeak_anchoring_force = 1.0\n"
-        f"[optimiser]\n{settings}\n"
-    )
+    study.write_text(study_text(optimiser=settings))
     from recoil_jax.apps._studies.study_file import load_study
 
     with pytest.raises(rj.ParameterError, match=r"bad\.toml: \[optimiser\] " + message):
@@ -749,7 +717,7 @@ def test_bad_bounds_name_the_file_and_the_bound(tmp_path, bound, message):
     from recoil_jax.apps._studies.study_file import load_study
 
     study = tmp_path / "bad.toml"
-    study.write_text(f"[tune]\ngap = {bound}\n[objective]\npeak_anchoring_force = 1.0\n")
+    study.write_text(study_text(tune=f"gap = {bound}"))
     with pytest.raises(rj.ParameterError, match=r"bad\.toml: " + message):
         load_study(study)
 
@@ -758,7 +726,7 @@ def test_search_is_minimise_on_the_problems_evaluators():
     # `search` composes the parts in `recoil_jax.extend`: the same parts, with an
     # evaluator of one's own in the middle (here one that counts its batches), passed to
     # `minimise`, give the same best design to the bit.
-    problem = _gap_problem()
+    problem = gap_problem()
     settings = dict(local=rj.SLSQP(maxiter=20), global_phase=rj.SobolStarts(16, 1), seed=1)
     settings |= dict(workers=1, progress=False)
     searched = rj.search(problem, use_design=False, **settings)
@@ -789,7 +757,7 @@ def test_search_is_minimise_on_the_problems_evaluators():
 )
 def test_an_objective_weight_that_is_not_a_number_names_the_file(tmp_path, objective, message):
     study = tmp_path / "bad.toml"
-    study.write_text(f"[tune]\ngap = [0.0, 0.1]\n[objective]\n{objective}\n")
+    study.write_text(study_text(objective=objective))
     from recoil_jax.apps._studies.study_file import load_study
 
     with pytest.raises(rj.ParameterError, match=r"bad\.toml: " + message):
@@ -799,10 +767,7 @@ def test_an_objective_weight_that_is_not_a_number_names_the_file(tmp_path, objec
 def test_an_unknown_name_in_the_design_is_the_designs_fault(tmp_path):
     # Not "[tune] at the lower bounds" (#45).
     study = tmp_path / "bad.toml"
-    study.write_text(
-        "[design]\nmass = 1500.0\n[tune]\ngap = [0.0, 0.1]\n[objective]\n"
-        "peak_anchoring_force = 1.0\n"
-    )
+    study.write_text(study_text(design="mass = 1500.0"))
     from recoil_jax.apps._studies.study_file import load_study
 
     with pytest.raises(rj.ParameterError, match=r"bad\.toml: \[design\] unknown parameter 'mass'"):

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import SMALL_STUDY, gap_problem, study_text
 
 import recoil_jax as rj
 import recoil_jax._sweeps.dispatch as dispatch_module
@@ -351,17 +352,6 @@ def test_bench_store_measures_each_way():
 # ones back bit for bit and retraces a seeded run's path to the same best design.
 
 
-def _gap_problem():
-    """`tests/test_search.py`'s problem (one compiled program for both files)."""
-    return rj.DesignProblem(
-        params=rj.params_from_values(m=1500.0, gap=0.05),
-        objective=rj.Objective({"peak_anchoring_force": 1.0}),
-        tune=("gap",),
-        bounds={"gap": (0.0, 0.12)},
-        constraints=(rj.Constraint("max_stroke", upper=0.15),),
-    )
-
-
 SEARCH = dict(
     global_phase=rj.SobolStarts(32, 2), hopping=rj.BasinHopping(hops=2), workers=1, progress=False
 )
@@ -378,7 +368,7 @@ def _study_rows(path) -> dict:
 
 
 def test_interrupted_search_resumes_to_the_same_design(tmp_path, monkeypatch, capsys):
-    problem = _gap_problem()
+    problem = gap_problem()
     plain = rj.search(problem, **SEARCH)
     store = tmp_path / "study.sqlite"
     real = StudyStore.commit
@@ -430,7 +420,7 @@ def test_interrupted_search_resumes_to_the_same_design(tmp_path, monkeypatch, ca
 
 
 def test_interrupted_optimise_resumes_to_the_same_bits(tmp_path):
-    problem = _gap_problem()
+    problem = gap_problem()
     settings = dict(starts=3, steps=16, stopping=rj.Stopping(min_steps=6), progress=False)
     plain = rj.optimise(problem, **settings)
     store = tmp_path / "adam.sqlite"
@@ -461,7 +451,7 @@ def test_interrupted_optimise_resumes_to_the_same_bits(tmp_path):
 
 
 def test_foreign_study_stores_are_refused(tmp_path):
-    problem = _gap_problem()
+    problem = gap_problem()
     store = tmp_path / "seed0.sqlite"
     small = dict(global_phase=rj.SobolStarts(4, 0), use_design=False, progress=False)
     rj.search(problem, store=store, **small)
@@ -487,23 +477,11 @@ def test_foreign_study_stores_are_refused(tmp_path):
     assert store.read_bytes()[:100] == before[:100]
 
 
-_SMALL_STUDY = """
-description = "The gap for the lowest peak anchoring force, stroke within 0.15 m."
-[design]
-m = 1500.0
-gap = 0.05
-[tune]
-gap = [0.0, 0.12]
-[objective]
-peak_anchoring_force = 1.0
-[constraints]
-max_stroke = { max = 0.15 }
-[optimiser]
-method = "search"
-samples = 32
-starts = 2
-hops = 2
-"""
+_SMALL_STUDY = study_text(
+    description="The gap for the lowest peak anchoring force, stroke within 0.15 m.",
+    optimiser='method = "search"\nsamples = 32\nstarts = 2\nhops = 2',
+    **SMALL_STUDY,
+)
 
 
 def test_optimise_command_resumes_from_its_store(tmp_path, capsys):
@@ -678,7 +656,7 @@ def test_campaigns_name_their_stores_as_before(monkeypatch):
 
     for store_class in (store_module.SweepStore, StudyStore, store_module.CalibrationStore):
         monkeypatch.setattr(store_class, "__init__", opened)
-    problem = _gap_problem()
+    problem = gap_problem()
     designs = [{"gap": 0.01, "k": 28000.0}, {"gap": 0.05, "m": 0.0}]
     table = rj.ForceTable(t=np.array([0.0, 0.01, 0.02]), F=np.array([0.0, 1e5, 0.0]))
     steps = dict(starts=3, steps=16, stopping=rj.Stopping(min_steps=6), progress=False)

@@ -20,7 +20,7 @@ import numpy as np
 
 from .._model.derivatives import SIGNALS
 from .._model.parameter_table import PARAMETERS
-from .._model.registry import ParameterError
+from .._model.registry import PAPER_GROUPS, ParameterError
 from .layout import CalibrationData, Layout, design_of
 from .least_squares import (
     Evaluation,
@@ -414,7 +414,7 @@ def _structure(calibration: Calibration) -> dict[str, Any]:
         "absorber": values.get("m", 0.0) > 0,
         "load": load,
         "shots": int(values.get("shots", 1)),
-        "hardware": sorted(groups - {"barrel", "absorber", "contact", "load"}),
+        "hardware": sorted(groups - {*PAPER_GROUPS, "load"}),  # (the load: above)
     }
     defaults = {k: v for k, v in values.items() if k not in given}
     return {"structure": structure, "defaults": defaults}

@@ -30,6 +30,7 @@ import numpy as np
 
 from .._model.parameter_table import PAPER_BARREL_MASS, PARAMETERS, parameter
 from .._model.registry import (
+    ENVELOPE_GROUPS,
     GROUP_CLASSES,
     MAX_KNOTS,
     MIN_KNOTS,
@@ -578,7 +579,7 @@ def params_from_values(values: Mapping[str, Any] | None = None, **kwargs: Any) -
         optional["buffer"] = Buffer(**buffer, orifice=_knots(knots) if knots else None)
     if grouped["recuperator"]:
         optional["recuperator"] = Recuperator(**grouped["recuperator"])
-    for group in ("rails", "battery_stop", "counter_recoil_buffer", "mount"):
+    for group in ENVELOPE_GROUPS:
         if grouped[group]:
             optional[group] = _GROUPS[group](**grouped[group])
     return RecoilParams(

@@ -23,9 +23,14 @@ import jax.core
 import numpy as np
 
 __all__ = [
+    "ENVELOPE_GROUPS",
+    "GROUPS",
     "GROUP_CLASSES",
+    "HARDWARE_GROUPS",
     "MAX_KNOTS",
     "MIN_KNOTS",
+    "PAPER_GROUPS",
+    "Group",
     "Limits",
     "Parameter",
     "ParameterError",
@@ -100,20 +105,74 @@ class Limits:
         return f"{low} and <= {self.upper:g}{unit}"
 
 
-#: The pytree of `RecoilParams` that holds each group of parameters (`Parameter.group`),
-#: by class name, in the order of `RecoilParams`'s fields (`params` defines the classes).
-GROUP_CLASSES: dict[str, str] = {
-    "barrel": "Barrel",
-    "absorber": "Absorber",
-    "contact": "Contact",
-    "load": "Load",
-    "buffer": "Buffer",
-    "recuperator": "Recuperator",
-    "rails": "Rails",
-    "battery_stop": "BatteryStop",
-    "counter_recoil_buffer": "CounterRecoilBuffer",
-    "mount": "Mount",
+@dataclasses.dataclass(frozen=True)
+class Group:
+    """A group of parameters (`Parameter.group`), one part of the gun:
+
+    - `name`: the field of `RecoilParams` that holds it;
+    - `pytree`: the class of that pytree (which `params` defines);
+    - `title`: what the part is, for people (the explorer's cards);
+    - `part`: `"paper"` (the paper's model: always there, `absorber` aside),
+      `"hardware"` (the recoil hardware beyond the paper) or `"envelope"` (the firing
+      envelope: a design with any such group is solved to `t1`, its return and rest
+      being metrics, and has the envelope's metrics);
+    - `off`: the parameters that leave the part out when they are all 0 (none: it is
+      always there)."""
+
+    name: str
+    pytree: str
+    title: str
+    part: str
+    off: tuple[str, ...] = ()
+
+    @property
+    def envelope(self) -> bool:
+        return self.part == "envelope"
+
+
+#: Every group of parameters, in the order of `RecoilParams`'s fields: the one list of
+#: them; every other form (`GROUP_CLASSES`, `ENVELOPE_GROUPS`, ...) derives from it.
+GROUPS: dict[str, Group] = {
+    group.name: group
+    for group in (
+        Group("barrel", "Barrel", "Barrel and recoil system", "paper"),
+        Group("absorber", "Absorber", "Absorber", "paper", ("m",)),
+        Group("contact", "Contact", "Contact", "paper", ("m",)),
+        Group("load", "Load", "Breech load", "hardware"),
+        Group("buffer", "Buffer", "Throttling orifice", "hardware", ("piston_area",)),
+        Group(
+            "recuperator",
+            "Recuperator",
+            "Gas recuperator",
+            "hardware",
+            ("recuperator_force", "recuperator_preload"),
+        ),
+        Group(
+            "rails",
+            "Rails",
+            "Rails: elevation and friction",
+            "envelope",
+            ("elevation", "friction_force", "friction_coefficient"),
+        ),
+        Group("battery_stop", "BatteryStop", "Battery stop", "envelope", ("stop_stiffness",)),
+        Group(
+            "counter_recoil_buffer",
+            "CounterRecoilBuffer",
+            "Counter-recoil buffer",
+            "envelope",
+            ("buffer_damping",),
+        ),
+        Group("mount", "Mount", "Mount", "envelope", ("mount_mass",)),
+    )
 }
+#: The pytree class of each group, by group (`Group.pytree`).
+GROUP_CLASSES: dict[str, str] = {name: group.pytree for name, group in GROUPS.items()}
+#: The groups of the paper's model, of the hardware beyond it and of the firing envelope
+#: (`Group.part`), each in `GROUPS`' order.
+PAPER_GROUPS, HARDWARE_GROUPS, ENVELOPE_GROUPS = (
+    tuple(name for name, g in GROUPS.items() if g.part == part)
+    for part in ("paper", "hardware", "envelope")
+)
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -141,6 +200,11 @@ class Parameter(Limits):
         """The class holding it (its group's, `GROUP_CLASSES`: `Barrel`, `Absorber`, ...),
         for messages."""
         return GROUP_CLASSES[self.group]
+
+    @property
+    def envelope(self) -> bool:
+        """Whether it is a parameter of the firing envelope (its group's, `Group`)."""
+        return GROUPS[self.group].envelope
 
     @property
     def label(self) -> str:

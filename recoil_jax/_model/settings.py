@@ -18,7 +18,14 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from .._model.registry import Limits, ParameterError, Validated, float_leaf, is_concrete
+from .._model.registry import (
+    HARDWARE_GROUPS,
+    Limits,
+    ParameterError,
+    Validated,
+    float_leaf,
+    is_concrete,
+)
 
 if TYPE_CHECKING:
     from .._model.params import RecoilParams
@@ -228,7 +235,7 @@ def with_default_tolerances(params: RecoilParams, options: SolverOptions) -> Sol
     peaks to hold 1e-4)."""
     if options.rtol is not None and options.atol is not None:
         return options
-    hardware = any(getattr(params, g) is not None for g in ("load", "buffer", "recuperator"))
+    hardware = any(getattr(params, g) is not None for g in HARDWARE_GROUPS)
     rtol, atol = (1e-7, 1e-10) if hardware else (1e-6, 1e-9)
     return dataclasses.replace(
         options,

@@ -15,7 +15,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .._model.parameter_table import PARAMETERS
 from .._model.params import ForceTable, Load, RecoilParams, params_from_values, params_to_values
-from .._model.registry import ParameterError, check_value
+from .._model.registry import PAPER_GROUPS, ParameterError, check_value
 from .._model.settings import T1_LIMITS
 
 __all__ = [
@@ -163,7 +163,7 @@ def group_values(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     seed = {"m": 0.0} if simplified else {}
     for name in columns:
         p = PARAMETERS[name]
-        if p.group not in ("barrel", "absorber", "contact") and p.index is None:
+        if p.group not in PAPER_GROUPS and p.index is None:
             seed.setdefault(name, p.default)
     defaults = params_to_values(params_from_values(seed))
     values = {k: np.full(n, float(np.asarray(v))) for k, v in defaults.items()}

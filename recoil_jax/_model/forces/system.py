@@ -24,7 +24,7 @@ from ..._model.forces.smoothing import positive_power, smooth_relu, smooth_step
 from ..._model.forces.stop import stop_force
 from ..._model.metrics import METRICS
 from ..._model.params import RecoilParams
-from ..._model.registry import ParameterError, is_concrete
+from ..._model.registry import ENVELOPE_GROUPS, ParameterError, is_concrete
 from ..._model.settings import Smoothing
 
 __all__ = [
@@ -134,10 +134,7 @@ def has_envelope(params: RecoilParams) -> bool:
     the counter-recoil buffer, a mount): static, from the structure. Such a design is
     solved to `t1` (its return and its rest are metrics), the others stop once their
     peaks are certain."""
-    return any(
-        getattr(params, group) is not None
-        for group in ("rails", "battery_stop", "counter_recoil_buffer", "mount")
-    )
+    return any(getattr(params, group) is not None for group in ENVELOPE_GROUPS)
 
 
 #: The parameters that give a design the firing envelope, named in refusals.

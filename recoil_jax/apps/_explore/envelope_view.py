@@ -16,10 +16,7 @@ import recoil_jax.extend as rjx
 
 from .._files.inputs import parse_assignments
 
-__all__ = ["ENVELOPE_GROUPS", "EnvelopeView", "parse_elevations"]
-
-#: The parameter groups of the firing envelope: a design with any of them on has the view.
-ENVELOPE_GROUPS = ("rails", "battery_stop", "counter_recoil_buffer", "mount")
+__all__ = ["EnvelopeView", "parse_elevations"]
 
 #: The metrics the view holds at each condition, with each limit's field label, kind and
 #: start value (None: shown without a limit). The barrel's travel takes the explorer's
@@ -126,7 +123,7 @@ class EnvelopeView:
 
     def update(self, values: dict[str, float], duration: float) -> None:
         """Solve `values` at each elevation and show it (the view's note says why not)."""
-        if not any(rj.PARAMETERS[name].group in ENVELOPE_GROUPS for name in values):
+        if not any(rj.PARAMETERS[name].envelope for name in values):
             self.clear(
                 "no firing envelope: give an elevation, rail friction, a battery stop, a "
                 "counter-recoil buffer or a mount to see the design at each elevation"

@@ -33,21 +33,6 @@ __all__ = ["EXPLORER_KNOTS", "Explorer", "check_listen", "explorer", "main_explo
 #: Orifice knots the explorer offers (when `piston_area > 0`).
 EXPLORER_KNOTS = 4
 
-#: Each part's card: its title, and what turns it off (None: always on).
-_GROUPS = {
-    "barrel": ("Barrel and recoil system", None),
-    "absorber": ("Absorber", "m = 0"),
-    "contact": ("Contact", "m = 0"),
-    "load": ("Breech load", None),
-    "buffer": ("Throttling orifice", "piston_area = 0"),
-    "recuperator": ("Gas recuperator", "recuperator_force = recuperator_preload = 0"),
-    # The firing envelope (`docs/model.md`): each part its card, and the envelope view.
-    "rails": ("Rails: elevation and friction", "elevation = friction = 0"),
-    "battery_stop": ("Battery stop", "stop_stiffness = 0"),
-    "counter_recoil_buffer": ("Counter-recoil buffer", "buffer_damping = 0"),
-    "mount": ("Mount", "mount_mass = 0"),
-}
-
 #: The sidebar's width (px): every card takes all of it.
 _SIDEBAR = 330
 
@@ -86,7 +71,7 @@ def _start_values(values: dict[str, float] | None) -> dict[str, float]:
     defaults = {name: float(p.default) for name, p in rj.PARAMETERS.items()}
     defaults |= {f"orifice_{i}": 4e-4 for i in range(EXPLORER_KNOTS)}
     defaults |= {k: float(np.asarray(v)) for k, v in start.items()}
-    return {k: v for k, v in defaults.items() if rj.PARAMETERS[k].group in _GROUPS}
+    return {k: v for k, v in defaults.items() if rj.PARAMETERS[k].group in rjx.GROUPS}
 
 
 def _time_plot(title: str, y_axis_label: str, x_range=None):
@@ -237,8 +222,8 @@ class Explorer:
         )
 
     def _cards(self) -> dict[str, Any]:
-        """One card a part, holding its fields (each with its message pane); the barrel's
-        and the absorber's open, the others collapsed."""
+        """One card a part, holding its fields (each with its message pane); the paper's
+        parts (barrel, absorber, contact) open, the others collapsed."""
         groups: dict[str, list] = {}
         for name, widget in self.fields.items():
             groups.setdefault(rj.PARAMETERS[name].group, []).extend(
@@ -247,8 +232,8 @@ class Explorer:
         return {
             group: self.pn.Card(
                 *widgets,
-                title=_GROUPS[group][0],
-                collapsed=group not in ("barrel", "absorber"),
+                title=rjx.GROUPS[group].title,
+                collapsed=rjx.GROUPS[group].part != "paper",
                 sizing_mode="stretch_width",
             )
             for group, widgets in groups.items()
@@ -402,8 +387,9 @@ class Explorer:
         """Each card says whether its part is on, and what turns it off."""
         off = _off(values)
         for group, card in self.cards.items():
-            title, switch = _GROUPS[group]
-            if switch is not None:
+            title, switches = rjx.GROUPS[group].title, rjx.GROUPS[group].off
+            if switches:
+                switch = " = ".join((*switches, "0"))
                 title += f" (off: {switch})" if off[group] else " (on)"
             card.title = title
 
@@ -465,21 +451,14 @@ def _hazards_html(hazards: list[dict[str, str]]) -> str:
 
 
 def _off(values: dict[str, float]) -> dict[str, bool]:
-    """Which parts the values turn off."""
-    return {
-        "absorber": not values.get("m"),
-        "contact": not values.get("m"),
-        "load": values.get("pulse_time") == 0 and values.get("shots") == 1,
-        "buffer": not values.get("piston_area"),
-        "recuperator": not values.get("recuperator_force")
-        and not values.get("recuperator_preload"),
-        "rails": not any(
-            values.get(name) for name in ("elevation", "friction_force", "friction_coefficient")
-        ),
-        "battery_stop": not values.get("stop_stiffness"),
-        "counter_recoil_buffer": not values.get("buffer_damping"),
-        "mount": not values.get("mount_mass"),
+    """Which parts the values turn off: those whose switches (`rjx.Group.off`) are all
+    0, and the load at the paper's one impulse."""
+    off = {
+        name: not any(values.get(switch) for switch in group.off)
+        for name, group in rjx.GROUPS.items()
+        if group.off
     }
+    return off | {"load": values.get("pulse_time") == 0 and values.get("shots") == 1}
 
 
 def _structure(values: dict[str, float]) -> tuple:
