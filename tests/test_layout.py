@@ -569,3 +569,31 @@ def test_the_groups_are_listed_once(tmp_path):
 
     fields = [f.name for f in dataclasses.fields(RecoilParams)]
     assert fields == list(rjx.GROUPS)  # one pytree field a group, in its order
+
+
+def test_a_programs_structure_is_resolved_once(monkeypatch):
+    """Which parts a design has (`Structure`) is resolved once as a program is traced
+    and carried in its `args`, not asked again by every signal and bound (the envelope's
+    check ran 28 times in a peak program's trace, 33 in a gradient program's): once for
+    the peaks, twice for the gradients (the setup and the loop's wiring)."""
+    import jax
+
+    from recoil_jax._model.derivatives import tangent_solve
+    from recoil_jax._model.forces import system
+    from recoil_jax._model.solve import peak_metrics
+
+    calls = []
+    resolve = system.Structure.of.__func__
+    monkeypatch.setattr(
+        system.Structure, "of", classmethod(lambda cls, p: calls.append(1) or resolve(cls, p))
+    )
+    design = rj.params_from_values(
+        elevation=35.0, friction_force=800.0, stop_stiffness=1e8, recuperator_force=5e3,
+        recuperator_length=1.2, recuperator_preload=2e4, buffer_damping=3e4, mount_mass=9e3,
+    )  # fmt: skip
+    smoothing, options = rj.Smoothing(), rj.SolverOptions()
+    jax.jit(lambda p: peak_metrics(p, smoothing, options)).lower(design)
+    assert len(calls) == 1
+    calls.clear()
+    jax.jit(lambda p: tangent_solve(p, smoothing, options, ("k", "c_out")).gradients).lower(design)
+    assert len(calls) == 2

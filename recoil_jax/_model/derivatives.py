@@ -38,7 +38,7 @@ from .._model.equations import (
 )
 from .._model.forces.absorber import contact_width
 from .._model.forces.loads import load_jump, load_stops, restart_step
-from .._model.forces.system import forces, has_envelope
+from .._model.forces.system import Structure, forces
 from .._model.lanes import queued_map
 from .._model.metrics import EXTREMES, METRICS, PeakGradients, Peaks
 from .._model.parameter_table import PARAMETERS
@@ -234,14 +234,16 @@ class _Rest(NamedTuple):
     value: Any
 
 
-def _rest_args(params, smoothing, rest: _Rest, differentiate: bool) -> ModelArgs:
+def _rest_args(params, smoothing, rest: _Rest, differentiate: bool, structure=None) -> ModelArgs:
     """The model's `args` with the static rest `rest`. With `differentiate` (static:
     where parameters are traced), the Newton step from its root again (`model_args`),
     which carries its derivatives in them, the implicit function's; without, its value,
-    nothing solved again."""
+    nothing solved again. `structure`: the design's `Structure`, where resolved already."""
     if not differentiate:
-        return ModelArgs(params, smoothing, contact_width(params, smoothing), rest.value)
-    return model_args(params, smoothing, rest.guess)
+        structure = structure or Structure.of(params)
+        width = contact_width(params, smoothing)
+        return ModelArgs(params, smoothing, width, rest.value, structure)
+    return model_args(params, smoothing, rest.guess, structure)
 
 
 class TangentArgs(eqx.Module):
@@ -250,17 +252,21 @@ class TangentArgs(eqx.Module):
     - `params`, `smoothing`: the design and its switch widths;
     - `smooth_max`: the smooth maxima integrated beside the state (`SmoothMax`), or None;
     - `t1` (s): the end time, which scales the smooth maxima's integrals;
-    - `rest`: the static rest, found once (`_Rest`)."""
+    - `rest`: the static rest, found once (`_Rest`);
+    - `structure`: which parts the design has (`Structure`), resolved once."""
 
     params: Any
     smoothing: Any
     smooth_max: Any
     t1: Any
     rest: _Rest
+    structure: Structure
 
     def at(self, params) -> TangentArgs:
         """The same `args` for the design `params` (its parameters moved)."""
-        return TangentArgs(params, self.smoothing, self.smooth_max, self.t1, self.rest)
+        return TangentArgs(
+            params, self.smoothing, self.smooth_max, self.t1, self.rest, self.structure
+        )
 
 
 def _augmented_vf(t, y, args: TangentArgs):
@@ -268,7 +274,7 @@ def _augmented_vf(t, y, args: TangentArgs):
     f = vector_field(t, y[:_N_STATE], _field_args(params, smoothing))
     if smooth_max is None:
         return f
-    model = _rest_args(params, smoothing, args.rest, differentiate=True)
+    model = _rest_args(params, smoothing, args.rest, True, args.structure)
     g = _smoothed(tracked_metrics(t, y[:_N_STATE], model), smooth_max)
     # Clipped so that a sudden rise far above the running integral cannot overflow.
     exponent = jnp.minimum(g / smooth_max.temperatures - y[_N_STATE:], 700.0)
@@ -284,8 +290,8 @@ def _augmented_metrics(t, y, args: ModelArgs, smooth_max) -> dict[str, Any]:
     return values
 
 
-def _augmented_initial_state(params, smoothing, smooth_max, rest):
-    args = _rest_args(params, smoothing, rest, differentiate=True)
+def _augmented_initial_state(params, smoothing, smooth_max, rest, structure):
+    args = _rest_args(params, smoothing, rest, True, structure)
     y0 = initial_state(args)
     if smooth_max is None:
         return y0
@@ -324,7 +330,7 @@ _STATE_TERM = diffrax.ODETerm(_augmented_vf)
 
 
 def _tangent_metrics(t, z, args: TangentArgs):
-    model = _rest_args(args.params, args.smoothing, args.rest, differentiate=False)
+    model = _rest_args(args.params, args.smoothing, args.rest, False, args.structure)
     return _augmented_metrics(t, z[: _state_size(args.smooth_max)], model, args.smooth_max)
 
 
@@ -332,8 +338,8 @@ def _tangent_bounds(z, args: TangentArgs, t, t1):
     """`future_metric_bounds` (`held_bounds` with the firing envelope) of the state part
     of `z` (without smooth maxima)."""
     params = args.params
-    bounds = held_bounds if has_envelope(params) else future_metric_bounds
-    model = _rest_args(params, args.smoothing, args.rest, differentiate=False)
+    bounds = held_bounds if args.structure.envelope else future_metric_bounds
+    model = _rest_args(params, args.smoothing, args.rest, False, args.structure)
     return bounds(z[:_N_STATE], model, t, t1)
 
 
@@ -421,17 +427,18 @@ def _tangent_setup(params, smoothing, wrt, smooth_max, t1):
     width = contact_width(params, smoothing)
     guess = jax.lax.stop_gradient(rest_root(params, smoothing, width))
     rest = _Rest(guess, jax.lax.stop_gradient(static_rest(params, smoothing, width, guess)))
+    structure = Structure.of(params)
 
     def initial(theta):
         return _augmented_initial_state(
-            with_values(params, wrt, theta), smoothing, smooth_max, rest
+            with_values(params, wrt, theta), smoothing, smooth_max, rest, structure
         )
 
     theta = values_of(params, wrt)
     y0 = initial(theta)
     s0 = jax.vmap(lambda d: jax.jvp(initial, (theta,), (d,))[1])(_directions(wrt))
     z0 = jnp.concatenate([y0, s0.reshape(-1)])
-    return z0, TangentArgs(params, smoothing, smooth_max, t1, rest)
+    return z0, TangentArgs(params, smoothing, smooth_max, t1, rest, structure)
 
 
 class ForwardSensitivities(NamedTuple):
@@ -464,7 +471,8 @@ def _tangent_post(args: TangentArgs, run: PeakRun, wrt, series: MetricSeries | N
 
     def metric(i, t_, y_, theta_):
         """Tracked quantity `i` (in the order of `run.names`) at time `t_`, state `y_`."""
-        model = _rest_args(with_values(params, wrt, theta_), smoothing, rest, differentiate=True)
+        design = with_values(params, wrt, theta_)
+        model = _rest_args(design, smoothing, rest, True, args.structure)
         values = _augmented_metrics(t_, y_, model, smooth_max)
         return jnp.stack([values[name] for name in run.names])[i]
 
@@ -498,7 +506,7 @@ def _tangent_post(args: TangentArgs, run: PeakRun, wrt, series: MetricSeries | N
     extremes = {name: m.sign * grads.get(name, untracked) for name, m in EXTREMES.items()}
     envelope = _envelope_gradients(args, run, wrt, extremes, scales, n)
     gradients = PeakGradients.of(envelope, wrt)
-    peaks = peaks_of_run(params, smoothing, run, t1, rest.value)
+    peaks = peaks_of_run(params, smoothing, run, t1, rest.value, args.structure)
     smooth_values = smooth_grads = None
     if smooth_max is not None:
         best = run.by_name(run.best)
@@ -541,13 +549,13 @@ def _envelope_gradients(args: TangentArgs, run: PeakRun, wrt, extremes, scales, 
     params, smoothing, t1, rest = args.params, args.smoothing, args.t1, args.rest
     out = dict(extremes)
     nan = jnp.full_like(out["peak_displacement"], jnp.nan)
-    if not has_envelope(params):
+    if not args.structure.envelope:
         return out | {name: nan for name, m in METRICS.items() if m.envelope}
     theta = values_of(params, wrt)
     rest_move = jax.vmap(
         lambda d: jax.jvp(
             lambda th: (
-                _rest_args(with_values(params, wrt, th), smoothing, rest, differentiate=True).rest
+                _rest_args(with_values(params, wrt, th), smoothing, rest, True, args.structure).rest
             ),
             (theta,),
             (d,),
@@ -597,7 +605,7 @@ def tangent_loop(params, options, wrt, smooth_max=None, stop_early: bool = True)
     the tangent system into a solve (as `model_loop` for the model alone). `stop_early`:
     stop once the peaks are certain (a calibration's signals run to `t1`)."""
     bounds = _tangent_bounds if smooth_max is None else _smooth_tangent_bounds
-    envelope = has_envelope(params)
+    structure = Structure.of(params)
     return PeakLoop(
         _tangent_term(wrt),
         _tangent_metrics,
@@ -605,9 +613,9 @@ def tangent_loop(params, options, wrt, smooth_max=None, stop_early: bool = True)
         stop=StopWhenCertain(bounds) if stop_early else None,
         events=_events(params, wrt),
         ceilings=MODEL_CEILINGS,
-        sampling=model_sampling(params),
+        sampling=model_sampling(params, structure),
         crossing=Crossing(lambda args: battery_crossing(args.params, args.rest.guess))
-        if envelope
+        if structure.envelope
         else None,
         leading=LeadingTerm(_STATE_TERM, _state_size(smooth_max)),
     )
@@ -787,7 +795,7 @@ def signal_sensitivities(
         # The solve's own start (its rest, its derivatives the implicit function's), with
         # the shot's velocity not yet given and no breech force (t = None).
         design = with_values(params, wrt, theta_)
-        y0 = initial_state(_rest_args(design, smoothing, rest, differentiate=True))
+        y0 = initial_state(_rest_args(design, smoothing, rest, True, args.structure))
         return signal_values(None, y0.at[1].set(0.0).at[3].set(0.0), design, smoothing, names)
 
     rest_values, rest_jvp = jax.linearize(at_rest, theta)

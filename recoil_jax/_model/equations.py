@@ -18,7 +18,7 @@ from .._model.forces.absorber import contact_width
 from .._model.forces.counter_recoil import counter_recoil_force
 from .._model.forces.loads import is_impulse
 from .._model.forces.rails import GRAVITY, absorber_sag, axial_weight, sin_cos
-from .._model.forces.system import forces, has_envelope
+from .._model.forces.system import Structure, forces
 from .._model.metrics import EXTREMES
 from .._model.params import RecoilParams
 from .._model.rest import rest_root, static_rest
@@ -67,7 +67,7 @@ def signals(t, y, args: ModelArgs) -> dict[str, jnp.ndarray]:
         lead = counter_recoil_force(y, counter, args.smoothing, lead=True)
         anchoring = anchoring - f.counter_recoil + lead
     out = {"recoil": y[0] - args.rest, "F_AN": anchoring, "F_ct": f.contact, "stroke": stroke}
-    out["pull"] = -anchoring if has_envelope(params) else jnp.zeros_like(anchoring)
+    out["pull"] = -anchoring if args.structure.envelope else jnp.zeros_like(anchoring)
     out["margin"] = stability(y, params, anchoring, args.rest)
     return out
 
@@ -108,15 +108,15 @@ UNTRACKED = {
 }
 
 
-def tracked_names(params: RecoilParams) -> tuple[str, ...]:
-    """The extreme metrics the peak loop tracks for the structure of `params` (static):
+def tracked_names(structure: Structure) -> tuple[str, ...]:
+    """The extreme metrics the peak loop tracks for a design's `structure` (static):
     every one of `EXTREMES` but those the structure holds constant (`UNTRACKED`). Each
     tracked quantity costs every step its share of the loop's carry (its running
     maximum and the step holding it)."""
     absent = set()
-    if params.absorber is None:
+    if not structure.absorber:
         absent |= {"peak_contact_force", "min_stroke", "max_stroke"}
-    if not has_envelope(params):
+    if not structure.envelope:
         absent.add("peak_pull_force")
     return tuple(name for name in EXTREMES if name not in absent)
 
@@ -128,7 +128,7 @@ def tracked_metrics(t, y, args: ModelArgs) -> dict[str, jnp.ndarray]:
     values = signals(t, y, args)
     return {
         name: EXTREMES[name].sign * values[str(EXTREMES[name].signal)]
-        for name in tracked_names(args.params)
+        for name in tracked_names(args.structure)
     }
 
 
@@ -166,22 +166,29 @@ class ModelArgs(eqx.Module):
     - `rest` (m): the barrel's static rest in battery `x_r` (`static_rest`), from which
       the displacement metrics and the mount's moments are measured; differentiable in
       the parameters. None where only the vector field reads them (it does not read
-      the rest)."""
+      the rest);
+    - `structure`: which parts the design has (`Structure`), resolved once; None where
+      only the vector field reads them."""
 
     params: RecoilParams
     smoothing: Smoothing
     contact_width: Any
     rest: Any
+    structure: Any = None
 
 
-def model_args(params: RecoilParams, smoothing: Smoothing, rest_guess=None) -> ModelArgs:
+def model_args(
+    params: RecoilParams, smoothing: Smoothing, rest_guess=None, structure=None
+) -> ModelArgs:
     """The `args` that `RECOIL_TERM` takes. `rest_guess`: the rest `x_r` found already
     for these values (`rest_root`; its value only), so that only its polishing Newton
-    step (which carries the derivatives) is done again; default: found here."""
+    step (which carries the derivatives) is done again; default: found here.
+    `structure`: the design's `Structure`, where the program has resolved it already."""
     width = contact_width(params, smoothing)
     if rest_guess is None:
         rest_guess = rest_root(params, smoothing, width)
-    return ModelArgs(params, smoothing, width, static_rest(params, smoothing, width, rest_guess))
+    rest = static_rest(params, smoothing, width, rest_guess)
+    return ModelArgs(params, smoothing, width, rest, structure or Structure.of(params))
 
 
 def initial_state(args: ModelArgs):

@@ -23,7 +23,7 @@ from .._model.equations import (
 from .._model.forces.loads import load_jump, load_stops, restart_step
 from .._model.forces.orifice import knot_crossing
 from .._model.forces.recuperator import metric_ceilings
-from .._model.forces.system import Forces, forces, has_envelope
+from .._model.forces.system import Forces, Structure, forces
 from .._model.lanes import queued_map
 from .._model.metrics import EXTREMES, METRICS, Peaks
 from .._model.params import RecoilParams
@@ -73,7 +73,7 @@ def model_events(params: RecoilParams) -> Events | None:
     return None if params.load is None else MODEL_EVENTS
 
 
-def model_sampling(params: RecoilParams) -> Sampling:
+def model_sampling(params: RecoilParams, structure: Structure) -> Sampling:
     """Where else in each step the peaks are looked for (`Sampling`): with a throttling
     orifice, whose force (`∝ v²/A(x)²`) is far from cubic over a step and has a corner at
     each knot (smoothed over a band narrower than a step), at 3 interior points and where
@@ -82,7 +82,7 @@ def model_sampling(params: RecoilParams) -> Sampling:
     Hermite estimate overshoot), at 3 interior points. Else nowhere."""
     buffer = params.buffer
     if buffer is None or buffer.orifice is None:
-        return Sampling(3) if has_envelope(params) else Sampling()
+        return Sampling(3) if structure.envelope else Sampling()
     return Sampling(
         3,
         lambda t0, dt, evaluate, z0, z1, args: knot_crossing(t0, dt, evaluate, z0, z1, args.params),
@@ -107,14 +107,18 @@ def battery_crossing(params: RecoilParams, rest):
     return rest + BATTERY, last_firing(params)
 
 
-def model_loop(params: RecoilParams, options: SolverOptions, stop_early: bool = True) -> PeakLoop:
+def model_loop(
+    params: RecoilParams, options: SolverOptions, stop_early: bool = True, structure=None
+) -> PeakLoop:
     """The stepping loop of the recoil model for the structure of `params`: the one place
     that wires the model (its term, tracked metrics, load events, ceilings and peak
     samples) into a solve. `stop_early`: stop once the peaks are certain (a history runs
     to `t1`; so does a design with the firing envelope, whose return and rest are
     metrics). Its `integrate(initial_state(args), args, t1)` with
-    `args = model_args(p, smoothing)` solves."""
-    envelope = has_envelope(params)
+    `args = model_args(p, smoothing)` solves. `structure`: the design's `Structure`, where
+    the program has resolved it already (`ModelArgs.structure`)."""
+    structure = structure or Structure.of(params)
+    envelope = structure.envelope
     return PeakLoop(
         RECOIL_TERM,
         tracked_metrics,
@@ -124,7 +128,7 @@ def model_loop(params: RecoilParams, options: SolverOptions, stop_early: bool = 
         else None,
         events=model_events(params),
         ceilings=MODEL_CEILINGS,
-        sampling=model_sampling(params),
+        sampling=model_sampling(params, structure),
         crossing=Crossing(lambda args: battery_crossing(args.params, args.rest))
         if envelope
         else None,
@@ -132,16 +136,16 @@ def model_loop(params: RecoilParams, options: SolverOptions, stop_early: bool = 
 
 
 def envelope_values(
-    params: RecoilParams, smoothing: Smoothing, run: PeakRun, values: dict, end, rest
+    params: RecoilParams, smoothing: Smoothing, run: PeakRun, values: dict, end, rest, envelope
 ) -> dict:
     """`values` (extremes by metric name) with the firing envelope's metrics of `run`:
     the return's (from its crossing), `residual_displacement` (`x_M(t1) − x_r`, with
     `end = t1` and the rest `x_r`: `residual_at`), the stability margin (NaN without a
     mount), the pull (no less than 0) and `returned`; all NaN for a design without the
-    envelope (`peaks_of_run`)."""
+    envelope (`envelope`: whether the design has it, `Structure`)."""
     out = dict(values)
     nan = jnp.full_like(out["peak_displacement"], jnp.nan)
-    if not has_envelope(params):
+    if not envelope:
         out |= {name: nan for name, m in METRICS.items() if m.envelope}
         return out | {"returned": jnp.zeros(nan.shape, bool)}
     returned = run.crossed
@@ -165,11 +169,14 @@ def residual_at(final_state, final_time, end, smoothing: Smoothing):
     return final_state[..., 0] + jnp.where(early, final_state[..., 1] * smoothing.stick_time, 0.0)
 
 
-def peaks_of_run(params: RecoilParams, smoothing: Smoothing, run: PeakRun, end, rest) -> Peaks:
+def peaks_of_run(
+    params: RecoilParams, smoothing: Smoothing, run: PeakRun, end, rest, structure=None
+) -> Peaks:
     """The `Peaks` of a loop run that tracked `tracked_metrics` (maxima of `sign · signal`,
     so a minimum comes back with its sign restored), with the envelope's metrics
     (`envelope_values`); `end` is the solve's end time `t1` (s), `rest` the static rest
-    `x_r` (m) it started from (`ModelArgs.rest`)."""
+    `x_r` (m) it started from (`ModelArgs.rest`); `structure` the design's `Structure`
+    (default: resolved here)."""
     best, times = run.by_name(run.best), run.by_name(run.best_time)
     zero = jnp.zeros_like(best["peak_displacement"])
     values = {
@@ -177,8 +184,8 @@ def peaks_of_run(params: RecoilParams, smoothing: Smoothing, run: PeakRun, end, 
         for name, m in EXTREMES.items()
     }
     times = {name: times.get(name, zero) for name in EXTREMES}
-    values = envelope_values(params, smoothing, run, values, end, rest)
-    envelope = has_envelope(params)
+    envelope = (structure or Structure.of(params)).envelope
+    values = envelope_values(params, smoothing, run, values, end, rest, envelope)
     present = mounted(params) if envelope else False
     times["stability_margin"] = jnp.where(present, times["stability_margin"], jnp.nan)
     pushed = values["peak_anchoring_force"] >= values["peak_pull_force"]
@@ -211,8 +218,10 @@ def peak_metrics(
     """
     t1 = end_time(params, options)
     args = model_args(params, smoothing)
-    run = model_loop(params, options).integrate(initial_state(args), args, t1)
-    return peaks_of_run(params, smoothing, run, t1, args.rest)
+    run = model_loop(params, options, structure=args.structure).integrate(
+        initial_state(args), args, t1
+    )
+    return peaks_of_run(params, smoothing, run, t1, args.rest, args.structure)
 
 
 @structure_jit

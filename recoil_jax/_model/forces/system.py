@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -29,6 +30,7 @@ from ..._model.settings import Smoothing
 
 __all__ = [
     "Forces",
+    "Structure",
     "check_envelope_metrics",
     "forces",
     "has_envelope",
@@ -129,12 +131,30 @@ def forces(y, params: RecoilParams, smoothing: Smoothing, width_contact=None, t=
     return _with_friction(together, y, params, smoothing)
 
 
+class Structure(eqx.Module):
+    """Which parts a design has: static, from its pytree's structure (the groups present),
+    not from its values. A program resolves it once (`Structure.of`) and carries it in
+    its `args` (`ModelArgs.structure`), where the signals and bounds read it.
+
+    - `absorber`: the absorber (else the simplified model: no contact, no stroke);
+    - `envelope`: any part of the firing envelope (`ENVELOPE_GROUPS`: rails, the battery
+      stop, the counter-recoil buffer, a mount). Such a design is solved to `t1` (its
+      return and its rest are metrics), the others stop once their peaks are certain."""
+
+    absorber: bool = eqx.field(static=True)
+    envelope: bool = eqx.field(static=True)
+
+    @classmethod
+    def of(cls, params: RecoilParams) -> Structure:
+        return cls(
+            absorber=params.absorber is not None,
+            envelope=any(getattr(params, group) is not None for group in ENVELOPE_GROUPS),
+        )
+
+
 def has_envelope(params: RecoilParams) -> bool:
-    """Whether the design has any part of the firing envelope (rails, the battery stop,
-    the counter-recoil buffer, a mount): static, from the structure. Such a design is
-    solved to `t1` (its return and its rest are metrics), the others stop once their
-    peaks are certain."""
-    return any(getattr(params, group) is not None for group in ENVELOPE_GROUPS)
+    """`Structure.of(params).envelope`, for a caller that holds the design alone."""
+    return Structure.of(params).envelope
 
 
 #: The parameters that give a design the firing envelope, named in refusals.
