@@ -205,19 +205,6 @@ SMALL_STUDY = dict(
 )
 
 
-@pytest.fixture
-def write_study(tmp_path):
-    """`write_study(name="study.toml", **sections)`: a study file of `study_text` in the
-    test's folder, its path."""
-
-    def write(name: str = "study.toml", **sections) -> Path:
-        path = tmp_path / name
-        path.write_text(study_text(**sections))
-        return path
-
-    return write
-
-
 def gap_problem(limit: float = 0.15):
     """The small gap study as a `DesignProblem` (`SMALL_STUDY`): the paper's absorber
     (m 1500 kg) tuned in its gap for the lowest peak anchoring force, the stroke within

@@ -70,11 +70,19 @@ def test_explorer_shows_simulate_numbers_and_errors():
     explorer.set("gap", 0.062)
     assert explorer.field_errors["gap"].object == "" and explorer.message.object == ""
     assert "peak_anchoring_force" in explorer.peaks_pane.object
-    # Each card says whether its part is on.
+    # Each card says whether its part is on, and what turns it off (the registry's
+    # `Group.off`); the barrel's and the absorber's open, the others collapsed.
     assert (
         explorer.cards["recuperator"].title
         == "Gas recuperator (off: recuperator_force = recuperator_preload = 0)"
     )
+    assert explorer.cards["rails"].title == (
+        "Rails: elevation and friction (off: elevation = friction_force = friction_coefficient = 0)"
+    )
+    assert [g for g, card in explorer.cards.items() if not card.collapsed] == [
+        "barrel",
+        "absorber",
+    ]
     # A failed solve (the barrel bottoms out the recuperator): why, and no peaks, limits
     # or gradient bars.
     explorer.set("m", 0.0)

@@ -597,3 +597,12 @@ def test_a_programs_structure_is_resolved_once(monkeypatch):
     calls.clear()
     jax.jit(lambda p: tangent_solve(p, smoothing, options, ("k", "c_out")).gradients).lower(design)
     assert len(calls) == 2
+    # `args` built by hand without it (as the model internals page shows) resolve it
+    # where it is read, to the same signals.
+    from recoil_jax._model.equations import ModelArgs
+
+    args = model_args(design, smoothing)
+    by_hand = ModelArgs(design, smoothing, args.contact_width, args.rest)
+    y = initial_state(args)
+    assert signals(0.0, y, by_hand).keys() == signals(0.0, y, args).keys()
+    assert tracked_metrics(0.0, y, by_hand) == tracked_metrics(0.0, y, args)

@@ -530,7 +530,7 @@ def check_random_designs(count, seed):
     """Every design solves; the energy balances to 1e-6; a barrel that ends held by
     friction ends with the net force on it inside the band; the metrics are consistent."""
     from recoil_jax._model.reference import _model_of
-    from recoil_jax._model.reference.integrate import integrate
+    from recoil_jax._model.reference.segments import integrate
 
     rng = np.random.default_rng(seed)
     worst = 0.0

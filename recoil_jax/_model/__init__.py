@@ -8,7 +8,10 @@
   check that its load fits;
 - `text_files`: the one reader of text files (`read_text`, `MAX_TEXT_BYTES`);
 - `metrics`: the metric registry (`METRICS`) and the containers of metrics by name;
-- `equations`: the equations of motion, the recoil hardware and the energy bounds;
+- `forces/`: the forces, one module per physical group, and their sum (`forces.system`);
+- `equations`: the equations of motion as a diffrax term, its arguments, the initial
+  state and the tracked signals; `rest`: the gun at rest before the shot; `bounds`: what
+  a solve can still reach, which lets it stop early;
 - `stepping`, `dense`, `lanes`, `solve`: the step loop with its peaks and events, the
   maxima between steps, the lane scheduler, and solving one design or a batch;
 - `status`: how a solve ended (`Status`);

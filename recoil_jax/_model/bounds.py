@@ -57,7 +57,7 @@ def future_metric_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
     energy, spread = _energy_ceiling(y, args, t, t1)
     two_energy = 2.0 * energy
     displacement, anchoring = _barrel_bounds(params, two_energy, spread, width_v)
-    # Only designs without the envelope stop early (`has_envelope`): without a mount the
+    # Only designs without the envelope stop early (`Structure`): without a mount the
     # tracked margin is the constant −1, and the pull and mount load are the constant 0
     # (`signals`; not reported, `envelope_values`).
     margin = -jnp.ones_like(displacement)

@@ -67,7 +67,7 @@ def signals(t, y, args: ModelArgs) -> dict[str, jnp.ndarray]:
         lead = counter_recoil_force(y, counter, args.smoothing, lead=True)
         anchoring = anchoring - f.counter_recoil + lead
     out = {"recoil": y[0] - args.rest, "F_AN": anchoring, "F_ct": f.contact, "stroke": stroke}
-    out["pull"] = -anchoring if args.structure.envelope else jnp.zeros_like(anchoring)
+    out["pull"] = -anchoring if args.parts.envelope else jnp.zeros_like(anchoring)
     out["margin"] = stability(y, params, anchoring, args.rest)
     return out
 
@@ -128,7 +128,7 @@ def tracked_metrics(t, y, args: ModelArgs) -> dict[str, jnp.ndarray]:
     values = signals(t, y, args)
     return {
         name: EXTREMES[name].sign * values[str(EXTREMES[name].signal)]
-        for name in tracked_names(args.structure)
+        for name in tracked_names(args.parts)
     }
 
 
@@ -167,14 +167,20 @@ class ModelArgs(eqx.Module):
       the displacement metrics and the mount's moments are measured; differentiable in
       the parameters. None where only the vector field reads them (it does not read
       the rest);
-    - `structure`: which parts the design has (`Structure`), resolved once; None where
-      only the vector field reads them."""
+    - `structure`: which parts the design has (`Structure`), resolved once by the
+      program (`model_args`); None (a hand-built `args`, or the vector field's): resolved
+      where it is read (`ModelArgs.parts`)."""
 
     params: RecoilParams
     smoothing: Smoothing
     contact_width: Any
     rest: Any
     structure: Any = None
+
+    @property
+    def parts(self) -> Structure:
+        """`structure`, or where it is None the design's (`Structure.of`)."""
+        return self.structure or Structure.of(self.params)
 
 
 def model_args(

@@ -117,13 +117,15 @@ class Group:
       envelope: a design with any such group is solved to `t1`, its return and rest
       being metrics, and has the envelope's metrics);
     - `off`: the parameters that leave the part out when they are all 0 (none: it is
-      always there)."""
+      always there);
+    - `first`: one of the parts a designer sets first (the explorer opens its card)."""
 
     name: str
     pytree: str
     title: str
     part: str
     off: tuple[str, ...] = ()
+    first: bool = False
 
     @property
     def envelope(self) -> bool:
@@ -135,8 +137,8 @@ class Group:
 GROUPS: dict[str, Group] = {
     group.name: group
     for group in (
-        Group("barrel", "Barrel", "Barrel and recoil system", "paper"),
-        Group("absorber", "Absorber", "Absorber", "paper", ("m",)),
+        Group("barrel", "Barrel", "Barrel and recoil system", "paper", first=True),
+        Group("absorber", "Absorber", "Absorber", "paper", ("m",), first=True),
         Group("contact", "Contact", "Contact", "paper", ("m",)),
         Group("load", "Load", "Breech load", "hardware"),
         Group("buffer", "Buffer", "Throttling orifice", "hardware", ("piston_area",)),

@@ -298,7 +298,7 @@ class History(eqx.Module):
 def _simulate_jit(params, smoothing, options, ts, throw: bool) -> History:
     args = model_args(params, smoothing)
     t1 = end_time(params, options)
-    run = model_loop(params, options, stop_early=False).integrate(
+    run = model_loop(params, options, stop_early=False, structure=args.structure).integrate(
         initial_state(args), args, t1, save_ts=ts
     )
     ys = run.saved
@@ -312,7 +312,7 @@ def _simulate_jit(params, smoothing, options, ts, throw: bool) -> History:
         anchoring_force=f.anchoring,
         contact_force=f.contact,
         forces=f,
-        peaks=peaks_of_run(params, smoothing, run, t1, args.rest),
+        peaks=peaks_of_run(params, smoothing, run, t1, args.rest, args.structure),
         status=run.status,
     )
     return raise_on_failure(history, run.status) if throw else history
@@ -357,17 +357,21 @@ def simulate(
 def _peaks_batch(
     params: RecoilParams, t1, smoothing: Smoothing, options: SolverOptions, lanes: int, count
 ) -> Peaks:
-    loop = model_loop(params, options)
+    structure = Structure.of(params)  # (the batch's: one structure)
+    loop = model_loop(params, options, structure=structure)
 
     def setup(design):
         p, end = design
-        args = model_args(p, smoothing)
+        args = model_args(p, smoothing, structure=structure)
         return initial_state(args), args, end
+
+    def post(design, args, run):
+        return peaks_of_run(design[0], smoothing, run, design[1], args.rest, structure)
 
     return queued_map(
         loop,
         setup,
-        lambda design, args, run: peaks_of_run(design[0], smoothing, run, design[1], args.rest),
+        post,
         (params, t1),
         lanes,
         count,

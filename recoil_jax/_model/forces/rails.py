@@ -24,6 +24,7 @@ def absorber_sag(params: RecoilParams):
 
 
 def sin_cos(params: RecoilParams):
+    """`(sin θ, cos θ)` of the rails' elevation θ (0 and 1 on level rails, or without)."""
     theta = jnp.deg2rad(params.rails.elevation) if params.rails is not None else 0.0
     return jnp.sin(theta), jnp.cos(theta)
 

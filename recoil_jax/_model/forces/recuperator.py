@@ -17,11 +17,10 @@ __all__ = [
 ]
 
 
-# The gas column is held at 0.99 L_r at most, so the force stays finite: a solve fails
-# (Status.bottomed_out) well before, once x_M reaches BOTTOM · L_r.
+#: A solve fails (`Status.bottomed_out`) once `x_M` reaches `BOTTOM · L_r`.
 BOTTOM = 0.95
-
-
+# The gas column is held at 0.99 L_r at most, so the force stays finite (the solve has
+# failed well before, at BOTTOM).
 _HOLD = 0.99
 
 

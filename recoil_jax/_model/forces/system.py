@@ -134,7 +134,8 @@ def forces(y, params: RecoilParams, smoothing: Smoothing, width_contact=None, t=
 class Structure(eqx.Module):
     """Which parts a design has: static, from its pytree's structure (the groups present),
     not from its values. A program resolves it once (`Structure.of`) and carries it in
-    its `args` (`ModelArgs.structure`), where the signals and bounds read it.
+    its `args` (`ModelArgs.structure`), where the signals (and through them the bounds)
+    and the loop's wiring read it.
 
     - `absorber`: the absorber (else the simplified model: no contact, no stroke);
     - `envelope`: any part of the firing envelope (`ENVELOPE_GROUPS`: rails, the battery

@@ -35,7 +35,7 @@ Used by the tests as ground truth across the documented ranges, and as the seria
 baseline of the benchmarks.
 
 The folder: `physics` (the model with hard switches, mode by mode), `switching` (its
-events and modes), `integrate` (the segment loop); here, what the tests and benchmarks
+events and modes), `segments` (the segment loop); here, what the tests and benchmarks
 call.
 """
 
@@ -46,8 +46,8 @@ from collections.abc import Mapping
 import numpy as np
 
 from ..._model.params import params_from_values, params_to_values
-from ..._model.reference.integrate import initial_state, integrate
 from ..._model.reference.physics import GRAVITY
+from ..._model.reference.segments import initial_state, integrate
 from ..._model.reference.switching import HardModel
 
 __all__ = ["reference_energy", "reference_history", "reference_peaks", "reference_rest"]

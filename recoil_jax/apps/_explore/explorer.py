@@ -222,8 +222,9 @@ class Explorer:
         )
 
     def _cards(self) -> dict[str, Any]:
-        """One card a part, holding its fields (each with its message pane); the paper's
-        parts (barrel, absorber, contact) open, the others collapsed."""
+        """One card a part, holding its fields (each with its message pane); the parts a
+        designer sets first open (`rjx.Group.first`: the barrel's and the absorber's), the
+        others collapsed."""
         groups: dict[str, list] = {}
         for name, widget in self.fields.items():
             groups.setdefault(rj.PARAMETERS[name].group, []).extend(
@@ -233,7 +234,7 @@ class Explorer:
             group: self.pn.Card(
                 *widgets,
                 title=rjx.GROUPS[group].title,
-                collapsed=rjx.GROUPS[group].part != "paper",
+                collapsed=not rjx.GROUPS[group].first,
                 sizing_mode="stretch_width",
             )
             for group, widgets in groups.items()

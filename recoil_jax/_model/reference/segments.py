@@ -227,14 +227,15 @@ def _record_events(model, sol, mode: Mode, watched: _Events, running, envelope) 
     """Keep what the segment's watched events found: candidate peaks, lows of `F_AN`,
     the barrel's returns and the margin at the envelope's events."""
     assert sol.t_events is not None and sol.y_events is not None
-    found = list(zip(sol.t_events, sol.y_events, strict=False))
+    found = list(zip(sol.t_events, sol.y_events, strict=True))
     for te, ye in _located(found[: len(watched.peaks)]):
         running.consider(model, te, ye, mode)
     lows = found[len(watched.peaks) : len(watched.peaks) + len(watched.lows)]
     for te, ye in _located(lows):
         running.consider_low(model, te, ye, mode)
     start = len(watched.peaks) + len(watched.lows)
-    for event, (times, states) in zip(watched.envelope, found[start:], strict=False):
+    envelope_found = found[start : start + len(watched.envelope)]
+    for event, (times, states) in zip(watched.envelope, envelope_found, strict=True):
         for te, ye in zip(times, states, strict=True):
             if event.kind == "return":
                 envelope.returns.append((float(te), float(ye[1])))
