@@ -62,8 +62,6 @@ from ._global_sensitivity.analysis import (
 from ._model.derivatives import (
     DESIGN_PARAMETERS as DESIGN_PARAMETERS,
     GRADIENT_OPTIONS as GRADIENT_OPTIONS,
-    MetricSeries as MetricSeries,
-    SmoothMax as SmoothMax,
     parameter_scale as parameter_scale,
     peak_gradients as peak_gradients,
     peak_jacobian as peak_jacobian,
@@ -109,6 +107,7 @@ from ._model.programs import (
 from ._model.reference import reference_peaks as reference_peaks
 from ._model.registry import ParameterError as ParameterError
 from ._model.settings import Smoothing as Smoothing, SolverOptions as SolverOptions
+from ._model.smooth_max import MetricSeries as MetricSeries, SmoothMax as SmoothMax
 from ._model.solve import (
     History as History,
     peak_metrics as peak_metrics,

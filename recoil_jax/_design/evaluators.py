@@ -31,11 +31,11 @@ import numpy as np
 from .._campaigns.store import StudyStore, evaluation_row, fingerprint
 from .._design.local import LocalEvaluation
 from .._design.problem import DesignProblem, evaluate_design, metric_violations
-from .._model.derivatives import MetricSeries, series_name
 from .._model.metrics import METRICS
 from .._model.params import params_to_values
 from .._model.programs import structure_jit
 from .._model.settings import end_time
+from .._model.smooth_max import MetricSeries, series_name
 from .._model.status import OK_CODE
 from .._sweeps.settings import CHUNK_SIZE
 from .._sweeps.space import SearchSpace

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._model.derivatives import GRADIENT_OPTIONS, MetricSeries, SmoothMax, check_wrt, smooth_name
+from .._model.derivatives import GRADIENT_OPTIONS, check_wrt
 from .._model.differentiable import design_metrics
 from .._model.feasibility import FEASIBILITY_TOLERANCE
 from .._model.forces.system import check_envelope_metrics
@@ -40,6 +40,7 @@ from .._model.params import (
 )
 from .._model.registry import ParameterError, check_value, is_concrete
 from .._model.settings import Smoothing, SolverOptions, end_time
+from .._model.smooth_max import MetricSeries, SmoothMax, smooth_name
 from .._model.solve import last_firing
 from .._model.status import status_item
 

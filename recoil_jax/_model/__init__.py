@@ -16,6 +16,7 @@
   maxima between steps, the lane scheduler, and solving one design or a batch;
 - `status`: how a solve ended (`Status`);
 - `derivatives`: the forward sensitivities (tangents) of peaks and signals;
+- `smooth_max`: the smooth maxima and metric series a gradient solve integrates;
 - `differentiable`: differentiable peaks;
 - `programs`: the compiled-program cache;
 - `feasibility`: the one feasibility rule;

@@ -15,17 +15,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._model.derivatives import (
-    GRADIENT_OPTIONS,
-    SmoothMax,
-    check_wrt,
-    series_name,
-    smooth_name,
-    tangent_solve,
-)
+from .._model.derivatives import GRADIENT_OPTIONS, check_wrt, tangent_solve
 from .._model.metrics import METRICS
 from .._model.params import RecoilParams, values_of, with_values
 from .._model.settings import Smoothing, SolverOptions
+from .._model.smooth_max import SmoothMax, series_name, smooth_name
 from .._model.status import status_item
 
 __all__ = ["design_metrics", "differentiable_peaks"]
