@@ -33,7 +33,9 @@ not need them; `docs/developers.md` shows how to plug a part in.
   registries' entries; `GROUPS`, `Group`: the parameters' groups, each a part of the
   gun (its title, whether it is the paper's, hardware or the firing envelope's);
   `T1_LIMITS`: the end time's valid and documented range; `end_time`: a design's end
-  time (refusing a load that does not fit); `Forces`: the model's forces;
+  time (refusing a load that does not fit); `Forces`: the model's forces at a state;
+  `Part`, `Force`, `float_leaf`, `forget_part`: the forces family, to add a part or a
+  force of one's own (`docs/developers.md`, *Adding a force*);
   `StoredSweep`: a sweep read back from its store; `worst_case`: each metric's worst
   over a scatter of designs; `read_text`: a text file, or one line saying why not
   (`MAX_TEXT_BYTES`: the most it reads); `written`: a file written whole or not at all,
@@ -103,12 +105,13 @@ from ._design.result import RunRecord
 from ._design.search import GlobalPhase, default_local
 from ._global_sensitivity.analysis import SENSITIVITY_METHODS, SensitivityMethod, sensitivity_box
 from ._model.derivatives import SIGNALS, signal_sensitivities
+from ._model.forces.family import Force, Part, forget_part
 from ._model.forces.system import Forces
 from ._model.hazards import HAZARDS, Hazard, design_hazards, hazard_flags
 from ._model.metrics import PEAK_FIELDS, Metric, gradient_key, worst_case
 from ._model.programs import live_programs, set_max_programs, structure_jit
 from ._model.reference import reference_history
-from ._model.registry import GROUPS, Group, Parameter, check_integer
+from ._model.registry import GROUPS, Group, Parameter, check_integer, float_leaf
 from ._model.settings import T1_LIMITS, end_time
 from ._model.status import OK_CODE, status_codes, status_messages, status_table
 from ._model.text_files import MAX_TEXT_BYTES, read_text, written
@@ -142,6 +145,7 @@ __all__ = [
     "Experiment",
     "Fitted",
     "FittedParameters",
+    "Force",
     "Forces",
     "GlobalPhase",
     "GradientEvaluator",
@@ -157,6 +161,7 @@ __all__ = [
     "MinimaxWindow",
     "ModelCheck",
     "Parameter",
+    "Part",
     "PlanCheck",
     "PlanReport",
     "Prediction",
@@ -179,6 +184,8 @@ __all__ = [
     "end_time",
     "evaluate_design",
     "fit_many",
+    "float_leaf",
+    "forget_part",
     "gradient_key",
     "hazard_flags",
     "live_programs",

@@ -326,6 +326,7 @@ RJX_NAMES = (
     "Experiment",
     "Fitted",
     "FittedParameters",
+    "Force",
     "Forces",
     "GlobalPhase",
     "GROUPS",
@@ -347,6 +348,7 @@ RJX_NAMES = (
     "OK_CODE",
     "PEAK_FIELDS",
     "Parameter",
+    "Part",
     "design_hazards",
     "hazard_flags",
     "Prediction",
@@ -369,6 +371,8 @@ RJX_NAMES = (
     "end_time",
     "evaluate_design",
     "fit_many",
+    "float_leaf",
+    "forget_part",
     "gradient_key",
     "live_programs",
     "log_coordinates",
@@ -553,8 +557,9 @@ def _group_lists(path: Path):
 def test_the_groups_are_listed_once(tmp_path):
     """The parameter groups are listed in one place, the registry's `GROUPS` (each with
     its pytree, title, part of the gun and switches); every other form derives from it
-    (`GROUP_CLASSES`, `PAPER_GROUPS`, `HARDWARE_GROUPS`, `ENVELOPE_GROUPS`, the
-    explorer's cards). No other module lists two or more of them by hand."""
+    (`PAPER_GROUPS`, a design's `Structure`, the explorer's cards; each group's part is
+    a member of the forces family, `tests/test_forces_family.py`). No other module lists
+    two or more of them by hand."""
     sample = tmp_path / "sample.py"  # what the check finds, and what it leaves
     sample.write_text('A = ("rails", "mount")\nB = {"load": 1, "buffer": 2}\n'
                       'C = {"load": 1, "shots": 2}\nD = ("rails",)\n')  # fmt: skip
@@ -568,7 +573,7 @@ def test_the_groups_are_listed_once(tmp_path):
     from recoil_jax._model.params import RecoilParams
 
     fields = [f.name for f in dataclasses.fields(RecoilParams)]
-    assert fields == list(rjx.GROUPS)  # one pytree field a group, in its order
+    assert fields == [*rjx.GROUPS, "added"]  # a field a built-in group, in its order
 
 
 def test_a_programs_structure_is_resolved_once(monkeypatch):

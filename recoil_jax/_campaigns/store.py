@@ -92,12 +92,34 @@ def fingerprint(*parts: Any) -> str:
     digest = hashlib.sha256()
     for part in parts:
         leaves, treedef = jax.tree.flatten(part)
-        digest.update(str(treedef).encode())
+        digest.update(_as_before_added_parts(str(treedef)).encode())
         for leaf in leaves:
             array = np.ascontiguousarray(np.asarray(leaf))
             digest.update(f"{array.dtype}{array.shape}".encode())
             digest.update(array.tobytes())
     return digest.hexdigest()
+
+
+#: Where a design's node begins in a structure's text (`str(treedef)`).
+_DESIGN_NODE = "CustomNode(RecoilParams["
+
+
+def _as_before_added_parts(text: str) -> str:
+    """A structure's text with each design's empty `added` (no part added outside the
+    package: its last child, `()`) left out, as the text was before designs could hold
+    added parts; so that a store's identity, and a store written then, stay valid."""
+    pieces, start = [], 0
+    while (node := text.find(_DESIGN_NODE, start)) >= 0:
+        children = text.index("], [", node) + 3  # the `[` that opens its children
+        depth, end = 0, children
+        for end in range(children, len(text)):
+            depth += (text[end] in "([{") - (text[end] in ")]}")
+            if depth == 0:
+                break
+        empty = end - 4 >= children and text[end - 4 : end] == ", ()"
+        pieces.append(text[start : end - 4] if empty else text[start:end])
+        start = end
+    return "".join(pieces) + text[start:]
 
 
 def quote_name(name: str) -> str:

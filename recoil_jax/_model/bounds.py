@@ -7,10 +7,10 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from .._model.equations import tracked_metrics
+from .._model.forces.barrel import Barrel
+from .._model.forces.family import Force
 from .._model.forces.loads import remaining_impulse
-from .._model.forces.orifice import buffer_coefficient
 from .._model.forces.rails import GRAVITY, absorber_sag, friction_bound, sin_cos
-from .._model.forces.recuperator import recuperator_energy, recuperator_force
 from .._model.forces.smoothing import positive_power
 from .._model.forces.system import forces, net_force
 from .._model.params import RecoilParams
@@ -140,6 +140,9 @@ def held_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
             absorber.k_r * amplitude + absorber.c_r * jnp.sqrt(2.0 * energy / absorber.m)
         )
     force_change = swing + params.barrel.M * speed / smoothing.stick_time
+    most_creep = speed * jnp.maximum(smoothing.stick_time, t1 - t)
+    for force in params.forces():  # what each could still change as the barrel creeps
+        force_change = _plus(force_change, force.held_change(most_creep, params))
     spent = remaining_impulse(t, params) <= 1e-12 * params.barrel.M * jnp.abs(params.barrel.v0)
     load = jnp.abs(net_force(f)) + force_change
     inside = (speed < _SETTLED_SPEED) & (load < bound - smoothing.friction_width)
@@ -179,8 +182,8 @@ def _energy_ceiling(y, args, t, t1):
     spread = jnp.abs(barrel.c_out - barrel.c_ret)
     energy = 0.5 * barrel.M * v_M**2 + 0.5 * barrel.k * x_M**2
     energy = energy + spread * _SWITCH_POWER * width_v**2 * jnp.maximum(t1 - t, 0.0)
-    if params.recuperator is not None:
-        energy = energy + recuperator_energy(x_M, params.recuperator)
+    for force in _others(params):  # (the barrel's is above)
+        energy = _plus(energy, force.potential(x_M, params))
     if absorber is not None:
         # U(δ) <= k_c (δ + w)₊^(n+1) / (n+1), since the smoothed ramp r(s) <= (s + w)₊.
         relative = x_M - x_m
@@ -207,16 +210,25 @@ def _barrel_bounds(params: RecoilParams, two_energy, spread, width_v):
         sprung, jnp.sqrt(two_energy / jnp.where(sprung, barrel.k, 1.0)), jnp.inf
     )
     anchoring = jnp.sqrt((barrel.k + barrel.c_out**2 / barrel.M) * two_energy) + damper_offset
-    if params.buffer is not None and params.buffer.orifice is not None:
-        smallest = jnp.min(jnp.asarray(params.buffer.orifice))
-        anchoring = (
-            anchoring + buffer_coefficient(params.buffer) * (two_energy / barrel.M) / smallest**2
-        )
-    if params.recuperator is not None:
-        anchoring = anchoring + jnp.maximum(
-            recuperator_force(displacement, params.recuperator), 0.0
-        )
+    for force in _others(params):
+        anchoring = _plus(anchoring, force.anchoring_bound(displacement, two_energy, params))
     return displacement, anchoring
+
+
+def _others(params: RecoilParams) -> list[Force]:
+    """The forces of the design's mechanism but the barrel's (whose energy and bounds are
+    the ceiling's base), in the family's order."""
+    return [f for f in params.forces() if not isinstance(f, Barrel) and not f.REACTION]
+
+
+def _plus(total, share):
+    """`total + share`, where a force's `share` of a bound may be None (not known: the
+    bound is then `+inf`) or the number 0 (nothing to add)."""
+    if share is None:
+        return jnp.full_like(total, jnp.inf)
+    if isinstance(share, float) and share == 0.0:
+        return total
+    return total + share
 
 
 def _contact_bounds(params: RecoilParams, energy, two_energy, width_contact, width_v):

@@ -121,7 +121,7 @@ def check_wrt(params: RecoilParams, wrt: tuple[str, ...]) -> None:
             raise ParameterError(
                 f"cannot differentiate with respect to {name}: it is an integer count"
             )
-        module = getattr(params, p.group)
+        module = params.part(p.group)
         if module is None:
             if p.group == "absorber":
                 raise ParameterError(

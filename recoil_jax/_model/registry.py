@@ -23,10 +23,7 @@ import jax.core
 import numpy as np
 
 __all__ = [
-    "ENVELOPE_GROUPS",
     "GROUPS",
-    "GROUP_CLASSES",
-    "HARDWARE_GROUPS",
     "MAX_KNOTS",
     "MIN_KNOTS",
     "PAPER_GROUPS",
@@ -133,7 +130,9 @@ class Group:
 
 
 #: Every group of parameters, in the order of `RecoilParams`'s fields: the one list of
-#: them; every other form (`GROUP_CLASSES`, `ENVELOPE_GROUPS`, ...) derives from it.
+#: them; every other form (`PAPER_GROUPS`, a design's `Structure`, the explorer's cards)
+#: derives from it. A part defined outside the package adds its group after them
+#: (`forces.family.Part`).
 GROUPS: dict[str, Group] = {
     group.name: group
     for group in (
@@ -167,14 +166,8 @@ GROUPS: dict[str, Group] = {
         Group("mount", "Mount", "Mount", "envelope", ("mount_mass",)),
     )
 }
-#: The pytree class of each group, by group (`Group.pytree`).
-GROUP_CLASSES: dict[str, str] = {name: group.pytree for name, group in GROUPS.items()}
-#: The groups of the paper's model, of the hardware beyond it and of the firing envelope
-#: (`Group.part`), each in `GROUPS`' order.
-PAPER_GROUPS, HARDWARE_GROUPS, ENVELOPE_GROUPS = (
-    tuple(name for name, g in GROUPS.items() if g.part == part)
-    for part in ("paper", "hardware", "envelope")
-)
+#: The groups of the paper's model (`Group.part`), in `GROUPS`' order.
+PAPER_GROUPS = tuple(name for name, g in GROUPS.items() if g.part == "paper")
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -199,9 +192,9 @@ class Parameter(Limits):
 
     @property
     def owner(self) -> str:
-        """The class holding it (its group's, `GROUP_CLASSES`: `Barrel`, `Absorber`, ...),
+        """The class holding it (its group's, `Group.pytree`: `Barrel`, `Absorber`, ...),
         for messages."""
-        return GROUP_CLASSES[self.group]
+        return GROUPS[self.group].pytree
 
     @property
     def envelope(self) -> bool:
@@ -258,6 +251,19 @@ class ParameterRegistry(Mapping[str, Parameter]):
 
     def __len__(self) -> int:
         return len(self._scalars)
+
+    def add(self, rows: Sequence[Parameter]) -> None:
+        """Take the entries `rows` of a part defined outside the package (`Part.ROWS`),
+        after the others; a name taken already is refused."""
+        for row in rows:
+            if row.name in self or _KNOT_NAME.fullmatch(row.name):
+                raise ParameterError(f"parameter {row.name!r} exists already: give another name")
+        self._scalars |= {row.name: row for row in rows}
+
+    def remove(self, names: Sequence[str]) -> None:
+        """Drop the entries `names` (a part defined outside the package, forgotten)."""
+        for name in names:
+            self._scalars.pop(name, None)
 
     def names(self) -> str:
         """Every name, for messages: the scalars, then the knot family."""

@@ -12,23 +12,21 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from .._model.forces.family import Design
 from .._model.registry import (
-    HARDWARE_GROUPS,
+    GROUPS,
     Limits,
     ParameterError,
     Validated,
     float_leaf,
     is_concrete,
 )
-
-if TYPE_CHECKING:
-    from .._model.params import RecoilParams
 
 __all__ = [
     "MAX_STEPS",
@@ -218,7 +216,7 @@ class SolverOptions(Validated):
             )
 
 
-def default_end_time(params: RecoilParams) -> Any:
+def default_end_time(params: Design) -> Any:
     """The model's end time when `SolverOptions.t1` is not given: 10 s after the last
     round, `10 + (shots - 1) · fire_interval` (10 s, the paper's, for one round)."""
     ten = jnp.full(jnp.shape(params.barrel.v0), 10.0)
@@ -228,14 +226,14 @@ def default_end_time(params: RecoilParams) -> Any:
     return ten + (load.shots - 1) * jnp.asarray(load.fire_interval, dtype=float)
 
 
-def with_default_tolerances(params: RecoilParams, options: SolverOptions) -> SolverOptions:
+def with_default_tolerances(params: Design, options: SolverOptions) -> SolverOptions:
     """`options` with the tolerances it leaves to the design filled in: rtol 1e-6 and
     atol 1e-9 for the paper's model; 1e-7 and 1e-10 with a load, buffer or recuperator
     (pulses of hundreds of kN and the orifice's `v²/A²` need a tighter tolerance for the
     peaks to hold 1e-4)."""
     if options.rtol is not None and options.atol is not None:
         return options
-    hardware = any(getattr(params, g) is not None for g in HARDWARE_GROUPS)
+    hardware = any(GROUPS[g].part == "hardware" for g in params.parts())
     rtol, atol = (1e-7, 1e-10) if hardware else (1e-6, 1e-9)
     return dataclasses.replace(
         options,
@@ -244,7 +242,7 @@ def with_default_tolerances(params: RecoilParams, options: SolverOptions) -> Sol
     )
 
 
-def end_time(params: RecoilParams, options: SolverOptions) -> Any:
+def end_time(params: Design, options: SolverOptions) -> Any:
     """The end time of a solve (s): `options.t1`, or the model's default.
 
     **Raises:** `ParameterError`, for concrete inputs, when the load does not fit
@@ -261,7 +259,7 @@ def end_time(params: RecoilParams, options: SolverOptions) -> Any:
 PULSE_LENGTHS = 10.0
 
 
-def check_load_fits(params: RecoilParams, t1: Any, max_steps: int, labels: Any = None) -> None:
+def check_load_fits(params: Design, t1: Any, max_steps: int, labels: Any = None) -> None:
     """Refuse, before anything is compiled, a load that a solve to `t1` (s, scalar or per
     design) could not deliver or finish: a round fired after `t1`, a pulse (its
     `PULSE_LENGTHS` pulse times) or a force table that `t1` cuts short, or more load

@@ -98,7 +98,7 @@ def _has(params: RecoilParams, name: str) -> bool:
     p = PARAMETERS[name] if name in PARAMETERS else None
     if p is None or p.integer:
         return False
-    module = getattr(params, p.group)
+    module = params.part(p.group)
     return module is not None and (p.index is None or p.index < module.knots)
 
 

@@ -1,13 +1,38 @@
-"""The counter-recoil buffer (`docs/model.md`, *Firing envelope*): a dashpot on the way
-back over the last stretch before battery."""
+"""The counter-recoil buffer (`docs/model.md`, *Firing envelope*): its parameters
+(`CounterRecoilBuffer`), a dashpot on the way back over the last stretch before
+battery."""
 
 from __future__ import annotations
 
+from typing import Any, ClassVar
+
+from ..._model.forces.family import Design, Force, registered
 from ..._model.forces.smoothing import onset_ramp, smooth_step
-from ..._model.params import CounterRecoilBuffer
+from ..._model.registry import GROUPS, Group
 from ..._model.settings import Smoothing
 
-__all__ = ["counter_recoil_force"]
+__all__ = ["CounterRecoilBuffer", "counter_recoil_force"]
+
+
+class CounterRecoilBuffer(Force):
+    """The counter-recoil buffer, a dashpot acting only on the way back over the last
+    stretch before battery: `F_cb = c_b v_M` while `v_M < 0` and `x_M < L_b`.
+
+    - `buffer_damping` c_b (N·s/m), `buffer_length` L_b (m).
+    """
+
+    buffer_damping: Any = registered("buffer_damping")
+    buffer_length: Any = registered("buffer_length")
+
+    GROUP: ClassVar[Group] = GROUPS["counter_recoil_buffer"]
+
+    def anchoring(self, y, t, design: Design, smoothing) -> dict[str, Any]:
+        """`F_cb` (N, <= 0; `counter_recoil_force`)."""
+        return {"counter_recoil": counter_recoil_force(y, self, smoothing)}
+
+    def held_change(self, creep, design: Design) -> Any:
+        """0: its speed ramp is one-sided: a barrel at rest feels none of it."""
+        return 0.0
 
 
 def counter_recoil_force(y, counter: CounterRecoilBuffer, smoothing: Smoothing, lead=False):

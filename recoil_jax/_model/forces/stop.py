@@ -1,13 +1,43 @@
-"""The battery stop (`docs/model.md`, *Firing envelope*): a Hunt–Crossley contact the
-barrel cannot pass forward."""
+"""The battery stop (`docs/model.md`, *Firing envelope*): its parameters (`BatteryStop`),
+a Hunt–Crossley contact the barrel cannot pass forward."""
 
 from __future__ import annotations
 
+from typing import Any, ClassVar
+
+from ..._model.forces.family import Design, Force, registered
 from ..._model.forces.smoothing import onset_ramp, positive_power, smooth_relu
-from ..._model.params import BatteryStop
+from ..._model.registry import GROUPS, Group
 from ..._model.settings import Smoothing
 
-__all__ = ["stop_force"]
+__all__ = ["BatteryStop", "stop_force"]
+
+
+class BatteryStop(Force):
+    """The battery stop at `x_M = 0`, a Hunt–Crossley contact the barrel cannot pass
+    forward: `F_s = k_s δ^n_s (1 + λ_s δ̇)`, `δ = −x_M > 0`, never pulling.
+
+    - `stop_stiffness` k_s (N/m^n_s; 0 is no stop), `stop_exponent` n_s (1 to 2),
+      `stop_damping` λ_s (s/m).
+    """
+
+    stop_stiffness: Any = registered("stop_stiffness")
+    stop_exponent: Any = registered("stop_exponent")
+    stop_damping: Any = registered("stop_damping")
+
+    GROUP: ClassVar[Group] = GROUPS["battery_stop"]
+
+    #: The gun's limit: summed after the friction (`Force`).
+    REACTION: ClassVar[bool] = True
+
+    def anchoring(self, y, t, design: Design, smoothing) -> dict[str, Any]:
+        """`F_s` (N, >= 0): the stop pushes the barrel back; a reaction, which `F_AN`
+        loses."""
+        return {"stop": stop_force(y[0], y[1], self, smoothing)}
+
+    def held_change(self, creep, design: Design) -> Any:
+        """0: the stop's change over the held test's creep (< 1e-9 m) is neglected."""
+        return 0.0
 
 
 def stop_force(x_M, v_M, stop: BatteryStop, smoothing: Smoothing):

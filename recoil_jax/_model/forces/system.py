@@ -8,24 +8,22 @@ absorber-free case (`params.absorber is None`): the absorber states stay at zero
 
 from __future__ import annotations
 
-from typing import NamedTuple
+import functools
+import operator
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..._model.forces.absorber import contact_width
-from ..._model.forces.counter_recoil import counter_recoil_force
+from ..._model.forces.absorber import contact_width, coupling_forces
 from ..._model.forces.loads import breech_force
-from ..._model.forces.orifice import buffer_force
 from ..._model.forces.rails import GRAVITY, friction_bound, sin_cos
-from ..._model.forces.recuperator import preload_force, recuperator_force
-from ..._model.forces.smoothing import positive_power, smooth_relu, smooth_step
-from ..._model.forces.stop import stop_force
+from ..._model.forces.smoothing import smooth_step
 from ..._model.metrics import METRICS
 from ..._model.params import RecoilParams
-from ..._model.registry import ENVELOPE_GROUPS, ParameterError, is_concrete
+from ..._model.registry import GROUPS, ParameterError, is_concrete
 from ..._model.settings import Smoothing
 
 __all__ = [
@@ -38,42 +36,78 @@ __all__ = [
 ]
 
 
-class Forces(NamedTuple):
+class Forces(eqx.Module):
     """The forces of the system at one state (N). Signs: as they act on the barrel's
-    equation `M a_M = breech − anchoring − coupling_spring − coupling_damper − contact`,
-    with `anchoring = recoil_spring + recoil_damper + buffer + recuperator`. Elements the
-    design does not have are `None`."""
+    equation `M a_M = breech − anchoring − coupling_spring − coupling_damper − contact`
+    (+ gravity's pull along the rails).
 
-    recoil_spring: jnp.ndarray  # k x_M
-    recoil_damper: jnp.ndarray  # c(v_M) v_M
-    coupling_spring: jnp.ndarray  # k_r (x_M − x_m)
-    coupling_damper: jnp.ndarray  # c_r (v_M − v_m)
-    contact: jnp.ndarray  # F_ct (>= 0, pushes the absorber forward)
-    contact_elastic: jnp.ndarray  # k_c δ₊^n_c, the conservative part of F_ct
-    buffer: jnp.ndarray | None = None  # F_h, the hydraulic buffer's orifice force
-    recuperator: jnp.ndarray | None = None  # F_g, the gas recuperator
-    breech: jnp.ndarray | None = None  # F_b(t), the breech force (pulse or table loads)
-    # The firing envelope (`docs/model.md`):
-    preload: jnp.ndarray | None = None  # F_p, the recuperator's preload on its gas column
-    counter_recoil: jnp.ndarray | None = None  # F_cb, the counter-recoil buffer (<= 0)
-    stop: jnp.ndarray | None = None  # F_s (>= 0), the battery stop pushing the barrel back
-    friction: jnp.ndarray | None = None  # F_f, rail friction
-    gravity: jnp.ndarray | None = None  # M g sin θ, along +x on the barrel
-    absorber_gravity: jnp.ndarray | None = None  # m g sin θ on the absorber
+    - `shares`: the parts of the anchoring force `F_AN`, in the order they are summed,
+      named by `names` (static): each force's (`Force.anchoring`: the recoil spring and
+      damper, the buffer, the recuperator and its preload, the counter-recoil buffer,
+      any force added outside the package), the rails' friction, then the reactions
+      (the battery stop's `F_s`), which `F_AN` loses (`reactions`, static: how many of
+      the last are). Read one by its name (`share`), or by the attributes below; those
+      the design has not got are None.
+    - `coupling_spring`, `coupling_damper`, `contact` (`F_ct`, >= 0, pushing the absorber
+      forward), `contact_elastic` (its conservative part): between barrel and absorber,
+      0 without one;
+    - `breech` (`F_b(t)`, pulse or table loads), `gravity` (`M g sin θ`, along `+x` on
+      the barrel) and `absorber_gravity` (`m g sin θ`): None where absent."""
+
+    shares: tuple[Any, ...]
+    names: tuple[str, ...] = eqx.field(static=True)
+    reactions: int = eqx.field(static=True)
+    coupling_spring: Any
+    coupling_damper: Any
+    contact: Any
+    contact_elastic: Any
+    breech: Any = None
+    gravity: Any = None
+    absorber_gravity: Any = None
+
+    def share(self, name: str) -> Any:
+        """The share of `F_AN` named `name` (N), or None if the design has none."""
+        return self.shares[self.names.index(name)] if name in self.names else None
 
     @property
     def anchoring(self):
-        """F_AN = k x_M + c(v_M) v_M + F_h + F_g + F_p + F_cb + F_f − F_s: the load into
-        the mounting (wall P)."""
-        total = self.recoil_spring + self.recoil_damper
-        for part in (self.buffer, self.recuperator, self.preload, self.counter_recoil):
-            if part is not None:
-                total = total + part
-        if self.friction is not None:
-            total = total + self.friction
-        if self.stop is not None:
-            total = total - self.stop
-        return total
+        """`F_AN`, the load into the mounting (wall P): the shares summed in order, less
+        the reactions."""
+        added = len(self.shares) - self.reactions
+        total = functools.reduce(operator.add, self.shares[:added])
+        return functools.reduce(operator.sub, self.shares[added:], total)
+
+    @property
+    def recoil_spring(self):
+        return self.share("recoil_spring")  # k x_M
+
+    @property
+    def recoil_damper(self):
+        return self.share("recoil_damper")  # c(v_M) v_M
+
+    @property
+    def buffer(self):
+        return self.share("buffer")  # F_h, the throttling orifice's force
+
+    @property
+    def recuperator(self):
+        return self.share("recuperator")  # F_g, the gas recuperator
+
+    @property
+    def preload(self):
+        return self.share("preload")  # F_p, the preload on the recuperator's gas column
+
+    @property
+    def counter_recoil(self):
+        return self.share("counter_recoil")  # F_cb, the counter-recoil buffer (<= 0)
+
+    @property
+    def friction(self):
+        return self.share("friction")  # F_f, rail friction
+
+    @property
+    def stop(self):
+        return self.share("stop")  # F_s (>= 0), the battery stop pushing the barrel back
 
 
 # Jitted so that JAX traces it once per shape: a gradient program evaluates the forces
@@ -82,53 +116,40 @@ class Forces(NamedTuple):
 @jax.jit
 def forces(y, params: RecoilParams, smoothing: Smoothing, width_contact=None, t=None) -> Forces:
     """All forces at state `y` (shape `(4,)`), smoothed as `smoothing` says; the breech
-    force (designs with a pulse or table load) needs the time `t` (s).
+    force (designs with a pulse or table load) needs the time `t` (s). The family's sum
+    (`Force`): each force the design has gives its shares of `F_AN`, the mechanism's
+    first, then the rails' friction (which takes what the others leave), then the
+    reactions (the battery stop).
 
     `width_contact` (m) may be passed precomputed (it depends only on the parameters).
     """
-    x_M, v_M, x_m, v_m = y[0], y[1], y[2], y[3]
-    barrel = params.barrel
-    width_v = smoothing.damping_width
-    # c(v) v = c_ret v + (c_out − c_ret) max(0, v): continuous, only its slope switches.
-    recoil_damper = barrel.c_ret * v_M + (barrel.c_out - barrel.c_ret) * smooth_relu(v_M, width_v)
-    recoil_spring = barrel.k * x_M
-    hardware = {}
-    if params.buffer is not None and params.buffer.orifice is not None:
-        hardware["buffer"] = buffer_force(x_M, v_M, params.buffer, smoothing.knot_width_fraction)
-    if params.recuperator is not None:
-        hardware["recuperator"] = recuperator_force(x_M, params.recuperator)
+    mechanism, reactions = {}, {}
+    for force in params.forces():
+        shares = force.anchoring(y, t, params, smoothing)
+        (reactions if force.REACTION else mechanism).update(shares)
+    external = {}
     if params.load is not None and t is not None:
-        hardware["breech"] = breech_force(t, params)
-    hardware |= _envelope_forces(y, params, smoothing)
-    absorber = params.absorber
-    if absorber is None:
-        zero = jnp.zeros_like(x_M)
-        return _with_friction(
-            Forces(recoil_spring, recoil_damper, zero, zero, zero, zero, **hardware),
-            y,
-            params,
-            smoothing,
+        external["breech"] = breech_force(t, params)
+    if params.rails is not None:
+        sin, _ = sin_cos(params)
+        external["gravity"] = params.barrel.M * GRAVITY * sin
+        if params.absorber is not None:
+            external["absorber_gravity"] = params.absorber.m * GRAVITY * sin
+    if params.absorber is None:
+        zero = jnp.zeros_like(y[0])
+        between = dict.fromkeys(
+            ("coupling_spring", "coupling_damper", "contact", "contact_elastic"), zero
         )
-    contact = params.contact
-    if width_contact is None:
-        width_contact = contact_width(params, smoothing)
-    penetration = x_M - x_m - absorber.gap
-    penetration_rate = v_M - v_m
-    elastic = contact.k_c * positive_power(smooth_relu(penetration, width_contact), contact.n_c)
-    # No-pull clamp max(0, 1 + λ δ̇), smoothed over a relative-velocity band width_v.
-    damping_factor = smooth_relu(
-        1.0 + contact.lambda_c * penetration_rate, contact.lambda_c * width_v
-    )
-    together = Forces(
-        recoil_spring=recoil_spring,
-        recoil_damper=recoil_damper,
-        coupling_spring=absorber.k_r * (x_M - x_m),
-        coupling_damper=absorber.c_r * (v_M - v_m),
-        contact=elastic * damping_factor,
-        contact_elastic=elastic,
-        **hardware,
-    )
-    return _with_friction(together, y, params, smoothing)
+    else:
+        if width_contact is None:
+            width_contact = contact_width(params, smoothing)
+        between = coupling_forces(y, params, smoothing, width_contact)
+    shares = mechanism | reactions
+    unheld = Forces(tuple(shares.values()), tuple(shares), len(reactions), **between, **external)
+    if params.rails is None:
+        return unheld
+    shares = mechanism | {"friction": _friction(unheld, y, params, smoothing)} | reactions
+    return Forces(tuple(shares.values()), tuple(shares), len(reactions), **between, **external)
 
 
 class Structure(eqx.Module):
@@ -138,7 +159,7 @@ class Structure(eqx.Module):
     and the loop's wiring read it.
 
     - `absorber`: the absorber (else the simplified model: no contact, no stroke);
-    - `envelope`: any part of the firing envelope (`ENVELOPE_GROUPS`: rails, the battery
+    - `envelope`: any part of the firing envelope (`Group.envelope`: rails, the battery
       stop, the counter-recoil buffer, a mount). Such a design is solved to `t1` (its
       return and its rest are metrics), the others stop once their peaks are certain."""
 
@@ -149,7 +170,7 @@ class Structure(eqx.Module):
     def of(cls, params: RecoilParams) -> Structure:
         return cls(
             absorber=params.absorber is not None,
-            envelope=any(getattr(params, group) is not None for group in ENVELOPE_GROUPS),
+            envelope=any(GROUPS[group].envelope for group in params.parts()),
         )
 
 
@@ -185,30 +206,6 @@ def check_envelope_metrics(params: RecoilParams, names, where: str) -> None:
             )
 
 
-def _envelope_forces(y, params: RecoilParams, smoothing: Smoothing) -> dict:
-    """The envelope's forces at `y` but friction (`_with_friction`), by `Forces` field:
-    each only where the design has its group (else the paper's forces, operation for
-    operation)."""
-    x_M, v_M = y[0], y[1]
-    out = {}
-    recuperator = params.recuperator
-    if recuperator is not None and params.battery_stop is not None:
-        # A preload needs the stop (`check_design`): without one it is 0 and left out.
-        out["preload"] = preload_force(x_M, recuperator)
-    stop = params.battery_stop
-    if stop is not None:
-        out["stop"] = stop_force(x_M, v_M, stop, smoothing)
-    counter = params.counter_recoil_buffer
-    if counter is not None:
-        out["counter_recoil"] = counter_recoil_force(y, counter, smoothing)
-    if params.rails is not None:
-        sin, _ = sin_cos(params)
-        out["gravity"] = params.barrel.M * GRAVITY * sin
-        if params.absorber is not None:
-            out["absorber_gravity"] = params.absorber.m * GRAVITY * sin
-    return out
-
-
 def net_force(f: Forces):
     """`N` (N): the force along `+x` on the barrel from everything but friction (the
     breech's, where `f` has it, gravity's, and less all that holds the barrel back)."""
@@ -222,8 +219,8 @@ def net_force(f: Forces):
     return net
 
 
-def _with_friction(f: Forces, y, params: RecoilParams, smoothing: Smoothing) -> Forces:
-    """`f` with the rails' friction (`docs/model.md`, *Sticking*):
+def _friction(f: Forces, y, params: RecoilParams, smoothing: Smoothing):
+    """The rails' friction (N) where the other forces are `f` (`docs/model.md`, *Sticking*):
     `F_f = clamp(N_h + M v_M / τ, ±F_max)` with `τ = stick_time`, where `N` is the net
     force on the barrel from everything but friction (the breech force included, so
     `forces` needs the time `t` for a design with a pulse or table load), and
@@ -236,8 +233,6 @@ def _with_friction(f: Forces, y, params: RecoilParams, smoothing: Smoothing) -> 
       switching as `v_M` crosses 0 within `slip_width`, as the exact law's sign does.
       Over `|N| − F_max < friction_width` the two join continuously.
     """
-    if params.rails is None:
-        return f
     net = net_force(f)
     bound, width = friction_bound(params), smoothing.friction_width
     direction = jnp.where(net >= 0, 1.0, -1.0)
@@ -250,4 +245,4 @@ def _with_friction(f: Forces, y, params: RecoilParams, smoothing: Smoothing) -> 
     outside = direction * bound * (1.0 - 2.0 * (1.0 - along) * against)
     held = jnp.where(excess <= 0, net, outside)
     relaxing = held + params.barrel.M * y[1] / smoothing.stick_time
-    return f._replace(friction=jnp.clip(relaxing, -bound, bound))
+    return jnp.clip(relaxing, -bound, bound)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import matplotlib.cm
 import matplotlib.colors
@@ -22,13 +23,28 @@ __all__ = ["LEGEND_LINES", "plot_history", "plot_series"]
 LEGEND_LINES = 7
 
 
+#: The label of each share of `F_AN` (`rjx.Forces.names`); a force added outside the
+#: package is labelled by its share's name.
+_SHARE_LABELS = {
+    "recoil_spring": "spring $k x_M$",
+    "recoil_damper": "damper $c(v)v$",
+    "buffer": "orifice $F_h$",
+    "recuperator": "recuperator gas $F_g$",
+    "preload": "recuperator preload $F_p$",
+    "counter_recoil": "counter-recoil buffer $F_{cb}$",
+    "friction": "rail friction $F_f$",
+    "stop": "battery stop $-F_s$",
+}
+
+
 @styled
 def plot_history(history: rj.History, path, title: str = "") -> Path:
     """Time histories, stacked: the barrel's and absorber's displacements; the anchoring
     force with each element that carries it (recoil spring, damper, hydraulic buffer,
-    gas recuperator and its preload, counter-recoil buffer, rail friction, battery stop)
-    and gravity along the rails; the breech force of each round and the contact force.
-    Elements the design does not have are left out. Saved as PNG at `path`."""
+    gas recuperator and its preload, counter-recoil buffer, rail friction, battery stop,
+    any force added outside the package, by its name) and gravity along the rails; the
+    breech force of each round and the contact force. Elements the design does not have
+    are left out. Saved as PNG at `path`."""
     ts = np.asarray(history.ts)
     f = history.forces
     # Without an absorber (m = 0) its displacement and the contact force stay 0: not
@@ -44,17 +60,13 @@ def plot_history(history: rj.History, path, title: str = "") -> Path:
     axes[0].legend(loc="upper right")
     # Every part of F_AN the design has (`Forces.anchoring`: the stop enters with its
     # minus sign), then gravity along the rails, which acts on the barrel, not the mount.
-    parts = {
-        "anchoring $F_{AN}$": history.anchoring_force,
-        "spring $k x_M$": None if _all_zero(f.recoil_spring) else f.recoil_spring,
-        "damper $c(v)v$": f.recoil_damper,
-        "orifice $F_h$": f.buffer,
-        "recuperator gas $F_g$": None if _all_zero(f.recuperator) else f.recuperator,
-        "recuperator preload $F_p$": f.preload,
-        "counter-recoil buffer $F_{cb}$": f.counter_recoil,
-        "rail friction $F_f$": f.friction,
-        "battery stop $-F_s$": None if f.stop is None else -np.asarray(f.stop),
-    }
+    parts: dict[str, Any] = {"anchoring $F_{AN}$": history.anchoring_force}
+    for name, share in zip(f.names, f.shares, strict=True):
+        if name == "stop":
+            share = -np.asarray(share)
+        elif name in ("recoil_spring", "recuperator") and _all_zero(share):
+            continue  # (k = 0, or F_r = 0: a part present by its group, carrying nothing)
+        parts[_SHARE_LABELS.get(name, name.replace("_", " "))] = share
     for i, (label, force) in enumerate(parts.items()):
         if force is not None:
             axes[1].plot(

@@ -1,0 +1,137 @@
+"""The forces family: what a part of the gun is (`Part`: a group of parameters, its
+fields) and what a force is (`Force`: a part that pushes on the barrel through the
+recoil mechanism, into the mount). Each module of `_model/forces` defines its part as a
+member; the equations sum the forces a design has, as diffrax's `MultiTerm` sums terms
+(`system.forces`). A part defined outside the package joins the family by subclassing,
+with its parameter rows (`Part.ROWS`) and its group (`Part.GROUP`): the parameter
+registry, `params_from_values`, the sweeps and the studies take it by its flat names
+(`docs/developers.md`, *Adding a force*).
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import Any, ClassVar
+
+from ..._model.parameter_table import PARAMETERS
+from ..._model.registry import (
+    GROUPS,
+    Group,
+    Limits,
+    Parameter,
+    ParameterError,
+    Validated,
+    float_leaf,
+)
+
+__all__ = ["FAMILY", "Design", "Force", "Part", "forget_part", "group_limits", "registered"]
+
+#: A design (`RecoilParams`), typed loosely here: the parts are defined before the
+#: design that holds them.
+Design = Any
+
+#: Every part of the gun, by its group's name (`Group.name`). A design orders its parts
+#: as the registry's `GROUPS` does (the built-in groups, then those added).
+FAMILY: dict[str, type[Part]] = {}
+
+
+def registered(name: str) -> Any:
+    """A pytree field for the registered parameter `name`, with its default."""
+    return float_leaf(PARAMETERS[name].default)
+
+
+def group_limits(group: str) -> dict[str, Limits]:
+    """The registry entries of `group` by name: the `LIMITS` of its pytree."""
+    return {name: p for name, p in PARAMETERS.items() if p.group == group}
+
+
+class Part(Validated):
+    """A part of the gun: one group of the design's parameters, which are its fields
+    (each a pytree leaf, validated against its registry entry, `LIMITS`).
+
+    A subclass names its group (`GROUP`, a `Group`: its name, title, part of the gun and
+    the switches that leave it out), and that makes it a member of the family
+    (`FAMILY`); its `LIMITS` are its group's rows of the parameter table. A part defined
+    outside the package gives its parameters' registry rows too (`ROWS`, each a
+    `Parameter` of its group); its group and rows then join the registry (`GROUPS`,
+    `PARAMETERS`), after the built-in ones. `forget_part` takes them out again.
+    """
+
+    GROUP: ClassVar[Group]
+    ROWS: ClassVar[tuple[Parameter, ...]] = ()
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        group = cls.__dict__.get("GROUP")
+        if group is None:  # an abstract kind (`Force`), not a part
+            return
+        if group.pytree != cls.__name__:
+            raise ParameterError(f"{cls.__name__}.GROUP names the pytree {group.pytree!r}")
+        if group.name in FAMILY:
+            raise ParameterError(f"a part of group {group.name!r} exists already")
+        if cls.ROWS:
+            if group.name in GROUPS:
+                raise ParameterError(f"group {group.name!r} exists already: give another name")
+            strays = [row.name for row in cls.ROWS if row.group != group.name]
+            if strays:
+                raise ParameterError(f"{cls.__name__}.ROWS: {strays} are not of {group.name}")
+            PARAMETERS.add(cls.ROWS)
+            GROUPS[group.name] = group
+            cls.LIMITS = {row.name: row for row in cls.ROWS}
+        elif group.name not in GROUPS:
+            raise ParameterError(f"{cls.__name__}: group {group.name!r} has no ROWS")
+        elif "LIMITS" not in cls.__dict__:  # a built-in part's: its rows in the table
+            cls.LIMITS = group_limits(group.name)
+        FAMILY[group.name] = cls
+
+
+class Force(Part):
+    """A part that pushes on the barrel through the recoil mechanism: what it adds to
+    the anchoring force `F_AN` (and so, with the opposite sign, to the barrel's equation
+    `M a_M = F_b − F_AN − ...`), by name (`anchoring`), and what the solve's early stops
+    need of it (`potential`, `anchoring_bound`, `held_change`). Its smoothing width, if
+    it switches, is its own to define (a field, or a `Smoothing` width it reads).
+
+    The equations sum, in this order: the forces of the mechanism, the rails' friction
+    (which takes what the others leave), then the reactions (`REACTION`: the battery
+    stop); within each, in the order of the registry's groups (`GROUPS`). A member whose
+    `potential` or `anchoring_bound` is None (the default) keeps the solve from stopping
+    early by the energy; one whose `held_change` is None keeps a held barrel's solve
+    from stopping before `t1`: slower, never wrong.
+    """
+
+    #: A reaction of the gun's limits (the battery stop): its `anchoring` is the force
+    #: with which it pushes the barrel back, which `F_AN` loses (after the friction).
+    REACTION: ClassVar[bool] = False
+
+    @abc.abstractmethod
+    def anchoring(self, y, t, design: Design, smoothing) -> dict[str, Any]:
+        """Its shares of `F_AN` at state `y = (x_M, v_M, x_m, v_m)` (N, positive holding
+        the barrel back), by name; `t` (s) may be None (the forces of a state alone)."""
+
+    def potential(self, x_M, design: Design) -> Any:
+        """The energy it holds at displacement `x_M` (J, >= 0; its work from battery),
+        for a force that only stores (a spring) or dissipates; None if it may add
+        energy or is not known."""
+        return None
+
+    def anchoring_bound(self, reach, two_energy, design: Design) -> Any:
+        """An upper bound on its `F_AN` share (N) while `x_M <= reach` (m) and the
+        mechanical energy is at most `two_energy / 2` (J); None if not known."""
+        return None
+
+    def held_change(self, creep, design: Design) -> Any:
+        """How much its `F_AN` share can still change (N) while the barrel is held by its
+        friction and creeps at most `creep` (m); None if not known."""
+        return None
+
+
+def forget_part(part: type[Part]) -> None:
+    """Take a part defined outside the package out of the family and the registry (its
+    group and rows): for a test, or a notebook that redefines it."""
+    if not part.ROWS:
+        raise ParameterError(f"{part.__name__} is built in: it cannot be forgotten")
+    name = part.GROUP.name
+    FAMILY.pop(name, None)
+    GROUPS.pop(name, None)
+    PARAMETERS.remove([row.name for row in part.ROWS])
