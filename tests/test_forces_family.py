@@ -237,3 +237,74 @@ def test_the_developers_walkthrough_runs(tmp_path):
     script.write_text(code + "\nassert 'mount_spring_stiffness' in rj.PARAMETERS\n")
     done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-2000:]
+
+
+def _bare_spring():
+    """A spring to the mount that says nothing of the early stops (every hook None)."""
+
+    class BareSpring(rjx.Force):
+        GROUP = rjx.Group("bare_spring", "BareSpring", "Bare spring", "hardware")
+        ROWS = (rjx.Parameter(name="bare_stiffness", group="bare_spring", default=0.0,
+                              unit="N/m", lower=0.0, documented=(0.0, 1e6)),)  # fmt: skip
+        bare_stiffness: Any = rjx.float_leaf(0.0)
+
+        def anchoring(self, y, t, design, smoothing):
+            return {"bare_spring": self.bare_stiffness * y[0]}
+
+    return BareSpring
+
+
+def test_a_force_that_does_not_bound_itself_runs_to_the_end(mount_spring):
+    """Without its share of the energy bound the solve cannot stop early: it runs to
+    `t1`, and finds the peaks the bounded force's early-stopped solve found. A part is
+    forgotten and defined again; its code is in a store's identity."""
+    from recoil_jax._campaigns.store import fingerprint
+
+    bare = _bare_spring()
+    try:
+        with_hooks = rj.peaks(_designs(m=0.0)[0], options=TIGHT)
+        without = rj.peaks(
+            rj.params_from_values(m=0.0, k=K_BASE, bare_stiffness=K_ADDED), options=TIGHT
+        )
+        assert int(without.num_steps) > int(with_hooks.num_steps)  # (to t1)
+        for name in ("peak_displacement", "peak_anchoring_force"):
+            _close(getattr(without, name), getattr(with_hooks, name), rtol=1e-12)
+        added, folded = _designs(m=0.0)
+        bare_design = rj.params_from_values(m=0.0, k=K_BASE, bare_stiffness=K_ADDED)
+        identities = {fingerprint(d) for d in (added, folded, bare_design)}
+        assert len(identities) == 3
+    finally:
+        rjx.forget_part(bare)
+    again = _bare_spring()  # forgotten: its group and rows may be given again
+    try:
+        assert "bare_stiffness" in rj.PARAMETERS
+    finally:
+        rjx.forget_part(again)
+
+
+def test_a_share_is_one_forces():
+    """Two forces that name the same share are refused, naming it."""
+
+    class Doubled(rjx.Force):
+        GROUP = rjx.Group("doubled", "Doubled", "Doubled", "hardware")
+        ROWS = (rjx.Parameter(name="doubled_stiffness", group="doubled", default=0.0,
+                              unit="N/m", lower=0.0),)  # fmt: skip
+        doubled_stiffness: Any = rjx.float_leaf(0.0)
+
+        def anchoring(self, y, t, design, smoothing):
+            return {"recoil_spring": self.doubled_stiffness * y[0]}
+
+    try:
+        with pytest.raises(rj.ParameterError, match="'recoil_spring' is another force's"):
+            rj.peaks(rj.params_from_values(m=0.0, doubled_stiffness=1.0))
+    finally:
+        rjx.forget_part(Doubled)
+    with pytest.raises(rj.ParameterError, match="not fields"):
+
+        class Misnamed(rjx.Force):  # a row that is not a field
+            GROUP = rjx.Group("misnamed", "Misnamed", "Misnamed", "hardware")
+            ROWS = (rjx.Parameter(name="stiff", group="misnamed", default=0.0, lower=0.0,
+                                  unit="N/m"),)  # fmt: skip
+
+            def anchoring(self, y, t, design, smoothing):
+                return {}

@@ -51,6 +51,7 @@ from .._model.feasibility import (
     feasible,
     largest_violation,
 )
+from .._model.forces.family import outside_source
 from .._model.registry import ParameterError
 from .._model.status import OK_CODE, status_messages
 from .._version import __version__
@@ -87,12 +88,14 @@ def campaign_identity(kind: str, *parts: Any) -> str:
 
 
 def fingerprint(*parts: Any) -> str:
-    """A SHA-256 digest of pytrees (their structure, static fields included, and every
-    leaf's dtype, shape and bytes): equal for equal inputs, bit for bit."""
+    """A SHA-256 digest of pytrees (their structure, static fields included, every
+    leaf's dtype, shape and bytes, and the code of any part defined outside the
+    package): equal for equal inputs, bit for bit."""
     digest = hashlib.sha256()
     for part in parts:
         leaves, treedef = jax.tree.flatten(part)
         digest.update(_as_before_added_parts(str(treedef)).encode())
+        digest.update(outside_source(part).encode())  # ("" for the built-in parts)
         for leaf in leaves:
             array = np.ascontiguousarray(np.asarray(leaf))
             digest.update(f"{array.dtype}{array.shape}".encode())

@@ -3,12 +3,13 @@
 - `registry`: the registry's types (`Parameter`, `Limits`), `ParameterError`, and the
   validation of a value against its limits;
 - `parameter_table`: the registry's data, every design parameter (`PARAMETERS`);
-- `params`: the parameter pytrees (`RecoilParams` and its parts) and the flat names;
+- `params`: the design (`RecoilParams`, one of each part) and the flat names;
 - `settings`: the smoothing widths, the solver options, a design's end time and the
   check that its load fits;
 - `text_files`: the one reader of text files (`read_text`, `MAX_TEXT_BYTES`);
 - `metrics`: the metric registry (`METRICS`) and the containers of metrics by name;
-- `forces/`: the forces, one module per physical group, and their sum (`forces.system`);
+- `forces/`: the forces family (`Part`, `Force`): one module per part of the gun, its
+  parameters and its laws, and their sum (`forces.system`);
 - `equations`: the equations of motion as a diffrax term, its arguments, the initial
   state and the tracked signals; `rest`: the gun at rest before the shot; `bounds`: what
   a solve can still reach, which lets it stop early;

@@ -20,6 +20,8 @@ built.
 from __future__ import annotations
 
 import dataclasses
+import importlib
+import pkgutil
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -28,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._model import forces
 from .._model.forces.absorber import Absorber, Contact
 from .._model.forces.barrel import Barrel
 from .._model.forces.counter_recoil import CounterRecoilBuffer
@@ -106,17 +109,22 @@ class RecoilParams(eqx.Module):
         return next((p for p in self.added if p.GROUP.name == group), None)
 
     def parts(self) -> dict[str, Part]:
-        """The parts the design has, by group, in the registry's order (`GROUPS`: the
-        built-in groups, then those added outside the package)."""
+        """The parts the design has, by group: the built-in ones in the registry's order
+        (`GROUPS`), then those added outside the package, in `added`'s order (read from
+        the design itself: a process it is sent to need not know their groups)."""
         built_in = {g: getattr(self, g) for g in _BUILT_IN}
         added = {p.GROUP.name: p for p in self.added}
-        present = {g: p for g, p in (built_in | added).items() if p is not None}
-        return {g: present[g] for g in GROUPS if g in present}
+        return {g: p for g, p in (built_in | added).items() if p is not None}
 
     def forces(self) -> list[Force]:
         """The forces the design has (`Force`), in the registry's order (`parts`)."""
         return [p for p in self.parts().values() if isinstance(p, Force)]
 
+
+# Every module of `_model/forces` joins the family as it is imported: a part added to
+# the package beyond the built-in fields below is found there, with no list to edit.
+for _module in pkgutil.iter_modules(forces.__path__):
+    importlib.import_module(f"{forces.__name__}.{_module.name}")
 
 #: The built-in groups: the fields of `RecoilParams` that hold a part.
 _BUILT_IN = tuple(f.name for f in dataclasses.fields(RecoilParams) if f.name != "added")

@@ -23,6 +23,7 @@ import equinox as eqx
 import jax
 from jax.experimental.compilation_cache import compilation_cache
 
+from .._model.forces.family import outside_parts
 from .._model.registry import check_integer, is_concrete
 
 __all__ = [
@@ -237,6 +238,8 @@ def _exported(fn, dynamic, static, rebuild):
     JAX cannot export it (the caller then compiles as usual)."""
     folder = getattr(jax.config, "jax_compilation_cache_dir")  # noqa: B009 (untyped flag)
     if folder is None or importlib.util.find_spec("flatbuffers") is None:
+        return None
+    if outside_parts(dynamic):  # its key names the package's code, not theirs
         return None
     leaves, treedef = jax.tree.flatten(dynamic)
     text = "|".join([

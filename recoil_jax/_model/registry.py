@@ -106,8 +106,10 @@ class Limits:
 class Group:
     """A group of parameters (`Parameter.group`), one part of the gun:
 
-    - `name`: the field of `RecoilParams` that holds it;
-    - `pytree`: the class of that pytree (which `params` defines);
+    - `name`: its name (a built-in group's is the field of `RecoilParams` that holds
+      it; a part defined outside the package is in `RecoilParams.added`);
+    - `pytree`: the class of its part (`forces.family.Part`, in its module of
+      `_model/forces`, or outside the package);
     - `title`: what the part is, for people (the explorer's cards);
     - `part`: `"paper"` (the paper's model: always there, `absorber` aside),
       `"hardware"` (the recoil hardware beyond the paper) or `"envelope"` (the firing
@@ -255,15 +257,15 @@ class ParameterRegistry(Mapping[str, Parameter]):
     def add(self, rows: Sequence[Parameter]) -> None:
         """Take the entries `rows` of a part defined outside the package (`Part.ROWS`),
         after the others; a name taken already is refused."""
-        for row in rows:
-            if row.name in self or _KNOT_NAME.fullmatch(row.name):
-                raise ParameterError(f"parameter {row.name!r} exists already: give another name")
-        self._scalars |= {row.name: row for row in rows}
+        names = [row.name for row in rows]
+        for name in names:
+            if name in self or _KNOT_NAME.fullmatch(name) or names.count(name) > 1:
+                raise ParameterError(f"parameter {name!r} exists already: give another name")
+        self._scalars = self._scalars | {row.name: row for row in rows}
 
     def remove(self, names: Sequence[str]) -> None:
         """Drop the entries `names` (a part defined outside the package, forgotten)."""
-        for name in names:
-            self._scalars.pop(name, None)
+        self._scalars = {n: p for n, p in self._scalars.items() if n not in set(names)}
 
     def names(self) -> str:
         """Every name, for messages: the scalars, then the knot family."""

@@ -20,7 +20,6 @@ import numpy as np
 
 from .._model.forces.family import Design
 from .._model.registry import (
-    GROUPS,
     Limits,
     ParameterError,
     Validated,
@@ -233,7 +232,7 @@ def with_default_tolerances(params: Design, options: SolverOptions) -> SolverOpt
     peaks to hold 1e-4)."""
     if options.rtol is not None and options.atol is not None:
         return options
-    hardware = any(GROUPS[g].part == "hardware" for g in params.parts())
+    hardware = any(part.GROUP.part == "hardware" for part in params.parts().values())
     rtol, atol = (1e-7, 1e-10) if hardware else (1e-6, 1e-9)
     return dataclasses.replace(
         options,

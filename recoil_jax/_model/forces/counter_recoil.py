@@ -30,6 +30,14 @@ class CounterRecoilBuffer(Force):
         """`F_cb` (N, <= 0; `counter_recoil_force`)."""
         return {"counter_recoil": counter_recoil_force(y, self, smoothing)}
 
+    def potential(self, x_M, design: Design) -> Any:
+        """0: it only dissipates."""
+        return 0.0
+
+    def anchoring_bound(self, reach, two_energy, design: Design) -> Any:
+        """0: its share is never positive (`F_cb <= 0`)."""
+        return 0.0
+
     def held_change(self, creep, design: Design) -> Any:
         """0: its speed ramp is one-sided: a barrel at rest feels none of it."""
         return 0.0

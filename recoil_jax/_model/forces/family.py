@@ -11,7 +11,11 @@ registry, `params_from_values`, the sweeps and the studies take it by its flat n
 from __future__ import annotations
 
 import abc
+import hashlib
+import inspect
 from typing import Any, ClassVar
+
+import jax
 
 from ..._model.parameter_table import PARAMETERS
 from ..._model.registry import (
@@ -24,7 +28,17 @@ from ..._model.registry import (
     float_leaf,
 )
 
-__all__ = ["FAMILY", "Design", "Force", "Part", "forget_part", "group_limits", "registered"]
+__all__ = [
+    "FAMILY",
+    "Design",
+    "Force",
+    "Part",
+    "forget_part",
+    "group_limits",
+    "outside_parts",
+    "outside_source",
+    "registered",
+]
 
 #: A design (`RecoilParams`), typed loosely here: the parts are defined before the
 #: design that holds them.
@@ -73,8 +87,12 @@ class Part(Validated):
             if group.name in GROUPS:
                 raise ParameterError(f"group {group.name!r} exists already: give another name")
             strays = [row.name for row in cls.ROWS if row.group != group.name]
+            fields = getattr(cls, "__annotations__", {})
+            strays += [row.name for row in cls.ROWS if row.attribute not in fields]
             if strays:
-                raise ParameterError(f"{cls.__name__}.ROWS: {strays} are not of {group.name}")
+                raise ParameterError(
+                    f"{cls.__name__}.ROWS: {strays} are not fields of group {group.name}"
+                )
             PARAMETERS.add(cls.ROWS)
             GROUPS[group.name] = group
             cls.LIMITS = {row.name: row for row in cls.ROWS}
@@ -135,3 +153,28 @@ def forget_part(part: type[Part]) -> None:
     FAMILY.pop(name, None)
     GROUPS.pop(name, None)
     PARAMETERS.remove([row.name for row in part.ROWS])
+
+
+def outside_parts(tree: Any) -> list[Part]:
+    """The parts defined outside the package (`Part.ROWS`) that the pytree `tree` holds
+    (a design's `added`), in its order."""
+    found = jax.tree.leaves(tree, is_leaf=lambda x: isinstance(x, Part))
+    return [p for p in found if isinstance(p, Part) and type(p).ROWS]
+
+
+def outside_source(tree: Any) -> str:
+    """A digest of the code of every part defined outside the package that `tree` holds
+    (its class's source, or its qualified name where the source is not to be had), or ""
+    where there is none: a part whose law is edited is another model, to a store's
+    identity as to a kept program."""
+    classes = sorted({type(p) for p in outside_parts(tree)}, key=lambda c: c.__qualname__)
+    if not classes:
+        return ""
+    digest = hashlib.sha256()
+    for cls in classes:
+        try:
+            text = inspect.getsource(cls)
+        except (OSError, TypeError):
+            text = f"{cls.__module__}.{cls.__qualname__}"
+        digest.update(text.encode())
+    return digest.hexdigest()

@@ -23,7 +23,7 @@ from ..._model.forces.rails import GRAVITY, friction_bound, sin_cos
 from ..._model.forces.smoothing import smooth_step
 from ..._model.metrics import METRICS
 from ..._model.params import RecoilParams
-from ..._model.registry import GROUPS, ParameterError, is_concrete
+from ..._model.registry import ParameterError, is_concrete
 from ..._model.settings import Smoothing
 
 __all__ = [
@@ -79,35 +79,43 @@ class Forces(eqx.Module):
 
     @property
     def recoil_spring(self):
-        return self.share("recoil_spring")  # k x_M
+        """`k x_M` (N), the recoil spring."""
+        return self.share("recoil_spring")
 
     @property
     def recoil_damper(self):
-        return self.share("recoil_damper")  # c(v_M) v_M
+        """`c(v_M) v_M` (N), the recoil damper."""
+        return self.share("recoil_damper")
 
     @property
     def buffer(self):
-        return self.share("buffer")  # F_h, the throttling orifice's force
+        """`F_h` (N), the throttling orifice's force; None without one."""
+        return self.share("buffer")
 
     @property
     def recuperator(self):
-        return self.share("recuperator")  # F_g, the gas recuperator
+        """`F_g` (N), the gas recuperator; None without one."""
+        return self.share("recuperator")
 
     @property
     def preload(self):
-        return self.share("preload")  # F_p, the preload on the recuperator's gas column
+        """`F_p` (N), the preload on the recuperator's gas column; None without."""
+        return self.share("preload")
 
     @property
     def counter_recoil(self):
-        return self.share("counter_recoil")  # F_cb, the counter-recoil buffer (<= 0)
+        """`F_cb` (N, <= 0), the counter-recoil buffer; None without one."""
+        return self.share("counter_recoil")
 
     @property
     def friction(self):
-        return self.share("friction")  # F_f, rail friction
+        """`F_f` (N), rail friction; None without rails."""
+        return self.share("friction")
 
     @property
     def stop(self):
-        return self.share("stop")  # F_s (>= 0), the battery stop pushing the barrel back
+        """`F_s` (N, >= 0), the battery stop pushing the barrel back; None without."""
+        return self.share("stop")
 
 
 # Jitted so that JAX traces it once per shape: a gradient program evaluates the forces
@@ -126,6 +134,12 @@ def forces(y, params: RecoilParams, smoothing: Smoothing, width_contact=None, t=
     mechanism, reactions = {}, {}
     for force in params.forces():
         shares = force.anchoring(y, t, params, smoothing)
+        taken = set(shares) & (set(mechanism) | set(reactions) | {"friction"})
+        if taken:  # (one name a share: `Forces.share` reads it by its name)
+            raise ParameterError(
+                f"{type(force).__name__}.anchoring: the share {sorted(taken)[0]!r} is "
+                "another force's: give it another name"
+            )
         (reactions if force.REACTION else mechanism).update(shares)
     external = {}
     if params.load is not None and t is not None:
@@ -170,7 +184,7 @@ class Structure(eqx.Module):
     def of(cls, params: RecoilParams) -> Structure:
         return cls(
             absorber=params.absorber is not None,
-            envelope=any(GROUPS[group].envelope for group in params.parts()),
+            envelope=any(part.GROUP.envelope for part in params.parts().values()),
         )
 
 

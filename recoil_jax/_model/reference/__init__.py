@@ -49,6 +49,7 @@ from ..._model.params import params_from_values, params_to_values
 from ..._model.reference.physics import GRAVITY
 from ..._model.reference.segments import initial_state, integrate
 from ..._model.reference.switching import HardModel
+from ..._model.registry import ParameterError
 
 __all__ = ["reference_energy", "reference_history", "reference_peaks", "reference_rest"]
 
@@ -150,7 +151,13 @@ def reference_rest(values: Mapping[str, float] | None = None) -> float:
 
 
 def _model_of(values, force_table) -> HardModel:
-    flat = params_to_values(params_from_values(values or {}))
+    design = params_from_values(values or {})
+    if design.added:  # (its laws are the package's built-in forces, written out)
+        raise ParameterError(
+            "the hard-switch reference has only the built-in forces: "
+            f"{', '.join(p.GROUP.name for p in design.added)} is not one of them"
+        )
+    flat = params_to_values(design)
     return HardModel({name: float(np.asarray(v)) for name, v in flat.items()}, force_table)
 
 

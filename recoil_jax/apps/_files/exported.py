@@ -63,10 +63,12 @@ def exported_peaks(
 ) -> rj.Peaks:
     """`rj.peaks(params, smoothing, options, throw=False)` through a program exported to
     the compilation cache's folder (exported on first use). Without a cache folder
-    (the cache not enabled in this process) or without flatbuffers, a plain `rj.peaks`."""
+    (the cache not enabled in this process), without flatbuffers or for a design with a
+    part defined outside the package, a plain `rj.peaks`."""
     folder = _folder()
-    if not folder or importlib.util.find_spec("flatbuffers") is None:
-        # No cache, or no flatbuffers (the `apps` extra) to write jax.export's files.
+    if not folder or importlib.util.find_spec("flatbuffers") is None or params.added:
+        # No cache, or no flatbuffers (the `apps` extra) to write jax.export's files;
+        # or a part defined outside the package, whose code the key does not name.
         return rj.peaks(params, smoothing, options, throw=False)
     leaves, treedef = jax.tree.flatten((params, smoothing, options))
     leaves = [np.asarray(x) for x in leaves]
