@@ -180,27 +180,6 @@ def test_a_force_flows_through_a_study(mount_spring, tmp_path):
     _close(displacement, folded_displacement, rtol=1e-3)
 
 
-def test_every_force_module_is_a_member_of_the_family():
-    """Every module of `_model/forces` but the family's own, the smoothed switches and
-    the system that sums them defines a part of the gun, found through the family
-    (`FAMILY`), with its group in the registry; and every built-in group has its part."""
-    import importlib
-    import pkgutil
-
-    from recoil_jax._model.forces import family
-
-    folder = Path(family.__file__).parent
-    tools = {"family", "smoothing", "system"}
-    members = {cls.__module__.rsplit(".", 1)[-1] for cls in family.FAMILY.values()}
-    for module in pkgutil.iter_modules([str(folder)]):
-        importlib.import_module(f"recoil_jax._model.forces.{module.name}")
-        assert module.name in tools or module.name in members, module.name
-    built_in = {g for g, cls in family.FAMILY.items() if not cls.ROWS}
-    assert built_in == set(rjx.GROUPS) - {g for g, cls in family.FAMILY.items() if cls.ROWS}
-    for group, cls in family.FAMILY.items():
-        assert rjx.GROUPS[group].pytree == cls.__name__
-
-
 def test_the_forces_of_a_state_are_the_familys_sum():
     """`F_AN` is the members' shares summed in order, less the reactions: checked against
     the laws written out, at a state of the envelope design."""

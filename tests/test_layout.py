@@ -576,6 +576,28 @@ def test_the_groups_are_listed_once(tmp_path):
     assert fields == [*rjx.GROUPS, "added"]  # a field a built-in group, in its order
 
 
+def test_every_force_module_is_a_member_of_the_family():
+    """Every module of `_model/forces` but the family's own, the smoothed switches and
+    the system that sums them defines a part of the gun, found through the family
+    (`FAMILY`), with its group in the registry; and every built-in group has its part:
+    no list of forces is kept by hand (`tests/test_forces_family.py` adds one)."""
+    import importlib
+    import pkgutil
+
+    from recoil_jax._model.forces import family
+
+    folder = PACKAGE / "_model" / "forces"
+    tools = {"family", "smoothing", "system"}
+    members = {cls.__module__.rsplit(".", 1)[-1] for cls in family.FAMILY.values()}
+    for module in pkgutil.iter_modules([str(folder)]):
+        importlib.import_module(f"recoil_jax._model.forces.{module.name}")
+        assert module.name in tools or module.name in members, module.name
+    built_in = {g for g, cls in family.FAMILY.items() if not cls.ROWS}
+    assert built_in == set(rjx.GROUPS) - {g for g, cls in family.FAMILY.items() if cls.ROWS}
+    for group, cls in family.FAMILY.items():
+        assert rjx.GROUPS[group].pytree == cls.__name__
+
+
 def test_a_programs_structure_is_resolved_once(monkeypatch):
     """Which parts a design has (`Structure`) is resolved once as a program is traced
     and carried in its `args`, not asked again by every signal and bound (the envelope's
