@@ -7,7 +7,9 @@ design problem its firing conditions), and again for the firing envelope's revis
 (issue 62: a store's `model` revision; `sweep_revision1.sqlite` is the sweep's store as
 it was before, kept to show that such a store is refused), and the calibration's alone
 for issue 63 (the fit's third stopping test, a field of its settings, is in every
-calibration store's identity), with
+calibration store's identity), and the calibration's again at d4bfe79 (issue 65) from a
+trace kept as numbers (`calibration_trace.csv`: the simulated one's last bits, and so its
+store's identity, differed between CPUs), with
 
     PYTHONPATH=<a checkout of 66a0bae> python tests/data/stores/make_stores.py tests/data/stores
 
@@ -41,15 +43,12 @@ def gap_problem() -> rj.DesignProblem:
 
 
 def calibration() -> rj.Calibration:
-    """k and c_out fitted to a noisy firing (the noise drawn with a fixed seed)."""
-    ts = np.linspace(0.0, 0.6, 301)
-    history = rj.simulate(rj.params_from_values(TRUTH | {"m": 0.0}), ts=ts)
-    rng = np.random.default_rng(3)
-    trace = rjx.Trace.of(
-        ts,
-        x_M=np.asarray(history.x_M) + 2e-4 * rng.standard_normal(ts.size),
-        F_AN=np.asarray(history.anchoring_force) + 300.0 * rng.standard_normal(ts.size),
-    )
+    """k and c_out fitted to a noisy firing: `calibration_trace.csv`, the truth `TRUTH`
+    (m = 0) simulated at 301 times with normal noise drawn with a fixed seed, kept as
+    numbers because a simulation's last bits differ between CPUs (the store's identity
+    holds its trace's, bit for bit)."""
+    ts, x_M, F_AN = np.loadtxt(Path(__file__).parent / "calibration_trace.csv", delimiter=",").T
+    trace = rjx.Trace.of(ts, x_M=x_M, F_AN=F_AN)
     return rj.Calibration(
         [rjx.Experiment(trace)],
         fit={"k": (1e4, 1e5), "c_out": (1e3, 3e4)},
