@@ -60,7 +60,9 @@ _GRID = 16
 _ZOOMS = 4
 
 
-def polish(solver, args, vector_fn, best, best_time, best_step, search: bool = False):
+def polish(
+    solver, args, vector_fn, best, best_time, best_step, search: bool = False, step_args=None
+):
     """Refine each peak on the solver's own dense polynomial (Tsit5's 4th-order
     interpolant of the step holding it) by successive parabolic interpolation, started
     from the Hermite estimate, or with `search` (static) from the best of it and nested
@@ -72,12 +74,14 @@ def polish(solver, args, vector_fn, best, best_time, best_step, search: bool = F
 
     `vector_fn(t, y, args)` is the stacked vector of tracked quantities, shape `(n,)`;
     `best`, `best_time` (`(n,)`) and `best_step` (per quantity, the dense info of the step
-    holding its maximum) are the running maxima.
+    holding its maximum) are the running maxima. `step_args`, if given, are the arguments
+    of each quantity's step (a pytree with a leading axis `n`: a hybrid system's modes),
+    in place of `args`.
 
     Returns `(values, times, states)`: the state at each peak (interpolated), shape
     `(n, n_state)`."""
 
-    def polish_one(i, best, best_time, step):
+    def polish_one(i, best, best_time, step, args):
         dt = step["t1"] - step["t0"]
         has_step = dt > 0
         safe_dt = jnp.where(has_step, dt, 1.0)
@@ -134,4 +138,8 @@ def polish(solver, args, vector_fn, best, best_time, best_step, search: bool = F
 
     # One traced copy for all metrics (vmap over the metric index), not five.
     indices = jnp.arange(best.shape[0])
-    return jax.vmap(polish_one)(indices, best, best_time, best_step)
+    if step_args is None:
+        return jax.vmap(polish_one, in_axes=(0, 0, 0, 0, None))(
+            indices, best, best_time, best_step, args
+        )
+    return jax.vmap(polish_one)(indices, best, best_time, best_step, step_args)

@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from .._model.dense import hermite_max, placeholder_steps, polish
+from .._model.modes import Modes, guard_root
 from .._model.settings import SolverOptions
 from .._model.status import Status
 
@@ -28,6 +29,7 @@ __all__ = [
     "Crossing",
     "Events",
     "LeadingTerm",
+    "Modes",
     "PeakLoop",
     "PeakRun",
     "Sampling",
@@ -85,6 +87,9 @@ class _Carry(eqx.Module):
     save_index: Any = None  # the first save time not yet written
     crossed: Any = None  # with a `Crossing`: whether the crossing was found
     cross_step: Any = None  # the dense info of the step that holds it
+    mode: Any = None  # with `Modes`: the mode the state is in
+    switch_time: Any = None  # the root of its guard the next step ends at (inf: none)
+    best_mode: Any = None  # (n,) the mode of each quantity's best step
 
 
 class _Attempt(NamedTuple):
@@ -130,6 +135,8 @@ class PeakRun(eqx.Module):
     crossed: Any = None  # with a `Crossing`: whether the crossing was found
     cross_time: Any = None  # its time (s)
     cross_state: Any = None  # (n_state,) the state there
+    best_mode: Any = None  # with `Modes`: (n,) the mode of each quantity's best step
+    final_mode: Any = None  # with `Modes`: the mode at `final_time`
 
     def by_name(self, stacked) -> dict[str, Any]:
         """Rows of an array stacked in the order of `names`, keyed by name."""
@@ -246,7 +253,9 @@ class PeakLoop:
     - `ceilings` (`Ceilings`): values the tracked quantities must stay below;
     - `sampling` (`Sampling`): where else in each step the peaks are looked for;
     - `crossing` (`Crossing`): the barrel's return into battery, located;
-    - `leading` (`LeadingTerm`): the term the first step is chosen on.
+    - `leading` (`LeadingTerm`): the term the first step is chosen on;
+    - `modes` (`Modes`): a discrete mode carried beside the state, switched at the roots
+      of its guard.
 
     `integrate(..., save_ts)` (shape `(n,)`, sorted), if given, also writes the state at
     these times (`PeakRun.saved`), from the solver's dense polynomial.
@@ -264,10 +273,12 @@ class PeakLoop:
         sampling: Sampling = Sampling(),
         crossing: Crossing | None = None,
         leading: LeadingTerm | None = None,
+        modes: Modes | None = None,
     ):
         self.term, self.metrics_fn, self.options = term, metrics_fn, options
         self.stop, self.events, self.ceilings = stop, events, ceilings
         self.sampling, self.crossing, self.leading = sampling, crossing, leading
+        self.modes = modes
         self.solver, self.controller = make_solver(options), make_controller(options)
         self.error_order = self.solver.order(term) + 1
 
@@ -319,6 +330,11 @@ class PeakLoop:
         term, solver = self.term, self.solver
         t0 = jnp.zeros((), dtype=float)
         t1, _ = _end_times(t1)
+        mode = switch_time = None
+        if self.modes is not None:
+            z0, mode = self.modes.settle(t0, z0, args)
+            switch_time = jnp.asarray(jnp.inf)
+            args = self.modes.enter(args, mode)
         first_term, first_state = term, z0
         if self.leading is not None:
             first_term, first_state = self.leading.term, z0[: self.leading.size]
@@ -365,6 +381,9 @@ class PeakLoop:
             save_index=save_index,
             crossed=crossed,
             cross_step=cross_step,
+            mode=mode,
+            switch_time=switch_time,
+            best_mode=None if mode is None else jnp.full(metric0.shape, mode),
         )
 
     def running(self, c: _Carry):
@@ -374,8 +393,13 @@ class PeakLoop:
         """One attempted step. `check_bounds` (a traced bool, the same for every lane
         under `vmap`; None: always): whether to test if the peaks are now certain."""
         t1, t1_floor = _end_times(c.t1)
+        if self.modes is not None:
+            args = self.modes.enter(args, c.mode)
         t_end, stops, upcoming, landing = self._step_end(c, args, t1)
         step = self._attempt(c, args, t_end, t1, t1_floor)
+        switch_time = c.switch_time
+        if self.modes is not None:
+            step, switch_time = self._guarded(c, args, step)
         step_best, s = self._step_max(c, args, step)
         keep = step.keep
         improve = keep & (step_best > c.best)
@@ -390,10 +414,20 @@ class PeakLoop:
                 save_ts, saved, save_index, jnp.where(keep, step.t_end, c.t), interpolation.evaluate
             )
         crossed, cross_step = self._crossing(c, args, step)
+        mode, best_mode = c.mode, c.best_mode
+        if self.modes is not None:
+            best_mode = jnp.where(improve, c.mode, c.best_mode)
+            step, mode, switch_time = self._switched(c, args, step, switch_time)
         if stops is not None:
             step, saved, save_index = self._past_stop(
                 c, args, step, upcoming, landing, t1, save_ts, saved, save_index
             )
+            if self.modes is not None:
+                hit = step.keep & landing
+                settled_z, settled_mode = self.modes.settle(step.t_prev, step.z1, args)
+                step = step._replace(z1=jnp.where(hit, settled_z, step.z1))
+                mode = jnp.where(hit, settled_mode, mode)
+                switch_time = jnp.where(hit, jnp.inf, switch_time)
 
         def select(new, old):
             return jax.tree.map(lambda a, b: jnp.where(keep, a, b), new, old)
@@ -420,7 +454,53 @@ class PeakLoop:
             save_index=save_index,
             crossed=crossed,
             cross_step=cross_step,
+            mode=mode,
+            switch_time=switch_time,
+            best_mode=best_mode,
         )
+
+    def _guarded(self, c: _Carry, args, step: _Attempt):
+        """The attempt, not kept if its end leaves the mode (`Modes.guard`): the next one
+        then ends at the guard's root. Returns `(step, switch_time)`."""
+        assert self.modes is not None
+        guard = self.modes.guard
+        # The next step's end moves with its start (a switch's time moves with the
+        # parameters) but not its size: the controller's sizes would carry the switch's
+        # derivative on, growing with each step (the same value, to the bit).
+        sg = jax.lax.stop_gradient
+        step = step._replace(t_next=sg(step.t_next) + (step.t_prev - sg(step.t_prev)))
+        landing = c.switch_time == step.t_end
+        leaves = step.keep & ~landing & (guard(step.t_end, step.z1, args) < 0)
+
+        def root():
+            interpolation = self.solver.interpolation_cls(t0=c.t, t1=step.t_end, **step.dense_info)
+            found = guard_root(lambda t: guard(t, interpolation.evaluate(t), args), c.t, step.t_end)
+            return jnp.where(leaves, found, jnp.inf)
+
+        # A flag the lanes share keeps the `cond` a branch under `vmap`.
+        at = jax.lax.cond(eqxi.unvmap_any(leaves), root, lambda: jnp.full_like(c.t, jnp.inf))
+        step = step._replace(
+            keep=step.keep & ~leaves,
+            t_prev=jnp.where(leaves, c.t, step.t_prev),
+            t_next=jnp.where(leaves, at, step.t_next),
+            made_jump=jnp.where(leaves, c.made_jump, step.made_jump),
+            controller_state=jax.tree.map(
+                lambda old, new: jnp.where(leaves, old, new),
+                c.controller_state,
+                step.controller_state,
+            ),
+        )
+        return step, jnp.where(leaves, at, c.switch_time)
+
+    def _switched(self, c: _Carry, args, step: _Attempt, switch_time):
+        """After a kept step that ends at the guard's root: the state and mode switched
+        (`Modes.switch`), the next step's first stage evaluated afresh. Returns
+        `(step, mode, switch_time)`."""
+        assert self.modes is not None
+        landed = step.keep & (c.switch_time == step.t_end)
+        z, mode = self.modes.switch(step.t_end, step.z1, args)
+        step = step._replace(z1=jnp.where(landed, z, step.z1), made_jump=step.made_jump | landed)
+        return step, jnp.where(landed, mode, c.mode), jnp.where(landed, jnp.inf, switch_time)
 
     def _crossing(self, c: _Carry, args, step: _Attempt):
         """`(crossed, cross_step)` after the step: the step kept as the one holding the
@@ -442,14 +522,16 @@ class PeakLoop:
         landing)`: the stops (None without events), the next stop and whether the step
         lands before it."""
         t_end = c.t_next
+        if self.modes is not None:
+            t_end = jnp.minimum(t_end, c.switch_time)
         stops = self._stops(args)
         upcoming, landing = jnp.inf, jnp.array(False)  # (set below when there are stops)
         if stops is not None:
             # The next stop: end the step one ULP before it, if the step would reach it.
             upcoming = jnp.min(jnp.where(stops > c.t, stops, jnp.inf))
             before = _before(upcoming)
-            landing = (upcoming < t1) & (c.t_next >= before)
-            t_end = jnp.where(landing, before, c.t_next)
+            landing = (upcoming < t1) & (t_end >= before)
+            t_end = jnp.where(landing, before, t_end)
         return t_end, stops, upcoming, landing
 
     def _attempt(self, c: _Carry, args, t_end, t1, t1_floor) -> _Attempt:
@@ -580,6 +662,11 @@ class PeakLoop:
 
     def finish(self, final: _Carry, args) -> PeakRun:
         settled = final.settled
+        peak_args = None
+        if self.modes is not None:
+            enter = self.modes.enter
+            peak_args = jax.vmap(lambda mode: enter(args, mode))(final.best_mode)
+            args = enter(args, final.mode)
         if self.stop is not None:
             # A solve that tested its bounds only at some steps (`check_bounds`) and ran
             # out of attempts may have become certain since its last test.
@@ -596,6 +683,7 @@ class PeakLoop:
             final.best_time,
             final.best_step,
             search=self.sampling.samples > 0,
+            step_args=peak_args,
         )
         cross_time = cross_state = None
         if self.crossing is not None:
@@ -616,6 +704,8 @@ class PeakLoop:
             crossed=final.crossed,
             cross_time=cross_time,
             cross_state=cross_state,
+            best_mode=final.best_mode,
+            final_mode=final.mode,
         )
 
 

@@ -1,0 +1,69 @@
+"""A discrete mode carried by the stepping loop beside the state: the modes of a hybrid
+system (a barrel held by its rails' friction, or sliding on them), and the root of a
+mode's guard on a step's dense polynomial, where the loop switches modes."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+__all__ = ["Modes", "guard_root"]
+
+
+class Modes(eqx.Module):
+    """The modes of a hybrid system, as `PeakLoop`'s configuration (`modes=`): four static
+    functions of the loop's `args`.
+
+    - `enter(args, mode) -> args`: the arguments of the vector field (and of every other
+      function of the loop) in `mode`, a float scalar carried by the loop.
+    - `settle(t, z, args) -> (z, mode)`: the mode a state is met in afresh (at t = 0, and
+      after a load's jump), and the state projected onto it.
+    - `guard(t, z, args) -> g`, with `args` entered: not negative while the mode holds.
+      A step whose end has `g < 0` is not kept; the next attempt ends at the root of `g`
+      on the step's dense polynomial (`guard_root`), and there the state and mode become
+      `switch(t, z, args)` (`args` still in the old mode), as at a load's stop.
+
+    Each switch costs one rejected attempt. A guard that dips below 0 and back within a
+    step is not seen (steps are short against the modes' time scales).
+    """
+
+    enter: Callable[[Any, Any], Any]
+    settle: Callable[[Any, Any, Any], tuple[Any, Any]]
+    guard: Callable[[Any, Any, Any], Any]
+    switch: Callable[[Any, Any, Any], tuple[Any, Any]]
+
+
+#: Bisections of a step before Newton's steps (each halves the bracket).
+_BISECTIONS = 30
+_NEWTON = 2
+#: The shortest step to a root, as a fraction of the step that crossed it.
+_SHORTEST = 1e-12
+
+
+def guard_root(guard_at: Callable[[Any], Any], t0, t1):
+    """The first time in `(t0, t1]` where `guard_at(t)` (not negative at `t0`, negative
+    at `t1`) comes down to 0: bisection on the bracket, then Newton's steps within it, so that the
+    time carries the derivatives of the implicit function `guard_at(t) = 0` (forward
+    mode: each Newton step's tangent is `−(∂g/∂p)/(∂g/∂t)` at the root). Never before
+    `t0 + 1e-12 (t1 − t0)`: a step of zero length has no rate."""
+
+    def bisect(_, bracket):
+        low, high = bracket
+        middle = 0.5 * (low + high)
+        holds = guard_at(middle) >= 0
+        return jnp.where(holds, middle, low), jnp.where(holds, high, middle)
+
+    low, high = jax.lax.fori_loop(0, _BISECTIONS, bisect, (t0, t1))
+
+    def newton(_, t):
+        g, rate = jax.jvp(guard_at, (t,), (jnp.ones_like(t),))
+        moving = rate != 0
+        shift = jnp.where(moving, g / jnp.where(moving, rate, 1.0), 0.0)
+        return jnp.clip(t - shift, low, high)
+
+    t = jax.lax.fori_loop(0, _NEWTON, newton, high)
+    return jnp.maximum(t, t0 + _SHORTEST * (t1 - t0))
