@@ -133,6 +133,40 @@ def test_the_switch_times_carry_their_derivatives():
     np.testing.assert_allclose(np.asarray(values)[0], turns[-1], atol=1e-9)
 
 
+def test_a_state_at_a_fixed_time_has_its_derivatives_mid_slide():
+    """Cut at t1 = 3 s, between the first turn and the second, the block slides back about
+    +a: `x = a + (x1 − a) cos ω(t − t_turn)`. The end time does not move with F, so the
+    end state's tangents are the closed form's at a fixed time (the first turn's time
+    moves with F), and the end time's tangent is 0."""
+    friction, t1 = 0.1, 3.0
+
+    def ends(f):
+        run = _solve(f, t1)
+        return jnp.concatenate([run.final_state, run.final_time[None]])
+
+    values, tangents = eqx.filter_jit(lambda f: jax.jvp(ends, (f,), (jnp.ones_like(f),)))(
+        jnp.asarray(friction)
+    )
+    a, omega = friction / K, np.sqrt(K / M)
+    turns, radius = _closed_form(friction)
+    turn = np.arctan2(V0 / omega, a) / omega
+    d_turn = -(V0 / omega) / (a**2 + (V0 / omega) ** 2) / K / omega
+    d_x1 = (-1.0 + a / radius) / K
+    phase = omega * (t1 - turn)
+    x = a + (turns[0] - a) * np.cos(phase)
+    v = -(turns[0] - a) * omega * np.sin(phase)
+    dx = (
+        (1 - np.cos(phase)) / K
+        + d_x1 * np.cos(phase)
+        + (turns[0] - a) * omega * np.sin(phase) * d_turn
+    )
+    dv = (
+        -(d_x1 - 1 / K) * omega * np.sin(phase) + (turns[0] - a) * omega**2 * np.cos(phase) * d_turn
+    )
+    np.testing.assert_allclose(np.asarray(values)[:2], [x, v], rtol=1e-8)
+    np.testing.assert_allclose(np.asarray(tangents), [dx, dv, 0.0], rtol=1e-6, atol=1e-9)
+
+
 def test_a_stop_when_certain_sees_the_mode():
     """The loop's other functions get the arguments in the mode: a bound that says
     'certain' only once the block is held stops the run then."""

@@ -20,8 +20,9 @@ class Modes(eqx.Module):
 
     - `enter(args, mode) -> args`: the arguments of the vector field (and of every other
       function of the loop) in `mode`, a float scalar carried by the loop.
-    - `settle(t, z, args) -> (z, mode)`: the mode a state is met in afresh (at t = 0, and
-      after a load's jump), and the state projected onto it.
+    - `settle(t, z, args) -> (z, mode)`, with `args` as the loop was given them: the
+      mode a state is met in afresh (at t = 0, and after a load's jump), and the state
+      projected onto it.
     - `guard(t, z, args) -> g`, with `args` entered: not negative while the mode holds.
       A step whose end has `g < 0` is not kept; the next attempt ends at the root of `g`
       on the step's dense polynomial (`guard_root`), and there the state and mode become
@@ -46,10 +47,12 @@ _SHORTEST = 1e-12
 
 def guard_root(guard_at: Callable[[Any], Any], t0, t1):
     """The first time in `(t0, t1]` where `guard_at(t)` (not negative at `t0`, negative
-    at `t1`) comes down to 0: bisection on the bracket, then Newton's steps within it, so that the
-    time carries the derivatives of the implicit function `guard_at(t) = 0` (forward
-    mode: each Newton step's tangent is `−(∂g/∂p)/(∂g/∂t)` at the root). Never before
-    `t0 + 1e-12 (t1 − t0)`: a step of zero length has no rate."""
+    at `t1`) comes down to 0: bisection on the bracket and Newton's steps within it,
+    without derivatives, then one more Newton step unclipped, which carries the
+    derivatives of the implicit function `guard_at(t) = 0` (forward mode: its tangent is
+    `−(∂g/∂p)/(∂g/∂t)`, its value moved by a rounding). Never before
+    `t0 + 1e-12 (t1 − t0)` nor at `t0` itself: a step of zero length has no rate."""
+    sg = jax.lax.stop_gradient
 
     def bisect(_, bracket):
         low, high = bracket
@@ -57,13 +60,17 @@ def guard_root(guard_at: Callable[[Any], Any], t0, t1):
         holds = guard_at(middle) >= 0
         return jnp.where(holds, middle, low), jnp.where(holds, high, middle)
 
-    low, high = jax.lax.fori_loop(0, _BISECTIONS, bisect, (t0, t1))
+    low, high = jax.lax.fori_loop(0, _BISECTIONS, bisect, (sg(t0), sg(t1)))
 
-    def newton(_, t):
+    def rated(t):
         g, rate = jax.jvp(guard_at, (t,), (jnp.ones_like(t),))
         moving = rate != 0
-        shift = jnp.where(moving, g / jnp.where(moving, rate, 1.0), 0.0)
-        return jnp.clip(t - shift, low, high)
+        return jnp.where(moving, g / jnp.where(moving, rate, 1.0), 0.0)
 
-    t = jax.lax.fori_loop(0, _NEWTON, newton, high)
-    return jnp.maximum(t, t0 + _SHORTEST * (t1 - t0))
+    def newton(_, t):
+        return jnp.clip(t - sg(rated(t)), low, high)
+
+    t = sg(jax.lax.fori_loop(0, _NEWTON, newton, high))
+    t = t - rated(t)  # (the tangent flows through `g` only: `t` and the rate are values)
+    floor = jnp.maximum(t0 + _SHORTEST * (t1 - t0), jnp.nextafter(sg(t0), jnp.inf))
+    return jnp.where(t > floor, t, floor)

@@ -393,6 +393,7 @@ class PeakLoop:
         """One attempted step. `check_bounds` (a traced bool, the same for every lane
         under `vmap`; None: always): whether to test if the peaks are now certain."""
         t1, t1_floor = _end_times(c.t1)
+        given = args  # (each mode is entered from these)
         if self.modes is not None:
             args = self.modes.enter(args, c.mode)
         t_end, stops, upcoming, landing = self._step_end(c, args, t1)
@@ -404,7 +405,9 @@ class PeakLoop:
         keep = step.keep
         improve = keep & (step_best > c.best)
         best = jnp.where(improve, step_best, c.best)
-        settled = self._settled(c, args, step, t1, best, check_bounds)
+        settled = c.settled
+        if self.modes is None:
+            settled = self._settled(c, args, step, t1, best, check_bounds)
         best_step = _best_steps(c, step, improve)
         status = self._status(c, args, step, t1, step_best)
         saved, save_index = c.saved, c.save_index
@@ -418,13 +421,16 @@ class PeakLoop:
         if self.modes is not None:
             best_mode = jnp.where(improve, c.mode, c.best_mode)
             step, mode, switch_time = self._switched(c, args, step, switch_time)
+            # Certain or not in the mode the step leaves the state in.
+            entered = self.modes.enter(given, mode)
+            settled = self._settled(c, entered, step, t1, best, check_bounds)
         if stops is not None:
             step, saved, save_index = self._past_stop(
                 c, args, step, upcoming, landing, t1, save_ts, saved, save_index
             )
             if self.modes is not None:
                 hit = step.keep & landing
-                settled_z, settled_mode = self.modes.settle(step.t_prev, step.z1, args)
+                settled_z, settled_mode = self.modes.settle(step.t_prev, step.z1, given)
                 step = step._replace(z1=jnp.where(hit, settled_z, step.z1))
                 mode = jnp.where(hit, settled_mode, mode)
                 switch_time = jnp.where(hit, jnp.inf, switch_time)
@@ -464,11 +470,6 @@ class PeakLoop:
         then ends at the guard's root. Returns `(step, switch_time)`."""
         assert self.modes is not None
         guard = self.modes.guard
-        # The next step's end moves with its start (a switch's time moves with the
-        # parameters) but not its size: the controller's sizes would carry the switch's
-        # derivative on, growing with each step (the same value, to the bit).
-        sg = jax.lax.stop_gradient
-        step = step._replace(t_next=sg(step.t_next) + (step.t_prev - sg(step.t_prev)))
         landing = c.switch_time == step.t_end
         leaves = step.keep & ~landing & (guard(step.t_end, step.z1, args) < 0)
 
@@ -545,6 +546,13 @@ class PeakLoop:
             c.t, t_end, c.y, z1, args, z_error, self.error_order, c.controller_state
         )
         t_prev = jnp.minimum(t_prev, t1)
+        if self.modes is not None:
+            # The next step's end moves with its start (a switch's time moves with the
+            # parameters) but not its size: the controller's sizes would carry a switch's
+            # derivative on, growing with each step (the same value, to the bit). The
+            # end time `t1` does not move.
+            sg = jax.lax.stop_gradient
+            t_next = sg(t_next) + (t_prev - sg(t_prev))
         metric0, rate0 = self._start(c, dense_info["k"][0] / dt, args)
         t_next = jnp.where(
             t_next > t1_floor, jnp.where(keep, t1, t_prev + 0.5 * (t1 - t_prev)), t_next
