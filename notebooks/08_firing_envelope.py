@@ -29,9 +29,9 @@
 # `residual_displacement` (`x_M(t1)`) and `stability_margin` (the least share of the
 # gun's weight moment about the spade left at any moment; below 0 the wheels lift).
 #
-# Friction sticks in the model as in the exact law: a held barrel does not creep (the
-# sticking law is in `docs/model.md`, *Sticking*, with what it costs against an exact
-# stick, measured against the independent hard-switch reference).
+# Friction sticks in the model as in the exact law: stick and slip are modes of the
+# solve, switched at events, and a held barrel is still (`docs/model.md`, *Sticking*,
+# measured against the independent hard-switch reference).
 
 # %%
 import dataclasses

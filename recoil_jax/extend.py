@@ -60,9 +60,7 @@ not need them; `docs/developers.md` shows how to plug a part in.
   `reference_history` (time histories by the independent hard-switch scipy solver: a
   synthetic firing test the library shares no code with); `Continuation` (the
   smoothing widths a fit starts from, narrowed to the calibration's; `calibrate`'s
-  `DEFAULT_CONTINUATION`, with a fallback path),
-  `CALIBRATION_SMOOTHING` (the widths a calibration fits at: the rails' friction
-  nearer the exact stick than the model's) and `DEFAULT_STARTS`.
+  `DEFAULT_CONTINUATION`) and `DEFAULT_STARTS`.
 
 **Test planning's parts**
 
@@ -85,7 +83,7 @@ from ._calibration.continuation import DEFAULT_CONTINUATION, Continuation
 from ._calibration.model_check import ModelCheck, SignalCheck, trace_noise
 from ._calibration.predict import FittedParameters, Prediction
 from ._calibration.result import Fitted
-from ._calibration.spec import CALIBRATION_SMOOTHING, LOSSES
+from ._calibration.spec import LOSSES
 from ._calibration.traces import T_SHIFT, Experiment, Trace
 from ._design.evaluators import (
     BatchEvaluation,
@@ -125,7 +123,6 @@ from ._sweeps.result import StoredSweep
 from ._sweeps.space import SearchSpace, log_coordinates
 
 __all__ = [
-    "CALIBRATION_SMOOTHING",
     "DEFAULT_CONTINUATION",
     "DEFAULT_STARTS",
     "GROUPS",

@@ -144,6 +144,9 @@ def test_bench_smoke():
     assert result["hardware_mean_steps"] > 0
     assert result["envelope_sims_per_s"] > 0 and result["envelope_failed"] == 0
     assert result["envelope_vs_paper"] > 0 and "the firing envelope" in format_bench(result)
+    assert result["envelope_max_steps"] >= result["envelope_mean_steps"] > 0
+    assert result["envelope_time_per_mean_step_vs_paper"] > 0
+    assert "its time over its mean steps" in format_bench(result)
     assert result["envelope_no_absorber_sims_per_s"] > 0
     assert result["envelope_no_absorber_failed"] == 0
     assert [row["batch_size"] for row in result["batches"]] == [1, 8]

@@ -30,7 +30,8 @@ NOISE = {"x_M": 3e-4, "F_AN": 200.0}
         ({"gap_width": (1e-2,)}, "'gap_width' is not a width it can continue: valid"),
         ({"buffer_width": (1e-4, 1e-2)}, "must not widen, widest first"),
         ({"buffer_width": (0.0,)}, r"each > 0"),
-        ({"buffer_width": (1e-2, 1e-4), "slip_width": (1e-2,)}, "the same number of stages"),
+        ({"buffer_width": (1e-2, 1e-4), "stop_width": (1e-2,)}, "the same number of stages"),
+        ({"slip_width": (1e-2,)}, "'slip_width' is not a width it can continue: valid"),
         ({"buffer_width": "wide"}, "give its widths as a list of numbers"),
     ],
 )
@@ -41,40 +42,31 @@ def test_a_bad_continuation_is_refused_naming_the_width(widths, message):
 
 def test_a_continuation_acts_only_where_the_design_has_the_switch():
     default = rjx.Continuation()
-    fitting = rjx.CALIBRATION_SMOOTHING
+    fitting = rj.Smoothing()
     assert default.stages == 5
-    assert default.for_design(rj.params_from_values({"m": 0.0}), fitting) is None  # no rails
+    assert rjx.DEFAULT_CONTINUATION == default and default.fallback is None
+    assert default.for_design(rj.params_from_values({"m": 0.0}), fitting) is None  # no buffer
     gun = rj.params_from_values(GUN)
-    assert default.for_design(gun, fitting) == default
-    # At the model's own widths the last stage is the fit's: the buffer's four stages.
-    assert default.for_design(gun, rj.Smoothing()).widths == {
-        "buffer_width": (1e-2, 1e-3, 1e-4, 1e-5)
-    }
+    # The last stage is the fit's own widths: the buffer's four stages before it.
+    assert default.for_design(gun, fitting).widths == {"buffer_width": (1e-2, 1e-3, 1e-4, 1e-5)}
     no_buffer = rj.params_from_values(
         {k: v for k, v in GUN.items() if k not in ("buffer_length", "buffer_damping")}
     )
     assert no_buffer.counter_recoil_buffer is None
-    # The rails' stages, one (the same five times), then the calibration's friction.
-    assert default.for_design(no_buffer, fitting).widths == {
-        "friction_width": (10.0,),
-        "stick_time": (3e-4,),
-    }
-    assert default.for_design(no_buffer, rj.Smoothing()) is None
-    both = rjx.Continuation({"buffer_width": (1e-2, 1e-4), "slip_width": (1e-2, 1e-4)})
-    assert both.for_design(no_buffer, fitting).widths == {"slip_width": (1e-2, 1e-4)}
-    # The default: the friction's turn beside the buffer's stages, Continuation() as its
-    # fallback; a store of one without a fallback keeps its identity.
-    default_path = rjx.DEFAULT_CONTINUATION.for_design(gun, fitting)
-    assert default_path.widths["slip_width"] == (1e-2, 1e-3, 1e-4, 1e-5, 1e-6)
-    assert default_path.fallback == default
+    assert default.for_design(no_buffer, fitting) is None  # the rails have no width
+    both = rjx.Continuation({"buffer_width": (1e-2, 1e-4), "stop_width": (1e-5, 1e-6)})
+    assert both.for_design(no_buffer, fitting).widths == {"stop_width": (1e-5, 1e-6)}
+    # A fallback path is kept where it differs; a store of one without keeps its identity.
+    with_fallback = rjx.Continuation(fallback=both)
+    path = with_fallback.for_design(gun, fitting)
+    assert path.fallback.widths == both.widths
     assert default.identity() == (default.to_json(),)
-    assert default_path.identity() == (default_path.to_json(), default.to_json())
-    assert rjx.DEFAULT_CONTINUATION.for_design(rj.params_from_values({"m": 0.0}), fitting) is None
+    assert path.identity() == (path.to_json(), path.fallback.to_json())
     with pytest.raises(rj.ParameterError, match="fallback = 'wide': give a Continuation"):
         rjx.Continuation(fallback="wide")
     stage = both.smoothing(rj.Smoothing(), 1)
-    assert float(stage.buffer_width) == 1e-4 and float(stage.slip_width) == 1e-4
-    assert float(stage.stop_width) == float(rj.Smoothing().stop_width)
+    assert float(stage.buffer_width) == 1e-4 and float(stage.stop_width) == 1e-6
+    assert float(stage.damping_width) == float(rj.Smoothing().damping_width)
 
 
 def _firing(seed: int) -> rj.Calibration:
@@ -100,17 +92,11 @@ def test_the_continuation_reaches_the_truth_where_the_model_widths_stall():
     fitted = rj.calibrate(calibration, progress=False)
     assert fitted.converged and fitted.explains and fitted.verdict == "explains"
     assert fitted.starts_at_best == 2
-    assert fitted.continuation == {
-        "buffer_width": [1e-2, 1e-3, 1e-4, 1e-5, 1e-6],
-        "friction_width": [10.0] * 5,
-        "slip_width": [1e-2, 1e-3, 1e-4, 1e-5, 1e-6],
-        "stick_time": [3e-4] * 5,
-    }
-    assert not fitted.fallback and fitted.starts == 2  # the model check passed: one path
+    assert fitted.continuation == {"buffer_width": [1e-2, 1e-3, 1e-4, 1e-5]}
+    assert not fitted.fallback and fitted.starts == 2  # no fallback path
     for name, value in TRUTH.items():
         assert abs(fitted.values[name] - value) < 3 * fitted.fitted[name].stderr, name
     # The result says the widths it is at (result.json's "smoothing").
-    assert fitted.smoothing["stick_time"] == float(rjx.CALIBRATION_SMOOTHING.stick_time)
     assert fitted.to_json()["smoothing"]["buffer_width"] == float(rj.Smoothing().buffer_width)
     plain = rj.calibrate(calibration, starts=1, continuation=None, progress=False)
     assert plain.continuation == {}
@@ -125,15 +111,15 @@ def test_a_fit_the_model_check_rejects_takes_the_fallback_path_before_its_verdic
     traces only then; without a fallback, one path."""
     calibration = _firing(seed=4)
     wrong = dataclasses.replace(calibration, design=calibration.design | {"buffer_damping": 1e5})
-    result = rj.calibrate(wrong, progress=False)
+    with_fallback = rjx.Continuation(fallback=rjx.Continuation({"buffer_width": (1e-2, 1e-4)}))
+    result = rj.calibrate(wrong, continuation=with_fallback, progress=False)
     assert result.fallback and result.starts == 4
     assert not result.explains and result.to_json()["fallback"] is True
     if result.verdict == "local_minimum":  # what the command line then says
         from recoil_jax.apps._cli.calibrate import _stuck_line
 
         assert "of 4 fits (2 starts through both continuation paths)" in _stuck_line(result)
-    alone = rjx.Continuation(rjx.DEFAULT_CONTINUATION.widths)  # no fallback
-    single = rj.calibrate(wrong, continuation=alone, progress=False)
+    single = rj.calibrate(wrong, progress=False)  # the default: no fallback
     assert not single.fallback and single.starts == 2 and not single.explains
 
 

@@ -75,11 +75,11 @@ def test_level_frictionless_rails_reproduce_the_paper():
 
 #: Tolerances against the reference (`test_random_designs_across_the_envelope_many`):
 #: peaks to 1e-4 relative, with a floor of 1 µm and 0.01 N for peaks that are all but
-#: zero (a barrel held in its stop; the sticking law's overshoot is `~(F_max − N) τ² / M`,
-#: 0.2 µm at τ = 0.3 ms). An anchoring force whose exact peak is where friction sticks or
-#: slips is a jump of the exact model, which the sticking law spreads over its `τ`: held
-#: to `STICK_PEAK` instead.
-PEAK_RTOL, DISPLACEMENT_FLOOR, FORCE_FLOOR, STICK_PEAK = 1e-4, 1e-6, 1e-2, 2e-2
+#: zero (a barrel held in its stop). An anchoring force whose exact peak is where friction
+#: sticks or slips (a jump, at the loop's event as at the reference's) is held to the
+#: same: the stick is a mode (model revision 3; the smoothed law spread the jump over its
+#: relaxation time, held to 2 % then). Measured over the 120 designs: 9.1e-5 at most.
+PEAK_RTOL, DISPLACEMENT_FLOOR, FORCE_FLOOR = 1e-4, 1e-6, 1e-2
 RETURN_TIME, BATTERY_SPEED, RESIDUAL, MARGIN = 2e-3, 5e-3, 5e-4, 2e-3
 
 PEAKS = (
@@ -89,8 +89,6 @@ PEAKS = (
     "peak_pull_force",
     "peak_mount_load",
 )
-#: The peaks of `F_AN` (either way), which jump where friction sticks or slips.
-ANCHORING_PEAKS = ("peak_anchoring_force", "peak_pull_force", "peak_mount_load")
 
 
 def compare(design, table, t1):
@@ -104,14 +102,10 @@ def compare(design, table, t1):
     assert rj.Status[ours.status] == "ok", (design, rj.Status[ours.status])
     assert bool(ours.returned) == ref["returned"], design
     errors = {}
-    events = np.asarray(ref["sticks"] + ref["slips"])
     for name in PEAKS:
         floor = FORCE_FLOOR if name.endswith("force") else DISPLACEMENT_FLOOR
         scale = max(abs(ref[name]) * PEAK_RTOL, floor)
         errors[name] = abs(float(getattr(ours, name)) - ref[name]) / scale * PEAK_RTOL
-        at_event = np.any(np.abs(events - ref[f"{name}_time"]) < 1e-9)
-        if name in ANCHORING_PEAKS and at_event:
-            errors[name] *= PEAK_RTOL / STICK_PEAK
         if name == "peak_displacement" and ref[f"{name}_time"] == t1:
             # No peak: a barrel still creeping back at t1, at speeds inside the damping
             # switch's band, where the smoothed damper is off (`docs/model.md`,
@@ -198,7 +192,8 @@ def test_the_hand_design_of_the_envelope_study(elevation):
 def test_a_coulomb_oscillator_sticks_where_the_closed_form_says_and_stays():
     """A barrel on a spring with 2 kN of Coulomb friction and no damper (the closed form
     of `test_reference_envelope`): it comes to rest for good at the closed form's place,
-    within the sticking law's (τ²-order) error, and does not creep afterwards."""
+    to the solver's tolerance (the stick is a mode, switched where the speed reaches 0),
+    and does not creep afterwards."""
     F = 2000.0
     _, x_rest, t_rest, _ = coulomb_oscillator(F)
     values = dict(m=0.0, M=M, k=27500.0, c_out=0.0, c_ret=0.0, v0=V0, friction_force=F)
@@ -206,10 +201,10 @@ def test_a_coulomb_oscillator_sticks_where_the_closed_form_says_and_stays():
     history = rj.simulate(params, options=rj.SolverOptions(t1=6.0), ts=np.linspace(0, 6.0, 601))
     after = np.asarray(history.ts) > t_rest + 0.01
     x = np.asarray(history.x_M)[after]
-    assert np.max(np.abs(x - x_rest)) < 1e-6  # measured 0.1 µm
+    assert np.max(np.abs(x - x_rest)) < 1e-7  # measured 0.012 µm (the smoothed law's 0.1)
     assert np.ptp(x) < 1e-9  # held: no creep
     peaks = rj.peaks(params, options=rj.SolverOptions(t1=6.0))
-    assert float(peaks.residual_displacement) == pytest.approx(x_rest, abs=1e-6)
+    assert float(peaks.residual_displacement) == pytest.approx(x_rest, abs=1e-7)
     # Its first swing forward passes through battery: that is its return.
     reference = reference_peaks(values, t1=6.0)
     assert bool(peaks.returned) and reference["returned"]
@@ -313,6 +308,23 @@ def check_gradients(design, wrt, step):
 def test_the_envelope_metrics_gradients_match_finite_differences():
     design = GRADIENT_DESIGNS["howitzer at 0°"]
     worst = check_gradients(design, ("recuperator_preload", "elevation"), step=1e-2)
+    assert max(worst.values()) <= 1e-4, worst
+
+
+def test_a_burst_held_between_its_rounds_has_its_gradients_in_the_fire_interval():
+    """Two impulse rounds 2 s apart, the barrel back and held in battery before the
+    second: the second round's firing time moves with `fire_interval`, and the jump
+    turns the held barrel into a sliding one, so the tangents' jump there takes the
+    sliding mode's field (`f⁺`): the metrics after it are the first recoil's shifted in
+    time, so `return_time` (from the last round) does not move with the interval (it
+    moved by −1 with the held mode's field), against central differences."""
+    design = {k: v for k, v in HOWITZER.items() if k != "pulse_time"}
+    design |= {"elevation": 0.0, "shots": 2, "fire_interval": 2.0}
+    options = rj.SolverOptions(t1=6.0, rtol=1e-7, atol=1e-10)
+    peaks, gradients = rj.peak_gradients(model(design), options=options, wrt=("fire_interval",))
+    assert bool(peaks.returned) and float(peaks.return_time) < 1.5  # held before round 2
+    assert abs(float(gradients.return_time[0])) < 1e-4  # (measured 8e-6; −1 before)
+    worst = check_gradients(design, ("fire_interval",), step=1e-2)
     assert max(worst.values()) <= 1e-4, worst
 
 

@@ -60,8 +60,8 @@ def mount_spring():
         def anchoring_bound(self, reach, two_energy, design):
             return self.mount_spring_stiffness * reach
 
-        def held_change(self, creep, design):
-            return self.mount_spring_stiffness * creep
+        def held_change(self, design):
+            return 0.0
 
     yield MountSpring
     rjx.forget_part(MountSpring)

@@ -316,7 +316,6 @@ RJ_NAMES = (
     "plan_firings",
 )
 RJX_NAMES = (
-    "CALIBRATION_SMOOTHING",
     "DEFAULT_CONTINUATION",
     "BatchEvaluation",
     "BatchEvaluator",

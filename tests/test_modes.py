@@ -133,6 +133,47 @@ def test_the_switch_times_carry_their_derivatives():
     np.testing.assert_allclose(np.asarray(values)[0], turns[-1], atol=1e-9)
 
 
+def _half_swings(friction):
+    return len(_closed_form(friction)[0]) - 1
+
+
+def test_the_rest_has_a_kink_where_a_stick_comes_earlier_and_each_side_its_derivative():
+    """Where the friction grows past the value at which the block sticks one half-swing
+    earlier, its rest `x(F)` has a kink: continuous, its derivative jumping. On each side
+    the derivative through the loop is that side's closed form and its central
+    differences (the step not crossing the kink)."""
+    lower, upper = 0.1, 0.105  # 5 half-swings at the one, 4 at the other
+    assert (_half_swings(lower), _half_swings(upper)) == (5, 4)
+    for _ in range(60):  # the kink, by bisection on the closed form
+        middle = 0.5 * (lower + upper)
+        lower, upper = (middle, upper) if _half_swings(middle) == 5 else (lower, middle)
+    kink = 0.5 * (lower + upper)
+
+    def rest(f):
+        return _solve(f, 80.0).final_state[0]
+
+    solve = eqx.filter_jit(lambda f: jax.jvp(rest, (f,), (jnp.ones_like(f),)))
+    offset, h = 2e-3, 1e-6
+    slopes = {}
+    for side, friction in (("5 half-swings", kink - offset), ("4 half-swings", kink + offset)):
+        turns, radius = _closed_form(friction)
+        half_swings = len(turns) - 1
+        a = friction / K
+        # The rest is `2n·a − x1` (n half-swings back, n odd) or `x1 − 2n·a` (n even).
+        parity = -1.0 if half_swings % 2 else 1.0
+        expected = parity * ((-1.0 + a / radius) / K) - parity * 2 * half_swings / K
+        value, slope = solve(jnp.asarray(friction))
+        np.testing.assert_allclose(float(value), turns[-1], atol=1e-9, err_msg=side)
+        np.testing.assert_allclose(float(slope), expected, rtol=1e-6, err_msg=side)
+        plus, minus = (float(solve(jnp.asarray(friction + d))[0]) for d in (h, -h))
+        np.testing.assert_allclose(float(slope), (plus - minus) / (2 * h), rtol=1e-5, err_msg=side)
+        slopes[side] = float(slope)
+    # Continuous across the kink (to the slopes' reach), its derivative not.
+    across = float(solve(jnp.asarray(kink + offset))[0] - solve(jnp.asarray(kink - offset))[0])
+    assert abs(across) <= offset * (abs(slopes["5 half-swings"]) + abs(slopes["4 half-swings"]))
+    assert abs(slopes["5 half-swings"] - slopes["4 half-swings"]) > 1.0
+
+
 def test_a_state_at_a_fixed_time_has_its_derivatives_mid_slide():
     """Cut at t1 = 3 s, between the first turn and the second, the block slides back about
     +a: `x = a + (x1 − a) cos ω(t − t_turn)`. The end time does not move with F, so the

@@ -627,17 +627,19 @@ def test_a_store_names_a_local_method_as_before_its_settings_moved():
 #: changed them again (the counter-recoil buffer's smoothing width, 1e-5 to 1e-6 m, in
 #: every identity; the calibration's predictions' metrics); a store made before it is
 #: refused by its model revision first
-#: (`test_a_store_made_before_the_envelope_revision_is_refused`). Issue 63 changed the
-#: calibration's (the fit's third stopping test, `lm_gain`, is a field of its settings:
-#: a fit stopped by the old tests is another fit). The calibration's is of an arithmetic
-#: trace since issue 65 (its sine's digest differed between CPUs); d4bfe79 gives it too.
+#: (`test_a_store_made_by_an_earlier_revision_of_the_model_is_refused`). Issue 63
+#: changed the calibration's (the fit's third stopping test, `lm_gain`, is a field of its
+#: settings: a fit stopped by the old tests is another fit). The calibration's is of an
+#: arithmetic trace since issue 65 (its sine's digest differed between CPUs). Issue 66
+#: changed every one on purpose (the friction's smoothing widths are gone from
+#: `Smoothing`); a store made before it is refused by its model revision first.
 IDENTITIES_BEFORE = {
-    "sweep": "95407f4753fd26e106f6092a7a2383a8c80fcd3e9c17e7aeafbfaea7ee7a94ea",
-    "sweep of a force table": "26623c8183cafe8dc7f144ce3f3399243f7afceafac8994386e481200271e882",
-    "grid": "b29ac04c4a9c168a185393eaef036952df596df73fab4cf2a7f5ec8934e31d10",
-    "search": "4e21e16a4e9a54cbd29426604f914872fdd9962e580d4869cb7ab55815866c8b",
-    "optimise": "c23495fb1da1db77fd6eb4a25061432c928619f714133640317abe7750c9d29c",
-    "calibration": "c68de024f7c57b56e3aee2da3682ad09ebdcaa3d9e2fd6f2c306f38ee7d3c02d",
+    "sweep": "7a9305e228472ca89de9ffb1e25b5f8616da476fb90b99550fba540415896136",
+    "sweep of a force table": "951f82b9995e45619a8f6ba6cf4decd97ea5283e52f4a4324728dbbd682abf73",
+    "grid": "186a5717ac55d6856b1eb42a42cce9bb963e50aa5685ff87868f91cfafd54192",
+    "search": "13a8bacf90893e64d1c036ac143514b2f0768419c08ade550211a00bddc0268e",
+    "optimise": "54a83ffbbc154f2f3bd33c4d8106746fb51d9be93949f4078dea0947efbf7508",
+    "calibration": "84e8e3df321730263d690944c49f27886b061d36d85e08672ee9d1e916e0d536",
 }
 
 
@@ -863,7 +865,8 @@ def test_stores_made_before_the_redraw_resume(kind, tmp_path):
     """Stores made at 66a0bae, before issue 53 moved the package's modules and classes
     (`tests/data/stores/make_stores.py`; made again for issue 54, which changed every
     identity on purpose, and the calibration's for issue 63, whose new stopping test
-    changed every calibration's, and again at d4bfe79 from a trace kept as numbers), are
+    changed every calibration's, and again at d4bfe79 from a trace kept as numbers, and
+    all four for the model's revision 3, issue 66, which changed every identity), are
     taken as the same campaigns: everything is read back, nothing is solved again, and
     the result is a fresh run's, bit for bit (a calibration's to 1e-9: see below)."""
     made = _stores_script()
@@ -889,14 +892,22 @@ def test_stores_made_before_the_redraw_resume(kind, tmp_path):
 
 
 @pytest.mark.parametrize("use", ["resume", "load"])
-def test_a_store_made_before_the_envelope_revision_is_refused(use, tmp_path):
-    """A store made by revision 1 of the model's semantics (before the firing envelope's
-    revision 2: the rest, the whole gun's margin, the pull and the mount load) is refused
-    with one line saying why and what to do, before anything is solved: never resumed,
-    nor read back on the old semantics."""
+@pytest.mark.parametrize(
+    ("revision", "changed"),
+    [(1, "the firing envelope's revision 2"), (2, "the barrel's stick on its rails is a mode")],
+)
+def test_a_store_made_by_an_earlier_revision_of_the_model_is_refused(
+    use, revision, changed, tmp_path
+):
+    """A store made by an earlier revision of the model's semantics (1: before the firing
+    envelope's revision 2, the rest, the whole gun's margin, the pull and the mount load;
+    2: before the stick was a mode) is refused with one line saying why, what changed
+    since and what to do, before anything is solved: never resumed, nor read back on the
+    old semantics."""
     made = _stores_script()
     store = tmp_path / "sweep.sqlite"
-    shutil.copy(Path(__file__).parent / "data" / "stores" / "sweep_revision1.sqlite", store)
+    fixture = Path(__file__).parent / "data" / "stores" / f"sweep_revision{revision}.sqlite"
+    shutil.copy(fixture, store)
     kept = store.read_bytes()
     with pytest.raises(rj.ParameterError) as refused:
         if use == "resume":
@@ -905,6 +916,19 @@ def test_a_store_made_before_the_envelope_revision_is_refused(use, tmp_path):
             rj.load_sweep(store)
     message = str(refused.value)
     assert "\n" not in message
-    assert "revision 1 of the model" in message and "revision 2" in message
+    assert f"revision {revision} of the model" in message and "this is revision 3" in message
+    assert changed in message and "the barrel's stick on its rails is a mode" in message
     assert "new store path" in message
     assert store.read_bytes() == kept  # untouched
+
+
+def test_a_store_made_by_a_newer_revision_of_the_model_says_so(tmp_path):
+    """A store a newer recoil-jax made (a later revision of the model) is refused naming
+    that, not as an older one."""
+    made = _stores_script()
+    store = tmp_path / "sweep.sqlite"
+    shutil.copy(Path(__file__).parent / "data" / "stores" / "sweep.sqlite", store)
+    with sqlite3.connect(store) as db:
+        db.execute("UPDATE meta SET value = '9' WHERE key = 'model'")
+    with pytest.raises(rj.ParameterError, match="revision 9 of the model, by a newer recoil-jax"):
+        rj.sweep(made.SWEEP, store=store, progress=False, **made.SWEEP_PLAN)

@@ -11,9 +11,8 @@ truth to 7.4·10⁵ with `c_out` 0.1 % higher). At a width of 1 cm the same jump
 over ~10 samples, χ² is smooth, and the fit goes to the basin from far starts;
 each narrower stage starts where the wider one ended (`docs/calibration.md`).
 
-The rails' friction comes last. A calibration fits at friction widths nearer the exact
-stick than the model's (`CALIBRATION_SMOOTHING`), where χ² is rougher: the stages before
-fit at the model's friction widths, the last at the calibration's.
+The rails' friction has no width to continue: its stick and slip are a mode of the
+solve, exact at every stage (`docs/model.md`, *Sticking*).
 """
 
 from __future__ import annotations
@@ -38,9 +37,6 @@ _MODEL = Smoothing()  # the model's own widths
 #: does not use is not continued (a stage there would refit the same χ²).
 _SWITCH_OF = {
     "buffer_width": "counter_recoil_buffer",
-    "slip_width": "rails",
-    "friction_width": "rails",
-    "stick_time": "rails",
     "stop_width": "battery_stop",
     "damping_width": "barrel",
 }
@@ -67,19 +63,11 @@ class Continuation:
 
     Default: `buffer_width` 1 cm, 1 mm, 0.1 mm, 10 µm and the model's 1 µm, a decade a
     stage (the counter-recoil buffer's engagement, the switch whose jump in `F_AN` makes
-    χ² stepped), at the model's friction (`friction_width` 10 N, `stick_time` 0.3 ms);
-    then the calibration's widths (`CALIBRATION_SMOOTHING`: the friction nearer the
-    exact stick). Measured on the shipped plan's reference traces (`docs/calibration.md`):
-    two stages a hundredfold apart left 2 of 4 draws on a tread that four a decade apart
-    reached the truth from; continuing the friction's turn (`slip_width` 1 cm/s to 1
-    µm/s) too took the 2 draws of 20 at truth 0 that end in a worse minimum to the
-    truth, and took another to a worse one the model check rejects (a false "wrong
-    model"); the calibration's friction from the plan's guess ends in a worse minimum
-    (χ² 18,011 against 17,881) that the model's friction first avoids.
+    χ² stepped); then the calibration's widths. Measured on the shipped plan's reference
+    traces (`docs/calibration.md`): two stages a hundredfold apart left 2 of 4 draws on a
+    tread that four a decade apart reached the truth from.
 
-    A width it does not name is at the fit's own at every stage: a continuation of
-    `buffer_width` alone fits every stage at the calibration's friction widths (name
-    `friction_width` and `stick_time` to fit the model's first, as the default does).
+    A width it does not name is at the fit's own at every stage.
 
     `for_design` keeps what acts on one fit: the widths of the parts its design has, the
     stages that differ from the one before and from the fit's own widths. A design
@@ -88,7 +76,7 @@ class Continuation:
     - `fallback`: another continuation, the path `calibrate` fits its starts through
       again where the best point of this one fails the model check, before it says the
       model does not explain the traces (its best of both paths is the result); None:
-      no second path. `DEFAULT_CONTINUATION` has one.
+      no second path.
 
     **Raises:** `ParameterError` for a name that is not a continued smoothing width, or
     widths that are not positive, finite and never widening, or of different counts.
@@ -97,8 +85,6 @@ class Continuation:
     widths: Mapping[str, tuple[float, ...]] = dataclasses.field(
         default_factory=lambda: {
             "buffer_width": (1e-2, 1e-3, 1e-4, 1e-5, float(_MODEL.buffer_width)),
-            "friction_width": (float(_MODEL.friction_width),) * 5,
-            "stick_time": (float(_MODEL.stick_time),) * 5,
         }
     )
     fallback: Continuation | None = None
@@ -195,12 +181,5 @@ class Continuation:
 
 
 #: The continuation `calibrate` and `fit_many` run unless told otherwise: the buffer's
-#: stages with the friction's turn beside them (`slip_width` 1 cm/s to the model's 1
-#: µm/s), and `Continuation()` (without the turn) as the fallback. Measured on the
-#: shipped plan's round trip (`docs/calibration.md`): each path alone ends some draws
-#: in a worse minimum the other avoids; with the turn the misses are the model check's
-#: to see.
-DEFAULT_CONTINUATION = Continuation(
-    {**Continuation().widths, "slip_width": (1e-2, 1e-3, 1e-4, 1e-5, float(_MODEL.slip_width))},
-    fallback=Continuation(),
-)
+#: stages (`Continuation()`), without a fallback.
+DEFAULT_CONTINUATION = Continuation()

@@ -26,6 +26,11 @@ from .._sweeps.sweep import sweep
 __all__ = ["FittedParameters", "Prediction", "predict"]
 
 
+#: Smoothing widths a `result.json` may hold from before model revision 3 (the rails'
+#: friction, smoothed then; a mode of the solve now), read past.
+_RETIRED_WIDTHS = ("friction_width", "slip_width", "stick_time")
+
+
 @dataclasses.dataclass(frozen=True)
 class FittedParameters:
     """The hardware parameters a calibration fitted (shared by its experiments; not the
@@ -133,8 +138,12 @@ class FittedParameters:
         try:
             report = json.loads(text)
             entry = report["hardware"]
-            # Results written before a calibration had widths of its own: the model's.
-            widths = report.get("smoothing") or {}
+            # Results written before a calibration had widths of its own: the model's. The
+            # friction's widths are gone since the stick became a mode (model revision 3):
+            # a result that has them was fitted at a smoothed stick, its values still
+            # the hardware's.
+            widths = {k: v for k, v in (report.get("smoothing") or {}).items()
+                      if k not in _RETIRED_WIDTHS}  # fmt: skip
             fitted = cls(
                 tuple(entry["names"]),
                 np.asarray(entry["values"], dtype=float),

@@ -47,8 +47,8 @@ __all__ = [
 
 #: A sample at which the model's signal moves, over the sample's own spacing, more than
 #: this many times its step to either neighbour (and more than the noise) lies on an
-#: event its sampling does not resolve: a friction's turn, a stick, an impact shorter
-#: than a sample. Its Jacobian is the slope of the model's smoothed switch there, which
+#: event its sampling does not resolve: the counter-recoil buffer's engagement, an impact
+#: shorter than a sample. Its Jacobian is the slope of the model's smoothed switch there, which
 #: grows as 1 / the switch's width: the smoothing's information, not the data's, so the
 #: standard errors leave it out (a sine sampled 3 times a period moves 2.4 times its step
 #: at most; a ramp 30 µs wide sampled each ms, ~30 times).

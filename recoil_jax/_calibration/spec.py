@@ -22,7 +22,6 @@ from .layout import Layout, check_fitted_designs, prepare
 from .traces import T_SHIFT, Experiment
 
 __all__ = [
-    "CALIBRATION_SMOOTHING",
     "LOSSES",
     "Calibration",
     "check_fitted",
@@ -32,15 +31,6 @@ __all__ = [
 #: The robust losses: `linear` (plain least squares), `soft_l1` and `huber` (scipy's),
 #: each applied to the residual in units of `f_scale` noise deviations.
 LOSSES = ("linear", "soft_l1", "huber")
-
-
-#: The widths a calibration fits at: the model's, but the rails' friction nearer the
-#: exact stick (`friction_width` 1 N, not 10; `stick_time` 30 µs, not 0.3 ms). A firing
-#: test pins the friction coefficient to ~10⁻⁴ of itself, and the model's friction
-#: widths move the barrel's return into battery by more than that: on the shipped plan's
-#: reference traces μ came out 5.6 standard errors high at one truth, and −0.3 at these
-#: widths (`docs/calibration.md`). The continuation fits at the model's first.
-CALIBRATION_SMOOTHING = Smoothing(friction_width=1.0, stick_time=3e-5)
 
 
 def _fit_limits(name: str):
@@ -60,8 +50,8 @@ class Calibration:
     - `design`: known values shared by every experiment (each experiment's own win).
     - `loss`: `"linear"`, `"soft_l1"` or `"huber"` (robust against outliers), turning at
       `f_scale` noise deviations.
-    - `smoothing`, `options`: as for any solve (default `CALIBRATION_SMOOTHING`, the
-      friction nearer the exact stick than the model's, and `GRADIENT_OPTIONS`, rtol 1e-7).
+    - `smoothing`, `options`: as for any solve (default the model's widths, and
+      `GRADIENT_OPTIONS`, rtol 1e-7).
     - `validation`: experiments scored with the fitted values but not fitted.
     - `force_table`: the breech force of one round for every experiment that does not
       give its own (`Experiment.force_table`).
@@ -78,7 +68,7 @@ class Calibration:
     design: Mapping[str, float] = dataclasses.field(default_factory=dict)
     loss: Literal["linear", "soft_l1", "huber"] = "linear"
     f_scale: float = 3.0
-    smoothing: Smoothing = CALIBRATION_SMOOTHING
+    smoothing: Smoothing = Smoothing()  # noqa: RUF009 (immutable)
     options: SolverOptions = GRADIENT_OPTIONS
     validation: Sequence[Experiment] = ()
     force_table: ForceTable | None = None

@@ -73,12 +73,19 @@ __all__ = [
 
 #: The layout of the tables; a store of another format is refused, not misread.
 STORE_FORMAT = 1
-#: The revision of the model's semantics a store's results were made by (`meta`'s
-#: `model`): 2 since the firing envelope's revision 2 (`docs/model.md`: the gun fires from
-#: its static rest, displacements are measured from it, the whole gun's stability margin,
-#: the pull and the mount load). A store made by another is refused, never resumed or read
-#: on its semantics (`check_model_revision`).
-MODEL_REVISION = 2
+#: What each revision of the model's semantics changed (`docs/model.md`): a store's
+#: results were made by one (`meta`'s `model`; a store from before revision 2 has none),
+#: and a store made by another is refused, never resumed or read on its semantics
+#: (`check_model_revision`).
+MODEL_REVISIONS = {
+    2: "the firing envelope's revision 2: the gun fires from its static rest, "
+    "displacements are measured from it, the stability margin is the whole gun's, and "
+    "the pull and the mount load are metrics",
+    3: "the barrel's stick on its rails is a mode of the solve, switched exactly at "
+    "events, and the friction's smoothing widths are gone",
+}
+#: The revision this version's results are made by.
+MODEL_REVISION = max(MODEL_REVISIONS)
 
 
 def campaign_identity(kind: str, *parts: Any) -> str:
@@ -553,16 +560,22 @@ class CalibrationStore(_Store):
 def check_model_revision(path, meta: dict[str, str]) -> None:
     """Refuse (`ParameterError`, one line saying why and what to do) a store whose results
     were made by another revision of the model's semantics (`MODEL_REVISION`; a store
-    from before revision 2 has none)."""
+    from before revision 2 has none), naming what changed since."""
     if not meta or meta.get("model") == str(MODEL_REVISION):
         return
     made = meta.get("model", "1")
+    if made.isdigit() and int(made) > MODEL_REVISION:
+        raise ParameterError(
+            f"store {path} was made by revision {made} of the model, by a newer recoil-jax "
+            f"than this one (revision {MODEL_REVISION}): upgrade recoil-jax to resume or "
+            "read it, or run the campaign again with a new store path"
+        )
+    later = [v for k, v in MODEL_REVISIONS.items() if not made.isdigit() or k > int(made)]
+    changed = "; ".join(later)
     raise ParameterError(
         f"store {path} was made by revision {made} of the model, and this is revision "
-        f"{MODEL_REVISION} (the firing envelope's revision 2: the gun fires from its static "
-        "rest, displacements are measured from it, the stability margin is the whole "
-        "gun's, and the pull and the mount load are metrics): its results are not this "
-        "model's. Run the campaign again with a new store path (or delete the file)"
+        f"{MODEL_REVISION} ({changed}): its results are not this model's. Run the "
+        "campaign again with a new store path (or delete the file)"
     )
 
 

@@ -92,38 +92,22 @@ def future_metric_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
     return bounds | untracked
 
 
-#: A held barrel is settled once its speed is below this (m/s): what it can still creep,
-#: `|v_M| τ`, is then below 1e-9 m for τ <= 1 ms.
-_SETTLED_SPEED = 1e-6
-
-
-#: A barrel held with its net force within `friction_width` of the band's edge (it slid
-#: to rest with friction all but saturated) creeps at the steady speed the smoothed
-#: clamp leaves it: settled once that is below this (m/s), its creep to `t1` bounded by
-#: speed × (t1 − t) (< 1e-7 m for t1 <= 100 s).
-_SETTLED_EDGE_SPEED = 1e-9
-
-
 def held_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
     """Bounds on every tracked metric from `t` to `t1`, by name, for a design with the
     firing envelope: finite only once the barrel is held for good, `+inf` before. Held
-    for good means all rounds fired and their breech force spent, the barrel at rest
-    (`|v_M| < 1e-6 m/s`) with the net force on it inside the friction's band by more
-    than what the absorber can still change (its energy about its rest on the barrel,
-    bounding the coupling's swing; nor can it reach the wall), and by the band's
-    smoothing width (or, within it, at a creep below 1e-9 m/s); the coupling's swing
-    counted from one side to the other, since it may be at either now: nothing moves the barrel
-    again, so its peaks, return (found, or never) and rest `x_M(t1)` are known now (to
-    its creep, `|v_M| τ < 1e-9 m`, or `|v_M| (t1 − t)` at the band's edge). The loop
-    then stops (`PeakLoop`)."""
+    for good means all rounds fired and their breech force spent, the barrel held (the
+    stick mode, `sticking`: still, to the bit) with the net force on it inside the
+    friction's band by more than what the absorber can still change (its energy about
+    its rest on the barrel, bounding the coupling's swing, counted from one side to the
+    other since it may be at either now; nor can it reach the wall): nothing moves the
+    barrel again, so its peaks, return (found, or never) and rest `x_M(t1)` are known
+    now. The loop then stops (`PeakLoop`). `args.mode` is the loop's (`ModelArgs`)."""
     params, smoothing, width_contact = args.params, args.smoothing, args.contact_width
-    f = forces(y, params, smoothing, width_contact, t=t)
+    f = forces(y, params, smoothing, width_contact, t=t, mode=args.mode)
     values = tracked_metrics(t, y, args)
     inf = jnp.full_like(y[0], jnp.inf)
     if params.rails is None:
         return {name: inf for name in values}
-    bound = friction_bound(params)
-    speed = jnp.abs(y[1])
     swing = jnp.zeros_like(y[0])  # the coupling force's possible change from now (N)
     reach = jnp.zeros_like(y[0])  # the absorber's possible travel from now (m)
     quiet = jnp.array(True)
@@ -133,35 +117,30 @@ def held_bounds(y, args, t, t1) -> dict[str, jnp.ndarray]:
         relative = y[0] - y[2]
         energy = 0.5 * absorber.m * (y[3] - y[1]) ** 2 + 0.5 * absorber.k_r * (relative - rest) ** 2
         amplitude = jnp.sqrt(2.0 * energy / absorber.k_r)  # about its rest, either way
-        quiet = rest + amplitude + speed * smoothing.stick_time < absorber.gap - width_contact
+        quiet = rest + amplitude < absorber.gap - width_contact
         # From one side of its swing to the other: twice the amplitude, from now.
         reach = 2.0 * amplitude
         swing = 2.0 * (
             absorber.k_r * amplitude + absorber.c_r * jnp.sqrt(2.0 * energy / absorber.m)
         )
-    force_change = swing + params.barrel.M * speed / smoothing.stick_time
-    most_creep = speed * jnp.maximum(smoothing.stick_time, t1 - t)
-    for force in params.forces():  # what each could still change as the barrel creeps
-        force_change = _plus(force_change, force.held_change(most_creep, params))
+    force_change = swing
+    still = jnp.zeros_like(y[0])  # a held barrel does not creep
+    for force in params.forces():  # (a force that cannot say keeps the solve running)
+        force_change = _plus(force_change, force.held_change(params))
     spent = remaining_impulse(t, params) <= 1e-12 * params.barrel.M * jnp.abs(params.barrel.v0)
     load = jnp.abs(net_force(f)) + force_change
-    inside = (speed < _SETTLED_SPEED) & (load < bound - smoothing.friction_width)
-    at_edge = (speed < _SETTLED_EDGE_SPEED) & (load < bound)
-    held = spent & quiet & (inside | at_edge)
-    creep = speed * jnp.where(inside, smoothing.stick_time, jnp.maximum(t1 - t, 0.0))
+    held = spent & quiet & (args.mode == 0) & (load < friction_bound(params))
     mount = params.mount
     margin_change = jnp.zeros_like(y[0])
     if mount is not None:
         sin, cos = sin_cos(params)
         lever = jnp.abs(mount.trunnion_height * cos - mount.spade_distance * sin)
-        mass = params.barrel.M * creep + (
-            0.0 if params.absorber is None else params.absorber.m * reach
-        )
+        mass = 0.0 if params.absorber is None else params.absorber.m * reach
         weight_moment = jnp.maximum(mount.mount_mass, 1.0) * GRAVITY * mount.cg_distance
         margin_change = (force_change * lever + GRAVITY * mass) / weight_moment
-    travel = jnp.zeros_like(y[0]) if params.absorber is None else reach + creep
+    travel = jnp.zeros_like(y[0]) if params.absorber is None else reach
     change = {
-        "peak_displacement": creep,
+        "peak_displacement": still,
         "peak_anchoring_force": force_change,
         "peak_pull_force": force_change,
         "peak_contact_force": jnp.zeros_like(y[0]),  # (`quiet`: out of reach)

@@ -18,6 +18,7 @@ another thing: `_global_sensitivity`.)
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from collections.abc import Sequence
 from typing import Any, NamedTuple
@@ -54,17 +55,18 @@ from .._model.solve import (
     last_firing,
     model_sampling,
     peaks_of_run,
-    residual_at,
 )
 from .._model.status import raise_on_failure
 from .._model.stepping import (
     Crossing,
     Events,
     LeadingTerm,
+    Modes,
     PeakLoop,
     PeakRun,
     StopWhenCertain,
 )
+from .._model.sticking import STICKING
 
 __all__ = [
     "ABSORBER_SIGNALS",
@@ -157,9 +159,10 @@ def _smoothed(values: dict, smooth_max: SmoothMax):
     return jnp.stack([values[name] for name in smooth_max.metrics])
 
 
-def _field_args(params, smoothing) -> ModelArgs:
-    """The model's `args` for its vector field alone, which does not read the rest."""
-    return ModelArgs(params, smoothing, contact_width(params, smoothing), None)
+def _field_args(params, smoothing, mode=None) -> ModelArgs:
+    """The model's `args` for its vector field alone, which does not read the rest, in
+    the stick–slip `mode` (`sticking`; None: as the state has it)."""
+    return ModelArgs(params, smoothing, contact_width(params, smoothing), None, mode=mode)
 
 
 class _Rest(NamedTuple):
@@ -171,16 +174,19 @@ class _Rest(NamedTuple):
     value: Any
 
 
-def _rest_args(params, smoothing, rest: _Rest, differentiate: bool, structure=None) -> ModelArgs:
+def _rest_args(
+    params, smoothing, rest: _Rest, differentiate: bool, structure=None, mode=None
+) -> ModelArgs:
     """The model's `args` with the static rest `rest`. With `differentiate` (static:
     where parameters are traced), the Newton step from its root again (`model_args`),
     which carries its derivatives in them, the implicit function's; without, its value,
-    nothing solved again. `structure`: the design's `Structure`, where resolved already."""
+    nothing solved again. `structure`: the design's `Structure`, where resolved already;
+    `mode`: the stick–slip mode (`sticking`; None: as the state has it)."""
     if not differentiate:
         structure = structure or Structure.of(params)
         width = contact_width(params, smoothing)
-        return ModelArgs(params, smoothing, width, rest.value, structure)
-    return model_args(params, smoothing, rest.guess, structure)
+        return ModelArgs(params, smoothing, width, rest.value, structure, mode)
+    return dataclasses.replace(model_args(params, smoothing, rest.guess, structure), mode=mode)
 
 
 class TangentArgs(eqx.Module):
@@ -190,7 +196,8 @@ class TangentArgs(eqx.Module):
     - `smooth_max`: the smooth maxima integrated beside the state (`SmoothMax`), or None;
     - `t1` (s): the end time, which scales the smooth maxima's integrals;
     - `rest`: the static rest, found once (`_Rest`);
-    - `structure`: which parts the design has (`Structure`), resolved once."""
+    - `structure`: which parts the design has (`Structure`), resolved once;
+    - `mode`: the stick–slip mode the loop carries (`sticking`), None without rails."""
 
     params: Any
     smoothing: Any
@@ -198,20 +205,26 @@ class TangentArgs(eqx.Module):
     t1: Any
     rest: _Rest
     structure: Structure
+    mode: Any = None
 
     def at(self, params) -> TangentArgs:
         """The same `args` for the design `params` (its parameters moved)."""
-        return TangentArgs(
-            params, self.smoothing, self.smooth_max, self.t1, self.rest, self.structure
+        return dataclasses.replace(self, params=params)
+
+    def model(self, differentiate: bool = False, params=None) -> ModelArgs:
+        """The model's `args` (`_rest_args`) in this mode, for `params` (default: its own)."""
+        params = self.params if params is None else params
+        return _rest_args(
+            params, self.smoothing, self.rest, differentiate, self.structure, self.mode
         )
 
 
 def _augmented_vf(t, y, args: TangentArgs):
     params, smoothing, smooth_max = args.params, args.smoothing, args.smooth_max
-    f = vector_field(t, y[:_N_STATE], _field_args(params, smoothing))
+    f = vector_field(t, y[:_N_STATE], _field_args(params, smoothing, args.mode))
     if smooth_max is None:
         return f
-    model = _rest_args(params, smoothing, args.rest, True, args.structure)
+    model = args.model(differentiate=True)
     g = _smoothed(tracked_metrics(t, y[:_N_STATE], model), smooth_max)
     # Clipped so that a sudden rise far above the running integral cannot overflow.
     exponent = jnp.minimum(g / smooth_max.temperatures - y[_N_STATE:], 700.0)
@@ -267,17 +280,15 @@ _STATE_TERM = diffrax.ODETerm(_augmented_vf)
 
 
 def _tangent_metrics(t, z, args: TangentArgs):
-    model = _rest_args(args.params, args.smoothing, args.rest, False, args.structure)
+    model = args.model()
     return _augmented_metrics(t, z[: _state_size(args.smooth_max)], model, args.smooth_max)
 
 
 def _tangent_bounds(z, args: TangentArgs, t, t1):
     """`future_metric_bounds` (`held_bounds` with the firing envelope) of the state part
     of `z` (without smooth maxima)."""
-    params = args.params
     bounds = held_bounds if args.structure.envelope else future_metric_bounds
-    model = _rest_args(params, args.smoothing, args.rest, False, args.structure)
-    return bounds(z[:_N_STATE], model, t, t1)
+    return bounds(z[:_N_STATE], args.model(), t, t1)
 
 
 #: A smooth maximum stops integrating once the rest of `[t, t1]` can add less than this to
@@ -315,7 +326,10 @@ def _tangent_jump(before, t, z, f_before, args, wrt):
     one ULP earlier, where the system's vector field is `f_before`). For a jump
     `y⁺ = g(y⁻, θ)` at a time `τ(θ)`, the tangents jump
     by `S⁺ = g_y (S⁻ + f⁻ τ_θ) + g_θ − f⁺ τ_θ`: the round's firing time moves with
-    `fire_interval`, and `f⁻ ≠ f⁺` where a force table starts or ends off zero."""
+    `fire_interval`, and `f⁻ ≠ f⁺` where a force table starts or ends off zero, or
+    where the jump changes the barrel's stick–slip mode (a held barrel fired slides): `f⁺`
+    is the field in the mode the jumped state settles in (`STICKING.settle`, as the loop
+    settles it after the jump)."""
     params = args.params
     n = _state_size(args.smooth_max)
     y, tangents = z[:n], z[n:].reshape(-1, n)
@@ -330,7 +344,13 @@ def _tangent_jump(before, t, z, f_before, args, wrt):
 
     after = jump(y, theta)
     f_before = f_before[:n]
-    f_after = _augmented_vf(t, after, args)
+    if args.mode is None:  # no rails: no mode
+        f_after = _augmented_vf(t, after, args)
+    else:
+        settled, mode = STICKING.settle(t, after[:_N_STATE], args.model())
+        f_after = _augmented_vf(
+            t, after.at[:_N_STATE].set(settled), dataclasses.replace(args, mode=mode)
+        )
 
     def column(s, d):
         moved = jax.jvp(stop_time, (theta,), (d,))[1]
@@ -348,6 +368,63 @@ def _tangent_events(wrt: tuple[str, ...]) -> Events:
         stops=lambda args: load_stops(args.params),
         jump=functools.partial(_tangent_jump, wrt=wrt),
         restart=lambda args: restart_step(args.params),
+    )
+
+
+def _tangent_settle(t, z, args: TangentArgs):
+    """`STICKING.settle` of the state part; a barrel held has no speed to move with the
+    parameters either."""
+    n = _state_size(args.smooth_max)
+    y, tangents = z[:n], z[n:].reshape(-1, n)
+    settled, mode = STICKING.settle(t, y[:_N_STATE], args.model())
+    held = mode == 0
+    tangents = jnp.where(held, tangents.at[:, 1].set(0.0), tangents)
+    return jnp.concatenate([y.at[:_N_STATE].set(settled), tangents.reshape(-1)]), mode
+
+
+def _tangent_guard(t, z, args: TangentArgs):
+    return STICKING.guard(t, z[:_N_STATE], args.model())
+
+
+def _tangent_switch(t, z, args: TangentArgs, wrt):
+    """The state and its tangents right after a stick–slip switch at the guard's root
+    `t(θ)` (`STICKING.switch`: the speed set to 0, a new mode). As for a load's jump
+    (`_tangent_jump`), `S⁺ = R_y (S⁻ + f⁻ t_θ) − f⁺ t_θ`, with the root's move
+    `t_θ = −(g_y S⁻ + g_θ) / (g_y f⁻ + g_t)` from the guard `g` (the implicit function):
+    where the barrel stops, its speed's tangent goes (held) or is scaled by the turn's
+    jump in acceleration; where it slips, nothing jumps."""
+    params = args.params
+    n = _state_size(args.smooth_max)
+    y, tangents = z[:n], z[n:].reshape(-1, n)
+    theta = values_of(params, wrt)
+
+    def guard(t_, y_, theta_):
+        return STICKING.guard(t_, y_[:_N_STATE], args.at(with_values(params, wrt, theta_)).model())
+
+    switched, mode = STICKING.switch(t, y[:_N_STATE], args.model())
+    after = y.at[:_N_STATE].set(switched)
+    f_before = _augmented_vf(t, y, args)
+    f_after = _augmented_vf(t, after, dataclasses.replace(args, mode=mode))
+    rate = jax.jvp(lambda t_, y_: guard(t_, y_, theta), (t, y), (jnp.ones_like(t), f_before))[1]
+    moving = rate != 0
+
+    def column(s, d):
+        g_dot = jax.jvp(lambda y_, th: guard(t, y_, th), (y, theta), (s, d))[1]
+        moved = jnp.where(moving, -g_dot / jnp.where(moving, rate, 1.0), 0.0)
+        return (s + f_before * moved).at[1].set(0.0) - f_after * moved
+
+    columns = jax.vmap(column)(tangents, _directions(wrt))
+    return jnp.concatenate([after, columns.reshape(-1)]), mode
+
+
+@functools.cache
+def _tangent_modes(wrt: tuple[str, ...]) -> Modes:
+    """`STICKING` for the tangent system (one per `wrt`)."""
+    return Modes(
+        enter=lambda args, mode: dataclasses.replace(args, mode=mode),
+        settle=_tangent_settle,
+        guard=_tangent_guard,
+        switch=functools.partial(_tangent_switch, wrt=wrt),
     )
 
 
@@ -406,26 +483,29 @@ def _tangent_post(args: TangentArgs, run: PeakRun, wrt, series: MetricSeries | N
     theta = values_of(params, wrt)
     stops = None if params.load is None else load_stops(params)
 
-    def metric(i, t_, y_, theta_):
-        """Tracked quantity `i` (in the order of `run.names`) at time `t_`, state `y_`."""
+    def metric(i, t_, y_, theta_, mode=None):
+        """Tracked quantity `i` (in the order of `run.names`) at time `t_`, state `y_`, in
+        the stick–slip `mode` (None: as the state has it)."""
         design = with_values(params, wrt, theta_)
-        model = _rest_args(design, smoothing, rest, True, args.structure)
+        model = _rest_args(design, smoothing, rest, True, args.structure, mode)
         values = _augmented_metrics(t_, y_, model, smooth_max)
         return jnp.stack([values[name] for name in run.names])[i]
 
-    def gradient_of_metric(i, state, time):
+    def gradient_of_metric(i, state, time, mode=None):
         y, tangents = state[:n], state[n:].reshape(-1, n)
         directional = jax.vmap(
-            lambda s, d: jax.jvp(lambda y_, th: metric(i, time, y_, th), (y, theta), (s, d))[1]
+            lambda s, d: jax.jvp(lambda y_, th: metric(i, time, y_, th, mode), (y, theta), (s, d))[
+                1
+            ]
         )(tangents, _directions(wrt))
         if stops is None:
             return directional
         # A peak right after a round's firing (a velocity jump) stays at that instant,
         # which moves with the parameters: add the metric's rate times the move.
         index = jnp.argmin(jnp.abs(stops - time))
-        f = _augmented_vf(time, y, args)
+        f = _augmented_vf(time, y, dataclasses.replace(args, mode=mode))
         rate = jax.jvp(
-            lambda t_, y_: metric(i, t_, y_, theta), (time, y), (jnp.ones_like(time), f)
+            lambda t_, y_: metric(i, t_, y_, theta, mode), (time, y), (jnp.ones_like(time), f)
         )[1]
         moved = jax.vmap(
             lambda d: jax.jvp(
@@ -435,7 +515,10 @@ def _tangent_post(args: TangentArgs, run: PeakRun, wrt, series: MetricSeries | N
         return directional + jnp.where(_stops(params)[index] == time, rate * moved, 0.0)
 
     indices = jnp.arange(run.best_state.shape[0])
-    directional = jax.vmap(gradient_of_metric)(indices, run.best_state, run.best_time)
+    # A peak in the mode of the step that holds it (it may be a switch's instant).
+    directional = jax.vmap(gradient_of_metric)(
+        indices, run.best_state, run.best_time, run.best_mode
+    )
     scales = jnp.asarray([parameter_scale(name) for name in wrt])
     grads = run.by_name(directional / scales)
     # A quantity the structure holds constant (not tracked) has no gradient.
@@ -483,7 +566,7 @@ def _envelope_gradients(args: TangentArgs, run: PeakRun, wrt, extremes, scales, 
     barrel's acceleration). Zero where there is no return, NaN without the envelope (as
     the values); the margin is an extreme, NaN without a mount; the pull's is 0 where
     `F_AN` never goes negative (the pull is then 0)."""
-    params, smoothing, t1, rest = args.params, args.smoothing, args.t1, args.rest
+    params, smoothing, rest = args.params, args.smoothing, args.rest
     out = dict(extremes)
     nan = jnp.full_like(out["peak_displacement"], jnp.nan)
     if not args.structure.envelope:
@@ -499,7 +582,7 @@ def _envelope_gradients(args: TangentArgs, run: PeakRun, wrt, extremes, scales, 
         )[1]
     )(_directions(wrt))
     final = run.final_state[n:].reshape(-1, n)
-    residual = residual_at(final, run.final_time, t1, smoothing) - rest_move
+    residual = final[:, 0] - rest_move  # (a run that stopped before t1 stopped held)
     out["residual_displacement"] = residual / scales
     y, tangents = run.cross_state[:n], run.cross_state[n:].reshape(-1, n)
     f = _augmented_vf(run.cross_time, y, args)
@@ -555,6 +638,7 @@ def tangent_loop(params, options, wrt, smooth_max=None, stop_early: bool = True)
         if structure.envelope
         else None,
         leading=LeadingTerm(_STATE_TERM, _state_size(smooth_max)),
+        modes=None if params.rails is None else _tangent_modes(wrt),
     )
 
 

@@ -58,7 +58,7 @@ def signals(t, y, args: ModelArgs) -> dict[str, jnp.ndarray]:
     stability `margin`. `args = model_args(params, smoothing)`; the time `t` (s) for the
     breech force, which the friction's sticking sees."""
     params = args.params
-    f = forces(y, params, args.smoothing, args.contact_width, t=t)
+    f = forces(y, params, args.smoothing, args.contact_width, t=t, mode=args.mode)
     # The simplified model has no absorber, hence no stroke.
     stroke = jnp.zeros_like(y[0]) if params.absorber is None else y[2] - y[0]
     anchoring = f.anchoring
@@ -136,7 +136,7 @@ def vector_field(t, y, args):
     """`dy/dt` for `args = model_args(params, smoothing)` (`ModelArgs`); the diffrax
     vector field."""
     params = args.params
-    f = forces(y, params, args.smoothing, args.contact_width, t=t)
+    f = forces(y, params, args.smoothing, args.contact_width, t=t, mode=args.mode)
     internal = f.anchoring + f.coupling_spring + f.coupling_damper + f.contact
     if f.gravity is not None:
         internal = internal - f.gravity
@@ -151,7 +151,11 @@ def vector_field(t, y, args):
         if f.absorber_gravity is not None:
             pushed = pushed + f.absorber_gravity
         a_m = pushed / params.absorber.m
-    return jnp.stack([y[1], a_M, y[3], a_m])
+    v_M = y[1]
+    if args.mode is not None:  # held: still, to the bit (its friction takes the rest)
+        held = args.mode == 0
+        v_M, a_M = jnp.where(held, 0.0, v_M), jnp.where(held, 0.0, a_M)
+    return jnp.stack([v_M, a_M, y[3], a_m])
 
 
 #: The recoil models as one diffrax term; `args = model_args(params, smoothing)`.
@@ -169,13 +173,18 @@ class ModelArgs(eqx.Module):
       the rest);
     - `structure`: which parts the design has (`Structure`), resolved once by the
       program (`model_args`); None (a hand-built `args`, or the vector field's): resolved
-      where it is read (`ModelArgs.parts`)."""
+      where it is read (`ModelArgs.parts`);
+    - `mode`: the barrel's mode on its rails, set by the stepping loop (`sticking`: 0
+      held, ±1 sliding that way); None: read from the state (`friction_mode`: sliding
+      the way the barrel moves, held where it is still inside the friction's band), as
+      outside the loop."""
 
     params: RecoilParams
     smoothing: Smoothing
     contact_width: Any
     rest: Any
     structure: Any = None
+    mode: Any = None
 
     @property
     def parts(self) -> Structure:

@@ -38,8 +38,9 @@ class Modes(eqx.Module):
     switch: Callable[[Any, Any, Any], tuple[Any, Any]]
 
 
-#: Bisections of a step before Newton's steps (each halves the bracket).
-_BISECTIONS = 30
+#: Steps of the Illinois method (regula falsi, the side that stays halved: superlinear
+#: on a smooth guard, and the bracket kept) before Newton's steps.
+_ILLINOIS = 10
 _NEWTON = 2
 #: The shortest step to a root, as a fraction of the step that crossed it.
 _SHORTEST = 1e-12
@@ -47,20 +48,29 @@ _SHORTEST = 1e-12
 
 def guard_root(guard_at: Callable[[Any], Any], t0, t1):
     """The first time in `(t0, t1]` where `guard_at(t)` (not negative at `t0`, negative
-    at `t1`) comes down to 0: bisection on the bracket and Newton's steps within it,
-    without derivatives, then one more Newton step unclipped, which carries the
+    at `t1`) comes down to 0: the Illinois method on the bracket and Newton's steps
+    within it, without derivatives, then one more Newton step unclipped, which carries the
     derivatives of the implicit function `guard_at(t) = 0` (forward mode: its tangent is
     `−(∂g/∂p)/(∂g/∂t)`, its value moved by a rounding). Never before
     `t0 + 1e-12 (t1 − t0)` nor at `t0` itself: a step of zero length has no rate."""
     sg = jax.lax.stop_gradient
 
-    def bisect(_, bracket):
-        low, high = bracket
-        middle = 0.5 * (low + high)
-        holds = guard_at(middle) >= 0
-        return jnp.where(holds, middle, low), jnp.where(holds, high, middle)
+    def illinois(_, bracket):
+        low, high, g_low, g_high, side = bracket
+        span = g_low - g_high  # > 0 while the bracket holds a sign change
+        secant = high - g_high * (high - low) / jnp.where(span > 0, span, 1.0)
+        inside = (span > 0) & (secant > low) & (secant < high)
+        t = jnp.where(inside, secant, 0.5 * (low + high))
+        g = guard_at(t)
+        holds = g >= 0
+        # The end that stays twice running has its value halved (Illinois).
+        g_low = jnp.where(holds, g, jnp.where(side < 0, 0.5 * g_low, g_low))
+        g_high = jnp.where(holds, jnp.where(side > 0, 0.5 * g_high, g_high), g)
+        side = jnp.where(holds, 1, -1).astype(jnp.int32)
+        return jnp.where(holds, t, low), jnp.where(holds, high, t), g_low, g_high, side
 
-    low, high = jax.lax.fori_loop(0, _BISECTIONS, bisect, (sg(t0), sg(t1)))
+    start = (sg(t0), sg(t1), sg(guard_at(t0)), sg(guard_at(t1)), jnp.zeros((), jnp.int32))
+    low, high, *_ = jax.lax.fori_loop(0, _ILLINOIS, illinois, start)
 
     def rated(t):
         g, rate = jax.jvp(guard_at, (t,), (jnp.ones_like(t),))

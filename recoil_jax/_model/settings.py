@@ -57,11 +57,9 @@ class Smoothing(Validated):
       fraction of the knot spacing.
     - `stop_width` (m): the battery stop's onset at `x_M = 0`.
     - `buffer_width` (m): the counter-recoil buffer's engagement at `x_M = buffer_length`.
-    - `friction_width` (N): the corners of the rails' friction clamp at `±F_max`.
-    - `slip_width` (m/s): the friction's turn as a sliding barrel's `v_M` crosses 0.
-    - `stick_time` (s): not a switch but the sticking law's relaxation time τ: a barrel
-      held by friction has its speed relaxed to 0 over τ (`docs/model.md`, *Sticking*);
-      kept by `exact()`.
+
+    The rails' friction has no width: its stick and slip are a mode of the solve,
+    switched exactly at events (`docs/model.md`, *Sticking*).
 
     A width of 0 makes its switch exact. `Smoothing.exact()` sets every width to 0: the
     hard-switch model (not differentiable at the switches; for reference and checks). It
@@ -77,9 +75,6 @@ class Smoothing(Validated):
     knot_width_fraction: Any = float_leaf(1e-4)
     stop_width: Any = float_leaf(1e-7)
     buffer_width: Any = float_leaf(1e-6)
-    friction_width: Any = float_leaf(10.0)
-    slip_width: Any = float_leaf(1e-6)
-    stick_time: Any = float_leaf(3e-4)
 
     LIMITS: ClassVar[Mapping[str, Limits]] = {
         "damping_width": Limits(
@@ -118,25 +113,6 @@ class Smoothing(Validated):
             documented=(0.0, 5e-3),
             meaning="counter-recoil buffer engagement smoothing width; 0 is the exact switch",
         ),
-        "friction_width": Limits(
-            unit="N",
-            lower=0.0,
-            documented=(0.0, 100.0),
-            meaning="friction clamp smoothing width; 0 is the exact clamp",
-        ),
-        "slip_width": Limits(
-            unit="m/s",
-            lower=0.0,
-            documented=(0.0, 1e-4),
-            meaning="friction reversal smoothing width; 0 is the exact switch",
-        ),
-        "stick_time": Limits(
-            unit="s",
-            lower=0.0,
-            lower_open=True,
-            documented=(1e-4, 3e-3),
-            meaning="the sticking law's relaxation time",
-        ),
     }
 
     @classmethod
@@ -148,8 +124,6 @@ class Smoothing(Validated):
             knot_width_fraction=0.0,
             stop_width=0.0,
             buffer_width=0.0,
-            friction_width=0.0,
-            slip_width=0.0,
         )
 
     @property

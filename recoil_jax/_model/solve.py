@@ -40,6 +40,7 @@ from .._model.stepping import (
     Sampling,
     StopWhenCertain,
 )
+from .._model.sticking import STICKING
 
 __all__ = [
     "MODEL_CEILINGS",
@@ -55,7 +56,6 @@ __all__ = [
     "peaks",
     "peaks_batch",
     "peaks_of_run",
-    "residual_at",
     "simulate",
 ]
 
@@ -77,9 +77,10 @@ def model_sampling(params: RecoilParams, structure: Structure) -> Sampling:
     """Where else in each step the peaks are looked for (`Sampling`): with a throttling
     orifice, whose force (`∝ v²/A(x)²`) is far from cubic over a step and has a corner at
     each knot (smoothed over a band narrower than a step), at 3 interior points and where
-    the barrel crosses a knot. With the firing envelope, whose friction turns within
-    microseconds as a sliding barrel reverses (a step's end rates then make the cubic
-    Hermite estimate overshoot), at 3 interior points. Else nowhere."""
+    the barrel crosses a knot. With the firing envelope, at 3 interior points (chosen
+    when the friction was a smoothed law that turned within microseconds inside a step;
+    with the stick a mode a step ends at each turn, and dropping them measured no
+    faster, so they stay). Else nowhere."""
     buffer = params.buffer
     if buffer is None or buffer.orifice is None:
         return Sampling(3) if structure.envelope else Sampling()
@@ -132,15 +133,15 @@ def model_loop(
         crossing=Crossing(lambda args: battery_crossing(args.params, args.rest))
         if envelope
         else None,
+        modes=None if params.rails is None else STICKING,
     )
 
 
-def envelope_values(
-    params: RecoilParams, smoothing: Smoothing, run: PeakRun, values: dict, end, rest, envelope
-) -> dict:
+def envelope_values(params: RecoilParams, run: PeakRun, values: dict, end, rest, envelope) -> dict:
     """`values` (extremes by metric name) with the firing envelope's metrics of `run`:
     the return's (from its crossing), `residual_displacement` (`x_M(t1) − x_r`, with
-    `end = t1` and the rest `x_r`: `residual_at`), the stability margin (NaN without a
+    `end = t1` and the rest `x_r`; a run that stopped before `t1` stopped held, still),
+    the stability margin (NaN without a
     mount), the pull (no less than 0) and `returned`; all NaN for a design without the
     envelope (`envelope`: whether the design has it, `Structure`)."""
     out = dict(values)
@@ -152,21 +153,11 @@ def envelope_values(
     last = last_firing(params)
     out["return_time"] = jnp.where(returned, run.cross_time - last, end - last)
     out["battery_speed"] = jnp.where(returned, -run.cross_state[1], 0.0)
-    final = residual_at(run.final_state, run.final_time, end, smoothing)
-    out["residual_displacement"] = final - rest
+    out["residual_displacement"] = run.final_state[..., 0] - rest
     out["stability_margin"] = jnp.where(mounted(params), out["stability_margin"], jnp.nan)
     out["peak_pull_force"] = jnp.maximum(out["peak_pull_force"], 0.0)
     out["peak_mount_load"] = jnp.maximum(out["peak_anchoring_force"], out["peak_pull_force"])
     return out | {"returned": returned}
-
-
-def residual_at(final_state, final_time, end, smoothing: Smoothing):
-    """`x_M(t1)` from a run's last state (`final_state`, `(n,)`, at `final_time`; with
-    its tangents, their `x_M` row): the state itself at `t1 = end`, or, where the run
-    stopped before because the barrel is held (`held_bounds`), where the sticking law
-    takes it, `x_M + v_M τ` (its speed decays as `exp(−t/τ)`), tangents alike."""
-    early = final_time < end
-    return final_state[..., 0] + jnp.where(early, final_state[..., 1] * smoothing.stick_time, 0.0)
 
 
 def peaks_of_run(
@@ -185,7 +176,7 @@ def peaks_of_run(
     }
     times = {name: times.get(name, zero) for name in EXTREMES}
     envelope = (structure or Structure.of(params)).envelope
-    values = envelope_values(params, smoothing, run, values, end, rest, envelope)
+    values = envelope_values(params, run, values, end, rest, envelope)
     present = mounted(params) if envelope else False
     times["stability_margin"] = jnp.where(present, times["stability_margin"], jnp.nan)
     pushed = values["peak_anchoring_force"] >= values["peak_pull_force"]

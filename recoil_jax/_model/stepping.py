@@ -428,9 +428,17 @@ class PeakLoop:
             step, saved, save_index = self._past_stop(
                 c, args, step, upcoming, landing, t1, save_ts, saved, save_index
             )
-            if self.modes is not None:
+            if (modes := self.modes) is not None:
                 hit = step.keep & landing
-                settled_z, settled_mode = self.modes.settle(step.t_prev, step.z1, given)
+
+                def settle():
+                    z, new = modes.settle(step.t_prev, step.z1, given)
+                    return z.astype(step.z1.dtype), jnp.asarray(new, mode.dtype)
+
+                # Only where a lane jumped (as `_switched`).
+                settled_z, settled_mode = jax.lax.cond(
+                    eqxi.unvmap_any(hit), settle, lambda: (step.z1, mode)
+                )
                 step = step._replace(z1=jnp.where(hit, settled_z, step.z1))
                 mode = jnp.where(hit, settled_mode, mode)
                 switch_time = jnp.where(hit, jnp.inf, switch_time)
@@ -497,9 +505,17 @@ class PeakLoop:
         """After a kept step that ends at the guard's root: the state and mode switched
         (`Modes.switch`), the next step's first stage evaluated afresh. Returns
         `(step, mode, switch_time)`."""
-        assert self.modes is not None
+        modes = self.modes
+        assert modes is not None
         landed = step.keep & (c.switch_time == step.t_end)
-        z, mode = self.modes.switch(step.t_end, step.z1, args)
+
+        def switch():
+            z, mode = modes.switch(step.t_end, step.z1, args)
+            return z.astype(step.z1.dtype), jnp.asarray(mode, c.mode.dtype)
+
+        # Evaluated only where a lane landed (a switch is a few steps in hundreds; a flag
+        # the lanes share keeps the `cond` a branch under `vmap`).
+        z, mode = jax.lax.cond(eqxi.unvmap_any(landed), switch, lambda: (step.z1, c.mode))
         step = step._replace(z1=jnp.where(landed, z, step.z1), made_jump=step.made_jump | landed)
         return step, jnp.where(landed, mode, c.mode), jnp.where(landed, jnp.inf, switch_time)
 

@@ -14,11 +14,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._calibration.calibrate import fit_many
-from .._calibration.spec import CALIBRATION_SMOOTHING, Calibration
+from .._calibration.spec import Calibration
 from .._calibration.traces import Experiment, Trace
 from .._model.derivatives import SIGNAL_ALIASES
 from .._model.params import params_from_values, values_of, with_values
 from .._model.reference import reference_history
+from .._model.settings import Smoothing
 from .._model.solve import simulate
 from .._sweeps.memory import check_memory
 from .information import candidate_information
@@ -62,8 +63,7 @@ def plan_calibration(
     """The calibration of a plan's firings (`report`) from their `traces` (one per
     firing, in order): each experiment with its condition values, the sampled duration
     as `t1` and its signals' noise; the known values and bounds of the plan's problem,
-    starting from `start` (default the guess), fitted at a calibration's widths
-    (`CALIBRATION_SMOOTHING`, as the plan's calibration file is by `calibrate`)."""
+    starting from `start` (default the guess), at the model's widths."""
     problem = plan.problem
     guess = problem.guess
     experiments = [
@@ -79,7 +79,7 @@ def plan_calibration(
     start = {n: guess[n] for n in problem.fit} if start is None else dict(start)
     return Calibration(
         experiments, dict(problem.fit), start=start, design=known,
-        smoothing=CALIBRATION_SMOOTHING, options=problem.options,
+        options=problem.options,
     )  # fmt: skip
 
 
@@ -157,7 +157,7 @@ def check_plan(
     information, _ = candidate_information(
         params, fit, space, columns, plan.signals,
         [problem.signals[s].sigma for s in plan.signals], problem.times,
-        CALIBRATION_SMOOTHING, problem.options, theta[None],
+        Smoothing(), problem.options, theta[None],
     )  # fmt: skip
     results = {}
     for name in which:
@@ -221,5 +221,5 @@ def _signals_at(params, condition, signals, problem, reference) -> dict[str, np.
     p = with_values(params, tuple(condition), jnp.asarray(list(condition.values())))
     # To the last sample, as the calibration solves it: not the model's default 10 s.
     options = dataclasses.replace(problem.options, t1=float(problem.times[-1]))
-    history = simulate(p, CALIBRATION_SMOOTHING, options, ts=jnp.asarray(problem.times))
+    history = simulate(p, Smoothing(), options, ts=jnp.asarray(problem.times))
     return {s: np.asarray(getattr(history, str(_FIELDS.get(s) or s))) for s in signals}

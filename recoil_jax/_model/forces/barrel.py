@@ -42,8 +42,8 @@ class Barrel(Force):
         damper = self.c_ret * v_M + (self.c_out - self.c_ret) * smooth_relu(v_M, width_v)
         return {"recoil_spring": self.k * x_M, "recoil_damper": damper}
 
-    def held_change(self, creep, design: Design) -> Any:
-        """0: the spring's change over the held test's creep (< 1e-9 m) is neglected."""
+    def held_change(self, design: Design) -> Any:
+        """0: the spring's and damper's forces are the barrel's state's."""
         return 0.0
 
     @classmethod

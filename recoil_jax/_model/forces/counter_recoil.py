@@ -38,7 +38,7 @@ class CounterRecoilBuffer(Force):
         """0: its share is never positive (`F_cb <= 0`)."""
         return 0.0
 
-    def held_change(self, creep, design: Design) -> Any:
+    def held_change(self, design: Design) -> Any:
         """0: its speed ramp is one-sided: a barrel at rest feels none of it."""
         return 0.0
 

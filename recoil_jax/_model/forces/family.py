@@ -138,9 +138,10 @@ class Force(Part):
         mechanical energy is at most `two_energy / 2` (J); None if not known."""
         return None
 
-    def held_change(self, creep, design: Design) -> Any:
-        """How much its `F_AN` share can still change (N) while the barrel is held by its
-        friction and creeps at most `creep` (m); None if not known."""
+    def held_change(self, design: Design) -> Any:
+        """How much its `F_AN` share can still change (N) while the barrel is held still
+        by its friction (the stick a mode: it does not creep), by time alone; None if not
+        known."""
         return None
 
 

@@ -88,8 +88,8 @@ class Buffer(Force):
         smallest = jnp.min(jnp.asarray(self.orifice))
         return buffer_coefficient(self) * (two_energy / design.barrel.M) / smallest**2
 
-    def held_change(self, creep, design: Design) -> Any:
-        """0: the orifice's force on a held barrel (`v_M < 1e-6 m/s`) is neglected."""
+    def held_change(self, design: Design) -> Any:
+        """0: the orifice's force is the barrel's speed's, 0 on a held barrel."""
         return 0.0
 
 

@@ -104,6 +104,6 @@ class Recuperator(Force):
         """`F_g` at the reach (it grows with `x_M`)."""
         return jnp.maximum(recuperator_force(reach, self), 0.0)
 
-    def held_change(self, creep, design: Design) -> Any:
-        """0: the gas spring's change over the held test's creep (< 1e-9 m) is neglected."""
+    def held_change(self, design: Design) -> Any:
+        """0: the gas spring's force is the barrel's position's."""
         return 0.0

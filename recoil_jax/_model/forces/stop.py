@@ -35,8 +35,8 @@ class BatteryStop(Force):
         loses."""
         return {"stop": stop_force(y[0], y[1], self, smoothing)}
 
-    def held_change(self, creep, design: Design) -> Any:
-        """0: the stop's change over the held test's creep (< 1e-9 m) is neglected."""
+    def held_change(self, design: Design) -> Any:
+        """0: the stop's force is the barrel's state's."""
         return 0.0
 
 

@@ -20,7 +20,6 @@ import numpy as np
 from ..._model.forces.absorber import contact_width, coupling_forces
 from ..._model.forces.loads import breech_force
 from ..._model.forces.rails import GRAVITY, friction_bound, sin_cos
-from ..._model.forces.smoothing import smooth_step
 from ..._model.metrics import METRICS
 from ..._model.params import RecoilParams
 from ..._model.registry import ParameterError, is_concrete
@@ -31,7 +30,9 @@ __all__ = [
     "Structure",
     "check_envelope_metrics",
     "forces",
+    "friction_mode",
     "has_envelope",
+    "moded_friction",
     "net_force",
 ]
 
@@ -122,9 +123,13 @@ class Forces(eqx.Module):
 # in about 30 places (stages, rates, jumps, peaks), and re-running this Python for each
 # was a third of its trace time. XLA inlines the call: the compiled code is the same.
 @jax.jit
-def forces(y, params: RecoilParams, smoothing: Smoothing, width_contact=None, t=None) -> Forces:
+def forces(
+    y, params: RecoilParams, smoothing: Smoothing, width_contact=None, t=None, mode=None
+) -> Forces:
     """All forces at state `y` (shape `(4,)`), smoothed as `smoothing` says; the breech
-    force (designs with a pulse or table load) needs the time `t` (s). The family's sum
+    force (designs with a pulse or table load) needs the time `t` (s). `mode`: the
+    barrel's on its rails (`sticking`: 0 held, ±1 sliding that way), as the stepping
+    loop carries it; None: as the state has it (`friction_mode`). The family's sum
     (`Force`): each force the design has gives its shares of `F_AN`, the mechanism's
     first, then the rails' friction (which takes what the others leave), then the
     reactions (the battery stop).
@@ -162,7 +167,11 @@ def forces(y, params: RecoilParams, smoothing: Smoothing, width_contact=None, t=
     unheld = Forces(tuple(shares.values()), tuple(shares), len(reactions), **between, **external)
     if params.rails is None:
         return unheld
-    shares = mechanism | {"friction": _friction(unheld, y, params, smoothing)} | reactions
+    net, bound = net_force(unheld), friction_bound(params)
+    if mode is None:  # a state met outside the loop: its mode from the state itself
+        mode = friction_mode(net, bound, y[1])
+    friction = moded_friction(net, bound, mode)
+    shares = mechanism | {"friction": friction} | reactions
     return Forces(tuple(shares.values()), tuple(shares), len(reactions), **between, **external)
 
 
@@ -233,30 +242,17 @@ def net_force(f: Forces):
     return net
 
 
-def _friction(f: Forces, y, params: RecoilParams, smoothing: Smoothing):
-    """The rails' friction (N) where the other forces are `f` (`docs/model.md`, *Sticking*):
-    `F_f = clamp(N_h + M v_M / τ, ±F_max)` with `τ = stick_time`, where `N` is the net
-    force on the barrel from everything but friction (the breech force included, so
-    `forces` needs the time `t` for a design with a pulse or table load), and
+def friction_mode(net, bound, speed):
+    """The stick–slip mode of a barrel met afresh (`sticking`): moving, sliding its way
+    (±1); still, held (0) within the band `|net| <= bound`, else sliding the way it is
+    pushed."""
+    still = jnp.where(jnp.abs(net) <= bound, 0.0, jnp.sign(net))
+    return jnp.where(speed != 0, jnp.sign(speed), still)
 
-    - inside the band, `|N| <= F_max`: `N_h = N`. A barrel at rest stays at rest
-      (friction takes `N`), and any speed it has is relaxed to 0 over `τ`: no creep;
-    - outside it: `N_h = ±F_max`, opposing the motion: `−sign(N) F_max` while the
-      barrel moves against `N` (slowing to reverse) and `+sign(N) F_max` once it moves
-      with it (or starts from rest). The friction is then `F_max` against the motion,
-      switching as `v_M` crosses 0 within `slip_width`, as the exact law's sign does.
-      Over `|N| − F_max < friction_width` the two join continuously.
-    """
-    net = net_force(f)
-    bound, width = friction_bound(params), smoothing.friction_width
-    direction = jnp.where(net >= 0, 1.0, -1.0)
-    # 1 moving with N or at rest (a barrel at rest starts in N's direction, with the
-    # full friction against it), 0 moving against it faster than 2 slip_width.
-    along = 1.0 - smooth_step(-direction * y[1] - smoothing.slip_width, smoothing.slip_width)
-    excess = jnp.abs(net) - bound
-    safe_width = jnp.where(width > 0, width, 1.0)
-    against = jnp.where(width > 0, jnp.clip(excess / safe_width, 0.0, 1.0), 1.0)
-    outside = direction * bound * (1.0 - 2.0 * (1.0 - along) * against)
-    held = jnp.where(excess <= 0, net, outside)
-    relaxing = held + params.barrel.M * y[1] / smoothing.stick_time
-    return jnp.clip(relaxing, -bound, bound)
+
+def moded_friction(net, bound, mode):
+    """The rails' friction (N) in a mode of the stick–slip (`sticking`), where the net
+    force on the barrel from everything but friction is `net` and the most the friction
+    holds `bound`: held (mode 0), all of `net` (within the band, which the mode's guard
+    keeps); sliding the way `mode = ±1` says, `bound` against the motion."""
+    return jnp.where(mode == 0, jnp.clip(net, -bound, bound), mode * bound)

@@ -3,8 +3,8 @@ defaults. The shipped plan's firings (`optimise/plans/envelope_friction.toml`, p
 here), their traces drawn by the independent hard-switch solver with the plan's noise at
 truths drawn from the box's middle half, and each fitted by `calibrate` as a user runs
 it: no option, the plan's guess as its start. Beside it, on the first draws of each
-truth, one start and 16 starts without continuation (at the calibration's widths,
-`rjx.CALIBRATION_SMOOTHING`). Figures printed, never asserted (`docs/calibration.md`).
+truth, one start and 16 starts without continuation. Figures printed, never asserted
+(`docs/calibration.md`).
 """
 
 from __future__ import annotations

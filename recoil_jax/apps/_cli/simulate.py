@@ -52,8 +52,8 @@ def run_simulate(args) -> int:
     warn(design_warnings(values | {"t1": options.t1}, table))
     if args.hard:
         smoothing = rj.Smoothing.exact()
-    else:  # a calibration's or plan's firing: the widths its calibration fits at
-        smoothing = rj.Smoothing() if source is None else source.smoothing
+    else:
+        smoothing = rj.Smoothing()
     # Checked here, not inside the program: a program that can raise holds a host
     # callback, and JAX does not keep those in the compilation cache.
     from .._files.exported import exported_peaks
@@ -78,7 +78,7 @@ def run_simulate(args) -> int:
             )
         )
     else:
-        _print_peaks(result, hazards, used, params, table, args.hard, source)
+        _print_peaks(result, hazards, used, params, table, args.hard)
     if plot is None and trace is None:
         return 0
     history = rj.simulate(params, smoothing, options, ts=np.linspace(0.0, t1, 20001))
@@ -114,13 +114,11 @@ def _design_values(args) -> tuple[dict, Any]:
     return source.values | values, source  # the command line's win
 
 
-def _print_peaks(result: dict, hazards: list, used: dict, params, table, hard: bool, source):
+def _print_peaks(result: dict, hazards: list, used: dict, params, table, hard: bool):
     """The text report of one design's peaks: the model, the parameters used, each
     metric with its time, and the hazards."""
     model = "simplified (no absorber)" if params.absorber is None else "with absorber"
     switches = "hard" if hard else "smoothed"
-    if not hard and source is not None and source.smoothing != rj.Smoothing():
-        switches += " (at the widths its calibration fits at)"
     print(f"recoil-jax: {model}, {switches} switches")
     numbers = {k: v for k, v in used.items() if k != "force_table"}
     print("  parameters: " + ", ".join(f"{k}={v:g}" for k, v in numbers.items()))

@@ -17,7 +17,6 @@ import itertools
 from pathlib import Path
 
 import recoil_jax as rj
-import recoil_jax.extend as rjx
 
 from .inputs import read_toml
 
@@ -38,9 +37,6 @@ class DesignSource:
     duration: float | None = None
     #: Names the file leaves to be given (a study's tuned values).
     required: tuple[str, ...] = ()
-    #: The widths its traces are drawn at: a calibration's or a plan's are fitted at a
-    #: calibration's (`rjx.CALIBRATION_SMOOTHING`), a study's at the model's.
-    smoothing: rj.Smoothing = rj.Smoothing()  # noqa: RUF009 (immutable)
 
 
 def _numbers(table: dict, where: str, skip=()) -> dict[str, float]:
@@ -112,8 +108,7 @@ def design_from_file(path, which: str | None = None) -> DesignSource:
                              "force_table", "t_shift"))  # fmt: skip
         sigma = _numbers(entry.get("sigma", {}), f"{path} [[experiment]] {index + 1} sigma")
         label = f"{path}, experiment {index + 1} ({entry.get('trace', entry.get('name', ''))})"
-        return DesignSource(design | fitted | own, label, sigma,
-                            smoothing=rjx.CALIBRATION_SMOOTHING)  # fmt: skip
+        return DesignSource(design | fitted | own, label, sigma)
     if "candidates" in config:  # a plan
         candidates = config["candidates"]
         names = list(candidates)
@@ -128,7 +123,6 @@ def design_from_file(path, which: str | None = None) -> DesignSource:
         return DesignSource(
             design | _numbers(row, label), label, sigma,
             rate=sampling.get("rate", 1000.0), duration=sampling.get("duration", 1.0),
-            smoothing=rjx.CALIBRATION_SMOOTHING,
         )  # fmt: skip
     if "tune" in config:  # a study
         conditions = config.get("condition", [])

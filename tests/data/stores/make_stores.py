@@ -9,7 +9,9 @@ it was before, kept to show that such a store is refused), and the calibration's
 for issue 63 (the fit's third stopping test, a field of its settings, is in every
 calibration store's identity), and the calibration's again at d4bfe79 (issue 65) from a
 trace kept as numbers (`calibration_trace.csv`: the simulated one's last bits, and so its
-store's identity, differed between CPUs), with
+store's identity, differed between CPUs), and all four again for the model's revision 3
+(issue 66: the stick a mode, the friction's smoothing widths gone from every identity;
+`sweep_revision2.sqlite` is the sweep's store as it was before, refused), with
 
     PYTHONPATH=<a checkout of 66a0bae> python tests/data/stores/make_stores.py tests/data/stores
 
