@@ -421,7 +421,7 @@ def _tangent_switch(t, z, args: TangentArgs, wrt):
 def _tangent_modes(wrt: tuple[str, ...]) -> Modes:
     """`STICKING` for the tangent system (one per `wrt`)."""
     return Modes(
-        enter=lambda args, mode: dataclasses.replace(args, mode=mode),
+        enter=STICKING.enter,  # (a `TangentArgs` takes its mode as a `ModelArgs` does)
         settle=_tangent_settle,
         guard=_tangent_guard,
         switch=functools.partial(_tangent_switch, wrt=wrt),

@@ -33,10 +33,10 @@ def _enter(args: ModelArgs, mode) -> ModelArgs:
 
 
 def _settle(t, y, args: ModelArgs):
-    """The mode at t = 0 and after a round's jump, the speed of a held barrel set to 0."""
+    """The mode at t = 0 and after a round's jump (`friction_mode`: held only where the
+    barrel is still, so the state stands as it is)."""
     net, bound = net_and_bound(t, y, args)
-    mode = friction_mode(net, bound, y[1])
-    return jnp.where(mode == 0, y.at[1].set(0.0), y), mode
+    return y, friction_mode(net, bound, y[1])
 
 
 def _guard(t, y, args: ModelArgs):
