@@ -15,6 +15,7 @@ _jax.config.update("jax_enable_x64", True)
 # The lower-level interfaces (extension parts, batches, codes): `recoil_jax.extend`.
 from . import extend as extend
 from ._calibration.calibrate import calibrate as calibrate
+from ._calibration.posterior import sample_posterior as sample_posterior
 from ._calibration.predict import predict as predict
 from ._calibration.result import CalibrationResult as CalibrationResult
 from ._calibration.spec import Calibration as Calibration
@@ -156,6 +157,7 @@ __all__ = [  # noqa: RUF022 (grouped by topic, as the docs)
     "Stopping",
     # Calibration
     "Calibration", "CalibrationResult", "calibrate", "read_trace", "predict",
+    "sample_posterior",
     # Global sensitivity
     "sensitivity", "SensitivityResult", "SobolIndices", "MorrisEffects", "DGSM",
     # Planning a firing test

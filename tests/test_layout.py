@@ -84,8 +84,8 @@ def test_the_public_api_is_small_and_declared():
     # 70 for the solver and the design layer (issue 43), 5 for calibration, 5 for global
     # sensitivity (the function, its result and its three methods), 4 for the firing
     # envelope's parameter groups (issue 54: Rails, BatteryStop, CounterRecoilBuffer, Mount)
-    # and 1 for its firing conditions (`Condition`).
-    assert len(rj.__all__) <= 90 and len(set(rj.__all__)) == len(rj.__all__)
+    # and 1 for its firing conditions (`Condition`), 1 for the posterior (issue 67).
+    assert len(rj.__all__) <= 91 and len(set(rj.__all__)) == len(rj.__all__)
     assert all(hasattr(rj, name) for name in rj.__all__)
     assert all(hasattr(rj.extend, name) for name in rj.extend.__all__)
     # A name is public in one place: the top level or `recoil_jax.extend`.
@@ -233,6 +233,7 @@ RJ_NAMES = (
     "Buffer",
     "Calibration",
     "CalibrationResult",
+    "sample_posterior",
     "CampaignProgress",
     "Condition",
     "Constraint",
@@ -324,6 +325,9 @@ RJX_NAMES = (
     "DesignEvaluation",
     "Experiment",
     "Fitted",
+    "ModelMisfitError",
+    "Posterior",
+    "Prior",
     "FittedParameters",
     "Force",
     "Forces",
@@ -395,6 +399,7 @@ RJX_NAMES = (
     "PlanReport",
     "candidate_information",
     "check_plan",
+    "check_posterior_settings",
     "check_tests_memory",
     "plan_calibration",
 )

@@ -15,6 +15,7 @@ and predicting from it. One module a concept:
 - `campaign`: a calibration kept in a store, so that a killed one resumes;
 - `calibrate`: the entry points (`calibrate`, `validate`, `fit_many`);
 - `model_check`: does the model explain the traces (`ModelCheck`);
+- `posterior`: the posterior by NUTS on the fit's likelihood (`sample_posterior`);
 - `predict`: the fitted parameters' uncertainty (`FittedParameters`) and any design's
   peaks with a band from it (`predict`).
 

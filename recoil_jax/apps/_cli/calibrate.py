@@ -37,7 +37,9 @@ __all__ = [
     "LOCAL_MINIMUM",
     "MODEL_MISFIT",
     "NOT_CONVERGED",
+    "POSTERIOR_NOT_CONVERGED",
     "add_command",
+    "posterior_report",
     "prediction_report",
     "run_calibrate",
     "run_calibration",
@@ -52,6 +54,9 @@ MODEL_MISFIT = 5
 #: The exit status when the model check failed at a best point only one start reached:
 #: the fit may be stuck in a local minimum, not the model wrong (`result.verdict`).
 LOCAL_MINIMUM = 6
+#: The exit status when the posterior was sampled but its sampler did not converge
+#: (split R-hat over 1.01, a bulk ESS under 400, or a divergent transition).
+POSTERIOR_NOT_CONVERGED = 7
 #: The starts `calibrate` suggests when its fit may be stuck.
 SUGGESTED_STARTS = 16
 
@@ -149,6 +154,7 @@ def run_calibration(args) -> int:
     calibration, settings = _read_calibration(args, source)
     starts = args.starts if args.starts is not None else settings["starts"]
     _check_before_fit(calibration, starts, args.store)
+    sampling = _posterior_settings(args, calibration, settings["posterior"])
     if args.predict is not None:
         _check_prediction(calibration, parse_assignments(args.predict))
     warn(design_warnings(values_taken(
@@ -178,13 +184,74 @@ def run_calibration(args) -> int:
         report["prediction"] = prediction.to_json()
         report["figures"].append(str(plot_prediction(prediction, out / "prediction.png")))
     write_json(out / "result.json", report)
+    status = _exit_status(result, args.predict is not None)
+    posterior = None
+    if sampling is not None and status == 0:
+        from .._figures.calibration import plot_posterior
+
+        posterior = rj.sample_posterior(calibration, fit=result, progress=True, **sampling)
+        posterior.to_netcdf(out / "posterior.nc")
+        report["posterior"] = posterior.to_json()
+        report["figures"].append(str(plot_posterior(posterior, out / "posterior.png")))
+        write_json(out / "result.json", report)
+    elif sampling is not None:
+        print("recoil-jax: the posterior was not sampled: the fit above must converge and its "
+              "model explain the traces first", file=sys.stderr)  # fmt: skip
     if args.json:
         print(dumps(report))
     else:
         print(fit_report(result))
         if "prediction" in report:
             print(prediction_report(report["prediction"]))
-    return _exit_status(result, args.predict is not None)
+        if posterior is not None:
+            print(posterior_report(posterior))
+    if posterior is not None and not posterior.converged:
+        for problem in posterior.problems:
+            print(f"recoil-jax: the sampler has not converged: {problem}", file=sys.stderr)
+        return POSTERIOR_NOT_CONVERGED
+    return status
+
+
+def _posterior_settings(args, calibration: rj.Calibration, table: dict) -> dict | None:
+    """`sample_posterior`'s settings: the file's `[posterior]` with `--draws`,
+    `--warmup`, `--chains` over it, checked before the fit; None without `--posterior`."""
+    given = {k: getattr(args, k) for k in ("draws", "warmup", "chains")
+             if getattr(args, k) is not None}  # fmt: skip
+    if not args.posterior:
+        if given:
+            raise rj.ParameterError(f"--{next(iter(given))} is for --posterior")
+        return None
+    settings = table | given
+    checked = {k: v for k, v in settings.items() if k != "dense_mass"}
+    rjx.check_posterior_settings(calibration, **checked)
+    return settings
+
+
+def posterior_report(posterior: rjx.Posterior) -> str:
+    """The posterior's summary: per value its mean, sd, 2.5/50/97.5 % quantiles, R-hat
+    and bulk ESS beside the fit's Laplace interval; then the gates."""
+    chains, draws = posterior.draws.shape[:2]
+    lines = [
+        f"posterior: {chains} chains × {draws} draws (NUTS), {posterior.divergences} "
+        f"divergent, {posterior.ess_per_second:.0f} ESS/s",
+        f"  {'value':<16} {'mean':>12} {'sd':>10} {'2.5%':>12} {'50%':>12} {'97.5%':>12} "
+        f"{'R-hat':>6} {'ESS':>6}  Laplace 95 %",
+    ]
+    for label, row in posterior.summary.items():
+        laplace = ("none" if row["ci95"] is None
+                   else f"[{row['ci95'][0]:.6g}, {row['ci95'][1]:.6g}]")  # fmt: skip
+        r_hat = "" if row["r_hat"] is None else f"{row['r_hat']:.3f}"
+        lines.append(
+            f"  {label:<16} {row['mean']:>12.6g} {row['sd']:>10.4g} {row['q2.5']:>12.6g} "
+            f"{row['q50']:>12.6g} {row['q97.5']:>12.6g} {r_hat:>6} {row['ess_bulk']:>6.0f}  "
+            f"{laplace}{'  (differs)' if row['disagree'] else ''}"
+        )
+    noise = [f"{name} {n['sigma']:.3g} ({'given' if n['given'] else 'estimated by the fit'})"
+             for experiment in posterior.noise for name, n in experiment.items()]  # fmt: skip
+    lines.append(f"  the likelihood's noise, held fixed: {', '.join(noise)}")
+    lines += [f"  {line}" for line in posterior.disagreements]
+    lines.append("  converged" if posterior.converged else "  NOT converged: see below")
+    return "\n".join(lines)
 
 
 def _check_prediction(calibration: rj.Calibration, given: dict[str, Any]) -> None:
@@ -222,7 +289,7 @@ def _read_calibration(args, source: Path) -> tuple[rj.Calibration, dict[str, Any
             source, args.fit, args.assignments, args.validate or [], args.force_table
         )
         return calibration, {"starts": rjx.DEFAULT_STARTS, "seed": 0, "fit_steps": 200,
-                             "description": ""}  # fmt: skip
+                             "description": "", "posterior": {}}  # fmt: skip
     if args.fit:
         raise rj.ParameterError("--fit is for a trace (.csv); a calibration file has [fit]")
     if args.assignments:
@@ -444,7 +511,8 @@ def add_command(commands: Commands) -> None:
         "Exit 0 fitted, 1 a solve failed, 2 bad input, 4 the fit did not converge, 5 the "
         "model does not explain the traces (residuals far above the traces' own noise, "
         "or far from white) at a best point two starts reached, 6 the same at a best point "
-        "one start reached (the fit may be in a local minimum: try more --starts).",
+        "one start reached (the fit may be in a local minimum: try more --starts), 7 "
+        "(--posterior) the sampler has not converged.",
     )
     calibrate.add_argument("source", help="a calibration file (.toml) or a trace (.csv)")
     calibrate.add_argument("assignments", nargs="*", metavar="name=value",
@@ -490,5 +558,16 @@ def add_command(commands: Commands) -> None:
         metavar="FILE.csv",
         help="with a trace: the breech force of one round it fired (header t_s,F_N)",
     )
+    calibrate.add_argument(
+        "--posterior",
+        action="store_true",
+        help="then sample the posterior (NUTS, the file's [posterior] settings; "
+        "posterior.nc, posterior.png); exit 7 when its sampler has not converged",
+    )
+    for name, words in (("draws", "draws per chain (default 1000)"),
+                        ("warmup", "warm-up steps per chain (default 1000)"),
+                        ("chains", "chains (default 4)")):  # fmt: skip
+        calibrate.add_argument(f"--{name}", type=int, metavar="N",
+                               help=f"with --posterior: {words}, over the file's")  # fmt: skip
     add_json(calibrate)
     add_max_steps(calibrate)

@@ -17,6 +17,7 @@ __all__ = [
     "calibration_figures",
     "plot_calibration_fit",
     "plot_correlation",
+    "plot_posterior",
     "plot_prediction",
     "plot_profiles",
 ]
@@ -168,4 +169,62 @@ def plot_prediction(prediction: rjx.Prediction, path) -> Path:
         f"{prediction.failed} failed)",
         fontsize=10,
     )
+    return save(fig, path)
+
+
+def plot_posterior(posterior: rjx.Posterior, path) -> Path:
+    """The posterior's corner plot: each value's marginal (histogram of every draw) with
+    the least-squares Laplace normal over it, and each pair's draws (up to 2,000) with the
+    Laplace 95 % ellipse; where the two differ, the draws are the posterior."""
+    labels = posterior.labels
+    P = len(labels)
+    flat = posterior.draws.reshape(-1, P)
+    fit = posterior.fit
+    value = np.array([fit.values[k] for k in labels])
+    covariance = np.asarray(fit.covariance, dtype=float)
+    shown = flat[np.linspace(0, len(flat) - 1, min(len(flat), 2000)).astype(int)]
+    size = max(2.2, min(3.2, 9.0 / P))
+    fig, axes = plt.subplots(P, P, figsize=(size * P, size * P), squeeze=False,
+                             layout="constrained")  # fmt: skip
+    for i in range(P):
+        for j in range(P):
+            ax = axes[i, j]
+            if j > i:
+                ax.set_visible(False)
+                continue
+            if i == j:
+                ax.hist(flat[:, i], bins=50, density=True, color="0.7")
+                sd = np.sqrt(covariance[i, i])
+                if np.isfinite(sd) and sd > 0:
+                    xs = np.linspace(flat[:, i].min(), flat[:, i].max(), 200)
+                    density = np.exp(-0.5 * ((xs - value[i]) / sd) ** 2) / (sd * np.sqrt(2 * np.pi))
+                    ax.plot(xs, density, color="C3", lw=1.2, label="Laplace")
+                ax.set_yticks([])
+                if i == 0:
+                    ax.legend(fontsize=7, loc="upper right")
+            else:
+                ax.plot(shown[:, j], shown[:, i], ".", ms=1.5, color="C0", alpha=0.4)
+                block = covariance[np.ix_([j, i], [j, i])]
+                if np.all(np.isfinite(block)):
+                    # The 95 % ellipse of two jointly normal values: χ²₂ = 5.99.
+                    w, v = np.linalg.eigh(block)
+                    t = np.linspace(0, 2 * np.pi, 200)
+                    ring = (v * np.sqrt(np.maximum(w, 0) * 5.991)) @ np.stack(
+                        [np.cos(t), np.sin(t)]
+                    )
+                    ax.plot(value[j] + ring[0], value[i] + ring[1], color="C3", lw=1.0)
+            if i == P - 1:
+                ax.set_xlabel(labels[j])
+                ax.tick_params(axis="x", labelrotation=30, labelsize=7)
+            else:
+                ax.set_xticklabels([])
+            if j == 0 and i > 0:
+                ax.set_ylabel(labels[i])
+                ax.tick_params(axis="y", labelsize=7)
+            elif j > 0:
+                ax.set_yticklabels([])
+    chains, draws = posterior.draws.shape[:2]
+    verdict = "converged" if posterior.converged else "NOT converged"
+    fig.suptitle(f"posterior: {chains} chains × {draws} draws, {verdict}; red: the "
+                 "least-squares Laplace approximation", fontsize=9)  # fmt: skip
     return save(fig, path)

@@ -45,7 +45,9 @@ MAX_SIGNAL = 1e150
 
 #: The keys of a calibration file, and of one `[[experiment]]` besides design values.
 _FILE_KEYS = {"description", "design", "fit", "experiment", "validation", "loss", "f_scale",
-              "starts", "seed", "fit_steps", "force_table"}  # fmt: skip
+              "starts", "seed", "fit_steps", "force_table", "posterior"}  # fmt: skip
+#: The keys of `[posterior]` (`recoil-jax calibrate --posterior`), and of each prior.
+_POSTERIOR_KEYS = {"draws", "warmup", "chains", "seed", "dense_mass", "target_acceptance", "prior"}
 _EXPERIMENT_KEYS = {"trace", "sigma", "per_experiment", "window", "name", "force_table"}
 
 
@@ -168,12 +170,45 @@ def load_calibration(path) -> tuple[rj.Calibration, dict[str, Any]]:
         force_table=_force_table("force_table", config.get("force_table"), folder),
     )
     settings = {
+        "posterior": _posterior(path, config.get("posterior", {})),
         "starts": config.get("starts", rjx.DEFAULT_STARTS),
         "seed": config.get("seed", 0),
         "fit_steps": config.get("fit_steps", 200),
         "description": description,
     }
     return calibration, settings
+
+
+def _posterior(path: Path, table: Any) -> dict[str, Any]:
+    """`[posterior]`: `sample_posterior`'s settings by name (checked against the
+    calibration by `rjx.check_posterior_settings` before the fit), its priors under
+    `[posterior.prior]` as `name = { kind = "normal", mean = .., sd = .. }`."""
+    if not isinstance(table, dict):
+        raise _error(str(path), "write the sampler's settings as a [posterior] table")
+    check_keys(path, "posterior", table, _POSTERIOR_KEYS)
+    settings: dict[str, Any] = {}
+    for key in ("draws", "warmup", "chains", "seed"):
+        if key in table:
+            settings[key] = table[key]
+    for key in ("dense_mass",):
+        if key in table:
+            if not isinstance(table[key], bool):
+                raise _error(str(path), f"[posterior] {key} = {table[key]!r}: give true or false")
+            settings[key] = table[key]
+    if "target_acceptance" in table:
+        settings["target_acceptance"] = _number(
+            "[posterior] target_acceptance", table["target_acceptance"]
+        )
+    priors = table.get("prior", {})
+    if not isinstance(priors, dict):
+        raise _error(str(path), "write each prior under [posterior.prior] as name = { .. }")
+    settings["priors"] = {}
+    for name, spec in priors.items():
+        try:
+            settings["priors"][name] = rjx.Prior.of(spec)
+        except rj.ParameterError as error:
+            raise _error(str(path), f"[posterior.prior] {name}: {error}") from None
+    return settings
 
 
 def check_experiments(count: int, where: str) -> None:

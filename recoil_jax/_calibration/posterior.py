@@ -1,0 +1,727 @@
+"""The posterior of a calibration (`sample_posterior`): NUTS (blackjax, with Stan's window
+adaptation) on the fit's own likelihood, with the exact forward sensitivities as its
+gradient, and ArviZ's diagnostics (split R̂, bulk and tail ESS) and draws' format.
+
+The least-squares fit's Laplace intervals are the curvature at the optimum; where the
+model is far from linear over them (friction measured at one elevation, a gap the barrel
+barely closes, a value near its bound) the posterior is a ridge, a banana or a
+half-distribution, and only draws show it.
+
+**Coordinates.** The chains move in `y = logit(z)`, `z` the fit's box coordinates (the
+bounds 0 and 1, linear or logarithmic: `SearchSpace`), so that no draw leaves the bounds;
+the density carries the transform's Jacobian, so that a uniform prior is uniform in the
+parameter itself. The likelihood is the fit's: `−½ Σ ρ(r²)` over every experiment, signal
+and sample (`r` in noise units, `ρ` the calibration's loss), under the noise the fit
+settled on (given, or estimated from the traces and then held fixed).
+
+**Programs.** Warm-up and sampling are one compiled program each, run chain after chain
+(and the draws in blocks, for the progress line): on a CPU, chains in lockstep (`vmap`)
+would each wait for the longest trajectory of the batch, and a vmapped solve selects its
+whole carry at every step (`docs/speed.md`). Compilation is timed apart.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+import warnings
+from collections.abc import Mapping
+from typing import Any, NamedTuple, cast
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._campaigns.progress import Progress
+from .._model.programs import compiled_ahead
+from .._model.registry import ParameterError
+from .layout import Layout, prepare
+from .least_squares import FitSettings, evaluate, robust
+from .result import CalibrationResult
+from .spec import Calibration
+
+__all__ = [
+    "DEFAULT_CHAINS",
+    "DEFAULT_DRAWS",
+    "DEFAULT_WARMUP",
+    "ModelMisfitError",
+    "Posterior",
+    "Prior",
+    "check_posterior_settings",
+    "sample_posterior",
+]
+
+#: Draws per chain, warm-up steps per chain and chains, unless told.
+DEFAULT_DRAWS = 1000
+DEFAULT_WARMUP = 1000
+DEFAULT_CHAINS = 4
+#: The most draws (or warm-up steps) per chain, and chains, a call accepts: past these a
+#: run is a mistake, not a study (a million solves at the least).
+MAX_DRAWS = 100_000
+MAX_CHAINS = 64
+
+#: The honesty gates (Vehtari et al. 2021): split R̂ over this, or a bulk ESS under
+#: `MIN_ESS`, or any divergent transition, and the sampler has not converged.
+MAX_RHAT = 1.01
+MIN_ESS = 400
+#: Where the posterior's 95 % interval and the Laplace one differ by more than this
+#: share of the Laplace interval's width (at either end), the report says so.
+DISAGREEMENT = 0.2
+#: A normal prior with more than this share of its mass outside the bounds is warned of.
+PRIOR_MASS_OUTSIDE = 0.5
+
+_KINDS = ("uniform", "normal", "lognormal")
+
+
+class ModelMisfitError(RuntimeError):
+    """The model check failed: the model does not explain the traces, so its posterior
+    would be a statement about the wrong model (not sampled)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Prior:
+    """A fitted value's prior, within its bounds (truncated to them): `"uniform"` (the
+    default: flat over the bounds, in the value itself), `"normal"` with `mean` and `sd`,
+    or `"lognormal"` with the `mean` and `sd` of the value (not of its logarithm; the
+    value must be positive over its bounds). SI units."""
+
+    kind: str = "uniform"
+    mean: float | None = None
+    sd: float | None = None
+
+    def __post_init__(self):
+        if self.kind not in _KINDS:
+            raise ParameterError(f"prior kind {self.kind!r}: one of {', '.join(_KINDS)}")
+        if self.kind == "uniform":
+            if self.mean is not None or self.sd is not None:
+                raise ParameterError("a uniform prior takes no mean or sd (it is the bounds)")
+            return
+        for name in ("mean", "sd"):
+            value = getattr(self, name)
+            if value is None or not math.isfinite(float(value)):
+                raise ParameterError(f"a {self.kind} prior needs a finite {name}, got {value}")
+        if float(self.sd) <= 0:  # pyright: ignore[reportArgumentType]
+            raise ParameterError(f"prior sd must be > 0, got {self.sd}")
+        if self.kind == "lognormal" and float(self.mean) <= 0:  # pyright: ignore[reportArgumentType]
+            raise ParameterError(f"a lognormal prior's mean must be > 0, got {self.mean}")
+
+    @classmethod
+    def of(cls, spec) -> Prior:
+        """A `Prior` from itself, a kind's name, or a mapping `{kind, mean, sd}`."""
+        if isinstance(spec, Prior):
+            return spec
+        if isinstance(spec, str):
+            return cls(spec)
+        if isinstance(spec, Mapping):
+            unknown = set(spec) - {"kind", "mean", "sd"}
+            if unknown:
+                raise ParameterError(f"prior: unknown key {sorted(unknown)[0]!r} (kind, mean, sd)")
+            return cls(str(spec.get("kind", "normal")), spec.get("mean"), spec.get("sd"))
+        raise ParameterError(f"prior: a kind's name or a table {{kind, mean, sd}}, got {spec!r}")
+
+    def log_parameters(self) -> tuple[int, float, float]:
+        """`(kind index, location, scale)` of the density's kernel: a normal's mean and
+        sd; a lognormal's in the logarithm (from the value's mean and sd)."""
+        if self.kind == "uniform":
+            return 0, 0.0, 1.0
+        mean, sd = float(self.mean), float(self.sd)  # pyright: ignore[reportArgumentType]
+        if self.kind == "normal":
+            return 1, mean, sd
+        variance = math.log1p((sd / mean) ** 2)
+        return 2, math.log(mean) - variance / 2, math.sqrt(variance)
+
+
+class _Priors(eqx.Module):
+    """The priors as arrays over the fitted values `(P,)`: kind index, location, scale."""
+
+    kind: jax.Array
+    location: jax.Array
+    scale: jax.Array
+
+    def log_density(self, theta):
+        """Σ log prior(θ), up to a constant (finite everywhere: double `where`)."""
+        standard = (theta - self.location) / self.scale
+        positive = theta > 0
+        log_theta = jnp.log(jnp.where(positive, theta, 1.0))
+        logged = (log_theta - self.location) / self.scale
+        lognormal = jnp.where(positive, -log_theta - 0.5 * logged**2, -jnp.inf)
+        terms = jnp.where(
+            self.kind == 1, -0.5 * standard**2, jnp.where(self.kind == 2, lognormal, 0.0)
+        )
+        return jnp.sum(terms)
+
+
+def _require_extra() -> None:
+    """blackjax and ArviZ are there, or a `ModuleNotFoundError` naming the extra that
+    installs them (before any fit runs)."""
+    for module in ("blackjax", "arviz"):
+        try:
+            __import__(module)
+        except ModuleNotFoundError as error:
+            raise ModuleNotFoundError(
+                f"sample_posterior needs {module}, which the core install leaves out: "
+                "pip install 'recoil-jax[posterior]'",
+                name=module,
+            ) from error
+
+
+def _check_count(name: str, value, least: int, most: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ParameterError(f"{name} must be an integer in [{least}, {most}], got {value!r}")
+    if not least <= int(value) <= most:
+        raise ParameterError(f"{name} must be in [{least}, {most}], got {value}")
+    return int(value)
+
+
+def _priors(priors, layout: Layout) -> tuple[_Priors, dict[str, Prior]]:
+    """The priors by fitted label (uniform where none is given), checked against the
+    fitted labels and their bounds."""
+    given = dict(priors or {})
+    labels = list(layout.labels)
+    for name in given:
+        if name not in labels:
+            raise ParameterError(
+                f"prior for {name!r}: not a fitted value (fitted: {', '.join(labels)})"
+            )
+    chosen = {label: Prior.of(given.get(label, "uniform")) for label in labels}
+    lower, upper = np.asarray(layout.lower, float), np.asarray(layout.upper, float)
+    for i, (label, prior) in enumerate(chosen.items()):
+        if prior.kind == "lognormal" and lower[i] < 0:
+            raise ParameterError(
+                f"prior for {label!r}: lognormal needs positive values, but its bounds are "
+                f"[{lower[i]:g}, {upper[i]:g}]"
+            )
+        if prior.kind == "normal":
+            inside = _normal_mass(lower[i], upper[i], float(prior.mean), float(prior.sd))  # pyright: ignore[reportArgumentType]
+            if 1.0 - inside > PRIOR_MASS_OUTSIDE:
+                warnings.warn(
+                    f"prior for {label!r}: normal({prior.mean:g}, {prior.sd:g}) puts "
+                    f"{1 - inside:.0%} of its mass outside the bounds [{lower[i]:g}, "
+                    f"{upper[i]:g}]; the posterior is truncated to them",
+                    stacklevel=4,
+                )
+    kinds, locations, scales = zip(*(p.log_parameters() for p in chosen.values()), strict=True)
+    arrays = _Priors(jnp.asarray(kinds), jnp.asarray(locations, float), jnp.asarray(scales, float))
+    return arrays, chosen
+
+
+def _normal_mass(lower: float, upper: float, mean: float, sd: float) -> float:
+    """A normal's mass within `[lower, upper]`."""
+    cdf = lambda x: 0.5 * math.erfc(-(x - mean) / (sd * math.sqrt(2.0)))  # noqa: E731
+    return cdf(upper) - cdf(lower)
+
+
+def _residual_function(static: FitSettings):
+    """`(θ, data) → residuals (E, S, n)` in noise units, whose derivative
+    (`custom_jvp`) is the forward sensitivities of the same solve: one solve gives the
+    log density and its gradient."""
+
+    @jax.custom_jvp
+    def residuals(theta, data):
+        return evaluate(theta, data, static).residuals
+
+    @residuals.defjvp
+    def _(primals, tangents):
+        theta, data = primals
+        evaluation = evaluate(theta, data, static)
+        return evaluation.residuals, jnp.einsum("esnp,p->esn", evaluation.jacobian, tangents[0])
+
+    return residuals
+
+
+class _Whitening(eqx.Module):
+    """The chains' coordinates `w`, with `y = centre + factor @ w`: the Laplace
+    approximation in `y` made a standard normal (`factor` its Cholesky factor), so that
+    the warm-up, which assumes values of unit scale (Stan's regularisation of the mass
+    matrix toward 10⁻³·I), sees them so; a fitted value's `y` is 10⁻³ wide."""
+
+    centre: jax.Array
+    factor: jax.Array
+
+    def y(self, w):
+        """`w (..., P)` → `y (..., P)`."""
+        return self.centre + w @ self.factor.T
+
+
+def _log_density(w, data, priors: _Priors, whitening: _Whitening, static: FitSettings):
+    """The log posterior density of the chains' coordinates `w (P,)`, up to a constant:
+    the fit's log-likelihood, the priors, and the Jacobian of `y = logit(z) → θ` (that of
+    `w → y` is constant)."""
+    y = whitening.y(w)
+    z = jax.nn.sigmoid(y)
+    theta, slope = jax.jvp(data.space.theta, (z,), (jnp.ones_like(z),))  # θ(z) is elementwise
+    r = _residual_function(static)(theta, data)
+    log_likelihood = -0.5 * jnp.sum(robust(r, static.loss, static.f_scale) ** 2)
+    # log |dz/dy| = log z + log(1 − z), in softplus form (finite for any y).
+    log_jacobian = jnp.sum(-jax.nn.softplus(-y) - jax.nn.softplus(y) + jnp.log(jnp.abs(slope)))
+    return log_likelihood + priors.log_density(theta) + log_jacobian
+
+
+class _Settings(NamedTuple):
+    """What shapes the sampler's programs (static)."""
+
+    static: FitSettings
+    dense: bool
+    warmup: int
+    block: int
+    target_acceptance: float
+
+
+def _warm_up(key, w0, data, priors, whitening, settings: _Settings):
+    """One chain's window adaptation from `w0`: its last state and the tuned step size
+    and inverse mass matrix."""
+    import blackjax
+    from blackjax.adaptation.base import get_filter_adapt_info_fn
+
+    def log_density(w):
+        return _log_density(w, data, priors, whitening, settings.static)
+
+    # blackjax's annotations are generic: its results are read by name (Any).
+    adaptation: Any = blackjax.window_adaptation(
+        blackjax.nuts,
+        log_density,
+        is_mass_matrix_diagonal=not settings.dense,
+        target_acceptance_rate=settings.target_acceptance,
+        adaptation_info_fn=get_filter_adapt_info_fn(),  # keep no warm-up history
+    )
+    (state, parameters), _ = adaptation.run(key, w0, num_steps=settings.warmup)
+    return state, parameters["step_size"], parameters["inverse_mass_matrix"]
+
+
+class _Block(NamedTuple):
+    """A block of one chain's draws: positions `(B, P)` in `w`, and each transition's
+    log density, divergence, leapfrog steps, energy and acceptance."""
+
+    position: jax.Array
+    log_density: jax.Array
+    diverging: jax.Array
+    steps: jax.Array
+    energy: jax.Array
+    acceptance: jax.Array
+
+
+def _sample_block(key, state, step_size, inverse_mass, data, priors, whitening, settings):
+    """`settings.block` NUTS transitions from `state`: the last state and the block."""
+    import blackjax
+
+    def log_density(w):
+        return _log_density(w, data, priors, whitening, settings.static)
+
+    kernel = blackjax.nuts(log_density, step_size=step_size, inverse_mass_matrix=inverse_mass)
+
+    def one(state, key):
+        state, info = kernel.step(key, state)
+        state, info = cast(Any, state), cast(Any, info)
+        return state, _Block(
+            state.position,
+            state.logdensity,
+            info.is_divergent,
+            info.num_integration_steps,
+            info.energy,
+            info.acceptance_rate,
+        )
+
+    return jax.lax.scan(one, state, jax.random.split(key, settings.block))
+
+
+@dataclasses.dataclass(frozen=True)
+class Posterior:
+    """What `sample_posterior` gives.
+
+    - `labels`: the fitted values' labels (as `CalibrationResult.fitted`); `draws
+      (chains, draws, P)`: the draws in SI units.
+    - `summary`: per label, the posterior's `mean`, `sd`, `q2.5`, `q50`, `q97.5`,
+      `r_hat` (rank-normalised split R̂), `ess_bulk`, `ess_tail`, and beside them the
+      least-squares `value`, its Laplace `stderr` and `ci95` (None where the fit gives
+      none) and whether the two intervals `disagree` (by more than 20 % of the Laplace
+      interval's width at either end).
+    - `converged`: R̂ ≤ 1.01, bulk ESS ≥ 400 on every value, and no divergent
+      transition; `problems`: what failed, naming the value and what to try;
+      `disagreements`: the values whose Laplace interval misstates the posterior, in
+      words. `divergences`: the divergent transitions, all chains.
+    - `priors`: the prior of each value; `step_size (chains,)`; `seconds`: `compile`,
+      `warmup` and `sampling` (compilation excluded from the other two);
+      `ess_per_second`: the least bulk ESS over the values per second of sampling.
+    - `inference_data`: ArviZ's `InferenceData` (`posterior`: `theta` over `chain`,
+      `draw`, `parameter`; `sample_stats`; `observed_data`: the traces);
+      `to_netcdf(path)` writes it.
+    - `fit`: the least-squares result the chains started from; `noise`: the
+      likelihood's, per experiment and signal (`{"sigma", "given"}`: given, or estimated
+      by the fit and held fixed).
+    """
+
+    labels: tuple[str, ...]
+    draws: np.ndarray
+    summary: dict[str, dict[str, Any]]
+    converged: bool
+    problems: list[str]
+    disagreements: list[str]
+    divergences: int
+    priors: dict[str, Prior]
+    step_size: np.ndarray
+    seconds: dict[str, float]
+    ess_per_second: float
+    inference_data: Any
+    fit: CalibrationResult
+    #: The likelihood's noise, per experiment and signal: `{"sigma", "given"}` (given
+    #: in the calibration, or estimated by the fit from the residuals and held fixed).
+    noise: list[dict[str, dict[str, Any]]] = dataclasses.field(default_factory=list)
+
+    def to_netcdf(self, path) -> None:
+        """Write the draws, sample statistics and traces (`inference_data`) to `path`."""
+        self.inference_data.to_netcdf(str(path))
+
+    def to_json(self) -> dict[str, Any]:
+        """The summary and diagnostics as JSON-ready values."""
+        return {
+            "summary": self.summary,
+            "converged": self.converged,
+            "problems": self.problems,
+            "disagreements": self.disagreements,
+            "divergences": self.divergences,
+            "priors": {k: dataclasses.asdict(p) for k, p in self.priors.items()},
+            "step_size": self.step_size.tolist(),
+            "seconds": self.seconds,
+            "ess_per_second": self.ess_per_second,
+            "noise": self.noise,
+            "chains": int(self.draws.shape[0]),
+            "draws": int(self.draws.shape[1]),
+        }
+
+
+def check_posterior_settings(
+    calibration: Calibration,
+    *,
+    draws: int = DEFAULT_DRAWS,
+    warmup: int = DEFAULT_WARMUP,
+    chains: int = DEFAULT_CHAINS,
+    seed: int = 0,
+    priors: Mapping[str, Prior | str | Mapping[str, Any]] | None = None,
+    target_acceptance: float = 0.8,
+) -> None:
+    """Check `sample_posterior`'s settings for `calibration` (its arguments, as named
+    there) without running anything: the command line calls it before the fit.
+
+    **Raises:** `ParameterError` naming the setting and its valid range: draws or
+    warm-up not an integer in [1, 100,000], chains not in [1, 64], a negative seed, a
+    target acceptance outside [0.5, 1), a prior for a value not fitted, of an unknown
+    kind, or with an sd ≤ 0. Warns of a normal prior mostly outside its bounds.
+    """
+    _check_count("draws", draws, 1, MAX_DRAWS)
+    _check_count("warmup", warmup, 1, MAX_DRAWS)
+    _check_count("chains", chains, 1, MAX_CHAINS)
+    if isinstance(target_acceptance, bool) or not 0.5 <= float(target_acceptance) < 1.0:
+        raise ParameterError(f"target_acceptance must be in [0.5, 1), got {target_acceptance}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ParameterError(f"seed must be a non-negative integer, got {seed!r}")
+    _priors(priors, Layout.of(calibration))
+
+
+def sample_posterior(
+    calibration: Calibration,
+    *,
+    fit: CalibrationResult | None = None,
+    draws: int = DEFAULT_DRAWS,
+    warmup: int = DEFAULT_WARMUP,
+    chains: int = DEFAULT_CHAINS,
+    seed: int = 0,
+    priors: Mapping[str, Prior | str | Mapping[str, Any]] | None = None,
+    dense_mass: bool = False,
+    target_acceptance: float = 0.8,
+    progress: bool | None = None,
+) -> Posterior:
+    """Sample the posterior of `calibration.fit`'s values given its experiments' traces,
+    by NUTS on the fit's likelihood.
+
+    **Arguments:**
+
+    - `calibration`: the `Calibration`; `fit`: its least-squares result
+      (`calibrate(calibration)` when not given), whose model check must pass, whose
+      noise the likelihood uses and whose optimum and covariance start the chains.
+    - `draws`, `warmup`: per chain (default 1000 each); `chains` (default 4); `seed`.
+    - `priors`: by fitted label, a `Prior`, a kind's name or `{kind, mean, sd}`;
+      uniform over the bounds where none is given.
+    - `dense_mass`: adapt a dense mass matrix (for strongly correlated values) instead
+      of a diagonal one; `target_acceptance`: the step size's target (raise it, e.g. to
+      0.95, where there are divergences).
+    - `progress`: a progress line on stderr (None: on a terminal).
+
+    **Returns:** a `Posterior` (draws, summary beside the Laplace intervals,
+    diagnostics, ArviZ `InferenceData`).
+
+    **Raises:** `ParameterError` for bad settings or priors (before anything compiles);
+    `ModelMisfitError` where the fit's model check fails (the model does not explain
+    the traces: a posterior would describe the wrong model).
+    """
+    check_posterior_settings(
+        calibration,
+        draws=draws,
+        warmup=warmup,
+        chains=chains,
+        seed=seed,
+        priors=priors,
+        target_acceptance=target_acceptance,
+    )
+    layout = Layout.of(calibration)
+    with warnings.catch_warnings():  # said once, by the check above
+        warnings.simplefilter("ignore")
+        prior_arrays, chosen = _priors(priors, layout)
+    _require_extra()
+
+    if fit is None:
+        from .calibrate import calibrate
+
+        fit = calibrate(calibration, progress=progress)
+    if not fit.explains:
+        failing = ", ".join(f"{c.signal} in {c.experiment}" for c in fit.check.failing)
+        raise ModelMisfitError(
+            f"the model does not explain the traces ({failing}): its posterior is not sampled"
+        )
+    if list(fit.fitted) != list(layout.labels):
+        raise ParameterError("fit: a result of another calibration (its fitted values differ)")
+
+    data = prepare(calibration, calibration.experiments, layout)
+    sigma = np.array(data.sigma)
+    for e, noise in enumerate(fit.sigma):
+        for s, name in enumerate(layout.signals):
+            if name in noise:
+                sigma[e, s] = noise[name]
+    data = eqx.tree_at(lambda d: d.sigma, data, jnp.asarray(sigma))
+    static = FitSettings(
+        layout.wrt, layout.signals, calibration.loss, calibration.f_scale, 1, estimate_noise=False
+    )
+    block = max(1, math.ceil(draws / 10))
+    settings = _Settings(static, bool(dense_mass), warmup, block, float(target_acceptance))
+    whitening = _whitening(fit, layout, data)
+    w0 = np.random.default_rng(seed).standard_normal((chains, len(layout.labels)))
+
+    bar = Progress(
+        "posterior", chains * (warmup + block * math.ceil(draws / block)), "transitions", progress
+    )
+    bar.update(0, "compiling")
+    key = jax.random.key(seed)
+    warm_keys, sample_keys = jax.random.split(jax.random.fold_in(key, 1), (2, chains))
+    warm, compile_warm = compiled_ahead(
+        _warm_up, warm_keys[0], jnp.asarray(w0[0]), data, prior_arrays, whitening, settings
+    )
+
+    clock, states, step_sizes, masses = time.perf_counter(), [], [], []
+    for c in range(chains):
+        bar.update(c * warmup, f"warm-up, chain {c + 1} of {chains}")
+        state, step, mass = jax.block_until_ready(
+            warm(warm_keys[c], jnp.asarray(w0[c]), data, prior_arrays, whitening, settings)
+        )
+        states.append(state)
+        step_sizes.append(step)
+        masses.append(mass)
+    seconds_warmup = time.perf_counter() - clock
+
+    sample, compile_sample = compiled_ahead(
+        _sample_block,
+        sample_keys[0],
+        states[0],
+        step_sizes[0],
+        masses[0],
+        data,
+        prior_arrays,
+        whitening,
+        settings,
+    )
+    clock, chain_blocks = time.perf_counter(), []
+    done = chains * warmup
+    for c in range(chains):
+        state, blocks = states[c], []
+        for b, block_key in enumerate(jax.random.split(sample_keys[c], math.ceil(draws / block))):
+            state, out = sample(
+                block_key, state, step_sizes[c], masses[c], data, prior_arrays, whitening, settings
+            )
+            blocks.append(jax.tree.map(np.asarray, out))
+            done += block
+            bar.update(
+                done,
+                f"sampling, chain {c + 1} of {chains}, {min((b + 1) * block, draws)}"
+                f" of {draws} draws",
+            )
+        chain_blocks.append(jax.tree.map(lambda *a: np.concatenate(a)[:draws], *blocks))
+    seconds_sampling = time.perf_counter() - clock
+    bar.update(bar.total, "done", final=True)
+
+    out = jax.tree.map(lambda *a: np.stack(a), *chain_blocks)  # (chains, draws, ...)
+    z = 1.0 / (1.0 + np.exp(-np.asarray(whitening.y(jnp.asarray(out.position)))))
+    theta = np.asarray(data.space.theta(jnp.asarray(z)))
+    return _report(
+        fit,
+        layout,
+        data,
+        theta,
+        out,
+        chosen,
+        np.asarray(step_sizes),
+        {
+            "compile": compile_warm + compile_sample,
+            "warmup": seconds_warmup,
+            "sampling": seconds_sampling,
+        },
+    )
+
+
+def _whitening(fit: CalibrationResult, layout: Layout, data) -> _Whitening:
+    """The chains' coordinates (`_Whitening`): centred on the least-squares optimum
+    (kept 2 % of the box inside its bounds), scaled by its covariance in `y` (a value
+    without a standard error by 0.4 in `y`, about a tenth of its box; none wider than 2)."""
+    labels = list(layout.labels)
+    value = np.array([fit.values[k] for k in labels])
+    stderr = np.array([fit.fitted[k].stderr or np.nan for k in labels], dtype=float)
+    z_hat = np.clip(data.space.z(value), 0.02, 0.98)
+    slope = np.asarray(
+        jax.jvp(data.space.theta, (jnp.asarray(z_hat),), (jnp.ones_like(jnp.asarray(z_hat)),))[1]
+    )
+    # dy/dθ = dy/dz · dz/dθ, with dy/dz = 1 / (z (1 − z)).
+    dy_dtheta = 1.0 / (z_hat * (1.0 - z_hat) * np.abs(slope))
+    sd_y = np.where(np.isfinite(stderr) & (stderr > 0), stderr * dy_dtheta, 0.4)
+    sd_y = np.minimum(sd_y, 2.0)
+    correlation = np.where(np.isfinite(fit.correlation), fit.correlation, 0.0)
+    np.fill_diagonal(correlation, 1.0)
+    covariance = correlation * np.outer(sd_y, sd_y)
+    # A correlation of ±1 to rounding: nudge the diagonal until it factors.
+    for jitter in (0.0, 1e-10, 1e-8, 1e-6, 1e-4):
+        try:
+            factor = np.linalg.cholesky(covariance + jitter * np.diag(sd_y**2))
+            break
+        except np.linalg.LinAlgError:
+            continue
+    else:
+        factor = np.diag(sd_y)
+    return _Whitening(jnp.asarray(np.log(z_hat / (1.0 - z_hat))), jnp.asarray(factor))
+
+
+def _report(fit, layout, data, theta, out: _Block, priors, step_sizes, seconds) -> Posterior:
+    """The `Posterior` of the draws `theta (C, D, P)`: ArviZ's diagnostics, the
+    summary beside the Laplace intervals, the honesty gates."""
+    import arviz as az
+
+    labels = tuple(layout.labels)
+    observed = {}
+    for e, experiment in enumerate(fit.measured):
+        for name, values in experiment.items():
+            observed[f"{name} in experiment {e}"] = np.asarray(values)
+    # ArviZ logs a warning for fewer than 2 chains; `converged` and the R-hat's absence
+    # say what that means here.
+    quiet = logging.getLogger("arviz")
+    level = quiet.level
+    quiet.setLevel(logging.ERROR)
+    try:
+        idata, rhat, ess_bulk, ess_tail = _diagnosed(az, theta, out, observed, labels)
+    finally:
+        quiet.setLevel(level)
+    flat = theta.reshape(-1, theta.shape[-1])
+    quantiles = np.quantile(flat, [0.025, 0.5, 0.975], axis=0)
+    chains = theta.shape[0]
+    summary, problems, disagreements = {}, [], []
+    for i, label in enumerate(labels):
+        fitted = fit.fitted[label]
+        row = {
+            "mean": float(flat[:, i].mean()),
+            "sd": float(flat[:, i].std(ddof=1)),
+            "q2.5": float(quantiles[0, i]),
+            "q50": float(quantiles[1, i]),
+            "q97.5": float(quantiles[2, i]),
+            "r_hat": float(rhat[i]) if chains > 1 else None,
+            "ess_bulk": float(ess_bulk[i]),
+            "ess_tail": float(ess_tail[i]),
+            "value": fitted.value,
+            "stderr": fitted.stderr,
+            "ci95": None if fitted.ci95 is None else list(fitted.ci95),
+        }
+        row["disagree"] = _disagree(row)
+        summary[label] = row
+        if row["disagree"]:
+            disagreements.append(_disagreement_words(label, row))
+        if chains > 1 and not rhat[i] <= MAX_RHAT:
+            problems.append(
+                f"{label}: split R-hat {rhat[i]:.3f} over {MAX_RHAT} (the chains "
+                "disagree: a longer warm-up, or more draws)"
+            )
+        if not ess_bulk[i] >= MIN_ESS:
+            problems.append(
+                f"{label}: bulk ESS {ess_bulk[i]:.0f} under {MIN_ESS} (more draws, "
+                "or a dense mass matrix for correlated values)"
+            )
+    divergences = int(np.sum(out.diverging))
+    if divergences:
+        problems.append(
+            f"{divergences} divergent transition{'s' if divergences > 1 else ''} "
+            "(a higher target acceptance, e.g. 0.95, or a dense mass matrix)"
+        )
+    least_ess = float(np.min(ess_bulk))
+    return Posterior(
+        labels,
+        theta,
+        summary,
+        not problems,
+        problems,
+        disagreements,
+        divergences,
+        priors,
+        step_sizes,
+        seconds,
+        least_ess / max(seconds["sampling"], 1e-9),
+        idata,
+        fit,
+        [
+            {name: {"sigma": float(data.sigma[e, s]), "given": bool(data.sigma_given[e, s])}
+             for s, name in enumerate(layout.signals) if name in fit.sigma[e]}
+            for e in range(len(fit.sigma))
+        ],
+    )  # fmt: skip
+
+
+def _diagnosed(az, theta, out: _Block, observed, labels):
+    """The draws as ArviZ's `InferenceData`, and its rank-normalised split R̂, bulk and
+    tail ESS per value `(P,)` each."""
+    idata = az.from_dict(
+        posterior={"theta": theta},
+        sample_stats={
+            "diverging": out.diverging,
+            "lp": out.log_density,
+            "n_steps": out.steps,
+            "energy": out.energy,
+            "acceptance_rate": out.acceptance,
+        },
+        observed_data=observed,
+        coords={"parameter": list(labels)},
+        dims={"theta": ["parameter"]},
+    )
+    diagnostics: Any = {m: az.ess(idata, method=m) for m in ("bulk", "tail")}
+    diagnostics["rhat"] = az.rhat(idata, method="rank")
+    rhat, ess_bulk, ess_tail = (
+        np.asarray(diagnostics[m]["theta"]) for m in ("rhat", "bulk", "tail")
+    )
+    return idata, rhat, ess_bulk, ess_tail
+
+
+def _disagree(row) -> bool:
+    """The posterior's 95 % interval and the Laplace one differ at either end by more
+    than `DISAGREEMENT` of the Laplace interval's width (or the fit gives none)."""
+    if row["ci95"] is None:
+        return True
+    low, high = row["ci95"]
+    width = max(high - low, 1e-300)
+    apart = max(abs(row["q2.5"] - low), abs(row["q97.5"] - high))
+    return apart > DISAGREEMENT * width
+
+
+def _disagreement_words(label, row) -> str:
+    if row["ci95"] is None:
+        return (
+            f"{label}: the fit gives no interval (the data do not confine it); the "
+            f"posterior's 95 % interval is [{row['q2.5']:.6g}, {row['q97.5']:.6g}]"
+        )
+    low, high = row["ci95"]
+    return (
+        f"{label}: the Laplace interval [{low:.6g}, {high:.6g}] misstates the posterior's "
+        f"[{row['q2.5']:.6g}, {row['q97.5']:.6g}]"
+    )

@@ -1,0 +1,354 @@
+"""The posterior of a calibration (`rj.sample_posterior`): NUTS on the fit's likelihood.
+
+Where the model is near-linear in its parameters over their intervals (the paper
+absorber's k, c_out and gap from one firing), the posterior under flat priors is the
+Laplace approximation: means at the least-squares optimum, standard deviations the
+Laplace standard errors, the same correlations. A normal prior then combines with it as
+two Gaussians do (closed form). Bad settings are refused before anything runs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+from test_calibration import BOX, TRUTH, synthetic, trace, write_trace
+
+import recoil_jax as rj
+import recoil_jax.extend as rjx
+from recoil_jax._calibration import calibrate as calibrate_module
+from recoil_jax.apps._cli import main
+from recoil_jax.apps._cli.calibrate import POSTERIOR_NOT_CONVERGED
+
+#: Draws per chain and warm-up steps in these tests: 4 × 500 draws give a bulk ESS of
+#: about 2,000, so a standard deviation to about 2 % and a mean to 0.03 of it.
+DRAWS = 500
+
+
+@pytest.fixture(scope="module")
+def absorber():
+    """The paper absorber's k, c_out and gap fitted to one synthetic firing."""
+    calibration = rj.Calibration([rjx.Experiment(trace(TRUTH, seed=3))], fit=BOX)
+    fit = rj.calibrate(calibration, progress=False)
+    assert fit.explains and fit.converged
+    return calibration, fit
+
+
+@pytest.fixture(scope="module")
+def posterior(absorber):
+    calibration, fit = absorber
+    return rj.sample_posterior(
+        calibration, fit=fit, draws=DRAWS, warmup=DRAWS, chains=4, seed=0, progress=False
+    )
+
+
+def test_the_posterior_is_the_laplace_approximation_where_the_fit_is_near_linear(
+    absorber, posterior
+):
+    """Means within 0.2 sd of the least-squares optimum, sds within 10 % of the Laplace
+    standard errors, correlations within 0.03 (k and c_out: −0.985); the sampler
+    converged (R̂ ≤ 1.01, bulk ESS ≥ 400, no divergence) and reports no disagreement."""
+    _, fit = absorber
+    assert posterior.converged, posterior.problems
+    assert posterior.divergences == 0
+    assert posterior.disagreements == []
+    print()
+    for label, row in posterior.summary.items():
+        stderr = fit.fitted[label].stderr
+        print(
+            f"{label}: mean {row['mean']:.6g} (fit {row['value']:.6g}), sd {row['sd']:.4g} "
+            f"(Laplace {stderr:.4g}), R-hat {row['r_hat']:.4f}, bulk ESS {row['ess_bulk']:.0f}"
+        )
+        assert abs(row["mean"] - row["value"]) <= 0.2 * row["sd"], (label, row)
+        assert abs(row["sd"] / stderr - 1.0) <= 0.1, (label, row)
+        assert row["r_hat"] <= 1.01 and row["ess_bulk"] >= 400
+        assert not row["disagree"]
+    flat = posterior.draws.reshape(-1, len(posterior.labels))
+    assert np.allclose(np.corrcoef(flat.T), fit.correlation, atol=0.03)
+    # Every draw within the bounds, and the draws are not one point.
+    for i, label in enumerate(posterior.labels):
+        assert np.all((flat[:, i] >= BOX[label][0]) & (flat[:, i] <= BOX[label][1]))
+    assert posterior.draws.shape == (4, DRAWS, 3)
+    print(f"ESS/s {posterior.ess_per_second:.0f}, seconds {posterior.seconds}")
+    assert posterior.seconds["sampling"] > 0 and posterior.seconds["compile"] > 0
+
+
+def test_the_draws_and_diagnostics_are_written(posterior, tmp_path):
+    """`posterior.nc` holds the draws as ArviZ reads them, with the sample statistics
+    and the traces; the summary is JSON."""
+    import arviz as az
+
+    path = tmp_path / "posterior.nc"
+    posterior.to_netcdf(path)
+    idata = az.from_netcdf(str(path))
+    theta = idata.posterior["theta"]
+    assert list(theta.coords["parameter"].values) == list(posterior.labels)
+    assert np.array_equal(np.asarray(theta), posterior.draws)
+    assert int(idata.sample_stats["diverging"].sum()) == posterior.divergences
+    assert {"x_M in experiment 0", "F_AN in experiment 0"} <= set(idata.observed_data)
+    # The noise the likelihood held: the fit's estimate (none was given).
+    assert posterior.noise[0]["x_M"] == {"sigma": posterior.fit.sigma[0]["x_M"], "given": False}
+    text = json.dumps(posterior.to_json())
+    assert json.loads(text)["summary"]["gap"]["ess_bulk"] == posterior.summary["gap"]["ess_bulk"]
+
+
+@pytest.mark.slow
+def test_a_normal_prior_combines_with_the_likelihood_as_two_gaussians_do(absorber):
+    """A normal prior on gap, one standard error wide and one above the optimum: the
+    posterior's mean and covariance are the product of it and the Laplace Gaussian
+    (closed form: the precisions add), to 0.2 sd and 10 %."""
+    calibration, fit = absorber
+    labels = list(fit.fitted)
+    g = labels.index("gap")
+    mu = np.array([fit.values[k] for k in labels])
+    covariance = fit.covariance
+    s = fit.fitted["gap"].stderr
+    prior_mean = mu[g] + s
+    posterior = rj.sample_posterior(
+        calibration,
+        fit=fit,
+        draws=DRAWS,
+        warmup=DRAWS,
+        chains=2,
+        seed=1,
+        progress=False,
+        priors={"gap": {"kind": "normal", "mean": prior_mean, "sd": s}},
+    )
+    precision = np.linalg.inv(covariance)
+    e = np.zeros(len(labels))
+    e[g] = 1.0
+    combined = np.linalg.inv(precision + np.outer(e, e) / s**2)
+    mean = combined @ (precision @ mu + e * prior_mean / s**2)
+    assert posterior.converged, posterior.problems
+    for i, label in enumerate(labels):
+        row, sd = posterior.summary[label], np.sqrt(combined[i, i])
+        print(
+            f"{label}: mean {row['mean']:.6g} (closed form {mean[i]:.6g}), sd {row['sd']:.4g} "
+            f"({sd:.4g})"
+        )
+        assert abs(row["mean"] - mean[i]) <= 0.2 * sd, label
+        assert abs(row["sd"] / sd - 1.0) <= 0.1, label
+    # The prior narrowed gap by about 1/√2, which the Laplace interval does not know.
+    assert posterior.summary["gap"]["sd"] < 0.85 * s
+
+
+@pytest.fixture
+def no_fit(monkeypatch):
+    """A `calibrate` that fails the test if called: what is refused must be refused
+    before any fit or compilation."""
+
+    class Reached(Exception):
+        pass
+
+    def reached(*_, **__):
+        raise Reached
+
+    monkeypatch.setattr(calibrate_module, "calibrate", reached)
+    return Reached
+
+
+@pytest.mark.parametrize(
+    ("settings", "message"),
+    [
+        ({"draws": 0}, "draws must be in [1, 100000], got 0"),
+        ({"draws": 2.5}, "draws must be an integer in [1, 100000], got 2.5"),
+        ({"warmup": True}, "warmup must be an integer"),
+        ({"chains": 10**6}, "chains must be in [1, 64], got 1000000"),
+        ({"chains": "4"}, "chains must be an integer"),
+        ({"seed": -1}, "seed must be a non-negative integer"),
+        ({"target_acceptance": 1.0}, "target_acceptance must be in [0.5, 1)"),
+        ({"priors": {"m": "uniform"}}, "prior for 'm': not a fitted value (fitted: k, c_out, gap)"),
+        ({"priors": {"gap": {"kind": "normal", "mean": 0.02, "sd": 0.0}}}, "prior sd must be > 0"),
+        ({"priors": {"gap": {"kind": "normal", "mean": 0.02}}}, "a normal prior needs a finite sd"),
+        ({"priors": {"gap": {"kind": "cauchy", "mean": 0.0, "sd": 1.0}}}, "prior kind 'cauchy'"),
+        ({"priors": {"gap": {"mean": 0.02, "sd": 0.01, "width": 1}}}, "unknown key 'width'"),
+        ({"priors": {"k": {"kind": "lognormal", "mean": -1.0, "sd": 1.0}}}, "mean must be > 0"),
+        ({"priors": {"k": {"kind": "uniform", "mean": 1.0}}}, "a uniform prior takes no mean"),
+    ],
+)
+def test_bad_settings_are_refused_before_anything_runs(no_fit, settings, message):
+    calibration = rj.Calibration([rjx.Experiment(trace(TRUTH, seed=3))], fit=BOX)
+    with pytest.raises(rj.ParameterError) as raised:
+        rj.sample_posterior(calibration, **settings)
+    assert message in str(raised.value)
+
+
+def test_a_normal_prior_mostly_outside_the_bounds_is_warned(no_fit):
+    calibration = rj.Calibration([rjx.Experiment(trace(TRUTH, seed=3))], fit=BOX)
+    with pytest.warns(UserWarning, match=r"prior for 'gap'.* 98% of its mass outside the bounds"):
+        with pytest.raises(no_fit):  # warned, then on to the fit
+            rj.sample_posterior(calibration, priors={"gap": rjx.Prior("normal", -0.2, 0.1)})
+
+
+def test_a_model_that_does_not_explain_the_traces_is_not_sampled():
+    """The absorber's k fitted alone, its gap wrong by 2.5×: the model check fails, and
+    the posterior of the wrong model is refused, naming the failing signals."""
+    calibration = rj.Calibration(
+        [rjx.Experiment(trace(TRUTH, seed=3), design={"c_out": TRUTH["c_out"], "gap": 0.05})],
+        fit={"k": BOX["k"]},
+    )
+    fit = rj.calibrate(calibration, progress=False)
+    assert not fit.explains
+    with pytest.raises(rjx.ModelMisfitError, match=r"does not explain the traces \(.*(x_M|F_AN)"):
+        rj.sample_posterior(calibration, fit=fit)
+
+
+#: Simulation-based calibration (Talts et al. 2018): the prior of each replication's truth
+#: (uniform over these bounds, ±10 % about the paper absorber's k, c_out and gap), the
+#: noise the traces are drawn with, and the draws each posterior's ranks are taken among.
+SBC_PRIOR = {"k": (2.5e4, 3.1e4), "c_out": (5.0e3, 7.0e3), "gap": (0.015, 0.025)}
+SBC_NOISE = {"x_M": 2e-4, "F_AN": 300.0}
+SBC_RANKED = 100
+
+
+def sbc_ranks(replications: int, noise_said: float = 1.0, seed: int = 0) -> dict[str, np.ndarray]:
+    """Each replication: a truth drawn from `SBC_PRIOR`, one firing of 201 samples
+    simulated by the model itself with `SBC_NOISE`, the fit and the posterior (one
+    chain, 300 warm-up steps, 400 draws) under a likelihood told the noise times
+    `noise_said` (the fit and its model check told the truth); the truth's rank among
+    `SBC_RANKED` thinned draws, randomised to a fraction `(rank + U) / (SBC_RANKED +
+    1)`, uniform on (0, 1) when the posterior is right."""
+    rng = np.random.default_rng(seed)
+    ts = np.linspace(0.0, 0.6, 201)
+    fractions: dict[str, list[float]] = {k: [] for k in SBC_PRIOR}
+    for r in range(replications):
+        truth = {k: rng.uniform(*b) for k, b in SBC_PRIOR.items()}
+        history = rj.simulate(rj.params_from_values(truth), ts=ts)
+        signals = {
+            "x_M": np.asarray(history.x_M) + SBC_NOISE["x_M"] * rng.standard_normal(ts.size),
+            "F_AN": np.asarray(history.anchoring_force)
+            + SBC_NOISE["F_AN"] * rng.standard_normal(ts.size),
+        }
+        calibration = rj.Calibration(
+            [rjx.Experiment(rjx.Trace.of(ts, **signals), sigma=SBC_NOISE)], fit=SBC_PRIOR
+        )
+        fit = rj.calibrate(calibration, starts=1, progress=False)
+        # The likelihood's noise is the fit's (a broken one: told another).
+        said = [{k: v * noise_said for k, v in noise.items()} for noise in fit.sigma]
+        fit = dataclasses.replace(fit, sigma=said)
+        posterior = rj.sample_posterior(
+            calibration, fit=fit, draws=4 * SBC_RANKED, warmup=300, chains=1, seed=r,
+            progress=False,
+        )  # fmt: skip
+        thinned = posterior.draws[0, ::4]
+        for i, label in enumerate(posterior.labels):
+            rank = int(np.sum(thinned[:, i] < truth[label]))
+            fractions[label].append((rank + rng.uniform()) / (SBC_RANKED + 1))
+    return {k: np.asarray(v) for k, v in fractions.items()}
+
+
+def uniformity(fractions: np.ndarray) -> tuple[float, bool]:
+    """The χ² test's p over 10 equal bins, and whether the ECDF lies inside ArviZ's
+    simultaneous 99 % band for a uniform sample of that size."""
+    from arviz.stats.ecdf_utils import compute_ecdf, ecdf_confidence_band
+    from scipy.stats import chisquare
+
+    counts = np.histogram(fractions, bins=10, range=(0.0, 1.0))[0]
+    p = float(chisquare(counts).pvalue)
+    points = np.linspace(0.02, 0.98, 49)
+    lower, upper = ecdf_confidence_band(fractions.size, points, points, prob=0.99)
+    ecdf = compute_ecdf(np.sort(fractions), points)
+    return p, bool(np.all((lower <= ecdf) & (ecdf <= upper)))
+
+
+@pytest.mark.slow
+def test_simulation_based_calibration_ranks_are_uniform():
+    """200 replications: for k, c_out and gap the truth's rank among the posterior's
+    draws is uniform (χ² p > 0.01 over 10 bins, and the ECDF inside ArviZ's 99 % band):
+    the posterior's intervals cover the truth as often as they say."""
+    fractions = sbc_ranks(200)
+    print()
+    for label, values in fractions.items():
+        p, inside = uniformity(values)
+        counts = np.histogram(values, bins=10, range=(0.0, 1.0))[0]
+        print(f"{label}: χ² p {p:.3f}, ECDF inside the band: {inside}, counts {counts.tolist()}")
+        assert p > 0.01 and inside, (label, p, counts)
+
+
+@pytest.mark.slow
+def test_simulation_based_calibration_fails_a_likelihood_told_half_the_noise():
+    """The same check on a broken likelihood (told half the traces' noise, so every
+    posterior is half as wide as it should be) fails it: the truth falls at the ends of
+    the draws, and the ranks are far from uniform for every value."""
+    fractions = sbc_ranks(60, noise_said=0.5, seed=1)
+    print()
+    for label, values in fractions.items():
+        p, inside = uniformity(values)
+        counts = np.histogram(values, bins=10, range=(0.0, 1.0))[0]
+        print(f"{label}: χ² p {p:.2g}, ECDF inside the band: {inside}, counts {counts.tolist()}")
+        assert p < 0.01 and not inside, (label, p, counts)
+
+
+def calibration_file(folder, posterior: str = "") -> str:
+    """A calibration file of one synthetic firing (k, c_out and gap fitted), with
+    `posterior` as its `[posterior]` table's body."""
+    ts, signals = synthetic(TRUTH, seed=5)
+    write_trace(folder / "firing_1.csv", ts, {"x_M": signals["x_M"], "F_AN": signals["F_AN"]})
+    path = folder / "cal.toml"
+    path.write_text(
+        "[fit]\nk = [1e4, 1e5]\nc_out = [1e3, 3e4]\ngap = [0.0, 0.1]\n"
+        '[[experiment]]\ntrace = "firing_1.csv"\n'
+        + (f"[posterior]\n{posterior}" if posterior else "")
+    )
+    return str(path)
+
+
+def test_the_command_line_samples_the_posterior(tmp_path, capsys):
+    """`calibrate --posterior` with a `[posterior]` table (its draws, chains and a prior):
+    the summary beside the Laplace intervals, `posterior.nc`, `posterior.png`, the
+    posterior in `result.json`; a sampler that has not converged (too few draws) is exit
+    7, naming the value and what to try."""
+    import arviz as az
+
+    source = calibration_file(
+        tmp_path, 'draws = 300\nwarmup = 300\nchains = 2\nseed = 3\n'
+        '[posterior.prior]\ngap = { kind = "normal", mean = 0.02, sd = 0.01 }\n',
+    )  # fmt: skip
+    out = tmp_path / "out"
+    assert main(["calibrate", source, "--posterior", "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert "posterior: 2 chains × 300 draws (NUTS), 0 divergent" in captured.out
+    assert "converged" in captured.out and "Laplace 95 %" in captured.out
+    assert "the likelihood's noise, held fixed: x_M" in captured.out
+    assert "(estimated by the fit)" in captured.out
+    report = json.loads((out / "result.json").read_text())
+    summary = report["posterior"]["summary"]
+    assert set(summary) == {"k", "c_out", "gap"} and report["posterior"]["converged"]
+    assert report["posterior"]["priors"]["gap"] == {"kind": "normal", "mean": 0.02, "sd": 0.01}
+    assert (
+        str(out / "posterior.png") in report["figures"] and (out / "posterior.png").stat().st_size
+    )
+    draws = az.from_netcdf(str(out / "posterior.nc")).posterior["theta"]
+    assert draws.shape == (2, 300, 3)
+    for name, row in summary.items():
+        assert row["q2.5"] <= report["fitted"][name]["value"] <= row["q97.5"], name
+
+    status = main(["calibrate", source, "--posterior", "--draws", "20", "--warmup", "30",
+                   "--out", str(tmp_path / "short")])  # fmt: skip
+    assert status == POSTERIOR_NOT_CONVERGED
+    err = capsys.readouterr().err
+    assert "the sampler has not converged: k: bulk ESS" in err and "more draws" in err
+
+
+@pytest.mark.parametrize(
+    ("posterior", "arguments", "message"),
+    [
+        ("", ["--draws", "10"], "--draws is for --posterior"),
+        ("chains = 0\n", ["--posterior"], "chains must be in [1, 64], got 0"),
+        ("", ["--posterior", "--warmup", "0"], "warmup must be in [1, 100000], got 0"),
+        ("thin = 2\n", ["--posterior"], "[posterior] unknown key 'thin'"),
+        ("dense_mass = 1\n", ["--posterior"], "[posterior] dense_mass = 1: give true or false"),
+        ('[posterior.prior]\nm = "uniform"\n', ["--posterior"], "prior for 'm': not a fitted"),
+        ('[posterior.prior]\nk = { kind = "normal", mean = 3e4, sd = -1 }\n', ["--posterior"],
+         "[posterior.prior] k: prior sd must be > 0"),
+    ],
+)  # fmt: skip
+def test_bad_posterior_settings_exit_2_before_the_fit(tmp_path, capsys, posterior, arguments,
+                                                      message):  # fmt: skip
+    source = calibration_file(tmp_path, posterior)
+    assert main(["calibrate", source, *arguments, "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1, err
+    assert not (tmp_path / "out" / "result.json").exists()
