@@ -72,7 +72,6 @@ def test_the_posterior_is_the_laplace_approximation_where_the_fit_is_near_linear
         assert np.all((flat[:, i] >= BOX[label][0]) & (flat[:, i] <= BOX[label][1]))
     assert posterior.draws.shape == (4, DRAWS, 3)
     print(f"ESS/s {posterior.ess_per_second:.0f}, seconds {posterior.seconds}")
-    assert posterior.seconds["sampling"] > 0 and posterior.seconds["compile"] > 0
 
 
 def test_the_draws_and_diagnostics_are_written(posterior, tmp_path):
@@ -157,11 +156,19 @@ def no_fit(monkeypatch):
         ({"warmup": True}, "warmup must be an integer"),
         ({"chains": 10**6}, "chains must be in [1, 64], got 1000000"),
         ({"chains": "4"}, "chains must be an integer"),
-        ({"seed": -1}, "seed must be a non-negative integer"),
+        ({"seed": -1}, "seed must be in [0, 9223372036854775807], got -1"),
+        ({"seed": 2**63}, "seed must be in [0, 9223372036854775807]"),
+        ({"target_acceptance": "x"}, "target_acceptance must be in [0.5, 1), got 'x'"),
+        ({"priors": ["gap"]}, "priors: a mapping of fitted names to priors"),
+        ({"priors": {"gap": {"mean": "x", "sd": 0.01}}}, "needs a finite number for its mean"),
+        ({"priors": {"gap": {"mean": True, "sd": 0.01}}}, "needs a finite number for its mean"),
         ({"target_acceptance": 1.0}, "target_acceptance must be in [0.5, 1)"),
         ({"priors": {"m": "uniform"}}, "prior for 'm': not a fitted value (fitted: k, c_out, gap)"),
         ({"priors": {"gap": {"kind": "normal", "mean": 0.02, "sd": 0.0}}}, "prior sd must be > 0"),
-        ({"priors": {"gap": {"kind": "normal", "mean": 0.02}}}, "a normal prior needs a finite sd"),
+        (
+            {"priors": {"gap": {"kind": "normal", "mean": 0.02}}},
+            "a normal prior needs a finite number for its sd, got None",
+        ),
         ({"priors": {"gap": {"kind": "cauchy", "mean": 0.0, "sd": 1.0}}}, "prior kind 'cauchy'"),
         ({"priors": {"gap": {"mean": 0.02, "sd": 0.01, "width": 1}}}, "unknown key 'width'"),
         ({"priors": {"k": {"kind": "lognormal", "mean": -1.0, "sd": 1.0}}}, "mean must be > 0"),
@@ -180,6 +187,50 @@ def test_a_normal_prior_mostly_outside_the_bounds_is_warned(no_fit):
     with pytest.warns(UserWarning, match=r"prior for 'gap'.* 98% of its mass outside the bounds"):
         with pytest.raises(no_fit):  # warned, then on to the fit
             rj.sample_posterior(calibration, priors={"gap": rjx.Prior("normal", -0.2, 0.1)})
+
+
+def test_a_fit_of_another_calibration_is_refused(absorber):
+    """The fit's values must be this calibration's, with the same bounds: its noise and
+    optimum start the chains."""
+    _, fit = absorber
+    other = rj.Calibration([rjx.Experiment(trace(TRUTH, seed=3))], fit=BOX | {"gap": (0.0, 0.05)})
+    with pytest.raises(rj.ParameterError, match="a result of another calibration"):
+        rj.sample_posterior(other, fit=fit)
+
+
+@pytest.mark.slow
+def test_with_a_flat_likelihood_the_draws_are_the_priors():
+    """Traces said to be a million times noisier than they are leave the priors alone:
+    k's lognormal, c_out's uniform and gap's normal, each truncated to its bounds, are
+    what the draws follow (Kolmogorov–Smirnov on every 5th draw, p > 0.01). This checks
+    the transform's Jacobian and each prior's density, which a likelihood as narrow as
+    the others' hides."""
+    from scipy import stats
+
+    calibration = rj.Calibration(
+        [rjx.Experiment(trace(TRUTH, seed=3), sigma={"x_M": 200.0, "F_AN": 3e8})], fit=BOX
+    )
+    fit = rj.calibrate(calibration, progress=False)
+    assert fit.explains
+    priors = {"k": rjx.Prior("lognormal", 4e4, 2e4), "gap": rjx.Prior("normal", 0.06, 0.03)}
+    posterior = rj.sample_posterior(calibration, fit=fit, draws=1000, warmup=500, chains=2,
+                                    seed=2, priors=priors, progress=False)  # fmt: skip
+    assert posterior.divergences == 0
+    sigma = np.sqrt(np.log1p((2e4 / 4e4) ** 2))
+    cdfs = {
+        "k": stats.lognorm(sigma, scale=4e4 * np.exp(-(sigma**2) / 2)).cdf,
+        "c_out": stats.uniform(BOX["c_out"][0], np.diff(BOX["c_out"])[0]).cdf,
+        "gap": stats.norm(0.06, 0.03).cdf,
+    }
+    print()
+    for i, label in enumerate(posterior.labels):
+        lower, upper = BOX[label]
+        cdf = cdfs[label]
+        draws = posterior.draws[:, ::5, i].ravel()
+        within = (cdf(draws) - cdf(lower)) / (cdf(upper) - cdf(lower))  # uniform if right
+        p = stats.kstest(within, "uniform").pvalue
+        print(f"{label}: KS p {p:.3f}, ESS {posterior.summary[label]['ess_bulk']:.0f}")
+        assert p > 0.01, (label, p)
 
 
 def test_a_model_that_does_not_explain_the_traces_is_not_sampled():
@@ -343,6 +394,8 @@ def test_the_command_line_samples_the_posterior(tmp_path, capsys):
         ('[posterior.prior]\nm = "uniform"\n', ["--posterior"], "prior for 'm': not a fitted"),
         ('[posterior.prior]\nk = { kind = "normal", mean = 3e4, sd = -1 }\n', ["--posterior"],
          "[posterior.prior] k: prior sd must be > 0"),
+        ('[posterior.prior]\nk = { kind = "normal", mean = "x", sd = 1.0 }\n', ["--posterior"],
+         "[posterior.prior] k: a normal prior needs a finite number for its mean, got 'x'"),
     ],
 )  # fmt: skip
 def test_bad_posterior_settings_exit_2_before_the_fit(tmp_path, capsys, posterior, arguments,

@@ -101,8 +101,11 @@ class Prior:
             return
         for name in ("mean", "sd"):
             value = getattr(self, name)
-            if value is None or not math.isfinite(float(value)):
-                raise ParameterError(f"a {self.kind} prior needs a finite {name}, got {value}")
+            number = isinstance(value, (int, float, np.integer, np.floating))
+            if isinstance(value, bool) or not number or not math.isfinite(float(value)):
+                raise ParameterError(
+                    f"a {self.kind} prior needs a finite number for its {name}, got {value!r}"
+                )
         if float(self.sd) <= 0:  # pyright: ignore[reportArgumentType]
             raise ParameterError(f"prior sd must be > 0, got {self.sd}")
         if self.kind == "lognormal" and float(self.mean) <= 0:  # pyright: ignore[reportArgumentType]
@@ -110,7 +113,8 @@ class Prior:
 
     @classmethod
     def of(cls, spec) -> Prior:
-        """A `Prior` from itself, a kind's name, or a mapping `{kind, mean, sd}`."""
+        """A `Prior` from itself, a kind's name, or a mapping `{kind, mean, sd}` (`kind`
+        "normal" where a mean and sd are given without one)."""
         if isinstance(spec, Prior):
             return spec
         if isinstance(spec, str):
@@ -179,6 +183,8 @@ def _check_count(name: str, value, least: int, most: int) -> int:
 def _priors(priors, layout: Layout) -> tuple[_Priors, dict[str, Prior]]:
     """The priors by fitted label (uniform where none is given), checked against the
     fitted labels and their bounds."""
+    if priors is not None and not isinstance(priors, Mapping):
+        raise ParameterError(f"priors: a mapping of fitted names to priors, got {priors!r}")
     given = dict(priors or {})
     labels = list(layout.labels)
     for name in given:
@@ -338,8 +344,8 @@ class Posterior:
       least-squares `value`, its Laplace `stderr` and `ci95` (None where the fit gives
       none) and whether the two intervals `disagree` (by more than 20 % of the Laplace
       interval's width at either end).
-    - `converged`: R̂ ≤ 1.01, bulk ESS ≥ 400 on every value, and no divergent
-      transition; `problems`: what failed, naming the value and what to try;
+    - `converged`: two chains or more, R̂ ≤ 1.01 and bulk ESS ≥ 400 on every value,
+      and no divergent transition; `problems`: what failed, naming the value and what to try;
       `disagreements`: the values whose Laplace interval misstates the posterior, in
       words. `divergences`: the divergent transitions, all chains.
     - `priors`: the prior of each value; `step_size (chains,)`; `seconds`: `compile`,
@@ -406,18 +412,21 @@ def check_posterior_settings(
     there) without running anything: the command line calls it before the fit.
 
     **Raises:** `ParameterError` naming the setting and its valid range: draws or
-    warm-up not an integer in [1, 100,000], chains not in [1, 64], a negative seed, a
+    warm-up not an integer in [1, 100,000], chains not in [1, 64], a seed not in
+    [0, 2⁶³), a
     target acceptance outside [0.5, 1), a prior for a value not fitted, of an unknown
     kind, or with an sd ≤ 0. Warns of a normal prior mostly outside its bounds.
+    `ModuleNotFoundError` naming the `posterior` extra without blackjax or ArviZ.
     """
     _check_count("draws", draws, 1, MAX_DRAWS)
     _check_count("warmup", warmup, 1, MAX_DRAWS)
     _check_count("chains", chains, 1, MAX_CHAINS)
-    if isinstance(target_acceptance, bool) or not 0.5 <= float(target_acceptance) < 1.0:
-        raise ParameterError(f"target_acceptance must be in [0.5, 1), got {target_acceptance}")
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ParameterError(f"seed must be a non-negative integer, got {seed!r}")
+    _check_count("seed", seed, 0, 2**63 - 1)
+    number = isinstance(target_acceptance, (int, float, np.integer, np.floating))
+    if isinstance(target_acceptance, bool) or not number or not 0.5 <= target_acceptance < 1.0:
+        raise ParameterError(f"target_acceptance must be in [0.5, 1), got {target_acceptance!r}")
     _priors(priors, Layout.of(calibration))
+    _require_extra()
 
 
 def sample_posterior(
@@ -480,8 +489,17 @@ def sample_posterior(
         raise ModelMisfitError(
             f"the model does not explain the traces ({failing}): its posterior is not sampled"
         )
-    if list(fit.fitted) != list(layout.labels):
-        raise ParameterError("fit: a result of another calibration (its fitted values differ)")
+    bounds = {
+        k: (float(lo), float(hi))
+        for k, lo, hi in zip(layout.labels, layout.lower, layout.upper, strict=True)
+    }
+    if (
+        list(fit.fitted) != list(layout.labels)
+        or {k: tuple(v) for k, v in fit.bounds.items()} != bounds
+    ):
+        raise ParameterError(
+            "fit: a result of another calibration (its fitted values or their bounds differ)"
+        )
 
     data = prepare(calibration, calibration.experiments, layout)
     sigma = np.array(data.sigma)
@@ -650,6 +668,9 @@ def _report(fit, layout, data, theta, out: _Block, priors, step_sizes, seconds) 
                 f"{label}: bulk ESS {ess_bulk[i]:.0f} under {MIN_ESS} (more draws, "
                 "or a dense mass matrix for correlated values)"
             )
+    if chains == 1:
+        problems.append("one chain: whether it has converged cannot be checked (split R-hat "
+                        "needs 2 chains or more)")  # fmt: skip
     divergences = int(np.sum(out.diverging))
     if divergences:
         problems.append(

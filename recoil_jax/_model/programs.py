@@ -194,7 +194,11 @@ def compiled_ahead(fn, *args) -> tuple[Callable, float]:
     seconds = time.perf_counter() - clock
 
     def run(*args_):
-        return program(eqx.partition(args_, eqx.is_array)[0])
+        dynamic_, static_ = eqx.partition(args_, eqx.is_array)
+        if _structure_key(dynamic_, static_) != key[2]:
+            raise ValueError(f"{fn.__name__}: called with arguments of another structure than "
+                             "it was compiled for")  # fmt: skip
+        return program(dynamic_)
 
     return run, seconds
 

@@ -19,12 +19,14 @@ import recoil_jax as rj
 
 __all__ = ["INTERRUPTED", "OPTIONAL", "run_command"]
 
-#: The modules of the `apps` extra (pyproject.toml), and what needs them.
+#: The modules of the optional extras (pyproject.toml): what needs each, and its extra.
 OPTIONAL = {
-    "panel": "the design explorer",
-    "bokeh": "the design explorer",
-    "cmaes": "CMA-ES, for bench-tuning",
-    "distributed": "Dask, for --workers and --scheduler",
+    "panel": ("the design explorer", "apps"),
+    "bokeh": ("the design explorer", "apps"),
+    "cmaes": ("CMA-ES, for bench-tuning", "apps"),
+    "distributed": ("Dask, for --workers and --scheduler", "apps"),
+    "blackjax": ("NUTS, for --posterior", "posterior"),
+    "arviz": ("ArviZ, for --posterior", "posterior"),
 }
 
 #: The exit status after Ctrl-C (the shell's 128 + SIGINT).
@@ -58,9 +60,10 @@ def run_command(args) -> int:
     except ModuleNotFoundError as error:
         if error.name not in OPTIONAL:
             raise
+        what, extra = OPTIONAL[error.name]
         print(
-            f"recoil-jax: error: {args.command} needs {error.name} ({OPTIONAL[error.name]}), "
-            "which the core install leaves out: pip install 'recoil-jax[apps]'",
+            f"recoil-jax: error: {args.command} needs {error.name} ({what}), "
+            f"which the core install leaves out: pip install 'recoil-jax[{extra}]'",
             file=sys.stderr,
         )
         return 2

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -189,7 +190,9 @@ def run_calibration(args) -> int:
     if sampling is not None and status == 0:
         from .._figures.calibration import plot_posterior
 
-        posterior = rj.sample_posterior(calibration, fit=result, progress=True, **sampling)
+        with warnings.catch_warnings():  # the priors were checked, and warned of, above
+            warnings.simplefilter("ignore")
+            posterior = rj.sample_posterior(calibration, fit=result, progress=True, **sampling)
         posterior.to_netcdf(out / "posterior.nc")
         report["posterior"] = posterior.to_json()
         report["figures"].append(str(plot_posterior(posterior, out / "posterior.png")))
