@@ -478,7 +478,6 @@ def sample_posterior(
     with warnings.catch_warnings():  # said once, by the check above
         warnings.simplefilter("ignore")
         prior_arrays, chosen = _priors(priors, layout)
-    _require_extra()
 
     if fit is None:
         from .calibrate import calibrate

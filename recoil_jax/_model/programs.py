@@ -177,7 +177,7 @@ def live_programs() -> int:
 def compiled_ahead(fn, *args) -> tuple[Callable, float]:
     """`fn` compiled ahead of time for the structure of `args` (as `structure_jit`
     selects a program), kept in the same bounded cache, and the seconds spent compiling
-    it now (0 when it was there): for a job that times its compilation apart from its
+    it now (next to none when it was there): for a job that times its compilation apart from its
     work (the posterior's sampler). Returns a callable of arguments of that structure
     (their arrays may differ; everything else must be as given)."""
     dynamic, static = eqx.partition(args, eqx.is_array)
