@@ -58,7 +58,8 @@ not need them; `docs/developers.md` shows how to plug a part in.
   derivatives); `FittedParameters` (a fit's hardware values with their covariance,
   from a result or its `result.json`) and `Prediction` (what `predict` gives);
   `Posterior`, `Prior` and `ModelMisfitError` (what `sample_posterior` gives, takes
-  and refuses), `check_posterior_settings` (its settings checked before a fit);
+  and refuses), `PosteriorPredictive` (the traces' bands under it),
+  `check_posterior_settings` (its settings checked before a fit);
   `reference_history` (time histories by the independent hard-switch scipy solver: a
   synthetic firing test the library shares no code with); `Continuation` (the
   smoothing widths a fit starts from, narrowed to the calibration's; `calibrate`'s
@@ -83,7 +84,13 @@ not need them; `docs/developers.md` shows how to plug a part in.
 from ._calibration.calibrate import DEFAULT_STARTS, fit_many, validate
 from ._calibration.continuation import DEFAULT_CONTINUATION, Continuation
 from ._calibration.model_check import ModelCheck, SignalCheck, trace_noise
-from ._calibration.posterior import ModelMisfitError, Posterior, Prior, check_posterior_settings
+from ._calibration.posterior import (
+    ModelMisfitError,
+    Posterior,
+    PosteriorPredictive,
+    Prior,
+    check_posterior_settings,
+)
 from ._calibration.predict import FittedParameters, Prediction
 from ._calibration.result import Fitted
 from ._calibration.spec import LOSSES
@@ -166,6 +173,7 @@ __all__ = [
     "PlanCheck",
     "PlanReport",
     "Posterior",
+    "PosteriorPredictive",
     "Prediction",
     "Prior",
     "RunRecord",

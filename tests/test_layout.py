@@ -327,6 +327,7 @@ RJX_NAMES = (
     "Fitted",
     "ModelMisfitError",
     "Posterior",
+    "PosteriorPredictive",
     "Prior",
     "FittedParameters",
     "Force",

@@ -38,8 +38,10 @@ import numpy as np
 from .._campaigns.progress import Progress
 from .._model.programs import compiled_ahead
 from .._model.registry import ParameterError
+from .._model.status import OK_CODE
 from .layout import Layout, prepare
-from .least_squares import FitSettings, evaluate, robust
+from .least_squares import FitSettings, evaluate, evaluate_program, robust
+from .predict import FittedParameters
 from .result import CalibrationResult
 from .spec import Calibration
 
@@ -49,6 +51,7 @@ __all__ = [
     "DEFAULT_WARMUP",
     "ModelMisfitError",
     "Posterior",
+    "PosteriorPredictive",
     "Prior",
     "check_posterior_settings",
     "sample_posterior",
@@ -74,6 +77,9 @@ DISAGREEMENT = 0.2
 PRIOR_MASS_OUTSIDE = 0.5
 
 _KINDS = ("uniform", "normal", "lognormal")
+#: The posterior draws a predictive band is made of, unless told (thinned evenly over
+#: every chain): its 2.5 and 97.5 % points to about ±0.7 % in probability.
+PREDICTIVE_DRAWS = 200
 
 
 class ModelMisfitError(RuntimeError):
@@ -267,7 +273,10 @@ def _log_density(w, data, priors: _Priors, whitening: _Whitening, static: FitSet
 
 
 class _Settings(NamedTuple):
-    """What shapes the sampler's programs (static)."""
+    """What shapes the sampler's programs (static): each program is given only its own
+    (the warm-up's `block` and the sampling's `warmup` and `target_acceptance` as 0), so
+    that another number of draws does not compile the warm-up again, nor another
+    warm-up the sampling."""
 
     static: FitSettings
     dense: bool
@@ -375,6 +384,47 @@ class Posterior:
     #: The likelihood's noise, per experiment and signal: `{"sigma", "given"}` (given
     #: in the calibration, or estimated by the fit from the residuals and held fixed).
     noise: list[dict[str, dict[str, Any]]] = dataclasses.field(default_factory=list)
+    #: `(thetas (N, P)) → ({signal: the model's (N, E, n)}, solve codes (N, E))` on the
+    #: calibration's traces (`predictive`).
+    _signals: Any = dataclasses.field(default=None, repr=False, compare=False)
+
+    def predictive(self, draws: int = PREDICTIVE_DRAWS, seed: int = 0) -> PosteriorPredictive:
+        """The traces under the posterior (`PosteriorPredictive`): the model solved at
+        `draws` posterior draws (thinned evenly over every chain), each signal's band over
+        them, and that band widened by the likelihood's noise (`seed` its draws).
+
+        **Raises:** `ParameterError` for `draws` not an integer in [2, 100,000];
+        `RuntimeError` where fewer than 2 of the draws solve.
+        """
+        draws = _check_count("draws", draws, 2, MAX_DRAWS)
+        seed = _check_count("seed", seed, 0, 2**63 - 1)
+        flat = self.draws.reshape(-1, self.draws.shape[-1])
+        chosen = flat[np.linspace(0, len(flat) - 1, min(draws, len(flat))).round().astype(int)]
+        signals, codes = self._signals(chosen)
+        ok = np.all(codes == OK_CODE, axis=1)
+        signals = {name: values[ok] for name, values in signals.items()}
+        if ok.sum() < 2:
+            raise RuntimeError(
+                f"the posterior predictive: {int((~ok).sum())} of {len(chosen)} draws failed "
+                "to solve; no band to give"
+            )
+        return _predictive(self.fit, self.noise, signals, int((~ok).sum()), seed)
+
+    def hardware(self) -> FittedParameters:
+        """The fitted hardware values (as `CalibrationResult.hardware`) with the
+        posterior's draws of them, for `predict`: its samples are then the draws (every
+        chain's, thinned), its linear band the draws' covariance through the gradients
+        at the least-squares values. Every value counts as determined: the posterior,
+        bounded by its prior, is a distribution wherever the data leave it."""
+        hardware = self.fit.hardware()
+        index = [self.labels.index(name) for name in hardware.names]
+        draws = self.draws.reshape(-1, len(self.labels))[:, index]
+        return dataclasses.replace(
+            hardware,
+            covariance=np.atleast_2d(np.cov(draws, rowvar=False)),
+            identifiable=np.ones(len(index), dtype=bool),
+            draws=draws,
+        )
 
     def to_netcdf(self, path) -> None:
         """Write the draws, sample statistics and traces (`inference_data`) to `path`."""
@@ -398,6 +448,67 @@ class Posterior:
         }
 
 
+@dataclasses.dataclass(frozen=True)
+class PosteriorPredictive:
+    """The traces under the posterior (`Posterior.predictive`), per experiment (lists,
+    as `CalibrationResult.times`), each signal by name:
+
+    - `experiments`: their names; `times (n,)`, `measured (n,)` (NaN where not sampled);
+    - `model (3, n)`: the model's signal over the posterior's draws, its 2.5, 50 and
+      97.5 % points (where the model itself may lie);
+    - `observed (2, n)`: the 2.5 and 97.5 % points of a repeated firing's samples (the
+      model at each draw plus the likelihood's noise, Gaussian of its σ);
+    - `coverage`: the share of the measured samples inside `observed` (near 0.95 where
+      the model and its noise explain the traces);
+    - `draws`: the draws solved; `failed`: those whose solve failed (left out).
+    """
+
+    experiments: list[str]
+    times: list[np.ndarray]
+    measured: list[dict[str, np.ndarray]]
+    model: list[dict[str, np.ndarray]]
+    observed: list[dict[str, np.ndarray]]
+    coverage: list[dict[str, float]]
+    draws: int
+    failed: int
+
+    def to_json(self) -> dict[str, Any]:
+        """The coverage and counts (the bands are `posterior_predictive.png`'s)."""
+        return {"coverage": self.coverage, "draws": self.draws, "failed": self.failed}
+
+
+def _predictive(fit: CalibrationResult, noise, signals, failed: int, seed: int):
+    """`PosteriorPredictive` from the model's `signals` by name `(N, E, n)` at N draws
+    that solved, on the fit's traces, with the likelihood's `noise` (`Posterior.noise`)."""
+    rng = np.random.default_rng(seed)
+    model, observed, coverage = [], [], []
+    for e, (times, measured) in enumerate(zip(fit.times, fit.measured, strict=True)):
+        n = len(times)
+        model_e, observed_e, coverage_e = {}, {}, {}
+        for name, values in measured.items():
+            drawn = signals[name][:, e, :n]
+            model_e[name] = np.percentile(drawn, [2.5, 50.0, 97.5], axis=0)
+            sigma = noise[e][name]["sigma"]
+            repeated = drawn + sigma * rng.standard_normal(drawn.shape)
+            observed_e[name] = np.percentile(repeated, [2.5, 97.5], axis=0)
+            sampled = np.isfinite(values)
+            inside = (values >= observed_e[name][0]) & (values <= observed_e[name][1])
+            coverage_e[name] = float(inside[sampled].mean())
+        model.append(model_e)
+        observed.append(observed_e)
+        coverage.append(coverage_e)
+    return PosteriorPredictive(
+        [str(experiment["name"]) for experiment in fit.experiments],
+        list(fit.times),
+        list(fit.measured),
+        model,
+        observed,
+        coverage,
+        len(next(iter(signals.values()))),
+        failed,
+    )
+
+
 def check_posterior_settings(
     calibration: Calibration,
     *,
@@ -406,6 +517,7 @@ def check_posterior_settings(
     chains: int = DEFAULT_CHAINS,
     seed: int = 0,
     priors: Mapping[str, Prior | str | Mapping[str, Any]] | None = None,
+    dense_mass: bool = False,
     target_acceptance: float = 0.8,
 ) -> None:
     """Check `sample_posterior`'s settings for `calibration` (its arguments, as named
@@ -413,15 +525,17 @@ def check_posterior_settings(
 
     **Raises:** `ParameterError` naming the setting and its valid range: draws or
     warm-up not an integer in [1, 100,000], chains not in [1, 64], a seed not in
-    [0, 2⁶³), a
-    target acceptance outside [0.5, 1), a prior for a value not fitted, of an unknown
-    kind, or with an sd ≤ 0. Warns of a normal prior mostly outside its bounds.
+    [0, 2⁶³), `dense_mass` not a boolean, a target acceptance outside [0.5, 1), a
+    prior for a value not fitted, of an unknown kind, or with an sd ≤ 0. Warns of a
+    normal prior mostly outside its bounds.
     `ModuleNotFoundError` naming the `posterior` extra without blackjax or ArviZ.
     """
     _check_count("draws", draws, 1, MAX_DRAWS)
     _check_count("warmup", warmup, 1, MAX_DRAWS)
     _check_count("chains", chains, 1, MAX_CHAINS)
     _check_count("seed", seed, 0, 2**63 - 1)
+    if not isinstance(dense_mass, (bool, np.bool_)):
+        raise ParameterError(f"dense_mass must be True or False, got {dense_mass!r}")
     number = isinstance(target_acceptance, (int, float, np.integer, np.floating))
     if isinstance(target_acceptance, bool) or not number or not 0.5 <= target_acceptance < 1.0:
         raise ParameterError(f"target_acceptance must be in [0.5, 1), got {target_acceptance!r}")
@@ -472,6 +586,7 @@ def sample_posterior(
         chains=chains,
         seed=seed,
         priors=priors,
+        dense_mass=dense_mass,
         target_acceptance=target_acceptance,
     )
     layout = Layout.of(calibration)
@@ -521,15 +636,19 @@ def sample_posterior(
     bar.update(0, "compiling")
     key = jax.random.key(seed)
     warm_keys, sample_keys = jax.random.split(jax.random.fold_in(key, 1), (2, chains))
+    warm_settings, sample_settings = (
+        settings._replace(block=0),
+        settings._replace(dense=False, warmup=0, target_acceptance=0.0),
+    )
     warm, compile_warm = compiled_ahead(
-        _warm_up, warm_keys[0], jnp.asarray(w0[0]), data, prior_arrays, whitening, settings
+        _warm_up, warm_keys[0], jnp.asarray(w0[0]), data, prior_arrays, whitening, warm_settings
     )
 
     clock, states, step_sizes, masses = time.perf_counter(), [], [], []
     for c in range(chains):
         bar.update(c * warmup, f"warm-up, chain {c + 1} of {chains}")
         state, step, mass = jax.block_until_ready(
-            warm(warm_keys[c], jnp.asarray(w0[c]), data, prior_arrays, whitening, settings)
+            warm(warm_keys[c], jnp.asarray(w0[c]), data, prior_arrays, whitening, warm_settings)
         )
         states.append(state)
         step_sizes.append(step)
@@ -545,7 +664,7 @@ def sample_posterior(
         data,
         prior_arrays,
         whitening,
-        settings,
+        sample_settings,
     )
     clock, chain_blocks = time.perf_counter(), []
     done = chains * warmup
@@ -553,7 +672,14 @@ def sample_posterior(
         state, blocks = states[c], []
         for b, block_key in enumerate(jax.random.split(sample_keys[c], math.ceil(draws / block))):
             state, out = sample(
-                block_key, state, step_sizes[c], masses[c], data, prior_arrays, whitening, settings
+                block_key,
+                state,
+                step_sizes[c],
+                masses[c],
+                data,
+                prior_arrays,
+                whitening,
+                sample_settings,
             )
             blocks.append(jax.tree.map(np.asarray, out))
             done += block
@@ -565,6 +691,14 @@ def sample_posterior(
         chain_blocks.append(jax.tree.map(lambda *a: np.concatenate(a)[:draws], *blocks))
     seconds_sampling = time.perf_counter() - clock
     bar.update(bar.total, "done", final=True)
+
+    def signals(thetas):
+        # One solve a draw, by the fit's own program (its sensitivities unused): a few
+        # hundred draws cost a fraction of the sampling's gradients.
+        solved = [evaluate_program(jnp.asarray(theta), data, static) for theta in thetas]
+        stacked = np.stack([np.asarray(s.signals) for s in solved])
+        codes = np.stack([np.asarray(s.codes) for s in solved])
+        return {name: stacked[:, :, s] for s, name in enumerate(layout.signals)}, codes
 
     out = jax.tree.map(lambda *a: np.stack(a), *chain_blocks)  # (chains, draws, ...)
     z = 1.0 / (1.0 + np.exp(-np.asarray(whitening.y(jnp.asarray(out.position)))))
@@ -582,6 +716,7 @@ def sample_posterior(
             "warmup": seconds_warmup,
             "sampling": seconds_sampling,
         },
+        signals,
     )
 
 
@@ -615,7 +750,9 @@ def _whitening(fit: CalibrationResult, layout: Layout, data) -> _Whitening:
     return _Whitening(jnp.asarray(np.log(z_hat / (1.0 - z_hat))), jnp.asarray(factor))
 
 
-def _report(fit, layout, data, theta, out: _Block, priors, step_sizes, seconds) -> Posterior:
+def _report(
+    fit, layout, data, theta, out: _Block, priors, step_sizes, seconds, signals
+) -> Posterior:
     """The `Posterior` of the draws `theta (C, D, P)`: ArviZ's diagnostics, the
     summary beside the Laplace intervals, the honesty gates."""
     import arviz as az
@@ -696,6 +833,7 @@ def _report(fit, layout, data, theta, out: _Block, priors, step_sizes, seconds) 
              for s, name in enumerate(layout.signals) if name in fit.sigma[e]}
             for e in range(len(fit.sigma))
         ],
+        signals,
     )  # fmt: skip
 
 

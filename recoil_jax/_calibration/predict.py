@@ -41,7 +41,9 @@ class FittedParameters:
     - `design`: the known values the calibration shared (`[design]`), which a prediction
       starts from;
     - `smoothing`: the widths the fit was at (`CalibrationResult.smoothing`), which a
-      prediction solves at.
+      prediction solves at;
+    - `draws (N, k)`: the posterior's draws of the values (`Posterior.hardware`), which
+      `sample` then gives instead of the normal's samples; None from a fit alone.
     """
 
     names: tuple[str, ...]
@@ -54,6 +56,7 @@ class FittedParameters:
     #: The calibration's model explained its traces (`CalibrationResult.explains`).
     explains: bool = True
     smoothing: Smoothing = dataclasses.field(default_factory=Smoothing)
+    draws: np.ndarray | None = None
 
     def __post_init__(self):
         if not self.names:
@@ -77,8 +80,14 @@ class FittedParameters:
 
     def sample(self, count: int, seed: int = 0) -> tuple[np.ndarray, int]:
         """`count` draws `(count, k)` from the normal of the fit (seeded), clipped to the
-        fit's bounds, and how many were clipped."""
+        fit's bounds, and how many were clipped. With the posterior's `draws`: `count` of
+        them, evenly thinned (each once; repeated, in turn, where `count` is more), none
+        clipped (they lie within the bounds)."""
         rng = np.random.default_rng(seed)
+        if self.draws is not None:
+            index = np.linspace(0, len(self.draws) - 1, min(count, len(self.draws)))
+            index = np.resize(index.round().astype(int), count)
+            return self.draws[index], 0
         draws = rng.multivariate_normal(self.values, self.covariance, size=count, method="eigh")
         clipped = np.any((draws < self.lower) | (draws > self.upper), axis=1)
         return np.clip(draws, self.lower, self.upper), int(clipped.sum())

@@ -188,14 +188,7 @@ def run_calibration(args) -> int:
     status = _exit_status(result, args.predict is not None)
     posterior = None
     if sampling is not None and status == 0:
-        from .._figures.calibration import plot_posterior
-
-        with warnings.catch_warnings():  # the priors were checked, and warned of, above
-            warnings.simplefilter("ignore")
-            posterior = rj.sample_posterior(calibration, fit=result, progress=True, **sampling)
-        posterior.to_netcdf(out / "posterior.nc")
-        report["posterior"] = posterior.to_json()
-        report["figures"].append(str(plot_posterior(posterior, out / "posterior.png")))
+        posterior = _sample_posterior(calibration, result, sampling, args.predict, report, out)
         write_json(out / "result.json", report)
     elif sampling is not None:
         print("recoil-jax: the posterior was not sampled: the fit above must converge and its "
@@ -207,7 +200,9 @@ def run_calibration(args) -> int:
         if "prediction" in report:
             print(prediction_report(report["prediction"]))
         if posterior is not None:
-            print(posterior_report(posterior))
+            print(posterior_report(posterior, report["posterior"]["predictive"]))
+        if "posterior_prediction" in report:
+            print(prediction_report(report["posterior_prediction"], "the posterior's draws"))
     if posterior is not None and not posterior.converged:
         for problem in posterior.problems:
             print(f"recoil-jax: the sampler has not converged: {problem}", file=sys.stderr)
@@ -215,24 +210,81 @@ def run_calibration(args) -> int:
     return status
 
 
+def _sample_posterior(calibration, result, sampling: dict, predict, report: dict, out: Path):
+    """The posterior sampled, written (`posterior.nc`, `posterior.png`,
+    `posterior_predictive.png`) and reported (`report["posterior"]`), and with
+    `--predict`, the design predicted from its draws (`report["posterior_prediction"]`,
+    `posterior_prediction.png`)."""
+    from .._figures.calibration import plot_posterior, plot_posterior_predictive, plot_prediction
+
+    with warnings.catch_warnings():  # the priors were checked, and warned of, before the fit
+        warnings.simplefilter("ignore")
+        posterior = rj.sample_posterior(calibration, fit=result, progress=True, **sampling)
+    posterior.to_netcdf(out / "posterior.nc")
+    predictive = posterior.predictive(seed=sampling.get("seed", 0))
+    report["posterior"] = posterior.to_json() | {"predictive": predictive.to_json()}
+    report["figures"] += [
+        str(plot_posterior(posterior, out / "posterior.png")),
+        str(plot_posterior_predictive(predictive, out / "posterior_predictive.png")),
+    ]
+    if predict is not None:
+        draws = posterior.draws.shape[0] * posterior.draws.shape[1]
+        prediction = rj.predict(
+            posterior.hardware(), parse_assignments(predict), samples=max(draws, 2),
+            seed=sampling.get("seed", 0), progress=True,
+        )  # fmt: skip
+        report["posterior_prediction"] = prediction.to_json()
+        report["figures"].append(str(plot_prediction(
+            prediction, out / "posterior_prediction.png", "the posterior's draws"
+        )))  # fmt: skip
+    return posterior
+
+
 def _posterior_settings(args, calibration: rj.Calibration, table: dict) -> dict | None:
     """`sample_posterior`'s settings: the file's `[posterior]` with `--draws`,
-    `--warmup`, `--chains` over it, checked before the fit; None without `--posterior`."""
-    given = {k: getattr(args, k) for k in ("draws", "warmup", "chains")
+    `--warmup`, `--chains` and each `--prior` over it, checked before the fit; None
+    without `--posterior`."""
+    given = {k: getattr(args, k) for k in ("draws", "warmup", "chains", "prior")
              if getattr(args, k) is not None}  # fmt: skip
     if not args.posterior:
         if given:
             raise rj.ParameterError(f"--{next(iter(given))} is for --posterior")
         return None
     settings = table | given
-    checked = {k: v for k, v in settings.items() if k != "dense_mass"}
-    rjx.check_posterior_settings(calibration, **checked)
+    if "prior" in given:
+        settings["priors"] = dict(table.get("priors", {})) | _priors_given(given["prior"])
+        del settings["prior"]
+    rjx.check_posterior_settings(calibration, **settings)
     return settings
 
 
-def posterior_report(posterior: rjx.Posterior) -> str:
+def _priors_given(items: list[str]) -> dict[str, rjx.Prior]:
+    """`--prior NAME=KIND` or `NAME=KIND:MEAN,SD` (repeatable) as priors by name."""
+    priors = {}
+    for item in items:
+        name, equals, spec = item.partition("=")
+        kind, _, numbers = spec.partition(":")
+        words = f"--prior {item}: give NAME=uniform, NAME=normal:MEAN,SD or NAME=lognormal:MEAN,SD"
+        if not equals or not name or name in priors:
+            raise rj.ParameterError(words if name not in priors else f"--prior {name} given twice")
+        try:
+            values = [float(x) for x in numbers.split(",")] if numbers else []
+        except ValueError:
+            raise rj.ParameterError(words) from None
+        if len(values) not in (0, 2):
+            raise rj.ParameterError(words)
+        mean, sd = values or (None, None)
+        try:
+            priors[name.strip()] = rjx.Prior(kind.strip(), mean, sd)
+        except rj.ParameterError as error:
+            raise rj.ParameterError(f"--prior {item}: {error}") from None
+    return priors
+
+
+def posterior_report(posterior: rjx.Posterior, predictive: dict | None = None) -> str:
     """The posterior's summary: per value its mean, sd, 2.5/50/97.5 % quantiles, R-hat
-    and bulk ESS beside the fit's Laplace interval; then the gates."""
+    and bulk ESS beside the fit's Laplace interval; then the gates, and the share of
+    each trace inside its predictive band (`PosteriorPredictive.to_json`)."""
     chains, draws = posterior.draws.shape[:2]
     lines = [
         f"posterior: {chains} chains × {draws} draws (NUTS), {posterior.divergences} "
@@ -252,6 +304,11 @@ def posterior_report(posterior: rjx.Posterior) -> str:
     noise = [f"{name} {n['sigma']:.3g} ({'given' if n['given'] else 'estimated by the fit'})"
              for experiment in posterior.noise for name, n in experiment.items()]  # fmt: skip
     lines.append(f"  the likelihood's noise, held fixed: {', '.join(noise)}")
+    if predictive is not None:
+        inside = [f"{name} {share:.1%}" for experiment in predictive["coverage"]
+                  for name, share in experiment.items()]  # fmt: skip
+        lines.append(f"  measured samples inside the 95 % predictive band "
+                     f"({predictive['draws']} draws): {', '.join(inside)}")  # fmt: skip
     lines += [f"  {line}" for line in posterior.disagreements]
     lines.append("  converged" if posterior.converged else "  NOT converged: see below")
     return "\n".join(lines)
@@ -393,12 +450,12 @@ def _check_line(check: rjx.ModelCheck) -> str:
     return f"  model check: the model {verdict} ({noises})"
 
 
-def prediction_report(prediction: dict) -> str:
-    """The prediction's bands as text, for the design it names."""
+def prediction_report(prediction: dict, source: str = "the fit's normal") -> str:
+    """The prediction's bands as text, for the design it names, sampled from `source`."""
     given = ", ".join(f"{k}={v:g}" for k, v in prediction["given"].items())
     lines = [
         f"prediction for {given or 'the design of the calibration'} "
-        f"({prediction['count']} samples, {prediction['failed']} failed, "
+        f"({prediction['count']} samples of {source}, {prediction['failed']} failed, "
         f"{prediction['clipped']} moved to the bounds, {prediction['seconds']:.1f} s):"
     ]
     for name, sampled in prediction["sampled"].items():
@@ -565,7 +622,15 @@ def add_command(commands: Commands) -> None:
         "--posterior",
         action="store_true",
         help="then sample the posterior (NUTS, the file's [posterior] settings; "
-        "posterior.nc, posterior.png); exit 7 when its sampler has not converged",
+        "posterior.nc, posterior.png, posterior_predictive.png; with --predict, also "
+        "from its draws); exit 7 when its sampler has not converged",
+    )
+    calibrate.add_argument(
+        "--prior",
+        action="append",
+        metavar="NAME=KIND[:MEAN,SD]",
+        help="with --posterior: a fitted value's prior, uniform (over its bounds, the "
+        "default), normal:MEAN,SD or lognormal:MEAN,SD (repeatable; over the file's)",
     )
     for name, words in (("draws", "draws per chain (default 1000)"),
                         ("warmup", "warm-up steps per chain (default 1000)"),

@@ -1,5 +1,5 @@
 """Calibration figures: the fit over the traces, the correlation, the profiles, a
-prediction's bands."""
+prediction's bands, the posterior (corner plot) and its predictive bands."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ __all__ = [
     "plot_calibration_fit",
     "plot_correlation",
     "plot_posterior",
+    "plot_posterior_predictive",
     "plot_prediction",
     "plot_profiles",
 ]
@@ -145,9 +146,12 @@ def calibration_figures(result: rj.CalibrationResult, out) -> list[Path]:
 
 
 @styled
-def plot_prediction(prediction: rjx.Prediction, path) -> Path:
-    """Each peak metric's sampled values under the fitted uncertainty (histogram), with
-    the nominal value and both 95 % bands (sampled percentiles, linear propagation)."""
+def plot_prediction(
+    prediction: rjx.Prediction, path, source: str = "the calibration's uncertainty"
+) -> Path:
+    """Each peak metric's sampled values under the fitted uncertainty (histogram; drawn
+    from `source`), with the nominal value and both 95 % bands (sampled percentiles,
+    linear propagation)."""
     shown = [n for n in ("peak_anchoring_force", "peak_displacement", "max_stroke")
              if np.ptp(prediction.samples[n]) > 0]  # fmt: skip
     fig, axes = plt.subplots(1, len(shown), figsize=(4.6 * len(shown), 3.6), squeeze=False,
@@ -165,8 +169,7 @@ def plot_prediction(prediction: rjx.Prediction, path) -> Path:
         ax.set_ylabel("samples")
         ax.legend(loc="upper left", fontsize=7)
     fig.suptitle(
-        f"prediction from the calibration's uncertainty ({prediction.count} samples, "
-        f"{prediction.failed} failed)",
+        f"prediction from {source} ({prediction.count} samples, {prediction.failed} failed)",
         fontsize=10,
     )
     return save(fig, path)
@@ -227,4 +230,56 @@ def plot_posterior(posterior: rjx.Posterior, path) -> Path:
     verdict = "converged" if posterior.converged else "NOT converged"
     fig.suptitle(f"posterior: {chains} chains × {draws} draws, {verdict}; red: the "
                  "least-squares Laplace approximation", fontsize=9)  # fmt: skip
+    return save(fig, path)
+
+
+@styled
+def plot_posterior_predictive(predictive: rjx.PosteriorPredictive, path) -> Path:
+    """The traces under the posterior, each experiment (columns) and signal (rows): the
+    measured samples over the model's median, and below, everything less that median
+    (in the signal's unit), where the bands show: the model's 95 % band over the draws
+    (dark) and a repeated firing's (light: the model with the likelihood's noise)."""
+    signals = list(dict.fromkeys(s for m in predictive.measured for s in m))
+    experiments = len(predictive.times)
+    fig, axes = plt.subplots(
+        2 * len(signals),
+        experiments,
+        figsize=(4.8 * experiments + 1, 3.4 * len(signals)),
+        squeeze=False,
+        gridspec_kw={"height_ratios": [2, 2] * len(signals)},
+        sharex="col",
+        layout="constrained",
+    )
+    for e, t in enumerate(predictive.times):
+        for s, signal in enumerate(signals):
+            top, bottom = axes[2 * s, e], axes[2 * s + 1, e]
+            unit = rjx.SIGNALS[signal][0]
+            if signal not in predictive.measured[e]:
+                top.set_visible(False)
+                bottom.set_visible(False)
+                continue
+            measured = predictive.measured[e][signal]
+            low, median, high = predictive.model[e][signal]
+            observed = predictive.observed[e][signal]
+            top.plot(t, measured, ".", ms=2, color="0.55", label="measured")
+            top.plot(t, median, color="C0", lw=1.2, label="posterior median")
+            top.set_ylabel(f"{signal} ({unit})")
+            top.set_title(f"{predictive.experiments[e]}: {rjx.SIGNALS[signal][1]}")
+            top.legend(loc="upper right", fontsize=7)
+            bottom.fill_between(t, observed[0] - median, observed[1] - median, color="C0",
+                                alpha=0.18, lw=0, label="95 %: a repeated firing")  # fmt: skip
+            bottom.fill_between(t, low - median, high - median, color="C0", alpha=0.6, lw=0,
+                                label="95 %: the model")  # fmt: skip
+            bottom.plot(t, measured - median, ".", ms=1.5, color="C3", label="measured")
+            bottom.axhline(0.0, color="k", lw=0.6)
+            bottom.set_ylabel(f"less the median ({unit})")
+            bottom.set_title(
+                f"{predictive.coverage[e][signal]:.1%} of the samples inside the light band",
+                fontsize=8,
+            )
+            bottom.legend(loc="upper right", fontsize=7)
+        axes[-1, e].set_xlabel("t (s)")
+    failed = f", {predictive.failed} failed" if predictive.failed else ""
+    fig.suptitle(f"posterior predictive: the model at {predictive.draws} posterior draws"
+                 f"{failed}", fontsize=9)  # fmt: skip
     return save(fig, path)
