@@ -54,6 +54,9 @@ def test_the_posterior_is_the_laplace_approximation_where_the_fit_is_near_linear
     assert posterior.converged, posterior.problems
     assert posterior.divergences == 0
     assert posterior.disagreements == []
+    # k and c_out correlate (−0.985), but the data determine each: not a ridge. The
+    # contact's fall in F_AN is steep but resolved: no sample is left out.
+    assert posterior.unseparated == [] and posterior.left_out == 0
     print()
     for label, row in posterior.summary.items():
         stderr = fit.fitted[label].stderr
@@ -91,6 +94,80 @@ def test_the_draws_and_diagnostics_are_written(posterior, tmp_path):
     assert posterior.noise[0]["x_M"] == {"sigma": posterior.fit.sigma[0]["x_M"], "given": False}
     text = json.dumps(posterior.to_json())
     assert json.loads(text)["summary"]["gap"]["ess_bulk"] == posterior.summary["gap"]["ess_bulk"]
+
+
+def test_a_ridge_is_said_to_be_unseparated_and_a_determined_correlation_is_not():
+    """Draws along friction's ridge at one elevation (F_0 + μ·M·g = 2,383 N, uniform
+    along it within the bounds, 1 N across) are called unseparated; two values as
+    correlated (−0.985) but each a thousandth of its prior wide are not, nor are two
+    loose values that do not correlate."""
+    from recoil_jax._calibration.posterior import _unseparated
+
+    rng = np.random.default_rng(0)
+    mu = rng.uniform(0.0, 0.1, 4000)
+    force = 2383.0 - 1800 * 9.81 * mu + rng.normal(0.0, 1.0, mu.size)
+    prior_sd = np.array([2000.0, 0.1]) / np.sqrt(12.0)
+    labels = ("friction_force", "friction_coefficient")
+    (words,) = _unseparated(np.stack([force, mu], axis=1), labels, prior_sd)
+    assert words.startswith("friction_force and friction_coefficient: correlation -1.000")
+    assert "the data do not separate them" in words
+    tight = rng.multivariate_normal([0.0, 0.0], [[1.0, -0.985], [-0.985, 1.0]], 4000)
+    assert _unseparated(tight * prior_sd * 1e-3, labels, prior_sd) == []
+    loose = rng.uniform(-1.0, 1.0, (4000, 2)) * prior_sd * np.sqrt(3.0)
+    assert _unseparated(loose, labels, prior_sd) == []
+
+
+def test_the_samples_either_side_of_a_jump_are_left_out_of_the_likelihood():
+    """Friction fired at 0°: the counter-recoil buffer's engagement is a jump in `F_AN`
+    (≈5 kN) between two samples, and 2 N less friction moves it across one of them:
+    χ² +280, a cliff no gradient sampler crosses. The samples either side of each jump
+    at the optimum are left out (`_off_the_jumps`), and then the same 2 N change moves
+    χ² by its smooth part only."""
+    import jax.numpy as jnp
+    from test_reference_envelope import HOWITZER
+
+    from recoil_jax._calibration.layout import Layout, prepare
+    from recoil_jax._calibration.least_squares import FitSettings, evaluate_program
+    from recoil_jax._calibration.posterior import _off_the_jumps
+
+    design = HOWITZER | {"elevation": 0.0}
+    ts = np.arange(0.0, 1.0 + 1e-12, 2e-3)
+    history = rj.simulate(rj.params_from_values(design), rj.Smoothing(),
+                          rj.SolverOptions(t1=1.0), ts)  # fmt: skip
+    sigma = {"x_M": 3e-4, "F_AN": 300.0}
+    rng = np.random.default_rng(3)
+    signals = {n: np.asarray(getattr(history, n)) + s * rng.standard_normal(ts.size)
+               for n, s in sigma.items()}  # fmt: skip
+    known = {k: v for k, v in design.items()
+             if k not in ("friction_force", "friction_coefficient")}  # fmt: skip
+    experiment = rjx.Experiment(rjx.Trace.of(ts, **signals), design=known, sigma=sigma)
+    box = {"friction_force": (500.0, 2500.0), "friction_coefficient": (0.0, 0.1)}
+    calibration = rj.Calibration([experiment], fit=box)
+    fit = rj.calibrate(calibration, starts=1, progress=False)
+    assert fit.explains
+    layout = Layout.of(calibration)
+    data = prepare(calibration, calibration.experiments, layout)
+    static = FitSettings(layout.wrt, layout.signals, calibration.loss, calibration.f_scale, 1,
+                         estimate_noise=False)  # fmt: skip
+    kept, left_out = _off_the_jumps(data, static, fit, layout)
+    assert 2 <= left_out <= 12, left_out
+    dropped = np.argwhere(np.asarray(data.present) & ~np.asarray(kept.present))
+    assert any(abs(ts[i] - 0.986) < 3e-3 for _, s, i in dropped if s == 1), dropped
+
+    def chi2(data_, force):
+        theta = jnp.asarray([force, fit.values["friction_coefficient"]])
+        return float(np.sum(np.asarray(evaluate_program(theta, data_, static).residuals) ** 2))
+
+    # Within 6 N of the optimum (its sd across the ridge is about 1 N), half a newton
+    # at a time: where the buffer's jump crosses a sample, χ² steps.
+    forces = fit.values["friction_force"] + np.arange(-6.0, 6.01, 0.5)
+    steps = np.diff([chi2(data, f) for f in forces])
+    smooth = np.diff([chi2(kept, f) for f in forces])
+    print(
+        f"\nχ² change a half newton at a time, all samples: {np.round(steps, 1)}; "
+        f"{left_out} left out: {np.round(smooth, 1)}"
+    )
+    assert np.max(np.abs(steps)) > 100 and np.max(np.abs(smooth)) < 10
 
 
 def test_the_predictive_band_holds_the_measured_samples_as_often_as_it_says(posterior):

@@ -73,6 +73,14 @@ MIN_ESS = 400
 #: Where the posterior's 95 % interval and the Laplace one differ by more than this
 #: share of the Laplace interval's width (at either end), the report says so.
 DISAGREEMENT = 0.2
+#: A step in the model's signal between two samples over this many times what its
+#: rates there explain (plus twice the noise) is a jump: the samples either side of it
+#: are left out of the likelihood (`_off_the_jumps`).
+JUMP_RATIO = 3.0
+#: Two values whose draws correlate beyond this (either sign), each still spread over
+#: more than half its prior's sd, are not separated by the data: only a combination of
+#: them is determined, and the report says so.
+UNSEPARATED = 0.95
 #: A normal prior with more than this share of its mass outside the bounds is warned of.
 PRIOR_MASS_OUTSIDE = 0.5
 
@@ -356,7 +364,10 @@ class Posterior:
     - `converged`: two chains or more, R̂ ≤ 1.01 and bulk ESS ≥ 400 on every value,
       and no divergent transition; `problems`: what failed, naming the value and what to try;
       `disagreements`: the values whose Laplace interval misstates the posterior, in
-      words. `divergences`: the divergent transitions, all chains.
+      words; `unseparated`: the pairs of values the data do not separate (draws
+      correlated beyond ±0.95, each spread over more than half its prior's sd), in
+      words. `divergences`: the divergent transitions,
+      all chains.
     - `priors`: the prior of each value; `step_size (chains,)`; `seconds`: `compile`,
       `warmup` and `sampling` (compilation excluded from the other two);
       `ess_per_second`: the least bulk ESS over the values per second of sampling.
@@ -384,6 +395,13 @@ class Posterior:
     #: The likelihood's noise, per experiment and signal: `{"sigma", "given"}` (given
     #: in the calibration, or estimated by the fit from the residuals and held fixed).
     noise: list[dict[str, dict[str, Any]]] = dataclasses.field(default_factory=list)
+    #: The pairs of values whose draws correlate beyond ±0.95, each spread over more
+    #: than half its prior's sd, in words: the data do not separate them (a ridge), and
+    #: each one's interval is the priors' doing.
+    unseparated: list[str] = dataclasses.field(default_factory=list)
+    #: Samples left out of the likelihood: either side of a jump in the model's signal,
+    #: or on an event the sampling does not resolve (the likelihood is a cliff there).
+    left_out: int = 0
     #: `(thetas (N, P)) → ({signal: the model's (N, E, n)}, solve codes (N, E))` on the
     #: calibration's traces (`predictive`).
     _signals: Any = dataclasses.field(default=None, repr=False, compare=False)
@@ -437,6 +455,8 @@ class Posterior:
             "converged": self.converged,
             "problems": self.problems,
             "disagreements": self.disagreements,
+            "unseparated": self.unseparated,
+            "left_out": self.left_out,
             "divergences": self.divergences,
             "priors": {k: dataclasses.asdict(p) for k, p in self.priors.items()},
             "step_size": self.step_size.tolist(),
@@ -625,9 +645,10 @@ def sample_posterior(
     static = FitSettings(
         layout.wrt, layout.signals, calibration.loss, calibration.f_scale, 1, estimate_noise=False
     )
+    data, left_out = _off_the_jumps(data, static, fit, layout)
     block = max(1, math.ceil(draws / 10))
     settings = _Settings(static, bool(dense_mass), warmup, block, float(target_acceptance))
-    whitening = _whitening(fit, layout, data)
+    whitening = _whitening(fit, layout, data, static, prior_arrays)
     w0 = np.random.default_rng(seed).standard_normal((chains, len(layout.labels)))
 
     bar = Progress(
@@ -716,29 +737,76 @@ def sample_posterior(
             "warmup": seconds_warmup,
             "sampling": seconds_sampling,
         },
+        left_out,
         signals,
     )
 
 
-def _whitening(fit: CalibrationResult, layout: Layout, data) -> _Whitening:
+def _off_the_jumps(data, static, fit: CalibrationResult, layout: Layout):
+    """`data` without the samples either side of a jump in the model's signal at the
+    optimum (a step between two samples over `JUMP_RATIO` times what its rates there
+    explain, plus twice the noise), and those the fit found on an event their sampling
+    does not resolve (`CalibrationResult.unresolved`), and how many were left out.
+
+    Such a sample carries the event's time only to within its spacing, and the jump
+    makes the likelihood a cliff there: a µs of the event's time moves the sample from
+    one side of it to the other (measured, the counter-recoil buffer's step in `F_AN`:
+    χ² +280 for 2 N of friction), which no gradient sampler crosses. The fit's standard
+    errors leave the unresolved ones out for the same reason."""
+    evaluation = evaluate_program(jnp.asarray([fit.values[k] for k in layout.labels]), data,
+                                  static)  # fmt: skip
+    present = np.array(data.present)
+    signals, rates = np.asarray(evaluation.signals), np.asarray(evaluation.rates)
+    times, sigma = np.asarray(data.times), np.asarray(data.sigma)
+    before = int(present.sum())
+    for e, s in np.ndindex(present.shape[:2]):
+        (index,) = np.nonzero(present[e, s])
+        if index.size < 2:
+            continue
+        step = np.abs(np.diff(signals[e, s, index]))
+        rate = np.maximum(np.abs(rates[e, s, index[:-1]]), np.abs(rates[e, s, index[1:]]))
+        explained = rate * np.diff(times[e, index])
+        jump = step > JUMP_RATIO * explained + 2.0 * sigma[e, s]
+        present[e, s, index[:-1][jump]] = False
+        present[e, s, index[1:][jump]] = False
+    labels = [str(experiment["name"]) for experiment in fit.experiments]
+    for sample in fit.unresolved:
+        e, s = labels.index(sample["experiment"]), list(layout.signals).index(sample["signal"])
+        present[e, s, int(np.argmin(np.abs(times[e] - sample["t"])))] = False
+    left_out = before - int(present.sum())
+    return eqx.tree_at(lambda d: d.present, data, jnp.asarray(present)), left_out
+
+
+def _whitening(fit: CalibrationResult, layout: Layout, data, static, priors: _Priors):
     """The chains' coordinates (`_Whitening`): centred on the least-squares optimum
-    (kept 2 % of the box inside its bounds), scaled by its covariance in `y` (a value
-    without a standard error by 0.4 in `y`, about a tenth of its box; none wider than 2)."""
+    (kept 2 % of the box inside its bounds), scaled by the posterior's curvature there
+    in `y`: the data's Gauss–Newton `JᵀJ` (noise units) plus the priors' and the
+    transform's. Where the data determine every value this is the Laplace covariance;
+    along a direction they do not (friction at one elevation: a ridge), the priors'
+    curvature bounds it, so the chains are scaled along the ridge and across it alike."""
     labels = list(layout.labels)
     value = np.array([fit.values[k] for k in labels])
-    stderr = np.array([fit.fitted[k].stderr or np.nan for k in labels], dtype=float)
     z_hat = np.clip(data.space.z(value), 0.02, 0.98)
-    slope = np.asarray(
-        jax.jvp(data.space.theta, (jnp.asarray(z_hat),), (jnp.ones_like(jnp.asarray(z_hat)),))[1]
+    theta_hat, slope = jax.jvp(
+        data.space.theta, (jnp.asarray(z_hat),), (jnp.ones_like(jnp.asarray(z_hat)),)
     )
-    # dy/dθ = dy/dz · dz/dθ, with dy/dz = 1 / (z (1 − z)).
-    dy_dtheta = 1.0 / (z_hat * (1.0 - z_hat) * np.abs(slope))
-    sd_y = np.where(np.isfinite(stderr) & (stderr > 0), stderr * dy_dtheta, 0.4)
-    sd_y = np.minimum(sd_y, 2.0)
-    correlation = np.where(np.isfinite(fit.correlation), fit.correlation, 0.0)
-    np.fill_diagonal(correlation, 1.0)
-    covariance = correlation * np.outer(sd_y, sd_y)
-    # A correlation of ±1 to rounding: nudge the diagonal until it factors.
+    # dθ/dy = dθ/dz · dz/dy, with dz/dy = z (1 − z).
+    dtheta_dy = np.asarray(slope) * z_hat * (1.0 - z_hat)
+    jacobian = np.asarray(evaluate_program(theta_hat, data, static).jacobian)
+    jacobian = jacobian.reshape(-1, len(labels)) * dtheta_dy
+    # −d²/dy² of the transform's log Jacobian, log z + log(1 − z): 2 z (1 − z); and of
+    # a normal (lognormal) prior: (dθ/dy)² / sd² (/ θ² s²).
+    theta = np.asarray(theta_hat)
+    kind, scale = np.asarray(priors.kind), np.asarray(priors.scale)
+    prior_curvature = np.where(kind == 1, 1.0 / scale**2,
+                               np.where(kind == 2, 1.0 / (theta * scale) ** 2, 0.0))  # fmt: skip
+    precision = jacobian.T @ jacobian + np.diag(
+        2.0 * z_hat * (1.0 - z_hat) + prior_curvature * dtheta_dy**2
+    )
+    covariance = np.linalg.inv(precision)
+    covariance = 0.5 * (covariance + covariance.T)
+    sd_y = np.sqrt(np.diag(covariance))
+    # Near-singular to rounding: nudge the diagonal until it factors.
     for jitter in (0.0, 1e-10, 1e-8, 1e-6, 1e-4):
         try:
             factor = np.linalg.cholesky(covariance + jitter * np.diag(sd_y**2))
@@ -751,7 +819,7 @@ def _whitening(fit: CalibrationResult, layout: Layout, data) -> _Whitening:
 
 
 def _report(
-    fit, layout, data, theta, out: _Block, priors, step_sizes, seconds, signals
+    fit, layout, data, theta, out: _Block, priors, step_sizes, seconds, left_out, signals
 ) -> Posterior:
     """The `Posterior` of the draws `theta (C, D, P)`: ArviZ's diagnostics, the
     summary beside the Laplace intervals, the honesty gates."""
@@ -814,6 +882,8 @@ def _report(
             "(a higher target acceptance, e.g. 0.95, or a dense mass matrix)"
         )
     least_ess = float(np.min(ess_bulk))
+    prior_sd = [_prior_sd(priors[label], *fit.bounds[label]) for label in labels]
+    unseparated = _unseparated(flat, labels, np.asarray(prior_sd))
     return Posterior(
         labels,
         theta,
@@ -833,8 +903,38 @@ def _report(
              for s, name in enumerate(layout.signals) if name in fit.sigma[e]}
             for e in range(len(fit.sigma))
         ],
+        unseparated,
+        left_out,
         signals,
     )  # fmt: skip
+
+
+def _prior_sd(prior: Prior, lower: float, upper: float) -> float:
+    """A prior's standard deviation (a uniform's over the bounds; a normal's or
+    lognormal's own, within the bounds' uniform's)."""
+    uniform = (upper - lower) / math.sqrt(12.0)
+    return uniform if prior.kind == "uniform" else min(float(prior.sd), uniform)  # pyright: ignore[reportArgumentType]
+
+
+def _unseparated(flat: np.ndarray, labels, prior_sd: np.ndarray) -> list[str]:
+    """The pairs of values the data do not separate, in words: draws `flat (N, P)`
+    correlated beyond ±`UNSEPARATED`, each value still spread over more than half its
+    prior's sd `prior_sd (P,)` (a pair both well determined may correlate as strongly:
+    the paper absorber's k and c_out, −0.985)."""
+    if len(labels) < 2:
+        return []
+    correlation = np.corrcoef(flat, rowvar=False)
+    loose = flat.std(axis=0, ddof=1) > 0.5 * prior_sd
+    words = []
+    for i, j in zip(*np.triu_indices(len(labels), 1), strict=True):
+        if abs(correlation[i, j]) > UNSEPARATED and loose[i] and loose[j]:
+            words.append(
+                f"{labels[i]} and {labels[j]}: correlation {correlation[i, j]:+.3f} in the "
+                "draws, each spread over most of its prior: the data do not separate them "
+                "(only a combination of the two is determined), and each one's interval is "
+                "as wide as the priors let the ridge run"
+            )
+    return words
 
 
 def _diagnosed(az, theta, out: _Block, observed, labels):

@@ -304,12 +304,15 @@ def posterior_report(posterior: rjx.Posterior, predictive: dict | None = None) -
     noise = [f"{name} {n['sigma']:.3g} ({'given' if n['given'] else 'estimated by the fit'})"
              for experiment in posterior.noise for name, n in experiment.items()]  # fmt: skip
     lines.append(f"  the likelihood's noise, held fixed: {', '.join(noise)}")
+    if posterior.left_out:
+        lines.append(f"  {posterior.left_out} samples either side of a jump in the model's "
+                     "signals left out of the likelihood")  # fmt: skip
     if predictive is not None:
         inside = [f"{name} {share:.1%}" for experiment in predictive["coverage"]
                   for name, share in experiment.items()]  # fmt: skip
         lines.append(f"  measured samples inside the 95 % predictive band "
                      f"({predictive['draws']} draws): {', '.join(inside)}")  # fmt: skip
-    lines += [f"  {line}" for line in posterior.disagreements]
+    lines += [f"  {line}" for line in (*posterior.unseparated, *posterior.disagreements)]
     lines.append("  converged" if posterior.converged else "  NOT converged: see below")
     return "\n".join(lines)
 
