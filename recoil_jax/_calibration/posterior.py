@@ -779,14 +779,23 @@ def _off_the_jumps(data, static, fit: CalibrationResult, layout: Layout):
 
 def _whitening(fit: CalibrationResult, layout: Layout, data, static, priors: _Priors):
     """The chains' coordinates (`_Whitening`): centred on the least-squares optimum
-    (kept 2 % of the box inside its bounds), scaled by the posterior's curvature there
-    in `y`: the data's Gauss–Newton `JᵀJ` (noise units) plus the priors' and the
-    transform's. Where the data determine every value this is the Laplace covariance;
-    along a direction they do not (friction at one elevation: a ridge), the priors'
-    curvature bounds it, so the chains are scaled along the ridge and across it alike."""
+    (kept a standard error, at most 2 % of the box, inside its bounds), scaled by the
+    posterior's curvature there in `y`: the data's Gauss–Newton `JᵀJ` (noise units)
+    plus the priors' and the transform's. Where the data determine every value this is
+    the Laplace covariance; along a direction they do not (friction at one elevation: a
+    ridge), the priors' curvature bounds it, so the chains are scaled along the ridge
+    and across it alike."""
     labels = list(layout.labels)
     value = np.array([fit.values[k] for k in labels])
-    z_hat = np.clip(data.space.z(value), 0.02, 0.98)
+    # Kept inside the bounds by its standard error in z (at most 2 % of the box), so
+    # that the centre is finite and, near a bound, still where the posterior is.
+    z_raw = np.clip(np.asarray(data.space.z(value), dtype=float), 1e-12, 1.0 - 1e-12)
+    slope_raw = np.asarray(jax.jvp(data.space.theta, (jnp.asarray(z_raw),),
+                                   (jnp.ones_like(jnp.asarray(z_raw)),))[1])  # fmt: skip
+    stderr = np.array([fit.fitted[k].stderr or np.nan for k in labels], dtype=float)
+    sd_z = np.abs(stderr / slope_raw)
+    margin = np.where(np.isfinite(sd_z) & (sd_z > 0), np.minimum(sd_z, 0.02), 0.02)
+    z_hat = np.clip(z_raw, margin, 1.0 - margin)
     theta_hat, slope = jax.jvp(
         data.space.theta, (jnp.asarray(z_hat),), (jnp.ones_like(jnp.asarray(z_hat)),)
     )
