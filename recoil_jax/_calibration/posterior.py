@@ -42,6 +42,7 @@ from .._model.status import OK_CODE
 from .layout import Layout, prepare
 from .least_squares import FitSettings, evaluate, evaluate_program, robust
 from .predict import FittedParameters
+from .report import unresolved_samples
 from .result import CalibrationResult
 from .spec import Calibration
 
@@ -86,7 +87,7 @@ PRIOR_MASS_OUTSIDE = 0.5
 
 _KINDS = ("uniform", "normal", "lognormal")
 #: The posterior draws a predictive band is made of, unless told (thinned evenly over
-#: every chain): its 2.5 and 97.5 % points to about ±0.7 % in probability.
+#: every chain): its 2.5 and 97.5 % points to about ±1.1 % in probability (one sd).
 PREDICTIVE_DRAWS = 200
 
 
@@ -282,9 +283,9 @@ def _log_density(w, data, priors: _Priors, whitening: _Whitening, static: FitSet
 
 class _Settings(NamedTuple):
     """What shapes the sampler's programs (static): each program is given only its own
-    (the warm-up's `block` and the sampling's `warmup` and `target_acceptance` as 0), so
-    that another number of draws does not compile the warm-up again, nor another
-    warm-up the sampling."""
+    (the warm-up's `block` as 0; the sampling's `warmup` and `target_acceptance` as 0
+    and `dense` false, the mass matrix's shape saying it), so that another number of
+    draws does not compile the warm-up again, nor another warm-up the sampling."""
 
     static: FitSettings
     dense: bool
@@ -411,18 +412,22 @@ class Posterior:
         `draws` posterior draws (thinned evenly over every chain), each signal's band over
         them, and that band widened by the likelihood's noise (`seed` its draws).
 
-        **Raises:** `ParameterError` for `draws` not an integer in [2, 100,000];
-        `RuntimeError` where fewer than 2 of the draws solve.
+        **Raises:** `ParameterError` for `draws` not an integer in [2, 100,000], where
+        fewer than 2 of the draws solve, or for a `Posterior` not made by
+        `sample_posterior` (it has no model to solve).
         """
         draws = _check_count("draws", draws, 2, MAX_DRAWS)
         seed = _check_count("seed", seed, 0, 2**63 - 1)
+        if self._signals is None:
+            raise ParameterError("posterior.predictive: this Posterior holds no model to "
+                                 "solve (make it with sample_posterior)")  # fmt: skip
         flat = self.draws.reshape(-1, self.draws.shape[-1])
         chosen = flat[np.linspace(0, len(flat) - 1, min(draws, len(flat))).round().astype(int)]
         signals, codes = self._signals(chosen)
         ok = np.all(codes == OK_CODE, axis=1)
         signals = {name: values[ok] for name, values in signals.items()}
         if ok.sum() < 2:
-            raise RuntimeError(
+            raise ParameterError(
                 f"the posterior predictive: {int((~ok).sum())} of {len(chosen)} draws failed "
                 "to solve; no band to give"
             )
@@ -479,7 +484,8 @@ class PosteriorPredictive:
     - `observed (2, n)`: the 2.5 and 97.5 % points of a repeated firing's samples (the
       model at each draw plus the likelihood's noise, Gaussian of its σ);
     - `coverage`: the share of the measured samples inside `observed` (near 0.95 where
-      the model and its noise explain the traces);
+      the model and its noise explain the traces), every sample counted (those the
+      likelihood leaves out too), the noise Gaussian whatever the fit's loss;
     - `draws`: the draws solved; `failed`: those whose solve failed (left out).
     """
 
@@ -635,17 +641,7 @@ def sample_posterior(
             "fit: a result of another calibration (its fitted values or their bounds differ)"
         )
 
-    data = prepare(calibration, calibration.experiments, layout)
-    sigma = np.array(data.sigma)
-    for e, noise in enumerate(fit.sigma):
-        for s, name in enumerate(layout.signals):
-            if name in noise:
-                sigma[e, s] = noise[name]
-    data = eqx.tree_at(lambda d: d.sigma, data, jnp.asarray(sigma))
-    static = FitSettings(
-        layout.wrt, layout.signals, calibration.loss, calibration.f_scale, 1, estimate_noise=False
-    )
-    data, left_out = _off_the_jumps(data, static, fit, layout)
+    data, static, left_out = _likelihood(calibration, fit, layout)
     block = max(1, math.ceil(draws / 10))
     settings = _Settings(static, bool(dense_mass), warmup, block, float(target_acceptance))
     whitening = _whitening(fit, layout, data, static, prior_arrays)
@@ -742,17 +738,36 @@ def sample_posterior(
     )
 
 
+def _likelihood(calibration: Calibration, fit: CalibrationResult, layout: Layout):
+    """The likelihood's data (the traces, under the noise the fit used, off the jumps:
+    `_off_the_jumps`), the settings of its program, and how many samples it leaves out."""
+    data = prepare(calibration, calibration.experiments, layout)
+    sigma = np.array(data.sigma)
+    for e, noise in enumerate(fit.sigma):
+        for s, name in enumerate(layout.signals):
+            if name in noise:
+                sigma[e, s] = noise[name]
+    data = eqx.tree_at(lambda d: d.sigma, data, jnp.asarray(sigma))
+    static = FitSettings(
+        layout.wrt, layout.signals, calibration.loss, calibration.f_scale, 1, estimate_noise=False
+    )
+    data, left_out = _off_the_jumps(data, static, fit, layout)
+    return data, static, left_out
+
+
 def _off_the_jumps(data, static, fit: CalibrationResult, layout: Layout):
     """`data` without the samples either side of a jump in the model's signal at the
     optimum (a step between two samples over `JUMP_RATIO` times what its rates there
     explain, plus twice the noise), and those the fit found on an event their sampling
-    does not resolve (`CalibrationResult.unresolved`), and how many were left out.
+    does not resolve (`unresolved_samples`, as `CalibrationResult.unresolved`), and how
+    many were left out.
 
     Such a sample carries the event's time only to within its spacing, and the jump
     makes the likelihood a cliff there: a µs of the event's time moves the sample from
-    one side of it to the other (measured, the counter-recoil buffer's step in `F_AN`:
-    χ² +280 for 2 N of friction), which no gradient sampler crosses. The fit's standard
-    errors leave the unresolved ones out for the same reason."""
+    one side of it to the other (measured, the counter-recoil buffer's step in `F_AN`
+    with friction at 0°: χ² +279 for half a newton), which no gradient sampler
+    crosses. The fit's standard errors leave the unresolved ones out for the same
+    reason."""
     evaluation = evaluate_program(jnp.asarray([fit.values[k] for k in layout.labels]), data,
                                   static)  # fmt: skip
     present = np.array(data.present)
@@ -769,10 +784,8 @@ def _off_the_jumps(data, static, fit: CalibrationResult, layout: Layout):
         jump = step > JUMP_RATIO * explained + 2.0 * sigma[e, s]
         present[e, s, index[:-1][jump]] = False
         present[e, s, index[1:][jump]] = False
-    labels = [str(experiment["name"]) for experiment in fit.experiments]
-    for sample in fit.unresolved:
-        e, s = labels.index(sample["experiment"]), list(layout.signals).index(sample["signal"])
-        present[e, s, int(np.argmin(np.abs(times[e] - sample["t"])))] = False
+    # The fit's own test, on the same evaluation (so no lookup by name or time).
+    present &= ~unresolved_samples(times, signals, rates, np.asarray(data.present), sigma)
     left_out = before - int(present.sum())
     return eqx.tree_at(lambda d: d.present, data, jnp.asarray(present)), left_out
 
@@ -807,8 +820,10 @@ def _whitening(fit: CalibrationResult, layout: Layout, data, static, priors: _Pr
     # a normal (lognormal) prior: (dθ/dy)² / sd² (/ θ² s²).
     theta = np.asarray(theta_hat)
     kind, scale = np.asarray(priors.kind), np.asarray(priors.scale)
+    lognormal_theta = np.where(kind == 2, theta, 1.0)  # positive there (the bounds' check)
     prior_curvature = np.where(kind == 1, 1.0 / scale**2,
-                               np.where(kind == 2, 1.0 / (theta * scale) ** 2, 0.0))  # fmt: skip
+                               np.where(kind == 2, 1.0 / (lognormal_theta * scale) ** 2,
+                                        0.0))  # fmt: skip
     precision = jacobian.T @ jacobian + np.diag(
         2.0 * z_hat * (1.0 - z_hat) + prior_curvature * dtheta_dy**2
     )

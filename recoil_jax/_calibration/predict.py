@@ -81,12 +81,13 @@ class FittedParameters:
     def sample(self, count: int, seed: int = 0) -> tuple[np.ndarray, int]:
         """`count` draws `(count, k)` from the normal of the fit (seeded), clipped to the
         fit's bounds, and how many were clipped. With the posterior's `draws`: `count` of
-        them, evenly thinned (each once; repeated, in turn, where `count` is more), none
-        clipped (they lie within the bounds)."""
+        them, evenly spread over every chain (each once; where `count` is more, each
+        about `count / N` times), none clipped (they lie within the bounds) and `seed`
+        unused."""
         rng = np.random.default_rng(seed)
         if self.draws is not None:
-            index = np.linspace(0, len(self.draws) - 1, min(count, len(self.draws)))
-            index = np.resize(index.round().astype(int), count)
+            # Each draw ⌊count/N⌋ or ⌈count/N⌉ times, in order (so over every chain).
+            index = np.arange(count) * len(self.draws) // count
             return self.draws[index], 0
         draws = rng.multivariate_normal(self.values, self.covariance, size=count, method="eigh")
         clipped = np.any((draws < self.lower) | (draws > self.upper), axis=1)
@@ -229,7 +230,8 @@ def predict(
     progress: bool | None = None,
 ) -> Prediction:
     """Any design's peak metrics with a 95 % band from a calibration's uncertainty, two
-    ways: `samples` draws from the fitted normal through one batched sweep, and linear
+    ways: `samples` draws from the fitted normal (or, from `Posterior.hardware()`, the
+    posterior's draws, `seed` then unused) through one batched sweep, and linear
     propagation of the covariance through the exact gradients at the fitted values.
 
     **Arguments:**

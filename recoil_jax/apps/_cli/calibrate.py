@@ -263,6 +263,7 @@ def _priors_given(items: list[str]) -> dict[str, rjx.Prior]:
     priors = {}
     for item in items:
         name, equals, spec = item.partition("=")
+        name = name.strip()
         kind, _, numbers = spec.partition(":")
         words = f"--prior {item}: give NAME=uniform, NAME=normal:MEAN,SD or NAME=lognormal:MEAN,SD"
         if not equals or not name or name in priors:
@@ -275,7 +276,7 @@ def _priors_given(items: list[str]) -> dict[str, rjx.Prior]:
             raise rj.ParameterError(words)
         mean, sd = values or (None, None)
         try:
-            priors[name.strip()] = rjx.Prior(kind.strip(), mean, sd)
+            priors[name] = rjx.Prior(kind.strip(), mean, sd)
         except rj.ParameterError as error:
             raise rj.ParameterError(f"--prior {item}: {error}") from None
     return priors
@@ -305,8 +306,8 @@ def posterior_report(posterior: rjx.Posterior, predictive: dict | None = None) -
              for experiment in posterior.noise for name, n in experiment.items()]  # fmt: skip
     lines.append(f"  the likelihood's noise, held fixed: {', '.join(noise)}")
     if posterior.left_out:
-        lines.append(f"  {posterior.left_out} samples either side of a jump in the model's "
-                     "signals left out of the likelihood")  # fmt: skip
+        lines.append(f"  {posterior.left_out} samples on or either side of a jump in the "
+                     "model's signals left out of the likelihood")  # fmt: skip
     if predictive is not None:
         inside = [f"{name} {share:.1%}" for experiment in predictive["coverage"]
                   for name, share in experiment.items()]  # fmt: skip
