@@ -24,24 +24,31 @@ __all__ = [
 ]
 
 
+def _signal_grid(measured: list[dict], heights: tuple[int, int]):
+    """The signals measured in any experiment (in order), and a figure of two panels
+    each (a trace over its residuals, of `heights`) per signal (rows) and experiment
+    (columns)."""
+    signals = list(dict.fromkeys(s for m in measured for s in m))
+    fig, axes = plt.subplots(
+        2 * len(signals),
+        len(measured),
+        figsize=(4.8 * len(measured) + 1, 3.4 * len(signals)),
+        squeeze=False,
+        gridspec_kw={"height_ratios": list(heights) * len(signals)},
+        sharex="col",
+        layout="constrained",
+    )
+    return signals, fig, axes
+
+
 @styled
 def plot_calibration_fit(result: rj.CalibrationResult, path) -> Path:
     """Measured against fitted for each experiment (columns) and signal (rows), each
     with its residual panel below (in the signal's unit)."""
     from .._files.describe import structure_line
 
-    signals = list(dict.fromkeys(s for m in result.measured for s in m))
-    experiments = len(result.times)
+    signals, fig, axes = _signal_grid(result.measured, (3, 1))
     checks = {(c.experiment, c.signal): c for c in result.check.signals}
-    fig, axes = plt.subplots(
-        2 * len(signals),
-        experiments,
-        figsize=(4.8 * experiments + 1, 3.4 * len(signals)),
-        squeeze=False,
-        gridspec_kw={"height_ratios": [3, 1] * len(signals)},
-        sharex="col",
-        layout="constrained",
-    )
     for e, (t, measured, model) in enumerate(
         zip(result.times, result.measured, result.model, strict=True)
     ):
@@ -239,17 +246,7 @@ def plot_posterior_predictive(predictive: rjx.PosteriorPredictive, path) -> Path
     measured samples over the model's median, and below, everything less that median
     (in the signal's unit), where the bands show: the model's 95 % band over the draws
     (dark) and a repeated firing's (light: the model with the likelihood's noise)."""
-    signals = list(dict.fromkeys(s for m in predictive.measured for s in m))
-    experiments = len(predictive.times)
-    fig, axes = plt.subplots(
-        2 * len(signals),
-        experiments,
-        figsize=(4.8 * experiments + 1, 3.4 * len(signals)),
-        squeeze=False,
-        gridspec_kw={"height_ratios": [2, 2] * len(signals)},
-        sharex="col",
-        layout="constrained",
-    )
+    signals, fig, axes = _signal_grid(predictive.measured, (2, 2))
     for e, t in enumerate(predictive.times):
         for s, signal in enumerate(signals):
             top, bottom = axes[2 * s, e], axes[2 * s + 1, e]
