@@ -207,3 +207,26 @@ def test_sensitivity_bench_reports_every_figure():
     # Hard switches (scipy) against the smoothed model: the paper's 1e-4 level.
     assert result["scipy"]["max_relative_apart"] < 1e-3
     assert "scipy solve_ivp loop" in format_sensitivity_bench(result)
+
+
+@pytest.mark.slow
+def test_posterior_bench_reports_both_samplers_on_one_density():
+    """`bench-calibration --posterior`: NUTS and emcee sample the same density (emcee's
+    within 0.01 of NUTS's, their means within a posterior sd on small runs), on the same
+    budget of solves; the chains one after another and in lockstep make the same number
+    of transitions; every figure is reported."""
+    from recoil_jax.apps._bench.posterior import format_posterior_bench, posterior_bench
+
+    result = posterior_bench(samples=401, draws=100, warmup=100, chains=2, walkers=16,
+                             lockstep_transitions=4, log=lambda m: None)  # fmt: skip
+    nuts, emcee = result["nuts"], result["emcee"]
+    assert nuts["solves"] > 0 and nuts["ess_per_s"] > 0 and emcee["ess_per_s"] > 0
+    # The same budget: emcee's steps are whole ensembles of 16 solves.
+    assert nuts["solves"] - 16 < emcee["solves"] <= nuts["solves"]
+    assert emcee["log_density_apart"] < 0.01
+    assert result["means_apart_sd"] < 1.0
+    lock = result["lockstep"]
+    assert lock["sequential_s"] > 0 and lock["vmapped_s"] > 0
+    assert lock["lockstep_steps"] >= lock["leapfrog_steps"] > 0
+    text = format_posterior_bench(result)
+    assert "NUTS over emcee" in text and "vmapped" in text

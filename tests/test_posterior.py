@@ -14,7 +14,7 @@ import json
 
 import numpy as np
 import pytest
-from test_calibration import BOX, TRUTH, synthetic, trace, write_trace
+from test_calibration import BOX, NOISE, TRUTH, synthetic, trace, write_trace
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
@@ -234,6 +234,54 @@ def test_the_chains_are_scaled_by_the_laplace_covariance_where_the_data_determin
                                laplace / np.outer(sd_laplace, sd_laplace), atol=0.01)  # fmt: skip
 
 
+def test_the_density_without_gradients_is_the_density_nuts_samples(absorber):
+    """The log density a sampler without gradients gets (emcee's in `bench-calibration
+    --posterior`: one solve of the state alone, `model_residuals`, at a hundredth of the
+    tolerances) is the one NUTS samples, to 0.01 across the chains' scale; at the same
+    tolerances it is not (NUTS's solve controls the sensitivities' error too, and is the
+    more accurate). A failed solve is the fit's failed residual."""
+    import jax
+    import jax.numpy as jnp
+
+    from recoil_jax._calibration.layout import Layout
+    from recoil_jax._calibration.least_squares import FAILED_RESIDUAL, model_residuals
+    from recoil_jax._calibration.posterior import _likelihood, _log_density, _priors, _whitening
+    from recoil_jax.apps._bench.posterior import emcee_data
+
+    calibration, fit = absorber
+    layout = Layout.of(calibration)
+    data, static, _ = _likelihood(calibration, fit, layout)
+    priors, _ = _priors(None, layout)
+    whitening = _whitening(fit, layout, data, static, priors)
+    points = jnp.asarray(np.random.default_rng(0).standard_normal((6, len(layout.labels))) * 2)
+
+    def density(data, gradient):
+        return np.asarray(jax.jit(jax.vmap(
+            lambda w: _log_density(w, data, priors, whitening, static, gradient)
+        ))(points))  # fmt: skip
+
+    with_sensitivities = density(data, True)
+    assert np.ptp(with_sensitivities) > 1.0  # the points span the posterior
+    np.testing.assert_allclose(density(emcee_data(data), False), with_sensitivities,
+                               atol=0.01, rtol=0)  # fmt: skip
+    assert np.max(np.abs(density(data, False) - with_sensitivities)) > 0.02
+    # A solve that fails (a step budget of 1) gives every present sample the failed
+    # residual, as the fit's own evaluation does.
+    starved = eqx_replace_max_steps(data, 1)
+    theta = jnp.asarray([fit.values[k] for k in layout.labels])
+    r = np.asarray(model_residuals(theta, starved, static))
+    present = np.asarray(starved.present)
+    assert np.all(r[present] == FAILED_RESIDUAL) and np.all(r[~present] == 0.0)
+
+
+def eqx_replace_max_steps(data, max_steps: int):
+    """`data` whose solves get `max_steps` steps at most."""
+    import equinox as eqx
+
+    return eqx.tree_at(lambda d: d.options, data,
+                       dataclasses.replace(data.options, max_steps=max_steps))  # fmt: skip
+
+
 def test_the_posterior_hardware_gives_its_draws_to_predict(posterior):
     """`Posterior.hardware()`: the fit's hardware values with the draws' covariance
     (near the Laplace one here); `sample` gives the draws themselves, thinned evenly
@@ -301,6 +349,41 @@ def test_a_normal_prior_combines_with_the_likelihood_as_two_gaussians_do(absorbe
     assert posterior.summary["gap"]["sd"] < 0.85 * s
 
 
+@pytest.mark.slow
+def test_a_sampled_noise_is_the_closed_form_and_comes_back_from_a_wrong_one(absorber):
+    """`sample_noise=True`: each trace's noise sampled with the values, under a
+    half-normal prior. With n Gaussian samples the posterior of σ is, to first order,
+    normal about the fit's estimate with sd σ̂/√(2n) (the χ² of n samples): sds within
+    15 % of it, the true noise inside the 95 % interval, the values' sds still the
+    Laplace ones (their optimum does not depend on σ). Told twice the true noise, the
+    sampled noise comes back to the truth (the given value far outside its interval)."""
+    calibration, fit = absorber
+    posterior = rj.sample_posterior(calibration, fit=fit, draws=DRAWS, warmup=DRAWS, chains=4,
+                                    seed=0, progress=False, sample_noise=True)  # fmt: skip
+    assert posterior.converged, posterior.problems
+    n = 601
+    for name, noise in posterior.noise[0].items():
+        sampled = noise["sampled"]
+        assert sampled["sd"] == pytest.approx(noise["sigma"] / np.sqrt(2 * n), rel=0.15)
+        assert sampled["q2.5"] < NOISE[name] < sampled["q97.5"], (name, sampled)
+        assert sampled["half_normal_scale"] == pytest.approx(2 * noise["sigma"])
+    for label, row in posterior.summary.items():
+        assert row["sd"] == pytest.approx(row["stderr"], rel=0.1), label
+    assert posterior.inference_data.posterior["sigma"].shape == (4, DRAWS, 2)
+
+    told = rj.Calibration([rjx.Experiment(trace(TRUTH, seed=3),
+                                          sigma={k: 2 * v for k, v in NOISE.items()})],
+                          fit=BOX)  # fmt: skip
+    told_fit = rj.calibrate(told, progress=False)
+    posterior = rj.sample_posterior(told, fit=told_fit, draws=300, warmup=300, chains=2,
+                                    seed=1, progress=False, sample_noise=True)  # fmt: skip
+    for name, noise in posterior.noise[0].items():
+        sampled = noise["sampled"]
+        assert noise["given"] and noise["sigma"] == 2 * NOISE[name]
+        assert sampled["q2.5"] < NOISE[name] < sampled["q97.5"], (name, sampled)
+        assert sampled["q97.5"] < 1.2 * NOISE[name]
+
+
 @pytest.fixture
 def no_fit(monkeypatch):
     """A `calibrate` that fails the test if called: what is refused must be refused
@@ -342,10 +425,24 @@ def no_fit(monkeypatch):
         ({"priors": {"gap": {"mean": 0.02, "sd": 0.01, "width": 1}}}, "unknown key 'width'"),
         ({"priors": {"k": {"kind": "lognormal", "mean": -1.0, "sd": 1.0}}}, "mean must be > 0"),
         ({"priors": {"k": {"kind": "uniform", "mean": 1.0}}}, "a uniform prior takes no mean"),
+        ({"sample_noise": "yes"}, "sample_noise must be True or False, got 'yes'"),
+        ({"noise_scale": {"F_AN": 300.0}}, "noise_scale is the sampled noise's prior: give "
+                                           "sample_noise=True"),
+        ({"sample_noise": True, "noise_scale": {"v_M": 1.0}},
+         "noise_scale for 'v_M': not a measured signal (measured: x_M, F_AN)"),
+        ({"sample_noise": True, "noise_scale": {"F_AN": 0.0}},
+         "noise_scale for 'F_AN' must be a number > 0, got 0.0"),
+        ({"sample_noise": True, "noise_scale": {"F_AN": float("inf")}},
+         "noise_scale for 'F_AN' must be a number > 0, got inf"),
+        ({"sample_noise": True, "noise_scale": [300.0]}, "noise_scale: a mapping of signals"),
+        ({"sample_noise": True, "loss": "soft_l1"},
+         "sample_noise needs the linear loss (a soft_l1 loss has no normalised likelihood"),
     ],
-)
+)  # fmt: skip
 def test_bad_settings_are_refused_before_anything_runs(no_fit, settings, message):
-    calibration = rj.Calibration([rjx.Experiment(trace(TRUTH, seed=3))], fit=BOX)
+    settings = dict(settings)
+    loss = settings.pop("loss", "linear")
+    calibration = rj.Calibration([rjx.Experiment(trace(TRUTH, seed=3))], fit=BOX, loss=loss)
     with pytest.raises(rj.ParameterError) as raised:
         rj.sample_posterior(calibration, **settings)
     assert message in str(raised.value)
@@ -572,11 +669,18 @@ def test_the_command_line_samples_the_posterior(tmp_path, capsys):
     for name, row in summary.items():
         assert row["q2.5"] <= report["fitted"][name]["value"] <= row["q97.5"], name
 
+    # The noise sampled too (`--sample-noise`), on too few draws: its rows, and the gates
+    # name it as they name a value.
     status = main(["calibrate", source, "--posterior", "--draws", "20", "--warmup", "30",
-                   "--out", str(tmp_path / "short")])  # fmt: skip
+                   "--sample-noise", "--out", str(tmp_path / "short")])  # fmt: skip
     assert status == POSTERIOR_NOT_CONVERGED
-    err = capsys.readouterr().err
-    assert "the sampler has not converged: k: bulk ESS" in err and "more draws" in err
+    captured = capsys.readouterr()
+    assert "the sampler has not converged: k: bulk ESS" in captured.err
+    assert "more draws" in captured.err and "noise of F_AN in experiment 0: " in captured.err
+    assert "the noise, sampled from the fit's: x_M" in captured.out
+    assert "half-normal prior, scale" in captured.out
+    report = json.loads((tmp_path / "short" / "result.json").read_text())
+    assert set(report["posterior"]["noise"][0]["F_AN"]["sampled"]) >= {"mean", "q97.5", "r_hat"}
 
 
 @pytest.mark.parametrize(
@@ -600,6 +704,16 @@ def test_the_command_line_samples_the_posterior(tmp_path, capsys):
         ("", ["--posterior", "--prior", "k=beta:1,2"], "--prior k=beta:1,2: prior kind 'beta'"),
         ("", ["--posterior", "--prior", "k=uniform", "--prior", " k=normal:3e4,1e4"],
          "--prior k given twice"),
+        ("", ["--sample-noise"], "--sample-noise is for --posterior"),
+        ("sample_noise = 1\n", ["--posterior"], "[posterior] sample_noise = 1: give true or false"),
+        ("[posterior.noise_scale]\nF_AN = 600.0\n", ["--posterior"],
+         "noise_scale is the sampled noise's prior: give sample_noise=True"),
+        ("sample_noise = true\n[posterior.noise_scale]\nv_M = 1.0\n", ["--posterior"],
+         "noise_scale for 'v_M': not a measured signal"),
+        ("noise_scale = 3\n", ["--posterior", "--sample-noise"],
+         "write each noise's prior scale under [posterior.noise_scale]"),
+        ('[posterior.noise_scale]\nF_AN = "x"\n', ["--posterior", "--sample-noise"],
+         "[posterior.noise_scale] F_AN"),
     ],
 )  # fmt: skip
 def test_bad_posterior_settings_exit_2_before_the_fit(tmp_path, capsys, posterior, arguments,

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .._model.derivatives import signal_sensitivities
+from .._model.derivatives import signal_history, signal_sensitivities
 from .._model.params import with_values
 from .._model.programs import structure_jit
 from .._model.status import OK_CODE
@@ -49,6 +49,7 @@ __all__ = [
     "evaluate_program",
     "fit_program",
     "log_likelihood_term",
+    "model_residuals",
     "robust",
     "solve_lm",
     "theta_of_u",
@@ -162,22 +163,53 @@ def evaluate(theta, data: CalibrationData, static: _Static) -> Evaluation:
     experiment's solve, the residuals in noise units and their Jacobian. A sample of an
     experiment whose solve failed takes `FAILED_RESIDUAL`, its Jacobian rows 0."""
     P = theta.shape[0]
-    index = data.index
-    columns = jnp.where(index >= 0, theta[jnp.maximum(index, 0)], data.known)
     # The experiments one after another (`lax.map`), not in lockstep: a vmapped solve
     # selects its whole carry, the saved signals included, at every step (measured, one
     # experiment of 5,001 samples: 13 ms vmapped, 3 ms alone).
     values, gradients, rates, codes = jax.lax.map(
         lambda a: _experiment_signals(a[0], a[1], a[2], a[3], data, static),
-        (columns, data.params, data.times, data.t1),
+        (_columns(theta, data), data.params, data.times, data.t1),
     )
     ok = (codes == OK_CODE)[:, None, None]
-    select = jax.nn.one_hot(index, P) * (index >= 0)[..., None]  # (E, K, P)
+    select = jax.nn.one_hot(data.index, P) * (data.index >= 0)[..., None]  # (E, K, P)
     jacobian = jnp.einsum("esnk,ekp->esnp", gradients, select) / data.sigma[..., None, None]
-    residuals = (values - data.measured) / data.sigma[..., None]
-    residuals = jnp.where(data.present & ok, residuals, jnp.where(data.present, FAILED_RESIDUAL, 0))
     jacobian = jnp.where((data.present & ok)[..., None], jacobian, 0.0)
-    return Evaluation(residuals, jacobian, values, rates, codes)
+    return Evaluation(_residuals(values, codes, data), jacobian, values, rates, codes)
+
+
+def model_residuals(theta, data: CalibrationData, static: _Static):
+    """`evaluate`'s residuals `(E, S, n)` alone, from one solve of the state per
+    experiment without its sensitivities: the likelihood of a sampler that needs no
+    gradient (emcee's, in `bench-calibration --posterior`), at what it costs."""
+
+    def one(theta_e, params, times, t1):
+        params = with_values(params, static.wrt, theta_e[:-1])
+        model_times = times - theta_e[-1]
+        solved = signal_history(params, data.smoothing,
+                                dataclasses.replace(data.options, t1=t1),
+                                jnp.clip(model_times, 0.0, t1), t1, static.signals)  # fmt: skip
+        (code,) = jax.tree.leaves(solved.status)
+        return jnp.where(model_times < 0, solved.rest_values[:, None], solved.values), code
+
+    values, codes = jax.lax.map(
+        lambda a: one(*a), (_columns(theta, data), data.params, data.times, data.t1)
+    )
+    return _residuals(values, codes, data)
+
+
+def _columns(theta, data: CalibrationData):
+    """Each experiment's model columns `(E, K)`: the fitted values where fitted, else
+    its known ones."""
+    index = data.index
+    return jnp.where(index >= 0, theta[jnp.maximum(index, 0)], data.known)
+
+
+def _residuals(values, codes, data: CalibrationData):
+    """The residuals `(E, S, n)` in noise units of the model's `values`; a sample of an
+    experiment whose solve failed takes `FAILED_RESIDUAL`, an absent one 0."""
+    ok = (codes == OK_CODE)[:, None, None]
+    residuals = (values - data.measured) / data.sigma[..., None]
+    return jnp.where(data.present & ok, residuals, jnp.where(data.present, FAILED_RESIDUAL, 0))
 
 
 def robust(r, loss: str, f_scale: float):

@@ -12,7 +12,8 @@ bounds 0 and 1, linear or logarithmic: `SearchSpace`), so that no draw leaves th
 the density carries the transform's Jacobian, so that a uniform prior is uniform in the
 parameter itself. The likelihood is the fit's: `−½ Σ ρ(r²)` over every experiment, signal
 and sample (`r` in noise units, `ρ` the calibration's loss), under the noise the fit
-settled on (given, or estimated from the traces and then held fixed).
+settled on (given, or estimated from the traces and then held fixed), or with
+`sample_noise` that noise sampled too (`−n log σ − Σ r²/2σ²`, a half-normal prior).
 
 **Programs.** Warm-up and sampling are one compiled program each, run chain after chain
 (and the draws in blocks, for the progress line): on a CPU, chains in lockstep (`vmap`)
@@ -40,7 +41,7 @@ from .._model.programs import compiled_ahead
 from .._model.registry import ParameterError
 from .._model.status import OK_CODE
 from .layout import Layout, prepare
-from .least_squares import FitSettings, evaluate, evaluate_program, robust
+from .least_squares import FitSettings, evaluate, evaluate_program, model_residuals, robust
 from .predict import FittedParameters
 from .report import unresolved_samples
 from .result import CalibrationResult
@@ -52,9 +53,11 @@ __all__ = [
     "DEFAULT_WARMUP",
     "ModelMisfitError",
     "Posterior",
+    "PosteriorDensity",
     "PosteriorPredictive",
     "Prior",
     "check_posterior_settings",
+    "posterior_density",
     "sample_posterior",
 ]
 
@@ -153,12 +156,35 @@ class Prior:
         return 2, math.log(mean) - variance / 2, math.sqrt(variance)
 
 
+class _Noise(eqx.Module):
+    """The noises sampled (`sample_noise`), `(Q,)` each: the experiment's and signal's
+    flat index into `(E, S)`, its samples in the likelihood, and its half-normal prior's
+    scale in units of the likelihood's noise (`data.sigma`, the fit's). The chains move
+    in `u = log(σ / σ_fit)`."""
+
+    slots: jax.Array
+    samples: jax.Array
+    scale: jax.Array
+
+    def log_density(self, u, squares):
+        """The log-likelihood's and prior's terms in `u (Q,)`, given each experiment's
+        and signal's Σ r² `squares (E·S,)` in units of the fit's noise: `−n u −
+        ½ e^{−2u} Σ r²` (a Gaussian's normalisation), the half-normal `−½ (e^u /
+        scale)²` and the Jacobian of `u → σ`, `u`; less the `−½ Σ r²` the likelihood
+        holds already."""
+        chi2 = squares[self.slots]
+        likelihood = -self.samples * u - 0.5 * (jnp.exp(-2.0 * u) - 1.0) * chi2
+        return jnp.sum(likelihood - 0.5 * (jnp.exp(u) / self.scale) ** 2 + u)
+
+
 class _Priors(eqx.Module):
-    """The priors as arrays over the fitted values `(P,)`: kind index, location, scale."""
+    """The priors as arrays over the fitted values `(P,)`: kind index, location, scale;
+    and the sampled noises (`_Noise`), or None where the noise is held fixed."""
 
     kind: jax.Array
     location: jax.Array
     scale: jax.Array
+    noise: _Noise | None = None
 
     def log_density(self, theta):
         """Σ log prior(θ), up to a constant (finite everywhere: double `where`)."""
@@ -261,21 +287,41 @@ class _Whitening(eqx.Module):
 
     centre: jax.Array
     factor: jax.Array
+    #: The sampled noises' `u = log(σ / σ_fit)` per unit of `w` (`(Q,)`): the
+    #: posterior's sd of `u` at the optimum, `1/√(2n)` (the χ² of n samples).
+    noise_sd: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(0))
 
     def y(self, w):
-        """`w (..., P)` → `y (..., P)`."""
-        return self.centre + w @ self.factor.T
+        """`w (..., P + Q)` → `y (..., P)`."""
+        return self.centre + w[..., : self.centre.shape[0]] @ self.factor.T
+
+    def log_noise(self, w):
+        """`w (..., P + Q)` → the sampled noises' `u (..., Q)`."""
+        return w[..., self.centre.shape[0] :] * self.noise_sd
 
 
-def _log_density(w, data, priors: _Priors, whitening: _Whitening, static: FitSettings):
-    """The log posterior density of the chains' coordinates `w (P,)`, up to a constant:
-    the fit's log-likelihood, the priors, and the Jacobian of `y = logit(z) → θ` (that of
-    `w → y` is constant)."""
+def _log_density(
+    w, data, priors: _Priors, whitening: _Whitening, static: FitSettings, gradient: bool = True
+):
+    """The log posterior density of the chains' coordinates `w (P + Q,)` (Q sampled
+    noises, `_Noise`), up to a constant: the fit's log-likelihood, the priors, and the
+    Jacobian of `y = logit(z) → θ` (that of `w → y` is constant). `gradient` (static):
+    differentiable by the solve's forward sensitivities; without, one solve of the state
+    alone (for a sampler that needs no gradient: a sixth to a tenth of the cost on the
+    bench's 5-value fit)."""
     y = whitening.y(w)
     z = jax.nn.sigmoid(y)
     theta, slope = jax.jvp(data.space.theta, (z,), (jnp.ones_like(z),))  # θ(z) is elementwise
-    r = _residual_function(static)(theta, data)
-    log_likelihood = -0.5 * jnp.sum(robust(r, static.loss, static.f_scale) ** 2)
+    if gradient:
+        r = _residual_function(static)(theta, data)
+    else:
+        r = model_residuals(theta, data, static)
+    squares = robust(r, static.loss, static.f_scale) ** 2
+    log_likelihood = -0.5 * jnp.sum(squares)
+    if priors.noise is not None:
+        log_likelihood += priors.noise.log_density(
+            whitening.log_noise(w), jnp.sum(squares, axis=-1).reshape(-1)
+        )
     # log |dz/dy| = log z + log(1 − z), in softplus form (finite for any y).
     log_jacobian = jnp.sum(-jax.nn.softplus(-y) - jax.nn.softplus(y) + jnp.log(jnp.abs(slope)))
     return log_likelihood + priors.log_density(theta) + log_jacobian
@@ -377,7 +423,8 @@ class Posterior:
       `to_netcdf(path)` writes it.
     - `fit`: the least-squares result the chains started from; `noise`: the
       likelihood's, per experiment and signal (`{"sigma", "given"}`: given, or estimated
-      by the fit and held fixed).
+      by the fit; held fixed, or with `sample_noise` the chains' start and `"sampled"`:
+      its posterior's statistics as a value's, and its `half_normal_scale`).
     """
 
     labels: tuple[str, ...]
@@ -514,7 +561,8 @@ def _predictive(fit: CalibrationResult, noise, signals, failed: int, seed: int):
         for name, values in measured.items():
             drawn = signals[name][:, e, :n]
             model_e[name] = np.percentile(drawn, [2.5, 50.0, 97.5], axis=0)
-            sigma = noise[e][name]["sigma"]
+            # A sampled noise at its posterior median (its spread is a few % on a trace).
+            sigma = noise[e][name].get("sampled", {}).get("q50", noise[e][name]["sigma"])
             repeated = drawn + sigma * rng.standard_normal(drawn.shape)
             observed_e[name] = np.percentile(repeated, [2.5, 97.5], axis=0)
             sampled = np.isfinite(values)
@@ -545,6 +593,8 @@ def check_posterior_settings(
     priors: Mapping[str, Prior | str | Mapping[str, Any]] | None = None,
     dense_mass: bool = False,
     target_acceptance: float = 0.8,
+    sample_noise: bool = False,
+    noise_scale: Mapping[str, float] | None = None,
 ) -> None:
     """Check `sample_posterior`'s settings for `calibration` (its arguments, as named
     there) without running anything: the command line calls it before the fit.
@@ -552,8 +602,10 @@ def check_posterior_settings(
     **Raises:** `ParameterError` naming the setting and its valid range: draws or
     warm-up not an integer in [1, 100,000], chains not in [1, 64], a seed not in
     [0, 2⁶³), `dense_mass` not a boolean, a target acceptance outside [0.5, 1), a
-    prior for a value not fitted, of an unknown kind, or with an sd ≤ 0. Warns of a
-    normal prior mostly outside its bounds.
+    prior for a value not fitted, of an unknown kind, or with an sd ≤ 0; `sample_noise`
+    not a boolean, or true with a robust loss; a `noise_scale` without it, for a signal
+    not measured, or not a positive number. Warns of a normal prior mostly outside its
+    bounds.
     `ModuleNotFoundError` naming the `posterior` extra without blackjax or ArviZ.
     """
     _check_count("draws", draws, 1, MAX_DRAWS)
@@ -565,8 +617,53 @@ def check_posterior_settings(
     number = isinstance(target_acceptance, (int, float, np.integer, np.floating))
     if isinstance(target_acceptance, bool) or not number or not 0.5 <= target_acceptance < 1.0:
         raise ParameterError(f"target_acceptance must be in [0.5, 1), got {target_acceptance!r}")
-    _priors(priors, Layout.of(calibration))
+    layout = Layout.of(calibration)
+    _priors(priors, layout)
+    _noise_scales(calibration, layout, sample_noise, noise_scale)
     _require_extra()
+
+
+def _noise_scales(calibration, layout: Layout, sample_noise, noise_scale) -> dict[str, float]:
+    """The half-normal priors' scales by signal (`noise_scale`, checked), with
+    `sample_noise` checked."""
+    if not isinstance(sample_noise, (bool, np.bool_)):
+        raise ParameterError(f"sample_noise must be True or False, got {sample_noise!r}")
+    if sample_noise and calibration.loss != "linear":
+        raise ParameterError(
+            f"sample_noise needs the linear loss (a {calibration.loss} loss has no "
+            "normalised likelihood in the noise); the calibration's loss is "
+            f"{calibration.loss!r}"
+        )
+    if noise_scale is None:
+        return {}
+    if not sample_noise:
+        raise ParameterError("noise_scale is the sampled noise's prior: give sample_noise=True")
+    if not isinstance(noise_scale, Mapping):
+        raise ParameterError(f"noise_scale: a mapping of signals to scales, got {noise_scale!r}")
+    scales = {}
+    for name, value in noise_scale.items():
+        if name not in layout.signals:
+            raise ParameterError(f"noise_scale for {name!r}: not a measured signal "
+                                 f"(measured: {', '.join(layout.signals)})")  # fmt: skip
+        number = isinstance(value, (int, float, np.integer, np.floating))
+        if isinstance(value, bool) or not number or not 0 < float(value) < math.inf:
+            raise ParameterError(f"noise_scale for {name!r} must be a number > 0, got {value!r}")
+        scales[name] = float(value)
+    return scales
+
+
+def _noise(data, layout: Layout, scales: dict[str, float]) -> _Noise:
+    """Every experiment's and signal's noise with samples in the likelihood, sampled
+    under a half-normal of scale `scales[signal]`, or twice the fit's noise where not
+    given (weak: its median is 1.35 times the fit's noise, its 95 % point 4.5 times)."""
+    present = np.asarray(data.present)
+    samples = present.sum(axis=-1).reshape(-1)
+    slots = np.flatnonzero(samples > 0)
+    sigma = np.asarray(data.sigma).reshape(-1)
+    names = np.tile(np.asarray(layout.signals, dtype=object), present.shape[0])
+    scale = np.array([scales.get(names[q], 2.0 * sigma[q]) / sigma[q] for q in slots])
+    return _Noise(jnp.asarray(slots), jnp.asarray(samples[slots], dtype=float),
+                  jnp.asarray(scale, dtype=float))  # fmt: skip
 
 
 def sample_posterior(
@@ -580,6 +677,8 @@ def sample_posterior(
     priors: Mapping[str, Prior | str | Mapping[str, Any]] | None = None,
     dense_mass: bool = False,
     target_acceptance: float = 0.8,
+    sample_noise: bool = False,
+    noise_scale: Mapping[str, float] | None = None,
     progress: bool | None = None,
 ) -> Posterior:
     """Sample the posterior of `calibration.fit`'s values given its experiments' traces,
@@ -596,6 +695,9 @@ def sample_posterior(
     - `dense_mass`: adapt a dense mass matrix (for strongly correlated values) instead
       of a diagonal one; `target_acceptance`: the step size's target (raise it, e.g. to
       0.95, where there are divergences).
+    - `sample_noise`: sample each experiment's and signal's noise too (σ, under a
+      half-normal prior of scale `noise_scale[signal]`, or twice the fit's noise where
+      not given), instead of holding the fit's fixed; the linear loss only.
     - `progress`: a progress line on stderr (None: on a terminal).
 
     **Returns:** a `Posterior` (draws, summary beside the Laplace intervals,
@@ -614,8 +716,11 @@ def sample_posterior(
         priors=priors,
         dense_mass=dense_mass,
         target_acceptance=target_acceptance,
+        sample_noise=sample_noise,
+        noise_scale=noise_scale,
     )
     layout = Layout.of(calibration)
+    scales = _noise_scales(calibration, layout, sample_noise, noise_scale)
     with warnings.catch_warnings():  # said once, by the check above
         warnings.simplefilter("ignore")
         prior_arrays, chosen = _priors(priors, layout)
@@ -645,7 +750,12 @@ def sample_posterior(
     block = max(1, math.ceil(draws / 10))
     settings = _Settings(static, bool(dense_mass), warmup, block, float(target_acceptance))
     whitening = _whitening(fit, layout, data, static, prior_arrays)
-    w0 = np.random.default_rng(seed).standard_normal((chains, len(layout.labels)))
+    if sample_noise:
+        noise = _noise(data, layout, scales)
+        prior_arrays = dataclasses.replace(prior_arrays, noise=noise)
+        whitening = dataclasses.replace(whitening, noise_sd=1.0 / jnp.sqrt(2.0 * noise.samples))
+    dimensions = len(layout.labels) + len(whitening.noise_sd)
+    w0 = np.random.default_rng(seed).standard_normal((chains, dimensions))
 
     bar = Progress(
         "posterior", chains * (warmup + block * math.ceil(draws / block)), "transitions", progress
@@ -720,6 +830,10 @@ def sample_posterior(
     out = jax.tree.map(lambda *a: np.stack(a), *chain_blocks)  # (chains, draws, ...)
     z = 1.0 / (1.0 + np.exp(-np.asarray(whitening.y(jnp.asarray(out.position)))))
     theta = np.asarray(data.space.theta(jnp.asarray(z)))
+    sigma = None  # the sampled noises (chains, draws, Q), in SI units
+    if prior_arrays.noise is not None:
+        fitted_sigma = np.asarray(data.sigma).reshape(-1)[np.asarray(prior_arrays.noise.slots)]
+        sigma = fitted_sigma * np.exp(np.asarray(whitening.log_noise(jnp.asarray(out.position))))
     return _report(
         fit,
         layout,
@@ -735,7 +849,47 @@ def sample_posterior(
         },
         left_out,
         signals,
+        sigma,
+        prior_arrays.noise,
     )
+
+
+class PosteriorDensity(NamedTuple):
+    """The log density `sample_posterior` samples (uniform priors, the noise held), in
+    its chains' coordinates `w (P,)`, with its parts (`posterior_density`): so that a
+    benchmark gives another sampler the very same density (`bench-calibration
+    --posterior`)."""
+
+    layout: Layout
+    data: Any
+    priors: _Priors
+    whitening: _Whitening
+    static: FitSettings
+
+    def log_density(self, w, gradient: bool = True):
+        """The log density at `w (P,)` (`gradient`: differentiable by the solve's
+        sensitivities; without, one solve of the state alone)."""
+        return _log_density(w, self.data, self.priors, self.whitening, self.static, gradient)
+
+    def theta(self, w):
+        """`w (..., P)` → the values `θ (..., P)` (SI units)."""
+        return self.data.space.theta(jax.nn.sigmoid(self.whitening.y(w)))
+
+    def nuts_transitions(self, key, state, step_size, inverse_mass, transitions: int):
+        """`transitions` NUTS transitions from `state` (`_sample_block`, as
+        `sample_posterior` runs them): the last state and the transitions' `_Block`."""
+        settings = _Settings(self.static, False, 0, transitions, 0.0)
+        return _sample_block(key, state, step_size, inverse_mass, self.data, self.priors,
+                             self.whitening, settings)  # fmt: skip
+
+
+def posterior_density(calibration: Calibration, fit: CalibrationResult) -> PosteriorDensity:
+    """The `PosteriorDensity` `sample_posterior(calibration, fit=fit)` samples."""
+    layout = Layout.of(calibration)
+    priors, _ = _priors(None, layout)
+    data, static, _ = _likelihood(calibration, fit, layout)
+    return PosteriorDensity(layout, data, priors, _whitening(fit, layout, data, static, priors),
+                            static)  # fmt: skip
 
 
 def _likelihood(calibration: Calibration, fit: CalibrationResult, layout: Layout):
@@ -843,10 +997,22 @@ def _whitening(fit: CalibrationResult, layout: Layout, data, static, priors: _Pr
 
 
 def _report(
-    fit, layout, data, theta, out: _Block, priors, step_sizes, seconds, left_out, signals
+    fit,
+    layout,
+    data,
+    theta,
+    out: _Block,
+    priors,
+    step_sizes,
+    seconds,
+    left_out,
+    signals,
+    sigma=None,
+    noise: _Noise | None = None,
 ) -> Posterior:
-    """The `Posterior` of the draws `theta (C, D, P)`: ArviZ's diagnostics, the
-    summary beside the Laplace intervals, the honesty gates."""
+    """The `Posterior` of the draws `theta (C, D, P)` (and of the sampled noises `sigma
+    (C, D, Q)`, `noise` theirs): ArviZ's diagnostics, the summary beside the Laplace
+    intervals, the honesty gates."""
     import arviz as az
 
     labels = tuple(layout.labels)
@@ -859,25 +1025,41 @@ def _report(
     quiet = logging.getLogger("arviz")
     level = quiet.level
     quiet.setLevel(logging.ERROR)
+    noise_labels = []
+    if noise is not None:
+        slots = np.asarray(noise.slots)
+        S = len(layout.signals)
+        noise_labels = [f"noise of {layout.signals[q % S]} in experiment {q // S}" for q in slots]
     try:
-        idata, rhat, ess_bulk, ess_tail = _diagnosed(az, theta, out, observed, labels)
+        idata, rhat, ess_bulk, ess_tail = _diagnosed(
+            az, theta, out, observed, labels, sigma, noise_labels
+        )
     finally:
         quiet.setLevel(level)
     flat = theta.reshape(-1, theta.shape[-1])
-    quantiles = np.quantile(flat, [0.025, 0.5, 0.975], axis=0)
+    flat_all = flat if sigma is None else np.hstack([flat, sigma.reshape(-1, sigma.shape[-1])])
+    quantiles = np.quantile(flat_all, [0.025, 0.5, 0.975], axis=0)
     chains = theta.shape[0]
     summary, problems, disagreements = {}, [], []
-    for i, label in enumerate(labels):
-        fitted = fit.fitted[label]
-        row = {
-            "mean": float(flat[:, i].mean()),
-            "sd": float(flat[:, i].std(ddof=1)),
+
+    def statistics(i):
+        return {
+            "mean": float(flat_all[:, i].mean()),
+            "sd": float(flat_all[:, i].std(ddof=1)),
             "q2.5": float(quantiles[0, i]),
             "q50": float(quantiles[1, i]),
             "q97.5": float(quantiles[2, i]),
             "r_hat": float(rhat[i]) if chains > 1 else None,
             "ess_bulk": float(ess_bulk[i]),
             "ess_tail": float(ess_tail[i]),
+        }
+
+    for i, label in enumerate((*labels, *noise_labels)):
+        if i >= len(labels):  # a sampled noise: no Laplace interval beside it
+            _gate(problems, label, statistics(i), chains)
+            continue
+        fitted = fit.fitted[label]
+        row = statistics(i) | {
             "value": fitted.value,
             "stderr": fitted.stderr,
             "ci95": None if fitted.ci95 is None else list(fitted.ci95),
@@ -886,16 +1068,7 @@ def _report(
         summary[label] = row
         if row["disagree"]:
             disagreements.append(_disagreement_words(label, row))
-        if chains > 1 and not rhat[i] <= MAX_RHAT:
-            problems.append(
-                f"{label}: split R-hat {rhat[i]:.3f} over {MAX_RHAT} (the chains "
-                "disagree: a longer warm-up, or more draws)"
-            )
-        if not ess_bulk[i] >= MIN_ESS:
-            problems.append(
-                f"{label}: bulk ESS {ess_bulk[i]:.0f} under {MIN_ESS} (more draws, "
-                "or a dense mass matrix for correlated values)"
-            )
+        _gate(problems, label, row, chains)
     if chains == 1:
         problems.append("one chain: whether it has converged cannot be checked (split R-hat "
                         "needs 2 chains or more)")  # fmt: skip
@@ -908,6 +1081,18 @@ def _report(
     least_ess = float(np.min(ess_bulk))
     prior_sd = [_prior_sd(priors[label], *fit.bounds[label]) for label in labels]
     unseparated = _unseparated(flat, labels, np.asarray(prior_sd))
+    noises = [
+        {name: {"sigma": float(data.sigma[e, s]), "given": bool(data.sigma_given[e, s])}
+         for s, name in enumerate(layout.signals) if name in fit.sigma[e]}
+        for e in range(len(fit.sigma))
+    ]  # fmt: skip
+    if noise is not None:
+        S, sigma_scale = len(layout.signals), np.asarray(data.sigma).reshape(-1)
+        for j, q in enumerate(np.asarray(noise.slots)):
+            e, name = int(q) // S, layout.signals[int(q) % S]
+            noises[e][name]["sampled"] = statistics(len(labels) + j) | {
+                "half_normal_scale": float(noise.scale[j] * sigma_scale[q])
+            }
     return Posterior(
         labels,
         theta,
@@ -922,15 +1107,26 @@ def _report(
         least_ess / max(seconds["sampling"], 1e-9),
         idata,
         fit,
-        [
-            {name: {"sigma": float(data.sigma[e, s]), "given": bool(data.sigma_given[e, s])}
-             for s, name in enumerate(layout.signals) if name in fit.sigma[e]}
-            for e in range(len(fit.sigma))
-        ],
+        noises,
         unseparated,
         left_out,
         signals,
-    )  # fmt: skip
+    )
+
+
+def _gate(problems: list[str], label: str, row: dict, chains: int) -> None:
+    """The honesty gates on one value's draws (`row`: its statistics), each failure
+    added to `problems` in words naming it and what to try."""
+    if chains > 1 and not row["r_hat"] <= MAX_RHAT:
+        problems.append(
+            f"{label}: split R-hat {row['r_hat']:.3f} over {MAX_RHAT} (the chains "
+            "disagree: a longer warm-up, or more draws)"
+        )
+    if not row["ess_bulk"] >= MIN_ESS:
+        problems.append(
+            f"{label}: bulk ESS {row['ess_bulk']:.0f} under {MIN_ESS} (more draws, "
+            "or a dense mass matrix for correlated values)"
+        )
 
 
 def _prior_sd(prior: Prior, lower: float, upper: float) -> float:
@@ -961,11 +1157,19 @@ def _unseparated(flat: np.ndarray, labels, prior_sd: np.ndarray) -> list[str]:
     return words
 
 
-def _diagnosed(az, theta, out: _Block, observed, labels):
+def _diagnosed(az, theta, out: _Block, observed, labels, sigma=None, noise_labels=()):
     """The draws as ArviZ's `InferenceData`, and its rank-normalised split R̂, bulk and
-    tail ESS per value `(P,)` each."""
+    tail ESS per value `(P,)` each, followed by the sampled noises' `(Q,)` where
+    `sigma (C, D, Q)` is given."""
+    posterior = {"theta": theta}
+    coords: dict[str, list[str]] = {"parameter": list(labels)}
+    dims = {"theta": ["parameter"]}
+    if sigma is not None:
+        posterior["sigma"] = sigma
+        coords["noise"] = list(noise_labels)
+        dims["sigma"] = ["noise"]
     idata = az.from_dict(
-        posterior={"theta": theta},
+        posterior=posterior,
         sample_stats={
             "diverging": out.diverging,
             "lp": out.log_density,
@@ -974,13 +1178,14 @@ def _diagnosed(az, theta, out: _Block, observed, labels):
             "acceptance_rate": out.acceptance,
         },
         observed_data=observed,
-        coords={"parameter": list(labels)},
-        dims={"theta": ["parameter"]},
+        coords=coords,
+        dims=dims,
     )
     diagnostics: Any = {m: az.ess(idata, method=m) for m in ("bulk", "tail")}
     diagnostics["rhat"] = az.rhat(idata, method="rank")
     rhat, ess_bulk, ess_tail = (
-        np.asarray(diagnostics[m]["theta"]) for m in ("rhat", "bulk", "tail")
+        np.concatenate([np.asarray(diagnostics[m][v]) for v in posterior])
+        for m in ("rhat", "bulk", "tail")
     )
     return idata, rhat, ess_bulk, ess_tail
 

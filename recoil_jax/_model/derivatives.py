@@ -53,6 +53,7 @@ from .._model.solve import (
     MODEL_CEILINGS,
     battery_crossing,
     last_firing,
+    model_loop,
     model_sampling,
     peaks_of_run,
 )
@@ -74,12 +75,14 @@ __all__ = [
     "GRADIENT_OPTIONS",
     "SIGNALS",
     "SIGNAL_ALIASES",
+    "SignalHistory",
     "SignalSensitivities",
     "check_wrt",
     "parameter_scale",
     "peak_gradients",
     "peak_gradients_batch",
     "peak_jacobian",
+    "signal_history",
     "signal_sensitivities",
     "signal_values",
     "tangent_loop",
@@ -781,6 +784,30 @@ class SignalSensitivities(NamedTuple):
     status: Any
     rest_values: Any
     rest_gradients: Any
+
+
+class SignalHistory(NamedTuple):
+    """The signals of one solve at its save times, without derivatives: `values (S,
+    n)`, the solve's `status` and `rest_values (S,)` (as `SignalSensitivities`)."""
+
+    values: Any
+    status: Any
+    rest_values: Any
+
+
+def signal_history(params, smoothing, options, ts, t1, names: tuple[str, ...]) -> SignalHistory:
+    """`signal_sensitivities` without the derivatives: one solve of the state alone,
+    error-controlled on the state alone (what a sampler without gradients pays a
+    draw). Unjitted; `names` is static."""
+    args = model_args(params, smoothing)
+    y0 = initial_state(args)
+    run = model_loop(params, options, stop_early=False, structure=args.structure).integrate(
+        y0, args, t1, save_ts=ts
+    )
+    values = jax.vmap(lambda t, y: signal_values(t, y, params, smoothing, names))(ts, run.saved)
+    # The gun at rest before the shot: the solve's start, with no shot velocity yet.
+    rest_values = signal_values(None, y0.at[1].set(0.0).at[3].set(0.0), params, smoothing, names)
+    return SignalHistory(values.T, run.status, rest_values)
 
 
 def signal_sensitivities(

@@ -31,6 +31,7 @@ import recoil_jax as rj
 import recoil_jax.extend as rjx
 
 from .._files.options import Commands, add_json
+from .firing import BOX, NOISE, calibration_of, firing_test
 from .speed import host_description
 
 __all__ = [
@@ -40,11 +41,6 @@ __all__ = [
     "run_calibration_bench",
 ]
 
-#: The firing test: the absorber model, 5 fitted parameters, x_M and F_AN measured.
-TRUTH = {"k": 28000.0, "c_out": 6000.0, "c_ret": 14000.0, "gap": 0.02, "m": 1000.0}
-BOX = {"k": (1e4, 1e5), "c_out": (1e3, 3e4), "c_ret": (1e3, 4e4), "gap": (0.0, 0.1),
-       "m": (200.0, 3000.0)}  # fmt: skip
-NOISE = {"x_M": 2e-4, "F_AN": 300.0}
 #: The burst test: three rounds, half a second apart.
 BURST = {"shots": 3.0, "fire_interval": 0.5}
 #: The scipy way's solver settings: the reference solver's DOP853 with events, at a
@@ -56,14 +52,6 @@ CACHED_RUNS = 5
 #: A start reached the best when its cost is within this of the best (χ² units, noise
 #: given): 0.01 is a tenth of a standard error in the worst direction.
 REACHED = 0.01
-
-
-def firing_test(known: dict, samples: int, end: float, seed: int):
-    """`(t, {signal: measured})`: the reference solver's history with Gaussian noise."""
-    ts = np.linspace(0.0, end, samples)
-    history = rjx.reference_history(known | TRUTH, ts)
-    rng = np.random.default_rng(seed)
-    return ts, {s: history[s] + NOISE[s] * rng.standard_normal(samples) for s in NOISE}
 
 
 class ScipyFit:
@@ -93,11 +81,6 @@ class ScipyFit:
         )
 
 
-def _ours(known: dict, ts, measured: dict) -> rj.Calibration:
-    experiment = rjx.Experiment(rjx.Trace.of(ts, **measured), design=known, sigma=NOISE)
-    return rj.Calibration([experiment], fit=BOX)
-
-
 def _timed(fn):
     start = time.perf_counter()
     out = fn()
@@ -107,7 +90,7 @@ def _timed(fn):
 def one_fit(samples: int, log) -> dict:
     """One 5-parameter fit of one trace, warm: ours, then scipy's from the same start."""
     ts, measured = firing_test({}, samples, 1.0, seed=7)
-    calibration = _ours({}, ts, measured)
+    calibration = calibration_of({}, ts, measured)
     # One start, as scipy's one fit (the default's second start would double ours).
     rj.calibrate(calibration, starts=1, progress=False)  # compiles
     ours, ours_s = _timed(lambda: rj.calibrate(calibration, starts=1, progress=False))
@@ -134,7 +117,7 @@ def many_fits(samples: int, draws: int, scipy_draws: int, log) -> dict:
     `scipy_draws` of them (its time per fit times `draws`: the fits are independent)."""
     ts, _ = firing_test({}, samples, 1.0, seed=0)
     sets = [firing_test({}, samples, 1.0, seed=1000 + b)[1] for b in range(draws)]
-    calibration = _ours({}, ts, sets[0])
+    calibration = calibration_of({}, ts, sets[0])
     rjx.fit_many(calibration, [[s] for s in sets])  # compiles
     rows, ours_s = _timed(lambda: rjx.fit_many(calibration, [[s] for s in sets]))
     start = np.asarray([rj.PARAMETERS[n].default for n in BOX])
@@ -249,7 +232,7 @@ def random_starts(
     rng = np.random.default_rng(seeds[1])
     lower, upper = (np.asarray([BOX[n][i] for n in BOX]) for i in (0, 1))
     points = lower + (upper - lower) * rng.random((starts, len(BOX)))
-    calibration = _ours(known, ts, measured)
+    calibration = calibration_of(known, ts, measured)
     rj.calibrate(calibration, starts=points, progress=False)  # compiles
     ours, ours_s = _timed(lambda: rj.calibrate(calibration, starts=points, progress=False))
     costs, theirs_s = [], 0.0
@@ -277,7 +260,7 @@ def random_starts(
 def prediction(samples: int, log) -> dict:
     """The 95 % band of one design from `samples` covariance samples (warm)."""
     ts, measured = firing_test({}, 2001, 1.0, seed=7)
-    hardware = rj.calibrate(_ours({}, ts, measured), starts=1, progress=False).hardware()
+    hardware = rj.calibrate(calibration_of({}, ts, measured), starts=1, progress=False).hardware()
     design = {"k_r": 20000.0}  # a design change the test did not fire
     rj.predict(hardware, design, samples=samples, progress=False)
     result, seconds = _timed(lambda: rj.predict(hardware, design, samples=samples, progress=False))
@@ -397,6 +380,17 @@ def format_calibration_bench(result: dict) -> str:
 
 
 def main_calibration_bench(args) -> int:
+    if args.round_trip and args.posterior:
+        print("recoil-jax bench-calibration: --round-trip or --posterior, not both",
+              file=sys.stderr)  # fmt: skip
+        return 2
+    if args.posterior:
+        from .posterior import format_posterior_bench, posterior_bench
+
+        sizes = {"samples": 1001, "draws": 200, "warmup": 200, "chains": 2} if args.quick else {}
+        result = posterior_bench(**sizes)
+        print(json.dumps(result) if args.json else format_posterior_bench(result))
+        return 0
     if args.round_trip:
         from .round_trip import format_round_trip, round_trip
 
@@ -444,6 +438,13 @@ def add_command(commands: Commands) -> None:
         "reference traces with noise at 2 truths, each fitted by calibrate with no "
         "option; beside it, on --compare draws, 1 start and 16 starts without "
         "continuation); run from the repository's root",
+    )
+    calibration_bench.add_argument(
+        "--posterior",
+        action="store_true",
+        help="instead: the posterior's speed on the 5-value fit (NUTS's bulk ESS per "
+        "second and per solve, beside emcee vectorised over its walkers on the same "
+        "solves; chains vmapped against one after another); --quick for small sizes",
     )
     calibration_bench.add_argument(
         "--draws", type=int, default=20, metavar="N", help="with --round-trip: draws a truth"

@@ -246,9 +246,12 @@ def _posterior_settings(args, calibration: rj.Calibration, table: dict) -> dict 
     without `--posterior`."""
     given = {k: getattr(args, k) for k in ("draws", "warmup", "chains", "prior")
              if getattr(args, k) is not None}  # fmt: skip
+    if args.sample_noise:
+        given["sample_noise"] = True
     if not args.posterior:
         if given:
-            raise rj.ParameterError(f"--{next(iter(given))} is for --posterior")
+            flag = next(iter(given)).replace("_", "-")
+            raise rj.ParameterError(f"--{flag} is for --posterior")
         return None
     settings = table | given
     if "prior" in given:
@@ -304,7 +307,20 @@ def posterior_report(posterior: rjx.Posterior, predictive: dict | None = None) -
         )
     noise = [f"{name} {n['sigma']:.3g} ({'given' if n['given'] else 'estimated by the fit'})"
              for experiment in posterior.noise for name, n in experiment.items()]  # fmt: skip
-    lines.append(f"  the likelihood's noise, held fixed: {', '.join(noise)}")
+    sampled = [(e, name, n["sampled"]) for e, experiment in enumerate(posterior.noise)
+               for name, n in experiment.items() if "sampled" in n]  # fmt: skip
+    if not sampled:
+        lines.append(f"  the likelihood's noise, held fixed: {', '.join(noise)}")
+    else:
+        lines.append(f"  the noise, sampled from the fit's: {', '.join(noise)}")
+        for e, name, row in sampled:
+            r_hat = "" if row["r_hat"] is None else f"{row['r_hat']:.3f}"
+            label = f"σ {name} ({e})"
+            lines.append(
+                f"  {label:<16} {row['mean']:>12.6g} {row['sd']:>10.4g} {row['q2.5']:>12.6g} "
+                f"{row['q50']:>12.6g} {row['q97.5']:>12.6g} {r_hat:>6} {row['ess_bulk']:>6.0f}  "
+                f"half-normal prior, scale {row['half_normal_scale']:.3g}"
+            )
     if posterior.left_out:
         lines.append(f"  {posterior.left_out} samples on or either side of a jump in the "
                      "model's signals left out of the likelihood")  # fmt: skip
@@ -635,6 +651,12 @@ def add_command(commands: Commands) -> None:
         metavar="NAME=KIND[:MEAN,SD]",
         help="with --posterior: a fitted value's prior, uniform (over its bounds, the "
         "default), normal:MEAN,SD or lognormal:MEAN,SD (repeatable; over the file's)",
+    )
+    calibrate.add_argument(
+        "--sample-noise",
+        action="store_true",
+        help="with --posterior: sample each trace's noise too (a half-normal prior, twice "
+        "the fit's noise in scale unless the file's [posterior.noise_scale] says)",
     )
     for name, words in (("draws", "draws per chain (default 1000)"),
                         ("warmup", "warm-up steps per chain (default 1000)"),

@@ -47,7 +47,8 @@ MAX_SIGNAL = 1e150
 _FILE_KEYS = {"description", "design", "fit", "experiment", "validation", "loss", "f_scale",
               "starts", "seed", "fit_steps", "force_table", "posterior"}  # fmt: skip
 #: The keys of `[posterior]` (`recoil-jax calibrate --posterior`), and of each prior.
-_POSTERIOR_KEYS = {"draws", "warmup", "chains", "seed", "dense_mass", "target_acceptance", "prior"}
+_POSTERIOR_KEYS = {"draws", "warmup", "chains", "seed", "dense_mass", "target_acceptance", "prior",
+                   "sample_noise", "noise_scale"}  # fmt: skip
 _EXPERIMENT_KEYS = {"trace", "sigma", "per_experiment", "window", "name", "force_table"}
 
 
@@ -190,7 +191,7 @@ def _posterior(path: Path, table: Any) -> dict[str, Any]:
     for key in ("draws", "warmup", "chains", "seed"):
         if key in table:
             settings[key] = table[key]
-    for key in ("dense_mass",):
+    for key in ("dense_mass", "sample_noise"):
         if key in table:
             if not isinstance(table[key], bool):
                 raise _error(str(path), f"[posterior] {key} = {table[key]!r}: give true or false")
@@ -199,6 +200,13 @@ def _posterior(path: Path, table: Any) -> dict[str, Any]:
         settings["target_acceptance"] = _number(
             "[posterior] target_acceptance", table["target_acceptance"]
         )
+    if "noise_scale" in table:
+        scales = table["noise_scale"]
+        if not isinstance(scales, dict):
+            raise _error(str(path), "write each noise's prior scale under "
+                                    "[posterior.noise_scale] as signal = number")  # fmt: skip
+        settings["noise_scale"] = {name: _number(f"[posterior.noise_scale] {name}", value)
+                                   for name, value in scales.items()}  # fmt: skip
     priors = table.get("prior", {})
     if not isinstance(priors, dict):
         raise _error(str(path), "write each prior under [posterior.prior] as name = { .. }")

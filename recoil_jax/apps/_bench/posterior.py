@@ -1,0 +1,263 @@
+"""`recoil-jax bench-calibration --posterior`: the posterior's speed on the 5-value fit
+that `bench-calibration` times (the absorber's k, c_out, c_ret, gap and m from one firing
+of x_M and F_AN), beside emcee, the sampler a Python engineer tries first.
+
+Measured in one run, each figure with compilation excluded:
+
+- **NUTS** (`sample_posterior`, its defaults): bulk ESS per second of sampling (the
+  least over the values), the model solves it made (its leapfrog steps, each a solve
+  with the forward sensitivities) and ESS per thousand solves;
+- **emcee** in its strongest honest form: the same log density (the same priors,
+  coordinates and likelihood), vectorised over the walkers in one compiled program, each
+  point one solve of the state alone (no sensitivities: a sixth to a tenth of a
+  gradient's cost, at tolerances a hundredth of the likelihood's so that its density is
+  NUTS's to 0.01: `EMCEE_TOLERANCE`);
+  its walkers start where NUTS's chains do (the least-squares optimum spread by the
+  posterior's curvature), burn in on as many solves as NUTS's warm-up made, then sample
+  on as many as NUTS's sampling made; its ESS from its own integrated autocorrelation
+  time (`get_autocorr_time`, the walkers are not independent chains);
+- **chains in lockstep** (`vmap`) against one after another: the same NUTS transitions
+  from the same states, step size and mass matrix, both compiled.
+
+Figures printed, never asserted (`docs/calibration.md`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import math
+import sys
+import time
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import recoil_jax as rj
+from recoil_jax._calibration.posterior import PosteriorDensity, posterior_density
+
+from .firing import calibration_of, firing_test
+
+__all__ = ["format_posterior_bench", "posterior_bench"]
+
+#: emcee's walkers: a few times the values, as its documentation advises (and an even
+#: number, for its stretch move's two halves).
+WALKERS = 32
+#: emcee's autocorrelation time is reliable once the run is this many times it.
+EMCEE_RELIABLE = 50
+#: emcee's solve of the state alone at the likelihood's tolerances times this: NUTS's
+#: solve controls the error of the sensitivities too, which makes its signals 10³ times
+#: more accurate than the state's alone at the same tolerances (measured on the paper
+#: absorber: 8e-7 against 4e-4 noise units, log densities 0.1–2 apart). At a hundredth
+#: both densities agree to 0.004 (at a tenth, 0.75), for a quarter more a solve.
+EMCEE_TOLERANCE = 0.01
+
+
+def emcee_data(data):
+    """The likelihood's `data` with the tolerances emcee's solve of the state alone
+    needs to give NUTS's density (`EMCEE_TOLERANCE`)."""
+    options = dataclasses.replace(data.options, rtol=data.options.rtol * EMCEE_TOLERANCE,
+                                  atol=data.options.atol * EMCEE_TOLERANCE)  # fmt: skip
+    return eqx.tree_at(lambda d: d.options, data, options)
+
+
+def _emcee(density: PosteriorDensity, burn_solves: int, solves: int, walkers: int, seed: int,
+           log) -> dict:  # fmt: skip
+    """emcee on the posterior's own log density (`density`, its solve of the state alone
+    at `emcee_data`'s tolerances): burn-in on `burn_solves` solves, then sampling on
+    `solves`. The walkers' points are evaluated one after another in one compiled program:
+    a vmapped solve selects its whole carry, the saved signals included, at every step
+    (measured, 97–150 ms a point against 0.7 ms)."""
+    import emcee
+
+    alone = density._replace(data=emcee_data(density.data))
+    many = jax.jit(lambda points: jax.lax.map(lambda w: alone.log_density(w, False), points))
+    nuts = jax.jit(jax.vmap(density.log_density))
+
+    def log_density(points):
+        return np.asarray(many(jnp.asarray(points)))
+
+    labels = density.layout.labels
+    start = np.random.default_rng(seed).standard_normal((walkers, len(labels)))
+    # The density emcee samples against NUTS's, at its starting points.
+    apart = np.max(np.abs(log_density(start) - np.asarray(nuts(jnp.asarray(start)))))
+    # The stretch move updates half the walkers at a time: one step is `walkers` solves.
+    burn, steps = max(1, burn_solves // walkers), max(2, solves // walkers)
+    sampler = emcee.EnsembleSampler(walkers, len(labels), log_density, vectorize=True)
+    state = sampler.run_mcmc(start, burn)
+    sampler.reset()
+    started = time.perf_counter()
+    sampler.run_mcmc(state, steps)
+    seconds = time.perf_counter() - started
+    theta = np.asarray(density.theta(jnp.asarray(sampler.get_chain())))  # (steps, walkers, P)
+    flat = theta.reshape(-1, theta.shape[-1])
+    tau = np.asarray(emcee.autocorr.integrated_time(theta, quiet=True))
+    ess = walkers * steps / tau
+    log(f"  emcee: {walkers} walkers, {steps} steps after {burn} of burn-in, {seconds:.1f} s; "
+        f"autocorrelation {tau.max():.0f} steps at the most")  # fmt: skip
+    return {
+        "walkers": walkers,
+        "burn_in_steps": burn,
+        "steps": steps,
+        "solves": walkers * steps,
+        "sampling_s": seconds,
+        "acceptance": float(np.mean(sampler.acceptance_fraction)),
+        "log_density_apart": float(apart),
+        "autocorrelation_steps": dict(zip(labels, tau.tolist(), strict=True)),
+        "reliable": bool(steps >= EMCEE_RELIABLE * tau.max()),
+        "ess": dict(zip(labels, ess.tolist(), strict=True)),
+        "least_ess": float(ess.min()),
+        "ess_per_s": float(ess.min() / seconds),
+        "ess_per_1000_solves": float(1000.0 * ess.min() / (walkers * steps)),
+        "mean": dict(zip(labels, flat.mean(axis=0).tolist(), strict=True)),
+    }
+
+
+def _lockstep(density: PosteriorDensity, posterior, chains: int, transitions: int,
+              log) -> dict:  # fmt: skip
+    """The same NUTS transitions, chains one after another against `vmap`ped: from the
+    same states (`w` standard normal: the coordinates are whitened), with the chains'
+    mean step size and a unit mass matrix, both compiled."""
+    import blackjax
+
+    step = jnp.asarray(float(np.mean(posterior.step_size)))
+    mass = jnp.ones(len(posterior.labels))
+    kernel: Any = blackjax.nuts(density.log_density, step_size=step, inverse_mass_matrix=mass)
+    w0 = jnp.asarray(np.random.default_rng(1).standard_normal((chains, len(posterior.labels))))
+    states = jax.vmap(kernel.init)(w0)
+    keys = jax.random.split(jax.random.key(2), chains)
+
+    def one(key, state):
+        return density.nuts_transitions(key, state, step, mass, transitions)
+
+    alone, together = jax.jit(one), jax.jit(jax.vmap(one))
+    pick = lambda c: jax.tree.map(lambda a: a[c], states)  # noqa: E731
+    jax.block_until_ready(alone(keys[0], pick(0)))  # compiles
+    jax.block_until_ready(together(keys, states))
+    started = time.perf_counter()
+    steps_alone = sum(int(jnp.sum(jax.block_until_ready(alone(keys[c], pick(c)))[1].steps))
+                      for c in range(chains))  # fmt: skip
+    alone_s = time.perf_counter() - started
+    started = time.perf_counter()
+    _, block = jax.block_until_ready(together(keys, states))
+    together_s = time.perf_counter() - started
+    steps_together = int(jnp.sum(block.steps))
+    # In lockstep each transition waits for the batch's longest trajectory.
+    waited = int(jnp.sum(jnp.max(block.steps, axis=0))) * chains
+    log(f"  {chains} chains x {transitions} transitions: one after another {alone_s:.2f} s, "
+        f"vmapped {together_s:.2f} s")  # fmt: skip
+    return {
+        "chains": chains,
+        "transitions": transitions,
+        "sequential_s": alone_s,
+        "vmapped_s": together_s,
+        "vmapped_over_sequential": together_s / alone_s,
+        "sequential_steps": steps_alone,
+        "leapfrog_steps": steps_together,
+        "same_steps": steps_alone == steps_together,
+        "lockstep_steps": waited,
+    }
+
+
+def posterior_bench(
+    samples: int = 5001,
+    draws: int = 1000,
+    warmup: int = 1000,
+    chains: int = 4,
+    walkers: int = WALKERS,
+    lockstep_transitions: int = 10,
+    log=None,
+) -> dict:
+    """NUTS against emcee, and chains in lockstep against one after another, on the
+    bench's 5-value fit of one firing of `samples` samples (module docstring)."""
+    log = log or (lambda message: print(message, file=sys.stderr, flush=True))
+    if importlib.util.find_spec("emcee") is None:  # before anything is fitted or sampled
+        raise rj.ParameterError(
+            "the posterior's benchmark compares with emcee: pip install 'recoil-jax[bench]'"
+        )
+    ts, measured = firing_test({}, samples, 1.0, seed=7)
+    calibration = calibration_of({}, ts, measured)
+    fit = rj.calibrate(calibration, starts=1, progress=False)
+    posterior = rj.sample_posterior(calibration, fit=fit, draws=draws, warmup=warmup,
+                                    chains=chains, seed=0, progress=False)  # fmt: skip
+    solves = int(posterior.inference_data.sample_stats["n_steps"].sum())
+    seconds = posterior.seconds
+    # The warm-up's solves are not recorded: its time over the sampling's time a solve.
+    warmup_solves = round(seconds["warmup"] * solves / seconds["sampling"])
+    least = min(row["ess_bulk"] for row in posterior.summary.values())
+    nuts = {
+        "draws": draws,
+        "warmup": warmup,
+        "chains": chains,
+        "compile_s": seconds["compile"],
+        "warmup_s": seconds["warmup"],
+        "sampling_s": seconds["sampling"],
+        "solves": solves,
+        "warmup_solves": warmup_solves,
+        "ms_per_solve": 1000.0 * seconds["sampling"] / solves,
+        "ess": {k: row["ess_bulk"] for k, row in posterior.summary.items()},
+        "least_ess": least,
+        "ess_per_s": posterior.ess_per_second,
+        "ess_per_1000_solves": 1000.0 * least / solves,
+        "converged": posterior.converged,
+        "divergences": posterior.divergences,
+        "mean": {k: row["mean"] for k, row in posterior.summary.items()},
+        "sd": {k: row["sd"] for k, row in posterior.summary.items()},
+    }
+    log(f"  NUTS: {chains} chains x {draws} draws, {seconds['sampling']:.1f} s, {solves} solves,"
+        f" least bulk ESS {least:.0f}")  # fmt: skip
+    density = posterior_density(calibration, fit)
+    layout = density.layout
+    emcee = _emcee(density, warmup_solves, solves, walkers, seed=0, log=log)
+    # The two samplers' means apart, in the posterior's sds: both sample one density.
+    apart = max(abs(emcee["mean"][k] - nuts["mean"][k]) / nuts["sd"][k] for k in layout.labels)
+    return {
+        "samples": samples,
+        "values": list(layout.labels),
+        "nuts": nuts,
+        "emcee": emcee,
+        "ratio_ess_per_s": nuts["ess_per_s"] / emcee["ess_per_s"],
+        "ratio_ess_per_solve": nuts["ess_per_1000_solves"] / emcee["ess_per_1000_solves"],
+        "means_apart_sd": apart,
+        "lockstep": _lockstep(density, posterior, chains, lockstep_transitions, log),
+    }
+
+
+def format_posterior_bench(result: dict) -> str:
+    """The figures as text."""
+    nuts, emcee, lock = result["nuts"], result["emcee"], result["lockstep"]
+    values = ", ".join(result["values"])
+    lines = [
+        f"The posterior of one firing ({result['samples']} samples of x_M and F_AN; {values})",
+        f"  NUTS : {nuts['chains']} chains x {nuts['draws']} draws after {nuts['warmup']} "
+        f"warm-up, sampling {nuts['sampling_s']:.1f} s (compile {nuts['compile_s']:.1f} s, "
+        f"warm-up {nuts['warmup_s']:.1f} s); {nuts['solves']} solves with sensitivities, "
+        f"{nuts['ms_per_solve']:.2f} ms each; least bulk ESS {nuts['least_ess']:.0f}: "
+        f"{nuts['ess_per_s']:.1f} ESS/s, {nuts['ess_per_1000_solves']:.1f} per 1000 solves"
+        f" ({'converged' if nuts['converged'] else 'NOT converged'},"
+        f" {nuts['divergences']} divergences)",
+        f"  emcee: {emcee['walkers']} walkers x {emcee['steps']} steps after "
+        f"{emcee['burn_in_steps']} burn-in, sampling {emcee['sampling_s']:.1f} s, "
+        f"{emcee['solves']} solves (state alone, "
+        f"{1000.0 * emcee['sampling_s'] / emcee['solves']:.2f} ms each); least ESS "
+        f"{emcee['least_ess']:.0f} (autocorrelation up to "
+        f"{max(emcee['autocorrelation_steps'].values()):.0f} steps"
+        f"{'' if emcee['reliable'] else ', run under 50 of it: an estimate'}): "
+        f"{emcee['ess_per_s']:.1f} ESS/s, {emcee['ess_per_1000_solves']:.1f} per 1000 solves,"
+        f" acceptance {emcee['acceptance']:.2f}; its log density within "
+        f"{emcee['log_density_apart']:.1e} of NUTS's",
+        f"  NUTS over emcee: {result['ratio_ess_per_s']:.2f}x in ESS/s, "
+        f"{result['ratio_ess_per_solve']:.2f}x per solve; means apart by "
+        f"<= {result['means_apart_sd']:.2f} posterior sd",
+        f"  chains: {lock['chains']} x {lock['transitions']} NUTS transitions one after "
+        f"another {lock['sequential_s']:.2f} s, vmapped {lock['vmapped_s']:.2f} s "
+        f"({lock['vmapped_over_sequential']:.2f}x the time; in lockstep each transition "
+        f"waits for the batch's longest: {lock['lockstep_steps']} leapfrog steps' time for "
+        f"{lock['leapfrog_steps']} of work)",
+    ]
+    if not math.isfinite(result["ratio_ess_per_s"]):
+        lines.append("  (a ratio is not finite: a sampler gave no ESS)")
+    return "\n".join(lines)
