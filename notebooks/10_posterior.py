@@ -54,9 +54,9 @@ print("the model explains the traces:", result.explains)
 
 # %% [markdown]
 # ## The posterior beside the Laplace intervals
-# Four chains start from the optimum, spread by its covariance; they move in the logit
-# of the fit's box coordinates (no draw leaves the bounds), scaled by the curvature
-# there. The gates: split R̂ ≤ 1.01, a bulk ESS of 400 or more on every value, and no
+# Four chains start from the optimum, spread by its covariance; they move in the fit's
+# box coordinates, bent within 1 % of each bound so that no draw leaves them, scaled by
+# the curvature there. The gates: split R̂ ≤ 1.01, a bulk ESS of 400 or more on every value, and no
 # divergent transition, or `converged` is false and `problems` says what to try.
 
 # %%
@@ -153,8 +153,9 @@ near = rj.Calibration(
     fit={"k": (1e4, 1e5), "c_out": (1e3, 3e4), "gap": (0.019975, 0.1)},
 )
 near_fit = rj.calibrate(near, progress=False)
-# Near a bound the logit coordinates are steep: with the default target acceptance
-# (0.8) this run had 2 divergent transitions of 4,000, and the gate suggested 0.95.
+# Cut by its bound, the posterior is steep there: in the per-axis logit coordinates of
+# before, the default target acceptance (0.8) had 2 divergent transitions of 4,000 on
+# this run, and the gate suggested 0.95, which it keeps.
 near_posterior = rj.sample_posterior(near, fit=near_fit, draws=DRAWS, warmup=DRAWS,
                                      target_acceptance=0.95, progress=False)  # fmt: skip
 row = near_posterior.summary["gap"]
@@ -175,8 +176,11 @@ ax.ticklabel_format(axis="x", useOffset=False)
 ax.legend(fontsize=8)
 
 # %% [markdown]
-# ## Not yet
-# Friction fired at one elevation, where the data determine only `F_0 + μ·M·g`: the
-# posterior is a ridge a thousandth of its length wide, straight in the values but bent
-# by the per-axis logit coordinates, and NUTS crosses it in hundreds of steps a draw
-# (issue 67). The report already names such a pair (`posterior.unseparated`).
+# ## Friction at one elevation
+# Fired at one elevation, the data determine only `F_0 + μ·M·g`: the posterior is a
+# ridge a newton or two wide and 1,766 N long within the bounds. Inside the box the
+# chains' coordinates are the box's own, where the ridge stays straight, and the draws
+# show it: correlation −1.000, each value's 95 % interval over most of its bounds, and
+# `posterior.unseparated` naming the pair (`docs/calibration.md`, measured; too slow
+# for this notebook). Where the ridge meets a bound it hooks, trajectories reaching it
+# diverge, and the gates say the chains have not converged.

@@ -7,12 +7,14 @@ model is far from linear over them (friction measured at one elevation, a gap th
 barely closes, a value near its bound) the posterior is a ridge, a banana or a
 half-distribution, and only draws show it.
 
-**Coordinates.** The chains move in `y = logit(z)`, `z` the fit's box coordinates (the
-bounds 0 and 1, linear or logarithmic: `SearchSpace`), so that no draw leaves the bounds;
-the density carries the transform's Jacobian, so that a uniform prior is uniform in the
-parameter itself. The likelihood is the fit's: `−½ Σ ρ(r²)` over every experiment, signal
-and sample (`r` in noise units, `ρ` the calibration's loss), under the noise the fit
-settled on (given, or estimated from the traces and then held fixed), or with
+**Coordinates.** The chains move in `y`, with `z = _box(y)` the fit's box coordinates
+(the bounds 0 and 1, linear or logarithmic: `SearchSpace`): the identity on the box's
+inside, bent within `EDGE` of each bound so that no draw leaves it. A ridge straight in
+the values (friction at one elevation) stays straight in `y`, where a per-axis logit bent
+it. The density carries the transform's Jacobian, so that a uniform prior is uniform in
+the parameter itself. The likelihood is the fit's: `−½ Σ ρ(r²)` over every experiment,
+signal and sample (`r` in noise units, `ρ` the calibration's loss), under the noise the
+fit settled on (given, or estimated from the traces and then held fixed), or with
 `sample_noise` that noise sampled too (`−n log σ − Σ r²/2σ²`, a half-normal prior).
 
 **Programs.** Warm-up and sampling are one compiled program each, run chain after chain
@@ -279,11 +281,42 @@ def _residual_function(static: FitSettings):
     return residuals
 
 
+#: The width, in the box coordinates `z`, of the chains' coordinates' bend at each
+#: bound (`_box`): inside it `y = z`, so that a ridge straight in the values is straight
+#: in `y`; within it of a bound, `y` is logarithmic in the distance to it.
+EDGE = 0.01
+
+
+def _box(y):
+    """`y → z = δ·softplus(y/δ) − δ·softplus((y − 1)/δ)` (δ = `EDGE`): the identity on
+    the box's inside, `z → 0` as `y → −∞` and `z → 1` as `y → ∞`, each as `e^{−|y|/δ}`
+    (elementwise)."""
+    # Each bound's side from its own end (softplus(x) − softplus(−x) = x), so that
+    # rounding keeps z inside [0, 1]: both forms are finite, one `where` suffices.
+    lower = EDGE * (jax.nn.softplus(y / EDGE) - jax.nn.softplus((y - 1.0) / EDGE))
+    upper = 1.0 - EDGE * (jax.nn.softplus((1.0 - y) / EDGE) - jax.nn.softplus(-y / EDGE))
+    return jnp.where(y < 0.5, lower, upper)
+
+
+def _log_box_slope(y):
+    """`log dz/dy` of `_box`, up to a constant: `dz/dy = σ(y/δ) − σ((y − 1)/δ)
+    = σ(y/δ)·σ((1 − y)/δ)·(1 − e^{−1/δ})`, in log-sigmoid form (finite for any y)."""
+    return jax.nn.log_sigmoid(y / EDGE) + jax.nn.log_sigmoid((1.0 - y) / EDGE)
+
+
+def _box_inverse(z):
+    """`_box`'s inverse for `z` in (0, 1) (numpy; exact to `e^{−1/δ}`)."""
+    z = np.asarray(z, dtype=float)
+    # δ·log(expm1(x/δ)) = x + δ·log(−expm1(−x/δ)), the latter finite for any δ.
+    return z + EDGE * (np.log(-np.expm1(-z / EDGE)) - np.log(-np.expm1((z - 1.0) / EDGE)))
+
+
 class _Whitening(eqx.Module):
-    """The chains' coordinates `w`, with `y = centre + factor @ w`: the Laplace
-    approximation in `y` made a standard normal (`factor` its Cholesky factor), so that
-    the warm-up, which assumes values of unit scale (Stan's regularisation of the mass
-    matrix toward 10⁻³·I), sees them so; a fitted value's `y` is 10⁻³ wide."""
+    """The chains' coordinates `w`, with `y = centre + factor @ w` and `z = _box(y)` the
+    fit's box coordinates: the Laplace approximation in `y` made a standard normal
+    (`factor` its Cholesky factor), so that the warm-up, which assumes values of unit
+    scale (Stan's regularisation of the mass matrix toward 10⁻³·I), sees them so; a
+    fitted value's `y` is 10⁻³ wide."""
 
     centre: jax.Array
     factor: jax.Array
@@ -295,6 +328,10 @@ class _Whitening(eqx.Module):
         """`w (..., P + Q)` → `y (..., P)`."""
         return self.centre + w[..., : self.centre.shape[0]] @ self.factor.T
 
+    def z(self, w):
+        """`w (..., P + Q)` → the box coordinates `z (..., P)`, in [0, 1]."""
+        return _box(self.y(w))
+
     def log_noise(self, w):
         """`w (..., P + Q)` → the sampled noises' `u (..., Q)`."""
         return w[..., self.centre.shape[0] :] * self.noise_sd
@@ -305,12 +342,12 @@ def _log_density(
 ):
     """The log posterior density of the chains' coordinates `w (P + Q,)` (Q sampled
     noises, `_Noise`), up to a constant: the fit's log-likelihood, the priors, and the
-    Jacobian of `y = logit(z) → θ` (that of `w → y` is constant). `gradient` (static):
+    Jacobian of `y → z → θ` (that of `w → y` is constant). `gradient` (static):
     differentiable by the solve's forward sensitivities; without, one solve of the state
     alone (for a sampler that needs no gradient: a sixth to a tenth of the cost on the
     bench's 5-value fit)."""
     y = whitening.y(w)
-    z = jax.nn.sigmoid(y)
+    z = _box(y)
     theta, slope = jax.jvp(data.space.theta, (z,), (jnp.ones_like(z),))  # θ(z) is elementwise
     if gradient:
         r = _residual_function(static)(theta, data)
@@ -322,8 +359,7 @@ def _log_density(
         log_likelihood += priors.noise.log_density(
             whitening.log_noise(w), jnp.sum(squares, axis=-1).reshape(-1)
         )
-    # log |dz/dy| = log z + log(1 − z), in softplus form (finite for any y).
-    log_jacobian = jnp.sum(-jax.nn.softplus(-y) - jax.nn.softplus(y) + jnp.log(jnp.abs(slope)))
+    log_jacobian = jnp.sum(_log_box_slope(y) + jnp.log(jnp.abs(slope)))
     return log_likelihood + priors.log_density(theta) + log_jacobian
 
 
@@ -828,8 +864,7 @@ def sample_posterior(
         return {name: stacked[:, :, s] for s, name in enumerate(layout.signals)}, codes
 
     out = jax.tree.map(lambda *a: np.stack(a), *chain_blocks)  # (chains, draws, ...)
-    z = 1.0 / (1.0 + np.exp(-np.asarray(whitening.y(jnp.asarray(out.position)))))
-    theta = np.asarray(data.space.theta(jnp.asarray(z)))
+    theta = np.asarray(data.space.theta(whitening.z(jnp.asarray(out.position))))
     sigma = None  # the sampled noises (chains, draws, Q), in SI units
     if prior_arrays.noise is not None:
         fitted_sigma = np.asarray(data.sigma).reshape(-1)[np.asarray(prior_arrays.noise.slots)]
@@ -873,7 +908,7 @@ class PosteriorDensity(NamedTuple):
 
     def theta(self, w):
         """`w (..., P)` → the values `θ (..., P)` (SI units)."""
-        return self.data.space.theta(jax.nn.sigmoid(self.whitening.y(w)))
+        return self.data.space.theta(self.whitening.z(w))
 
     def nuts_transitions(self, key, state, step_size, inverse_mass, transitions: int):
         """`transitions` NUTS transitions from `state` (`_sample_block`, as
@@ -948,10 +983,10 @@ def _whitening(fit: CalibrationResult, layout: Layout, data, static, priors: _Pr
     """The chains' coordinates (`_Whitening`): centred on the least-squares optimum
     (kept a standard error, at most 2 % of the box, inside its bounds), scaled by the
     posterior's curvature there in `y`: the data's Gauss–Newton `JᵀJ` (noise units)
-    plus the priors' and the transform's. Where the data determine every value this is
-    the Laplace covariance; along a direction they do not (friction at one elevation: a
-    ridge), the priors' curvature bounds it, so the chains are scaled along the ridge
-    and across it alike."""
+    plus the priors' (a uniform's variance standing in for its curvature). Where the
+    data determine every value this is the Laplace covariance; along a direction they do
+    not (friction at one elevation: a ridge), the priors bound it, so the chains are
+    scaled along the ridge and across it alike."""
     labels = list(layout.labels)
     value = np.array([fit.values[k] for k in labels])
     # Kept inside the bounds by its standard error in z (at most 2 % of the box), so
@@ -966,12 +1001,22 @@ def _whitening(fit: CalibrationResult, layout: Layout, data, static, priors: _Pr
     theta_hat, slope = jax.jvp(
         data.space.theta, (jnp.asarray(z_hat),), (jnp.ones_like(jnp.asarray(z_hat)),)
     )
-    # dθ/dy = dθ/dz · dz/dy, with dz/dy = z (1 − z).
-    dtheta_dy = np.asarray(slope) * z_hat * (1.0 - z_hat)
+    y_hat = _box_inverse(z_hat)
+    # dθ/dy = dθ/dz · dz/dy; dz/dy the bend's where the value's posterior is within a
+    # bend (its standard error in z under the bend's width), else the inside's, 1: a
+    # ridge runs across the box, and a frame at its slope in a bend is tilted against
+    # it (measured, by 2 % at 4 widths from μ's bound: 40 times the ridge's width).
+    dz_dy = np.exp(np.asarray(_log_box_slope(jnp.asarray(y_hat)))) * -np.expm1(-1.0 / EDGE)
+    dz_dy = np.where(np.isfinite(sd_z) & (sd_z < EDGE), dz_dy, 1.0)
+    dtheta_dy = np.asarray(slope) * dz_dy
     jacobian = np.asarray(evaluate_program(theta_hat, data, static).jacobian)
     jacobian = jacobian.reshape(-1, len(labels)) * dtheta_dy
-    # −d²/dy² of the transform's log Jacobian, log z + log(1 − z): 2 z (1 − z); and of
-    # a normal (lognormal) prior: (dθ/dy)² / sd² (/ θ² s²).
+    # −d²/dy² of a normal (lognormal) prior, (dθ/dy)² / sd² (/ θ² s²); a uniform's has
+    # none, and its variance (1/12 of the box in z) stands in, so that along a
+    # direction the data do not determine (friction at one elevation: a ridge) the
+    # chains are scaled as the prior is. The transform's own curvature is left out:
+    # it is local to a bound's bend, and would tilt a ridge's frame where the centre
+    # lies in one (measured: the ridge then runs diagonally across w).
     theta = np.asarray(theta_hat)
     kind, scale = np.asarray(priors.kind), np.asarray(priors.scale)
     lognormal_theta = np.where(kind == 2, theta, 1.0)  # positive there (the bounds' check)
@@ -979,7 +1024,7 @@ def _whitening(fit: CalibrationResult, layout: Layout, data, static, priors: _Pr
                                np.where(kind == 2, 1.0 / (lognormal_theta * scale) ** 2,
                                         0.0))  # fmt: skip
     precision = jacobian.T @ jacobian + np.diag(
-        2.0 * z_hat * (1.0 - z_hat) + prior_curvature * dtheta_dy**2
+        prior_curvature * dtheta_dy**2 + np.where(kind == 0, 12.0 * dz_dy**2, 0.0)
     )
     covariance = np.linalg.inv(precision)
     covariance = 0.5 * (covariance + covariance.T)
@@ -993,7 +1038,7 @@ def _whitening(fit: CalibrationResult, layout: Layout, data, static, priors: _Pr
             continue
     else:
         factor = np.diag(sd_y)
-    return _Whitening(jnp.asarray(np.log(z_hat / (1.0 - z_hat))), jnp.asarray(factor))
+    return _Whitening(jnp.asarray(y_hat), jnp.asarray(factor))
 
 
 def _report(
