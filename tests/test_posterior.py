@@ -292,10 +292,10 @@ def test_the_chains_coordinates_are_the_box_inside_and_bend_only_at_its_bounds()
 def test_the_chains_are_scaled_by_the_laplace_covariance_where_the_data_determine_all(
     absorber,
 ):
-    """The chains' coordinates (`_whitening`): the data's `JᵀJ` plus the priors' and the
-    transform's curvature, in the chains' coordinates `y` (the box coordinates inside
-    their bends at the bounds). Where the data determine
-    every value (the paper absorber), that is the fit's Laplace covariance carried into
+    """The chains' coordinates (`_whitening`): the data's `JᵀJ` plus the priors'
+    curvature, in the chains' coordinates `y` (the box coordinates inside their bends at
+    the bounds). Where the data determine every value (the paper absorber), that is the
+    fit's Laplace covariance carried into
     those coordinates (`Σ_y = D Σ_θ D`, `D = dy/dθ`): sds within 2 %, correlations within
     0.01."""
     import jax
