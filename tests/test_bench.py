@@ -214,11 +214,12 @@ def test_posterior_bench_reports_both_samplers_on_one_density():
     """`bench-calibration --posterior`: NUTS and emcee sample the same density (emcee's
     within 0.01 of NUTS's, their means within a posterior sd on small runs), on the same
     budget of solves; the chains one after another and in lockstep make the same number
-    of transitions; every figure is reported."""
+    of transitions; on the envelope plan's firings too; every figure is reported."""
     from recoil_jax.apps._bench.posterior import format_posterior_bench, posterior_bench
 
     result = posterior_bench(samples=401, draws=100, warmup=100, chains=2, walkers=16,
-                             lockstep_transitions=4, log=lambda m: None)  # fmt: skip
+                             lockstep_transitions=4, envelope_draws=100, log=lambda m: None,
+                             progress=False)  # fmt: skip
     nuts, emcee = result["nuts"], result["emcee"]
     assert nuts["solves"] > 0 and nuts["ess_per_s"] > 0 and emcee["ess_per_s"] > 0
     # The same budget: emcee's steps are whole ensembles of 16 solves.
@@ -228,5 +229,13 @@ def test_posterior_bench_reports_both_samplers_on_one_density():
     lock = result["lockstep"]
     assert lock["sequential_s"] > 0 and lock["vmapped_s"] > 0
     assert lock["lockstep_steps"] >= lock["leapfrog_steps"] > 0
+    # The envelope plan's firings: the round trip's traces, its fit's defaults; the
+    # posterior's means on the truth (measured, 2 x 100 draws: within 1.9 sd; 4 x 200: 1.8).
+    envelope = result["envelope"]
+    assert envelope["nuts"]["solves"] > 0 and envelope["nuts"]["ess_per_s"] > 0
+    assert len(envelope["firings"]) == 3 and envelope["measurements"] == 3 * 2 * 3001
+    assert set(envelope["truth_apart_sd"]) == set(envelope["values"])
+    assert max(envelope["truth_apart_sd"].values()) < 4.0, envelope["truth_apart_sd"]
     text = format_posterior_bench(result)
     assert "NUTS over emcee" in text and "vmapped" in text
+    assert "envelope plan's firings" in text and "apart from the truth" in text

@@ -387,8 +387,11 @@ def main_calibration_bench(args) -> int:
     if args.posterior:
         from .posterior import format_posterior_bench, posterior_bench
 
-        sizes = {"samples": 1001, "draws": 200, "warmup": 200, "chains": 2} if args.quick else {}
-        result = posterior_bench(**sizes)
+        if args.quick:  # small sizes
+            result = posterior_bench(samples=1001, draws=200, warmup=200, chains=2,
+                                     envelope_draws=100)  # fmt: skip
+        else:
+            result = posterior_bench()
         print(json.dumps(result) if args.json else format_posterior_bench(result))
         return 0
     if args.round_trip:
@@ -444,7 +447,9 @@ def add_command(commands: Commands) -> None:
         action="store_true",
         help="instead: the posterior's speed on the 5-value fit (NUTS's bulk ESS per "
         "second and per solve, beside emcee vectorised over its walkers on the same "
-        "solves; chains vmapped against one after another); --quick for small sizes",
+        "solves; chains vmapped against one after another), then NUTS on the round "
+        "trip's traces of the shipped plan's firings (run from the repository's root; "
+        "about 20 minutes in all); --quick for small sizes",
     )
     calibration_bench.add_argument(
         "--draws", type=int, default=20, metavar="N", help="with --round-trip: draws a truth"

@@ -18,6 +18,10 @@ Measured in one run, each figure with compilation excluded:
   time (`get_autocorr_time`, the walkers are not independent chains);
 - **chains in lockstep** (`vmap`) against one after another: the same NUTS transitions
   from the same states, step size and mass matrix, both compiled.
+- **the envelope plan's firings** (`envelope_posterior`): NUTS alone on the round
+  trip's first traces (the shipped plan's firings by the reference solver, with the
+  plan's noise), fitted by `calibrate` as a user runs it; each posterior mean's distance
+  from the truth, in posterior sds.
 
 Figures printed, never asserted (`docs/calibration.md`).
 """
@@ -40,8 +44,14 @@ import recoil_jax as rj
 from recoil_jax._calibration.posterior import PosteriorDensity, posterior_density
 
 from .firing import calibration_of, firing_test
+from .round_trip import ROUND_TRIP_PLAN, planned_calibration, shipped_plan, truth_of
 
-__all__ = ["format_posterior_bench", "posterior_bench"]
+__all__ = [
+    "envelope_posterior",
+    "format_envelope_posterior",
+    "format_posterior_bench",
+    "posterior_bench",
+]
 
 #: emcee's walkers: a few times the values, as its documentation advises (and an even
 #: number, for its stretch move's two halves).
@@ -54,6 +64,10 @@ EMCEE_RELIABLE = 50
 #: absorber: 8e-7 against 4e-4 noise units, log densities 0.1–2 apart). At a hundredth
 #: both densities agree to 0.004 (at a tenth, 0.75), for a quarter more a solve.
 EMCEE_TOLERANCE = 0.01
+#: Draws and warm-up steps a chain on the envelope plan's firings: its solves are 11
+#: times the 5-value fit's (3 firings of 3 s at 1 kHz, the envelope's forces). At 30 the
+#: warm-up is too short to adapt (measured: 18 of 60 transitions divergent).
+ENVELOPE_DRAWS = 200
 
 
 def emcee_data(data):
@@ -162,33 +176,14 @@ def _lockstep(density: PosteriorDensity, posterior, chains: int, transitions: in
     }
 
 
-def posterior_bench(
-    samples: int = 5001,
-    draws: int = 1000,
-    warmup: int = 1000,
-    chains: int = 4,
-    walkers: int = WALKERS,
-    lockstep_transitions: int = 10,
-    log=None,
-) -> dict:
-    """NUTS against emcee, and chains in lockstep against one after another, on the
-    bench's 5-value fit of one firing of `samples` samples (module docstring)."""
-    log = log or (lambda message: print(message, file=sys.stderr, flush=True))
-    if importlib.util.find_spec("emcee") is None:  # before anything is fitted or sampled
-        raise rj.ParameterError(
-            "the posterior's benchmark compares with emcee: pip install 'recoil-jax[bench]'"
-        )
-    ts, measured = firing_test({}, samples, 1.0, seed=7)
-    calibration = calibration_of({}, ts, measured)
-    fit = rj.calibrate(calibration, starts=1, progress=False)
-    posterior = rj.sample_posterior(calibration, fit=fit, draws=draws, warmup=warmup,
-                                    chains=chains, seed=0, progress=False)  # fmt: skip
+def _nuts_figures(posterior, draws: int, warmup: int, chains: int) -> dict:
+    """A sampled posterior's figures: its seconds, solves, ESS and ESS per second."""
     solves = int(posterior.inference_data.sample_stats["n_steps"].sum())
     seconds = posterior.seconds
     # The warm-up's solves are not recorded: its time over the sampling's time a solve.
     warmup_solves = round(seconds["warmup"] * solves / seconds["sampling"])
     least = min(row["ess_bulk"] for row in posterior.summary.values())
-    nuts = {
+    return {
         "draws": draws,
         "warmup": warmup,
         "chains": chains,
@@ -207,11 +202,43 @@ def posterior_bench(
         "mean": {k: row["mean"] for k, row in posterior.summary.items()},
         "sd": {k: row["sd"] for k, row in posterior.summary.items()},
     }
-    log(f"  NUTS: {chains} chains x {draws} draws, {seconds['sampling']:.1f} s, {solves} solves,"
-        f" least bulk ESS {least:.0f}")  # fmt: skip
+
+
+def posterior_bench(
+    samples: int = 5001,
+    draws: int = 1000,
+    warmup: int = 1000,
+    chains: int = 4,
+    walkers: int = WALKERS,
+    lockstep_transitions: int = 10,
+    envelope_draws: int = ENVELOPE_DRAWS,
+    log=None,
+    progress: bool = True,
+) -> dict:
+    """NUTS against emcee, and chains in lockstep against one after another, on the
+    bench's 5-value fit of one firing of `samples` samples; then NUTS alone on the
+    envelope plan's firings, `envelope_draws` draws after as many warm-up steps a chain
+    (0: not; `envelope_posterior`). Module docstring."""
+    log = log or (lambda message: print(message, file=sys.stderr, flush=True))
+    if importlib.util.find_spec("emcee") is None:  # before anything is fitted or sampled
+        raise rj.ParameterError(
+            "the posterior's benchmark compares with emcee: pip install 'recoil-jax[bench]'"
+        )
+    if envelope_draws and not ROUND_TRIP_PLAN.is_file():  # nor here
+        raise rj.ParameterError(
+            f"{ROUND_TRIP_PLAN}: the shipped plan is not here; run from the repository's root"
+        )
+    ts, measured = firing_test({}, samples, 1.0, seed=7)
+    calibration = calibration_of({}, ts, measured)
+    fit = rj.calibrate(calibration, starts=1, progress=False)
+    posterior = rj.sample_posterior(calibration, fit=fit, draws=draws, warmup=warmup,
+                                    chains=chains, seed=0, progress=False)  # fmt: skip
+    nuts = _nuts_figures(posterior, draws, warmup, chains)
+    log(f"  NUTS: {chains} chains x {draws} draws, {nuts['sampling_s']:.1f} s, "
+        f"{nuts['solves']} solves, least bulk ESS {nuts['least_ess']:.0f}")  # fmt: skip
     density = posterior_density(calibration, fit)
     layout = density.layout
-    emcee = _emcee(density, warmup_solves, solves, walkers, seed=0, log=log)
+    emcee = _emcee(density, nuts["warmup_solves"], nuts["solves"], walkers, seed=0, log=log)
     # The two samplers' means apart, in the posterior's sds: both sample one density.
     apart = max(abs(emcee["mean"][k] - nuts["mean"][k]) / nuts["sd"][k] for k in layout.labels)
     return {
@@ -223,7 +250,60 @@ def posterior_bench(
         "ratio_ess_per_solve": nuts["ess_per_1000_solves"] / emcee["ess_per_1000_solves"],
         "means_apart_sd": apart,
         "lockstep": _lockstep(density, posterior, chains, lockstep_transitions, log),
+        "envelope": (
+            envelope_posterior(envelope_draws, envelope_draws, chains, log=log, progress=progress)
+            if envelope_draws
+            else None
+        ),
     }
+
+
+def envelope_posterior(
+    draws: int = ENVELOPE_DRAWS,
+    warmup: int = ENVELOPE_DRAWS,
+    chains: int = 4,
+    plan_path=ROUND_TRIP_PLAN,
+    log=None,
+    progress: bool = True,
+) -> dict:
+    """NUTS (`sample_posterior`, its defaults but the sizes) on the envelope plan's
+    firings: the round trip's first traces (truth 0, draw 0: `round_trip`), fitted by
+    `calibrate` as a user runs it. Each value's posterior mean is also given apart from
+    the truth, in posterior sds."""
+    log = log or (lambda message: print(message, file=sys.stderr, flush=True))
+    problem, plan, report = shipped_plan(plan_path)
+    truth = truth_of(problem, 0)
+    calibration = planned_calibration(plan, report, truth, seed=0)
+    log(f"  the envelope plan's {len(report.firings)} firings ({plan_path}): fitting")
+    started = time.perf_counter()
+    fit = rj.calibrate(calibration, progress=False)
+    fit_s = time.perf_counter() - started
+    log(f"  fitted in {fit_s:.1f} s ({fit.verdict}); sampling")
+    posterior = rj.sample_posterior(calibration, fit=fit, draws=draws, warmup=warmup,
+                                    chains=chains, seed=0, progress=progress)  # fmt: skip
+    nuts = _nuts_figures(posterior, draws, warmup, chains)
+    return {
+        "plan": str(plan_path),
+        "firings": [plan.conditions[c] | {"signals": list(s)} for c, s in report.firings],
+        "measurements": sum(e.trace.t.size * len(e.trace.signals) for e in calibration.experiments),
+        "values": list(posterior.labels),
+        "fit_s": fit_s,
+        "truth": truth,
+        "truth_apart_sd": {k: abs(nuts["mean"][k] - v) / nuts["sd"][k] for k, v in truth.items()},
+        "nuts": nuts,
+    }
+
+
+def _nuts_line(nuts: dict) -> str:
+    return (
+        f"{nuts['chains']} chains x {nuts['draws']} draws after {nuts['warmup']} "
+        f"warm-up, sampling {nuts['sampling_s']:.1f} s (compile {nuts['compile_s']:.1f} s, "
+        f"warm-up {nuts['warmup_s']:.1f} s); {nuts['solves']} solves with sensitivities, "
+        f"{nuts['ms_per_solve']:.2f} ms each; least bulk ESS {nuts['least_ess']:.0f}: "
+        f"{nuts['ess_per_s']:.1f} ESS/s, {nuts['ess_per_1000_solves']:.1f} per 1000 solves"
+        f" ({'converged' if nuts['converged'] else 'NOT converged'},"
+        f" {nuts['divergences']} divergences)"
+    )
 
 
 def format_posterior_bench(result: dict) -> str:
@@ -232,13 +312,7 @@ def format_posterior_bench(result: dict) -> str:
     values = ", ".join(result["values"])
     lines = [
         f"The posterior of one firing ({result['samples']} samples of x_M and F_AN; {values})",
-        f"  NUTS : {nuts['chains']} chains x {nuts['draws']} draws after {nuts['warmup']} "
-        f"warm-up, sampling {nuts['sampling_s']:.1f} s (compile {nuts['compile_s']:.1f} s, "
-        f"warm-up {nuts['warmup_s']:.1f} s); {nuts['solves']} solves with sensitivities, "
-        f"{nuts['ms_per_solve']:.2f} ms each; least bulk ESS {nuts['least_ess']:.0f}: "
-        f"{nuts['ess_per_s']:.1f} ESS/s, {nuts['ess_per_1000_solves']:.1f} per 1000 solves"
-        f" ({'converged' if nuts['converged'] else 'NOT converged'},"
-        f" {nuts['divergences']} divergences)",
+        "  NUTS : " + _nuts_line(nuts),
         f"  emcee: {emcee['walkers']} walkers x {emcee['steps']} steps after "
         f"{emcee['burn_in_steps']} burn-in, sampling {emcee['sampling_s']:.1f} s, "
         f"{emcee['solves']} solves (state alone, "
@@ -260,4 +334,23 @@ def format_posterior_bench(result: dict) -> str:
     ]
     if not math.isfinite(result["ratio_ess_per_s"]):
         lines.append("  (a ratio is not finite: a sampler gave no ESS)")
+    if result["envelope"]:
+        lines.append(format_envelope_posterior(result["envelope"]))
     return "\n".join(lines)
+
+
+def format_envelope_posterior(result: dict) -> str:
+    """`envelope_posterior`'s figures as text."""
+    nuts = result["nuts"]
+    firings = "; ".join(
+        f"{f['elevation']:g} deg, v0 {f['v0']:g} m/s: {', '.join(f['signals'])}"
+        for f in result["firings"]
+    )
+    apart = ", ".join(f"{k} {v:.2f}" for k, v in result["truth_apart_sd"].items())
+    return "\n".join([
+        f"The posterior of the envelope plan's firings ({result['plan']}: {firings}; "
+        f"{result['measurements']} measurements; {', '.join(result['values'])})",
+        f"  fit: {result['fit_s']:.1f} s (calibrate, its defaults)",
+        "  NUTS : " + _nuts_line(nuts),
+        f"  posterior means apart from the truth, in posterior sds: {apart}",
+    ])  # fmt: skip

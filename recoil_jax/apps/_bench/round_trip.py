@@ -18,7 +18,14 @@ import numpy as np
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 
-__all__ = ["ROUND_TRIP_PLAN", "format_round_trip", "round_trip"]
+__all__ = [
+    "ROUND_TRIP_PLAN",
+    "format_round_trip",
+    "planned_calibration",
+    "round_trip",
+    "shipped_plan",
+    "truth_of",
+]
 
 #: The shipped plan the round trip fires (relative to the repository's root).
 ROUND_TRIP_PLAN = Path("optimise/plans/envelope_friction.toml")
@@ -54,6 +61,26 @@ def planned_traces(plan, report, truth: dict[str, float], seed: int) -> list[rjx
     return traces
 
 
+def shipped_plan(plan_path=ROUND_TRIP_PLAN):
+    """The plan file at `plan_path` (relative to the working directory), loaded and
+    planned: `(problem, plan, report)`."""
+    from .._studies.plan_file import load_plan
+
+    path = Path(plan_path)
+    if not path.is_file():
+        raise rj.ParameterError(
+            f"{path}: the shipped plan is not here; run from the repository's root"
+        )
+    problem, _ = load_plan(path)
+    plan = rj.plan_firings(problem)
+    return problem, plan, plan.plan
+
+
+def planned_calibration(plan, report, truth: dict[str, float], seed: int):
+    """The calibration of the planned firings' traces at `truth` (`planned_traces`)."""
+    return rjx.plan_calibration(plan, report, planned_traces(plan, report, truth, seed))
+
+
 def _fit(calibration, truth, options) -> dict:
     started = time.perf_counter()
     result = rj.calibrate(calibration, progress=False, **options)
@@ -81,25 +108,15 @@ def round_trip(
     draws: int = 20, truths: int = 2, compare: int = 1, plan_path=ROUND_TRIP_PLAN, log=None
 ) -> dict:
     """The round trip's figures: per truth and way, each draw's fit (`_fit`)."""
-    from .._studies.plan_file import load_plan
-
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
-    path = Path(plan_path)
-    if not path.is_file():
-        raise rj.ParameterError(
-            f"{path}: the shipped plan is not here; run from the repository's root"
-        )
-    problem, _ = load_plan(path)
-    plan = rj.plan_firings(problem)
-    report = plan.plan
-    log(f"round trip: {len(report.firings)} planned firings of {path}")
+    problem, plan, report = shipped_plan(plan_path)
+    log(f"round trip: {len(report.firings)} planned firings of {plan_path}")
     rows = []
     for t in range(truths):
         truth = truth_of(problem, t)
         log(f"truth {t}: " + ", ".join(f"{n} {v:.6g}" for n, v in truth.items()))
         for d in range(draws):
-            traces = planned_traces(plan, report, truth, seed=100 * t + d)
-            calibration = rjx.plan_calibration(plan, report, traces)
+            calibration = planned_calibration(plan, report, truth, seed=100 * t + d)
             for way, options in WAYS.items():
                 if way != "default" and d >= compare:
                     continue
@@ -111,7 +128,7 @@ def round_trip(
                     f"{worst:.2f} stderr), {fit['verdict']}"
                     + (", through the fallback path too" if fit["fallback"] else ""))  # fmt: skip
     return {
-        "plan": str(path),
+        "plan": str(plan_path),
         "firings": [plan.conditions[c] | {"signals": list(s)} for c, s in report.firings],
         "truths": [truth_of(problem, t) for t in range(truths)],
         "within_stderr": WITHIN_STDERR,
