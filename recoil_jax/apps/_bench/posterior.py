@@ -44,7 +44,7 @@ import recoil_jax as rj
 from recoil_jax._calibration.posterior import PosteriorDensity, posterior_density
 
 from .firing import calibration_of, firing_test
-from .round_trip import ROUND_TRIP_PLAN, planned_calibration, shipped_plan, truth_of
+from .round_trip import ROUND_TRIP_PLAN, plan_file, planned_calibration, shipped_plan, truth_of
 
 __all__ = [
     "envelope_posterior",
@@ -176,8 +176,9 @@ def _lockstep(density: PosteriorDensity, posterior, chains: int, transitions: in
     }
 
 
-def _nuts_figures(posterior, draws: int, warmup: int, chains: int) -> dict:
+def _nuts_figures(posterior, warmup: int) -> dict:
     """A sampled posterior's figures: its seconds, solves, ESS and ESS per second."""
+    chains, draws = posterior.draws.shape[:2]
     solves = int(posterior.inference_data.sample_stats["n_steps"].sum())
     seconds = posterior.seconds
     # The warm-up's solves are not recorded: its time over the sampling's time a solve.
@@ -224,16 +225,14 @@ def posterior_bench(
         raise rj.ParameterError(
             "the posterior's benchmark compares with emcee: pip install 'recoil-jax[bench]'"
         )
-    if envelope_draws and not ROUND_TRIP_PLAN.is_file():  # nor here
-        raise rj.ParameterError(
-            f"{ROUND_TRIP_PLAN}: the shipped plan is not here; run from the repository's root"
-        )
+    if envelope_draws:  # nor here
+        plan_file(ROUND_TRIP_PLAN)
     ts, measured = firing_test({}, samples, 1.0, seed=7)
     calibration = calibration_of({}, ts, measured)
     fit = rj.calibrate(calibration, starts=1, progress=False)
     posterior = rj.sample_posterior(calibration, fit=fit, draws=draws, warmup=warmup,
                                     chains=chains, seed=0, progress=False)  # fmt: skip
-    nuts = _nuts_figures(posterior, draws, warmup, chains)
+    nuts = _nuts_figures(posterior, warmup)
     log(f"  NUTS: {chains} chains x {draws} draws, {nuts['sampling_s']:.1f} s, "
         f"{nuts['solves']} solves, least bulk ESS {nuts['least_ess']:.0f}")  # fmt: skip
     density = posterior_density(calibration, fit)
@@ -281,7 +280,7 @@ def envelope_posterior(
     log(f"  fitted in {fit_s:.1f} s ({fit.verdict}); sampling")
     posterior = rj.sample_posterior(calibration, fit=fit, draws=draws, warmup=warmup,
                                     chains=chains, seed=0, progress=progress)  # fmt: skip
-    nuts = _nuts_figures(posterior, draws, warmup, chains)
+    nuts = _nuts_figures(posterior, warmup)
     return {
         "plan": str(plan_path),
         "firings": [plan.conditions[c] | {"signals": list(s)} for c, s in report.firings],

@@ -21,6 +21,7 @@ import recoil_jax.extend as rjx
 __all__ = [
     "ROUND_TRIP_PLAN",
     "format_round_trip",
+    "plan_file",
     "planned_calibration",
     "round_trip",
     "shipped_plan",
@@ -61,17 +62,23 @@ def planned_traces(plan, report, truth: dict[str, float], seed: int) -> list[rjx
     return traces
 
 
-def shipped_plan(plan_path=ROUND_TRIP_PLAN):
-    """The plan file at `plan_path` (relative to the working directory), loaded and
-    planned: `(problem, plan, report)`."""
-    from .._studies.plan_file import load_plan
-
+def plan_file(plan_path) -> Path:
+    """`plan_path` (relative to the working directory), or a `ParameterError` where it is
+    not a file."""
     path = Path(plan_path)
     if not path.is_file():
         raise rj.ParameterError(
             f"{path}: the shipped plan is not here; run from the repository's root"
         )
-    problem, _ = load_plan(path)
+    return path
+
+
+def shipped_plan(plan_path=ROUND_TRIP_PLAN):
+    """The plan file at `plan_path` (`plan_file`), loaded and planned:
+    `(problem, plan, report)`."""
+    from .._studies.plan_file import load_plan
+
+    problem, _ = load_plan(plan_file(plan_path))
     plan = rj.plan_firings(problem)
     return problem, plan, plan.plan
 
