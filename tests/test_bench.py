@@ -21,6 +21,7 @@ from recoil_jax._model.equations import (
     vector_field,
 )
 from recoil_jax._model.stepping import integrate_peaks
+from recoil_jax._sweeps.memory import cores
 from recoil_jax.apps._bench.anchor import anchor_field, anchor_peaks
 from recoil_jax.apps._bench.speed import (
     _host_label,
@@ -222,6 +223,8 @@ def test_posterior_bench_reports_both_samplers_on_one_density():
                              progress=False)  # fmt: skip
     nuts, emcee = result["nuts"], result["emcee"]
     assert nuts["solves"] > 0 and nuts["ess_per_s"] > 0 and emcee["ess_per_s"] > 0
+    # Both on every core: the chains at once, the walkers' points split over threads.
+    assert nuts["parallel_chains"] == min(2, cores()) and emcee["threads"] == cores()
     # The same budget: emcee's steps are whole ensembles of 16 solves.
     assert nuts["solves"] - 16 < emcee["solves"] <= nuts["solves"]
     assert emcee["log_density_apart"] < 0.01

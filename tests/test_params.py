@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import recoil_jax as rj
+from recoil_jax._model.equations import model_args
 
 
 def test_defaults_are_the_papers():
@@ -417,6 +418,29 @@ def test_a_preload_needs_the_battery_stop():
     # With the stop, or at zero, it is a design.
     rj.params_from_values(recuperator_preload=3e4, stop_stiffness=2.1e8)
     rj.params_from_values(recuperator_preload=0.0)
+
+
+def test_a_stop_too_soft_to_hold_the_preload_is_refused():
+    """A stop that would let the preload push the barrel more than `recuperator_length`
+    into it is refused before anything compiles (it used to fail in the solve, as a
+    recuperator bottomed out); one at least `P·2^−γ / L^n_s` holds the rest within `L`
+    (the model's own static rest, at 1.01 times that stiffness and level rails, where no
+    weight helps the stop)."""
+    design = {"recuperator_preload": 3.5e4, "recuperator_length": 1.5, "elevation": 0.0}
+    least = 3.5e4 * 2.0**-1.3 / 1.5**1.5  # the defaults: gamma 1.3, n_s 1.5
+    for stiffness in (1e-300, 1e3, 0.99 * least):
+        with pytest.raises(rj.ParameterError) as info:
+            rj.params_from_values(design, stop_stiffness=stiffness)
+        message = str(info.value)
+        assert message.startswith(f"BatteryStop.stop_stiffness = {stiffness:g} N/m^n_s")
+        assert f"valid stop_stiffness >= {least:.3g} N/m^n_s" in message
+    with pytest.raises(rj.ParameterError, match=r"stop_stiffness\[1\] = 1000 N/m"):
+        rj.params_from_values(design, stop_stiffness=np.array([2e8, 1e3]))
+    params = rj.params_from_values(design, stop_stiffness=1.01 * least)
+    rest = float(model_args(params, rj.Smoothing()).rest)
+    assert -1.5 < rest < -0.5, rest  # deep, as such a soft stop is, but within L
+    # Without a preload any stop holds.
+    rj.params_from_values(stop_stiffness=1e-300, recuperator_length=1.5)
 
 
 def test_a_mount_is_heavier_than_its_recoiling_parts():

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -18,7 +20,8 @@ from test_calibration import BOX, NOISE, TRUTH, synthetic, trace, write_trace
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
-from recoil_jax._calibration import calibrate as calibrate_module
+from recoil_jax._calibration import calibrate as calibrate_module, posterior as posterior_module
+from recoil_jax._sweeps.memory import cores
 from recoil_jax.apps._cli import main
 from recoil_jax.apps._cli.calibrate import POSTERIOR_NOT_CONVERGED
 
@@ -75,6 +78,45 @@ def test_the_posterior_is_the_laplace_approximation_where_the_fit_is_near_linear
         assert np.all((flat[:, i] >= BOX[label][0]) & (flat[:, i] <= BOX[label][1]))
     assert posterior.draws.shape == (4, DRAWS, 3)
     print(f"ESS/s {posterior.ess_per_second:.0f}, seconds {posterior.seconds}")
+
+
+def test_chains_run_at_once_on_the_cores_and_give_the_same_draws(absorber, posterior):
+    """By default the chains run as many at once as there are cores (on 2 cores: about
+    twice the draws a second, `docs/calibration.md`); one at a time, each chain's draws,
+    step size and sample statistics are the same to the bit."""
+    calibration, fit = absorber
+    assert posterior.parallel_chains == min(4, cores())
+    alone = rj.sample_posterior(calibration, fit=fit, draws=DRAWS, warmup=DRAWS, chains=4,
+                                seed=0, progress=False, parallel_chains=1)  # fmt: skip
+    assert alone.parallel_chains == 1 and alone.to_json()["parallel_chains"] == 1
+    assert np.array_equal(alone.draws, posterior.draws)
+    assert np.array_equal(alone.step_size, posterior.step_size)
+    stats, alone_stats = posterior.inference_data.sample_stats, alone.inference_data.sample_stats
+    for name in ("n_steps", "diverging", "lp"):
+        assert np.array_equal(alone_stats[name].values, stats[name].values), name
+    print(f"\nsampling {posterior.seconds['sampling']:.1f} s with {posterior.parallel_chains} "
+          f"at once, {alone.seconds['sampling']:.1f} s one at a time")  # fmt: skip
+
+
+def test_a_failing_chain_stops_the_others_at_their_next_block():
+    """Chains on threads: where one fails (or Ctrl-C reaches the caller), the error
+    comes back at once, the running chains stop at their next block and the rest never
+    start (each chain here would take 2 s)."""
+    stopping, blocks = threading.Event(), []
+
+    def run(chain):
+        if chain == 0:
+            raise ValueError("chain 0 failed")
+        for _ in range(1000):
+            time.sleep(0.002)
+            if stopping.is_set():
+                raise posterior_module._Stopped
+            blocks.append(chain)
+
+    started = time.perf_counter()
+    with pytest.raises(ValueError, match="chain 0 failed"):
+        posterior_module._each_chain(run, 4, 2, stopping)
+    assert time.perf_counter() - started < 1.0 and len(blocks) < 250
 
 
 def test_the_draws_and_diagnostics_are_written(posterior, tmp_path):
@@ -496,6 +538,8 @@ def no_fit(monkeypatch):
         ({"warmup": True}, "warmup must be an integer"),
         ({"chains": 10**6}, "chains must be in [1, 64], got 1000000"),
         ({"chains": "4"}, "chains must be an integer"),
+        ({"parallel_chains": 0}, "parallel_chains must be in [1, 64], got 0"),
+        ({"parallel_chains": 2.0}, "parallel_chains must be an integer in [1, 64], got 2.0"),
         ({"seed": -1}, "seed must be in [0, 9223372036854775807], got -1"),
         ({"seed": 2**63}, "seed must be in [0, 9223372036854775807]"),
         ({"target_acceptance": "x"}, "target_acceptance must be in [0.5, 1), got 'x'"),

@@ -17,10 +17,13 @@ signal and sample (`r` in noise units, `ρ` the calibration's loss), under the n
 fit settled on (given, or estimated from the traces and then held fixed), or with
 `sample_noise` that noise sampled too (`−n log σ − Σ r²/2σ²`, a half-normal prior).
 
-**Programs.** Warm-up and sampling are one compiled program each, run chain after chain
-(and the draws in blocks, for the progress line): on a CPU, chains in lockstep (`vmap`)
-would each wait for the longest trajectory of the batch, and a vmapped solve selects its
-whole carry at every step (`docs/speed.md`). Compilation is timed apart.
+**Programs.** Warm-up and sampling are one compiled program each, run chain by chain
+(and the draws in blocks, for the progress line), as many chains at once as there are
+cores (`parallel_chains`: threads, each calling the compiled program, which keeps one
+core busy and lets the others run): on a CPU, chains in lockstep (`vmap`) would each wait
+for the longest trajectory of the batch, and a vmapped solve selects its whole carry at
+every step (`docs/speed.md`). A chain's draws do not depend on how many run at once.
+Compilation is timed apart.
 """
 
 from __future__ import annotations
@@ -28,9 +31,11 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import threading
 import time
 import warnings
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, NamedTuple, cast
 
 import equinox as eqx
@@ -42,6 +47,7 @@ from .._campaigns.progress import Progress
 from .._model.programs import compiled_ahead
 from .._model.registry import ParameterError
 from .._model.status import OK_CODE
+from .._sweeps.memory import cores
 from .layout import Layout, prepare
 from .least_squares import FitSettings, evaluate, evaluate_program, model_residuals, robust
 from .predict import FittedParameters
@@ -409,6 +415,30 @@ class _Block(NamedTuple):
     acceptance: jax.Array
 
 
+class _Stopped(Exception):
+    """A chain's thread told to stop (another chain failed, or Ctrl-C)."""
+
+
+def _each_chain(
+    run: Callable[[int], Any], chains: int, workers: int, stopping: threading.Event
+) -> list:
+    """`run(c)` for each chain `c`, in chain order, `workers` of them at once on threads:
+    a compiled program lets go of the interpreter while it runs and keeps about one core
+    busy, so chains on threads run at the same time (measured, `docs/calibration.md`).
+    Where one fails or the caller is interrupted, `stopping` is set: each running chain
+    stops at its next block (`run` raises `_Stopped` there), the others never start."""
+    if workers == 1:
+        return [run(c) for c in range(chains)]
+    pool = ThreadPoolExecutor(workers, thread_name_prefix="chain")
+    try:
+        return list(pool.map(run, range(chains)))
+    except BaseException:
+        stopping.set()
+        raise
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
 def _sample_block(key, state, step_size, inverse_mass, data, priors, whitening, settings):
     """`settings.block` NUTS transitions from `state`: the last state and the block."""
     import blackjax
@@ -452,8 +482,9 @@ class Posterior:
       words. `divergences`: the divergent transitions,
       all chains.
     - `priors`: the prior of each value; `step_size (chains,)`; `seconds`: `compile`,
-      `warmup` and `sampling` (compilation excluded from the other two);
-      `ess_per_second`: the least bulk ESS over the values per second of sampling.
+      `warmup` and `sampling` (compilation excluded from the other two; wall time,
+      with `parallel_chains` chains running at once); `ess_per_second`: the least bulk
+      ESS over the values per second of sampling.
     - `inference_data`: ArviZ's `InferenceData` (`posterior`: `theta` over `chain`,
       `draw`, `parameter`; `sample_stats`; `observed_data`: the traces);
       `to_netcdf(path)` writes it.
@@ -486,6 +517,8 @@ class Posterior:
     #: Samples left out of the likelihood: either side of a jump in the model's signal,
     #: or on an event the sampling does not resolve (the likelihood is a cliff there).
     left_out: int = 0
+    #: The chains that ran at once, each on a thread (and a core) of its own.
+    parallel_chains: int = 1
     #: `(thetas (N, P)) → ({signal: the model's (N, E, n)}, solve codes (N, E))` on the
     #: calibration's traces (`predictive`).
     _signals: Any = dataclasses.field(default=None, repr=False, compare=False)
@@ -553,6 +586,7 @@ class Posterior:
             "noise": self.noise,
             "chains": int(self.draws.shape[0]),
             "draws": int(self.draws.shape[1]),
+            "parallel_chains": self.parallel_chains,
         }
 
 
@@ -631,6 +665,7 @@ def check_posterior_settings(
     target_acceptance: float = 0.8,
     sample_noise: bool = False,
     noise_scale: Mapping[str, float] | None = None,
+    parallel_chains: int | None = None,
 ) -> None:
     """Check `sample_posterior`'s settings for `calibration` (its arguments, as named
     there) without running anything: the command line calls it before the fit.
@@ -640,13 +675,15 @@ def check_posterior_settings(
     [0, 2⁶³), `dense_mass` not a boolean, a target acceptance outside [0.5, 1), a
     prior for a value not fitted, of an unknown kind, or with an sd ≤ 0; `sample_noise`
     not a boolean, or true with a robust loss; a `noise_scale` without it, for a signal
-    not measured, or not a positive number. Warns of a normal prior mostly outside its
-    bounds.
+    not measured, or not a positive number; `parallel_chains` neither None nor in
+    [1, 64]. Warns of a normal prior mostly outside its bounds.
     `ModuleNotFoundError` naming the `posterior` extra without blackjax or ArviZ.
     """
     _check_count("draws", draws, 1, MAX_DRAWS)
     _check_count("warmup", warmup, 1, MAX_DRAWS)
     _check_count("chains", chains, 1, MAX_CHAINS)
+    if parallel_chains is not None:
+        _check_count("parallel_chains", parallel_chains, 1, MAX_CHAINS)
     _check_count("seed", seed, 0, 2**63 - 1)
     if not isinstance(dense_mass, (bool, np.bool_)):
         raise ParameterError(f"dense_mass must be True or False, got {dense_mass!r}")
@@ -715,6 +752,7 @@ def sample_posterior(
     target_acceptance: float = 0.8,
     sample_noise: bool = False,
     noise_scale: Mapping[str, float] | None = None,
+    parallel_chains: int | None = None,
     progress: bool | None = None,
 ) -> Posterior:
     """Sample the posterior of `calibration.fit`'s values given its experiments' traces,
@@ -734,6 +772,9 @@ def sample_posterior(
     - `sample_noise`: sample each experiment's and signal's noise too (σ, under a
       half-normal prior of scale `noise_scale[signal]`, or twice the fit's noise where
       not given), instead of holding the fit's fixed; the linear loss only.
+    - `parallel_chains`: chains run at once, each on a thread of its own (None: as many
+      as the cores this process may use, at most `chains`); the draws are the same
+      whatever it is.
     - `progress`: a progress line on stderr (None: on a terminal).
 
     **Returns:** a `Posterior` (draws, summary beside the Laplace intervals,
@@ -754,6 +795,7 @@ def sample_posterior(
         target_acceptance=target_acceptance,
         sample_noise=sample_noise,
         noise_scale=noise_scale,
+        parallel_chains=parallel_chains,
     )
     layout = Layout.of(calibration)
     scales = _noise_scales(calibration, layout, sample_noise, noise_scale)
@@ -807,15 +849,28 @@ def sample_posterior(
         _warm_up, warm_keys[0], jnp.asarray(w0[0]), data, prior_arrays, whitening, warm_settings
     )
 
-    clock, states, step_sizes, masses = time.perf_counter(), [], [], []
-    for c in range(chains):
-        bar.update(c * warmup, f"warm-up, chain {c + 1} of {chains}")
-        state, step, mass = jax.block_until_ready(
+    workers = min(chains, parallel_chains or cores())
+    at_once = f"{workers} chains at a time" if workers > 1 else "one chain at a time"
+    lock, done, stopping = threading.Lock(), [0], threading.Event()
+
+    def advance(transitions: int, note: str) -> None:
+        if stopping.is_set():
+            raise _Stopped
+        with lock:  # the chains' threads share the line
+            done[0] += transitions
+            bar.update(done[0], note)
+
+    def warm_chain(c: int):
+        warmed = jax.block_until_ready(
             warm(warm_keys[c], jnp.asarray(w0[c]), data, prior_arrays, whitening, warm_settings)
         )
-        states.append(state)
-        step_sizes.append(step)
-        masses.append(mass)
+        advance(warmup, f"warm-up, {at_once}")
+        return warmed
+
+    bar.update(0, f"warm-up, {at_once}")
+    clock = time.perf_counter()
+    warmed = _each_chain(warm_chain, chains, workers, stopping)
+    states, step_sizes, masses = zip(*warmed, strict=True)
     seconds_warmup = time.perf_counter() - clock
 
     sample, compile_sample = compiled_ahead(
@@ -829,11 +884,10 @@ def sample_posterior(
         whitening,
         sample_settings,
     )
-    clock, chain_blocks = time.perf_counter(), []
-    done = chains * warmup
-    for c in range(chains):
+
+    def sample_chain(c: int):
         state, blocks = states[c], []
-        for b, block_key in enumerate(jax.random.split(sample_keys[c], math.ceil(draws / block))):
+        for block_key in jax.random.split(sample_keys[c], math.ceil(draws / block)):
             state, out = sample(
                 block_key,
                 state,
@@ -845,13 +899,11 @@ def sample_posterior(
                 sample_settings,
             )
             blocks.append(jax.tree.map(np.asarray, out))
-            done += block
-            bar.update(
-                done,
-                f"sampling, chain {c + 1} of {chains}, {min((b + 1) * block, draws)}"
-                f" of {draws} draws",
-            )
-        chain_blocks.append(jax.tree.map(lambda *a: np.concatenate(a)[:draws], *blocks))
+            advance(block, f"sampling, {at_once}")
+        return jax.tree.map(lambda *a: np.concatenate(a)[:draws], *blocks)
+
+    clock = time.perf_counter()
+    chain_blocks = _each_chain(sample_chain, chains, workers, stopping)
     seconds_sampling = time.perf_counter() - clock
     bar.update(bar.total, "done", final=True)
 
@@ -869,7 +921,7 @@ def sample_posterior(
     if prior_arrays.noise is not None:
         fitted_sigma = np.asarray(data.sigma).reshape(-1)[np.asarray(prior_arrays.noise.slots)]
         sigma = fitted_sigma * np.exp(np.asarray(whitening.log_noise(jnp.asarray(out.position))))
-    return _report(
+    posterior = _report(
         fit,
         layout,
         data,
@@ -887,6 +939,7 @@ def sample_posterior(
         sigma,
         prior_arrays.noise,
     )
+    return dataclasses.replace(posterior, parallel_chains=workers)
 
 
 class PosteriorDensity(NamedTuple):
@@ -1139,23 +1192,23 @@ def _report(
                 "half_normal_scale": float(noise.scale[j] * sigma_scale[q])
             }
     return Posterior(
-        labels,
-        theta,
-        summary,
-        not problems,
-        problems,
-        disagreements,
-        divergences,
-        priors,
-        step_sizes,
-        seconds,
-        least_ess / max(seconds["sampling"], 1e-9),
-        idata,
-        fit,
-        noises,
-        unseparated,
-        left_out,
-        signals,
+        labels=labels,
+        draws=theta,
+        summary=summary,
+        converged=not problems,
+        problems=problems,
+        disagreements=disagreements,
+        divergences=divergences,
+        priors=priors,
+        step_size=step_sizes,
+        seconds=seconds,
+        ess_per_second=least_ess / max(seconds["sampling"], 1e-9),
+        inference_data=idata,
+        fit=fit,
+        noise=noises,
+        unseparated=unseparated,
+        left_out=left_out,
+        _signals=signals,
     )
 
 

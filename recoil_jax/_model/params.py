@@ -177,6 +177,8 @@ def check_design(params: RecoilParams) -> None:
                 "needs the battery stop to hold the barrel in battery against it; valid "
                 "recuperator_preload 0 without a stop, >= 0 N with stop_stiffness > 0"
             )
+        if params.battery_stop is not None:
+            _check_stop_holds(params.recuperator, params.battery_stop)
     if params.mount is not None:
         absorber = 0.0 if params.absorber is None else params.absorber.m
         found = _first_bad(
@@ -192,6 +194,31 @@ def check_design(params: RecoilParams) -> None:
                 f"recoiling parts cannot carry them; valid mount_mass 0 (no mount) or >= M + m "
                 f"= {M + m:g} kg (the whole gun on the ground, recoiling parts included)"
             )
+
+
+def _check_stop_holds(recuperator: Recuperator, stop: BatteryStop) -> None:
+    """A stop too soft to hold the preload is refused: the barrel would rest more than
+    `recuperator_length` into it. There the stop pushes back `k_s·L^n_s`, and the gas at
+    most `P·2^−γ` (its force falls as it expands, `P·(L/(L − x))^γ` at `x = −L`; the
+    axial weight only helps the stop), so a stop at least that stiff holds the rest
+    within `L`."""
+    found = _first_bad(
+        recuperator.recuperator_preload,
+        stop.stop_stiffness,
+        recuperator.recuperator_length,
+        stop.stop_exponent,
+        recuperator.polytropic_index,
+        bad=lambda p, k, length, n, gamma: (p > 0) & (k > 0) & (k * length**n < p * 2.0**-gamma),
+    )
+    if found is not None:
+        where, (preload, stiffness, length, exponent, gamma) = found
+        least = preload * 2.0**-gamma / length**exponent
+        raise ParameterError(
+            f"BatteryStop.stop_stiffness{where} = {stiffness:g} N/m^n_s is invalid: too soft "
+            f"to hold recuperator_preload = {preload:g} N in battery (the barrel would rest "
+            f"more than recuperator_length = {length:g} m into the stop); valid "
+            f"stop_stiffness >= {least:.3g} N/m^n_s for this preload (P 2^-gamma / L^n_s)"
+        )
 
 
 def _knots(names: dict[str, Any]) -> Any:

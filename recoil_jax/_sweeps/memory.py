@@ -11,7 +11,7 @@ from typing import Any
 
 from .._model.registry import ParameterError
 
-__all__ = ["check_memory", "default_workers"]
+__all__ = ["check_memory", "cores", "default_workers"]
 
 
 def _available_memory() -> int | None:
@@ -67,10 +67,10 @@ def default_workers(devices: Sequence[Any]) -> int:
     core this process may use. One XLA CPU program keeps about one core busy, and
     programs called from different threads run at the same time."""
     if all(d.platform == "cpu" for d in devices):
-        cores = (
-            len(os.sched_getaffinity(0))
-            if hasattr(os, "sched_getaffinity")
-            else (os.cpu_count() or 1)
-        )
-        return len(devices) * max(1, -(-cores // len(devices)))
+        return len(devices) * max(1, -(-cores() // len(devices)))
     return len(devices)
+
+
+def cores() -> int:
+    """The cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1

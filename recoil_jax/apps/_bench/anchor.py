@@ -17,7 +17,6 @@ at each accepted step's end), no events, no gradients, the paper model only.
 
 from __future__ import annotations
 
-import os
 import time
 from typing import Any, NamedTuple
 
@@ -25,20 +24,13 @@ import numpy as np
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
+from recoil_jax._sweeps.memory import cores
 
 __all__ = ["ANCHOR_PARAMETERS", "anchor_field", "anchor_peaks", "cores"]
 
 #: The columns of a design's row, in order (flat names; the last two are the smoothing
 #: widths of the damping switch and of the contact's onset).
 ANCHOR_PARAMETERS = ("M", "k", "c_out", "c_ret", "m", "gap", "k_r", "c_r", "k_c", "n_c", "lambda_c")
-
-
-def cores() -> int:
-    """The cores this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
 
 
 class _Functions(NamedTuple):

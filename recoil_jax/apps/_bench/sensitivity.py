@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import multiprocessing
-import os
 import sys
 import time
 
@@ -25,6 +24,7 @@ import recoil_jax as rj
 
 from .._files.options import Commands, add_json
 from .._studies.sensitivity_file import load_sensitivity
+from .anchor import cores
 from .speed import SCIPY_SETTINGS, host_description
 
 __all__ = ["add_command", "main_sensitivity_bench", "run_sensitivity_bench"]
@@ -50,13 +50,13 @@ def _timed(fn):
 def scipy_loop(designs: list[dict], log) -> dict:
     """The designs through `reference_peaks` in a pool of one process per core (each
     warmed by one solve first: the first imports scipy.integrate); designs a second."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    processes = cores()
     # spawn: the parent runs JAX's threads, which fork would copy mid-flight.
-    with multiprocessing.get_context("spawn").Pool(cores) as pool:
-        pool.map(_scipy_peaks, designs[:cores], chunksize=1)
+    with multiprocessing.get_context("spawn").Pool(processes) as pool:
+        pool.map(_scipy_peaks, designs[:processes], chunksize=1)
         peaks, seconds = _timed(lambda: pool.map(_scipy_peaks, designs, chunksize=8))
-    log(f"  scipy solve_ivp loop ({cores} processes): {len(designs) / seconds:.1f} designs/s")
-    return {"designs": len(designs), "processes": cores, "seconds": seconds, "peaks": peaks}
+    log(f"  scipy solve_ivp loop ({processes} processes): {len(designs) / seconds:.1f} designs/s")
+    return {"designs": len(designs), "processes": processes, "seconds": seconds, "peaks": peaks}
 
 
 def run_sensitivity_bench(base_samples: int = 4096, scipy_designs: int = 256, log=None) -> dict:
