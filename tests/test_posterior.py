@@ -86,37 +86,43 @@ def test_chains_run_at_once_on_the_cores_and_give_the_same_draws(absorber, poste
     step size and sample statistics are the same to the bit."""
     calibration, fit = absorber
     assert posterior.parallel_chains == min(4, cores())
+    other = 1 if posterior.parallel_chains > 1 else 2  # threads either way, on 1 core too
     alone = rj.sample_posterior(calibration, fit=fit, draws=DRAWS, warmup=DRAWS, chains=4,
-                                seed=0, progress=False, parallel_chains=1)  # fmt: skip
-    assert alone.parallel_chains == 1 and alone.to_json()["parallel_chains"] == 1
+                                seed=0, progress=False, parallel_chains=other)  # fmt: skip
+    assert alone.parallel_chains == other and alone.to_json()["parallel_chains"] == other
     assert np.array_equal(alone.draws, posterior.draws)
     assert np.array_equal(alone.step_size, posterior.step_size)
     stats, alone_stats = posterior.inference_data.sample_stats, alone.inference_data.sample_stats
     for name in ("n_steps", "diverging", "lp"):
         assert np.array_equal(alone_stats[name].values, stats[name].values), name
     print(f"\nsampling {posterior.seconds['sampling']:.1f} s with {posterior.parallel_chains} "
-          f"at once, {alone.seconds['sampling']:.1f} s one at a time")  # fmt: skip
+          f"at once, {alone.seconds['sampling']:.1f} s with {other}")  # fmt: skip
 
 
-def test_a_failing_chain_stops_the_others_at_their_next_block():
-    """Chains on threads: where one fails (or Ctrl-C reaches the caller), the error
-    comes back at once, the running chains stop at their next block and the rest never
-    start (each chain here would take 2 s)."""
+@pytest.mark.parametrize("failing", [0, 1])
+def test_a_failing_chain_stops_the_others_at_their_next_block(failing):
+    """Chains on threads, two at a time: where any one fails (or Ctrl-C reaches the
+    caller), its error comes back at once, not `_Stopped`: the other running chain
+    (chain 1 failing while chain 0 runs, or 0 while 1 runs) stops at
+    its next block and the rest never start (each chain here would take 2 s)."""
     stopping, blocks = threading.Event(), []
 
     def run(chain):
-        if chain == 0:
-            raise ValueError("chain 0 failed")
-        for _ in range(1000):
+        for block in range(1000):
+            if chain == failing and block == 10:
+                raise ValueError(f"chain {chain} failed")
             time.sleep(0.002)
             if stopping.is_set():
                 raise posterior_module._Stopped
             blocks.append(chain)
 
     started = time.perf_counter()
-    with pytest.raises(ValueError, match="chain 0 failed"):
+    with pytest.raises(ValueError, match=f"chain {failing} failed"):
         posterior_module._each_chain(run, 4, 2, stopping)
     assert time.perf_counter() - started < 1.0 and len(blocks) < 250
+    # Without a failure, every chain's result in chain order.
+    results = posterior_module._each_chain(lambda c: c * c, 4, 2, threading.Event())
+    assert results == [0, 1, 4, 9]
 
 
 def test_the_draws_and_diagnostics_are_written(posterior, tmp_path):

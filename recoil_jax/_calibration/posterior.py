@@ -35,7 +35,7 @@ import threading
 import time
 import warnings
 from collections.abc import Callable, Mapping
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 from typing import Any, NamedTuple, cast
 
 import equinox as eqx
@@ -47,7 +47,7 @@ from .._campaigns.progress import Progress
 from .._model.programs import compiled_ahead
 from .._model.registry import ParameterError
 from .._model.status import OK_CODE
-from .._sweeps.memory import cores
+from .._sweeps.memory import default_workers
 from .layout import Layout, prepare
 from .least_squares import FitSettings, evaluate, evaluate_program, model_residuals, robust
 from .predict import FittedParameters
@@ -425,18 +425,41 @@ def _each_chain(
     """`run(c)` for each chain `c`, in chain order, `workers` of them at once on threads:
     a compiled program lets go of the interpreter while it runs and keeps about one core
     busy, so chains on threads run at the same time (measured, `docs/calibration.md`).
-    Where one fails or the caller is interrupted, `stopping` is set: each running chain
-    stops at its next block (`run` raises `_Stopped` there), the others never start."""
+
+    Where any chain fails, or the caller is interrupted (Ctrl-C), `stopping` is set: the
+    chains not started never start, and each running one stops at its next checkpoint
+    (`run` raises `_Stopped` there: after its next block of draws, or at the end of its
+    warm-up, which is one compiled call); then the first failure is raised."""
     if workers == 1:
         return [run(c) for c in range(chains)]
+
+    def guarded(chain: int):
+        if stopping.is_set():  # started after a failure, before the pool was shut down
+            raise _Stopped
+        try:
+            return run(chain)
+        except BaseException:
+            stopping.set()  # at once, whichever chain it is
+            raise
+
     pool = ThreadPoolExecutor(workers, thread_name_prefix="chain")
+    futures = [pool.submit(guarded, c) for c in range(chains)]
     try:
-        return list(pool.map(run, range(chains)))
-    except BaseException:
+        wait(futures, return_when=FIRST_EXCEPTION)
+    except BaseException:  # interrupted while waiting
         stopping.set()
         raise
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+    failures = [
+        error
+        for f in futures
+        if not f.cancelled() and (error := f.exception()) is not None
+        and not isinstance(error, _Stopped)
+    ]  # fmt: skip
+    if failures:
+        raise failures[0]
+    return [f.result() for f in futures]
 
 
 def _sample_block(key, state, step_size, inverse_mass, data, priors, whitening, settings):
@@ -772,9 +795,9 @@ def sample_posterior(
     - `sample_noise`: sample each experiment's and signal's noise too (σ, under a
       half-normal prior of scale `noise_scale[signal]`, or twice the fit's noise where
       not given), instead of holding the fit's fixed; the linear loss only.
-    - `parallel_chains`: chains run at once, each on a thread of its own (None: as many
-      as the cores this process may use, at most `chains`); the draws are the same
-      whatever it is.
+    - `parallel_chains`: chains run at once, each on a thread of its own (None: on a CPU
+      as many as the cores this process may use, else one per device; at most
+      `chains`); the draws are the same whatever it is.
     - `progress`: a progress line on stderr (None: on a terminal).
 
     **Returns:** a `Posterior` (draws, summary beside the Laplace intervals,
@@ -849,7 +872,7 @@ def sample_posterior(
         _warm_up, warm_keys[0], jnp.asarray(w0[0]), data, prior_arrays, whitening, warm_settings
     )
 
-    workers = min(chains, parallel_chains or cores())
+    workers = min(chains, parallel_chains or default_workers(jax.devices()))
     at_once = f"{workers} chains at a time" if workers > 1 else "one chain at a time"
     lock, done, stopping = threading.Lock(), [0], threading.Event()
 

@@ -163,8 +163,10 @@ def _first_bad(*arrays: Any, bad) -> tuple[str, tuple[float, ...]] | None:
 
 def check_design(params: RecoilParams) -> None:
     """The checks that span parameter groups, on concrete values (`ParameterError`, one
-    line each): a recuperator preload needs the battery stop (`stop_stiffness > 0`), and
-    a mount (`mount_mass > 0`) is at least as heavy as its recoiling parts, `M + m`."""
+    line each): a recuperator preload needs the battery stop (`stop_stiffness > 0`) stiff
+    enough to hold it within `recuperator_length` by itself (`stop_stiffness ≥
+    P·2^−γ/L^n_s`), and a mount (`mount_mass > 0`) is at least as heavy as its recoiling
+    parts, `M + m`."""
     if params.recuperator is not None:
         stop = 0.0 if params.battery_stop is None else params.battery_stop.stop_stiffness
         found = _first_bad(
@@ -197,11 +199,12 @@ def check_design(params: RecoilParams) -> None:
 
 
 def _check_stop_holds(recuperator: Recuperator, stop: BatteryStop) -> None:
-    """A stop too soft to hold the preload is refused: the barrel would rest more than
-    `recuperator_length` into it. There the stop pushes back `k_s·L^n_s`, and the gas at
-    most `P·2^−γ` (its force falls as it expands, `P·(L/(L − x))^γ` at `x = −L`; the
-    axial weight only helps the stop), so a stop at least that stiff holds the rest
-    within `L`."""
+    """A stop too soft to hold the preload by itself is refused: at `recuperator_length`
+    `L` into it, the stop pushes back `k_s·L^n_s` and the gas forward `P·2^−γ` (its
+    force falls as it expands, `P·(L/(L − x))^γ` at `x = −L`), so a stop at least that
+    stiff holds the preload within `L` on its own. (The recoil spring, the gas spring
+    and the axial weight at a positive elevation help it; at a negative one the weight
+    pushes too.)"""
     found = _first_bad(
         recuperator.recuperator_preload,
         stop.stop_stiffness,
@@ -215,9 +218,10 @@ def _check_stop_holds(recuperator: Recuperator, stop: BatteryStop) -> None:
         least = preload * 2.0**-gamma / length**exponent
         raise ParameterError(
             f"BatteryStop.stop_stiffness{where} = {stiffness:g} N/m^n_s is invalid: too soft "
-            f"to hold recuperator_preload = {preload:g} N in battery (the barrel would rest "
-            f"more than recuperator_length = {length:g} m into the stop); valid "
-            f"stop_stiffness >= {least:.3g} N/m^n_s for this preload (P 2^-gamma / L^n_s)"
+            f"to hold recuperator_preload = {preload:g} N (recuperator_length = {length:g} m "
+            f"into the stop, it pushes back {stiffness * length**exponent:.3g} N, the gas "
+            f"{preload * 2.0**-gamma:.3g} N); valid stop_stiffness >= {least:.3g} N/m^n_s "
+            "for this preload (P 2^-gamma / L^n_s)"
         )
 
 
