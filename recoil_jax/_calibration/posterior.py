@@ -944,7 +944,7 @@ def sample_posterior(
     if prior_arrays.noise is not None:
         fitted_sigma = np.asarray(data.sigma).reshape(-1)[np.asarray(prior_arrays.noise.slots)]
         sigma = fitted_sigma * np.exp(np.asarray(whitening.log_noise(jnp.asarray(out.position))))
-    posterior = _report(
+    return _report(
         fit,
         layout,
         data,
@@ -961,8 +961,8 @@ def sample_posterior(
         signals,
         sigma,
         prior_arrays.noise,
+        parallel_chains=workers,
     )
-    return dataclasses.replace(posterior, parallel_chains=workers)
 
 
 class PosteriorDensity(NamedTuple):
@@ -1130,6 +1130,7 @@ def _report(
     signals,
     sigma=None,
     noise: _Noise | None = None,
+    parallel_chains: int = 1,
 ) -> Posterior:
     """The `Posterior` of the draws `theta (C, D, P)` (and of the sampled noises `sigma
     (C, D, Q)`, `noise` theirs): ArviZ's diagnostics, the summary beside the Laplace
@@ -1231,6 +1232,7 @@ def _report(
         noise=noises,
         unseparated=unseparated,
         left_out=left_out,
+        parallel_chains=parallel_chains,
         _signals=signals,
     )
 

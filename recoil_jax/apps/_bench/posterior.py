@@ -93,10 +93,11 @@ def _emcee(density: PosteriorDensity, burn_solves: int, solves: int, walkers: in
     alone = density._replace(data=emcee_data(density.data))
     many = jax.jit(lambda points: jax.lax.map(lambda w: alone.log_density(w, False), points))
     nuts = jax.jit(jax.vmap(density.log_density))
-    pool = ThreadPoolExecutor(cores(), thread_name_prefix="walkers")
+    threads = cores()
+    pool = ThreadPoolExecutor(threads, thread_name_prefix="walkers")
 
     def log_density(points):
-        parts = np.array_split(np.asarray(points), min(cores(), len(points)))
+        parts = np.array_split(np.asarray(points), min(threads, len(points)))
         return np.concatenate(list(pool.map(lambda part: np.asarray(many(part)), parts)))
 
     labels = density.layout.labels
@@ -120,7 +121,7 @@ def _emcee(density: PosteriorDensity, burn_solves: int, solves: int, walkers: in
         f"autocorrelation {tau.max():.0f} steps at the most")  # fmt: skip
     return {
         "walkers": walkers,
-        "threads": cores(),
+        "threads": threads,
         "burn_in_steps": burn,
         "steps": steps,
         "solves": walkers * steps,
