@@ -632,14 +632,16 @@ def test_a_store_names_a_local_method_as_before_its_settings_moved():
 #: settings: a fit stopped by the old tests is another fit). The calibration's is of an
 #: arithmetic trace since issue 65 (its sine's digest differed between CPUs). Issue 66
 #: changed every one on purpose (the friction's smoothing widths are gone from
-#: `Smoothing`); a store made before it is refused by its model revision first.
+#: `Smoothing`); a store made before it is refused by its model revision first. Then
+#: the calibration's again: the fits off the jumps (`jump_passes`) are a field of its
+#: settings (a fit on every sample is another fit).
 IDENTITIES_BEFORE = {
     "sweep": "7a9305e228472ca89de9ffb1e25b5f8616da476fb90b99550fba540415896136",
     "sweep of a force table": "951f82b9995e45619a8f6ba6cf4decd97ea5283e52f4a4324728dbbd682abf73",
     "grid": "186a5717ac55d6856b1eb42a42cce9bb963e50aa5685ff87868f91cfafd54192",
     "search": "13a8bacf90893e64d1c036ac143514b2f0768419c08ade550211a00bddc0268e",
     "optimise": "54a83ffbbc154f2f3bd33c4d8106746fb51d9be93949f4078dea0947efbf7508",
-    "calibration": "84e8e3df321730263d690944c49f27886b061d36d85e08672ee9d1e916e0d536",
+    "calibration": "8d346b490ed8bb52b3197ace1ea8419d931bb7fdd3799d20ca7c8e57416b78db",
 }
 
 
@@ -866,7 +868,8 @@ def test_stores_made_before_the_redraw_resume(kind, tmp_path):
     (`tests/data/stores/make_stores.py`; made again for issue 54, which changed every
     identity on purpose, and the calibration's for issue 63, whose new stopping test
     changed every calibration's, and again at d4bfe79 from a trace kept as numbers, and
-    all four for the model's revision 3, issue 66, which changed every identity), are
+    all four for the model's revision 3, issue 66, which changed every identity, and the
+    calibration's for the fits off the jumps, which changed its identity), are
     taken as the same campaigns: everything is read back, nothing is solved again, and
     the result is a fresh run's, bit for bit (a calibration's to 1e-9: see below)."""
     made = _stores_script()

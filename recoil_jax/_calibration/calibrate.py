@@ -31,7 +31,14 @@ from .._model.derivatives import SIGNALS
 from .campaign import STARTS_PER_CHUNK, open_store, stored_part
 from .continuation import DEFAULT_CONTINUATION, Continuation
 from .layout import CalibrationData, Layout, estimates_noise, prepare
-from .least_squares import FitOutcome, FitSettings, evaluate_program, fit_program, u_of_z
+from .least_squares import (
+    FitOutcome,
+    FitSettings,
+    evaluate_program,
+    fit_program,
+    jumps_at,
+    u_of_z,
+)
 from .model_check import check_residuals
 from .profiles import profile_grid, refit_profiles, with_profiles
 from .report import experiment_summary, lane_report
@@ -348,22 +355,24 @@ def validate(
     static = FitSettings(layout.wrt, layout.signals, calibration.loss, calibration.f_scale, 1)
     evaluation = evaluate_program(jnp.asarray(values), data, static)
     r = np.asarray(evaluation.residuals)
-    present = np.asarray(data.present)
+    # Off the jumps in the model's signal, as the fit (`jumps_at`).
+    counted = np.asarray(data.present) & ~np.asarray(jumps_at(evaluation, data))
     residual_si = r * sigma[..., None]
     fit = experiment_summary(
         experiment,
         0,
         layout,
-        present,
+        np.asarray(data.present),
         residual_si,
         np.asarray(data.measured),
         np.asarray(evaluation.signals),
+        counted,
     )
     summary = fit.summary
-    summary["reduced_chi2"] = float(np.sum(r[present] ** 2) / max(int(present.sum()), 1))
+    summary["reduced_chi2"] = float(np.sum(r[counted] ** 2) / max(int(counted.sum()), 1))
     # Held to its own noise as the fitted traces are (its own `sigma` where given).
     summary["model_check"] = check_residuals(
-        [(experiment.label, fit.times, fit.measured, fit.model, experiment.sigma)],
+        [(experiment.label, fit.times, fit.counted, fit.model, experiment.sigma)],
         {name: SIGNALS[name][0] for name in layout.signals},
         robust=calibration.loss != "linear",
     ).to_json()

@@ -49,7 +49,14 @@ from .._model.registry import ParameterError
 from .._model.status import OK_CODE
 from .._sweeps.memory import default_workers
 from .layout import Layout, prepare
-from .least_squares import FitSettings, evaluate, evaluate_program, model_residuals, robust
+from .least_squares import (
+    FitSettings,
+    evaluate,
+    evaluate_program,
+    jumps_at,
+    model_residuals,
+    robust,
+)
 from .predict import FittedParameters
 from .report import unresolved_samples
 from .result import CalibrationResult
@@ -85,10 +92,6 @@ MIN_ESS = 400
 #: Where the posterior's 95 % interval and the Laplace one differ by more than this
 #: share of the Laplace interval's width (at either end), the report says so.
 DISAGREEMENT = 0.2
-#: A step in the model's signal between two samples over this many times what its
-#: rates there explain (plus twice the noise) is a jump: the samples either side of it
-#: are left out of the likelihood (`_off_the_jumps`).
-JUMP_RATIO = 3.0
 #: Two values whose draws correlate beyond this (either sign), each still spread over
 #: more than half its prior's sd, are not separated by the data: only a combination of
 #: them is determined, and the report says so.
@@ -1022,33 +1025,18 @@ def _likelihood(calibration: Calibration, fit: CalibrationResult, layout: Layout
 
 def _off_the_jumps(data, static, fit: CalibrationResult, layout: Layout):
     """`data` without the samples either side of a jump in the model's signal at the
-    optimum (a step between two samples over `JUMP_RATIO` times what its rates there
-    explain, plus twice the noise), and those the fit found on an event their sampling
-    does not resolve (`unresolved_samples`, as `CalibrationResult.unresolved`), and how
-    many were left out.
-
-    Such a sample carries the event's time only to within its spacing, and the jump
-    makes the likelihood a cliff there: a µs of the event's time moves the sample from
-    one side of it to the other (measured, the counter-recoil buffer's step in `F_AN`
-    with friction at 0°: χ² +279 for half a newton), which no gradient sampler
-    crosses. The fit's standard errors leave the unresolved ones out for the same
-    reason."""
+    optimum (`jumps_at`, as the fit leaves out), and those the fit
+    found on an event their sampling does not resolve (`unresolved_samples`, as
+    `CalibrationResult.unresolved`), and how many were left out: the likelihood is a
+    cliff there, which no gradient sampler crosses. The fit's standard errors leave
+    the unresolved ones out for the same reason."""
     evaluation = evaluate_program(jnp.asarray([fit.values[k] for k in layout.labels]), data,
                                   static)  # fmt: skip
     present = np.array(data.present)
     signals, rates = np.asarray(evaluation.signals), np.asarray(evaluation.rates)
     times, sigma = np.asarray(data.times), np.asarray(data.sigma)
     before = int(present.sum())
-    for e, s in np.ndindex(present.shape[:2]):
-        (index,) = np.nonzero(present[e, s])
-        if index.size < 2:
-            continue
-        step = np.abs(np.diff(signals[e, s, index]))
-        rate = np.maximum(np.abs(rates[e, s, index[:-1]]), np.abs(rates[e, s, index[1:]]))
-        explained = rate * np.diff(times[e, index])
-        jump = step > JUMP_RATIO * explained + 2.0 * sigma[e, s]
-        present[e, s, index[:-1][jump]] = False
-        present[e, s, index[1:][jump]] = False
+    present &= ~np.asarray(jumps_at(evaluation, data))
     # The fit's own test, on the same evaluation (so no lookup by name or time).
     present &= ~unresolved_samples(times, signals, rates, np.asarray(data.present), sigma)
     left_out = before - int(present.sum())

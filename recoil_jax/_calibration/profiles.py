@@ -12,13 +12,21 @@ from __future__ import annotations
 
 import dataclasses
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._model.programs import structure_jit
 from .layout import CalibrationData, Layout
-from .least_squares import FitSettings, evaluate, robust, solve_lm, theta_of_u
+from .least_squares import (
+    FitSettings,
+    evaluate,
+    jumps_at,
+    robust,
+    solve_off_the_jumps,
+    theta_of_u,
+)
 from .result import CalibrationResult
 
 __all__ = ["PROFILE_POINTS", "ProfileGrid", "profile_grid", "refit_profiles", "with_profiles"]
@@ -84,10 +92,15 @@ def _profile_program(u0, held, held_theta, data: CalibrationData, static: FitSet
     converged (B,))`."""
 
     def one(u, h, t):
-        u_, ok, _ = solve_lm(u, data, static, h, t)
-        theta = jnp.where(h, t, theta_of_u(u_, data.space))
-        r = robust(evaluate(theta, data, static).residuals, static.loss, static.f_scale)
-        return jnp.sum(r**2), ok
+        # Off the jumps, as the fit (`solve_off_the_jumps`): first those at the start.
+        jumps = jumps_at(evaluate(jnp.where(h, t, theta_of_u(u, data.space)), data, static), data)
+        off = solve_off_the_jumps(u, jumps, data, static, True, h, t)
+        kept = eqx.tree_at(lambda d: d.present, data, data.present & ~off.jumps)
+        theta = jnp.where(h, t, theta_of_u(off.u, data.space))
+        r = robust(evaluate(theta, kept, static).residuals, static.loss, static.f_scale)
+        # Each sample left out counted at the χ² it expects (1), as the fit's report
+        # counts its own (`with_profiles`): the points leave out others than it.
+        return jnp.sum(r**2) + jnp.sum(off.jumps), off.converged
 
     return jax.lax.map(lambda a: one(*a), (u0, held, held_theta))
 
@@ -115,9 +128,11 @@ def with_profiles(
     cost, converged = refits["cost"], refits["converged"]
     # A point whose refit did not converge is left out (NaN); a rise below 0 (a better
     # optimum than the fit's) is kept, and shows in the profile.
-    delta = np.where(
-        np.asarray(converged), (np.asarray(cost) - result.chi2) / result.reduced_chi2, np.nan
-    )
+    # The optimum's cost as the points' (`_profile_program`): each sample it left out
+    # beside a jump at 1.
+    best = result.chi2 + sum(e.get("left_out", 0) for e in result.experiments)
+    delta = np.where(np.asarray(converged), (np.asarray(cost) - best) / result.reduced_chi2,
+                     np.nan)  # fmt: skip
     profiles, fitted = {}, dict(result.fitted)
     for i, label in enumerate(layout.labels):
         values = np.concatenate([held_theta[i * m : (i + 1) * m, i], [theta[i]]])

@@ -27,6 +27,7 @@ from .least_squares import (
     FitOutcome,
     FitSettings,
     evaluate_program,
+    jumps_at,
     log_likelihood_term,
     robust,
     theta_of_u,
@@ -119,9 +120,14 @@ def _report(
         for s, name in enumerate(layout.signals)
         if present[:, s].any()
     }
-    # −2 log-likelihood of the Gaussian noise model (up to N log 2π), and how many values
-    # were estimated: the fitted ones and every estimated noise.
-    minus_two_log_likelihood = misfit.chi2 + float(log_likelihood_term(misfit.sigma, present))
+    # −2 log-likelihood of the Gaussian noise model (up to N log 2π) over every sample of
+    # the traces (each left out beside a jump at the χ² it expects, 1, as the fit ranks
+    # its starts), and how many values were estimated: the fitted ones and every
+    # estimated noise.
+    minus_two_log_likelihood = (
+        misfit.chi2 + misfit.left_out
+        + float(log_likelihood_term(misfit.sigma, np.asarray(data.present)))
+    )  # fmt: skip
     estimated = len(theta) + int(np.sum(present.any(-1) & ~np.asarray(data.sigma_given)))
     return CalibrationResult(
         fitted=fitted,
@@ -162,12 +168,14 @@ def _report(
 @dataclasses.dataclass(frozen=True)
 class _Misfit:
     """The misfit at the fitted values: the normalised residuals `residuals (E, S, n)`,
-    which samples are `present (E, S, n)`, the noise `sigma (E, S)` and the residuals in
-    the signals' units `residual_si (E, S, n)`, each experiment's status `codes (E,)`;
+    which samples are `present (E, S, n)` (off the model's jumps: `jump_samples`), the
+    noise `sigma (E, S)` and the residuals in the signals' units `residual_si (E, S,
+    n)`, each experiment's status `codes (E,)`;
     the Jacobian of the residuals the fit minimised `jacobian (N, P)` (a robust loss
     down-weights outliers there too), the samples on an event their sampling does not
     resolve `unresolved (E, S, n)` (`unresolved_samples`), the `samples` N, `dof` (N −
-    P, at least 1), `chi2` (the robust cost) and `reduced_chi2`."""
+    P, at least 1), `chi2` (the robust cost), `reduced_chi2`, and how many samples of
+    the traces are `left_out` beside a jump."""
 
     residuals: np.ndarray
     present: np.ndarray
@@ -180,6 +188,7 @@ class _Misfit:
     dof: int
     chi2: float
     reduced_chi2: float
+    left_out: int
 
 
 def _misfit(
@@ -190,7 +199,8 @@ def _misfit(
     **Raises:** `ParameterError` where no sample lies within the experiments' windows.
     """
     r = np.asarray(evaluation.residuals)
-    present = np.asarray(data.present)
+    # Off the jumps in the model's signal, as the fit (`jumps_at`).
+    present = np.asarray(data.present) & ~np.asarray(jumps_at(evaluation, data))
     codes = np.asarray(evaluation.codes)
     robust_r, slope = (
         np.asarray(a)
@@ -212,9 +222,11 @@ def _misfit(
     residual_si = r * sigma[..., None]
     unresolved = unresolved_samples(
         np.asarray(data.times), np.asarray(evaluation.signals), np.asarray(evaluation.rates),
-        present, sigma,
-    )  # fmt: skip
-    return _Misfit(r, present, sigma, residual_si, codes, J, unresolved, N, dof, chi2, chi2 / dof)
+        np.asarray(data.present), sigma,
+    ) & present  # fmt: skip
+    left_out = int(np.asarray(data.present).sum() - present.sum())
+    return _Misfit(r, present, sigma, residual_si, codes, J, unresolved, N, dof, chi2, chi2 / dof,
+                   left_out)  # fmt: skip
 
 
 def unresolved_samples(times, signals, rates, present, sigma) -> np.ndarray:
@@ -345,11 +357,12 @@ def _experiment_fits(
     and status), and the test of the residuals against each trace's own noise
     (`check_residuals`)."""
     sigma = misfit.sigma
-    experiments, times, measured, model = [], [], [], []
+    experiments, times, measured, model, counted = [], [], [], [], []
     signals_model = np.asarray(evaluation.signals)
     for e, experiment in enumerate(calibration.experiments):
-        fit = experiment_summary(experiment, e, layout, misfit.present, misfit.residual_si,
-                                 np.asarray(data.measured), signals_model)  # fmt: skip
+        fit = experiment_summary(experiment, e, layout, np.asarray(data.present),
+                                 misfit.residual_si, np.asarray(data.measured), signals_model,
+                                 misfit.present)  # fmt: skip
         summary = fit.summary
         summary["sigma"] = {
             name: float(sigma[e, s])
@@ -361,9 +374,10 @@ def _experiment_fits(
         times.append(fit.times)
         measured.append(fit.measured)
         model.append(fit.model)
+        counted.append(fit.counted)
     check = check_residuals(
         [(x.label, t, m, fit, x.sigma)
-         for x, t, m, fit in zip(calibration.experiments, times, measured, model, strict=True)],
+         for x, t, m, fit in zip(calibration.experiments, times, counted, model, strict=True)],
         {name: SIGNALS[name][0] for name in layout.signals},
         robust=calibration.loss != "linear",
     )  # fmt: skip
@@ -422,14 +436,17 @@ def _structure(calibration: Calibration) -> dict[str, Any]:
 
 @dataclasses.dataclass(frozen=True)
 class ExperimentFit:
-    """One experiment at the fitted values: its `summary` (name, trace, samples, skipped
-    samples and RMS residual per signal), its sample times `times (n,)` (s), and its
-    `measured` (NaN where absent) and `model` signals by name, `(n,)` each."""
+    """One experiment at the fitted values: its `summary` (name, trace, samples,
+    skipped samples, samples left out beside a jump and RMS residual per signal), its
+    sample times `times (n,)` (s), its `measured` (NaN where absent) and `model`
+    signals by name, `(n,)` each, and the measured ones the fit counts, `counted` (NaN
+    also beside a jump in the model's signal: what the model check tests)."""
 
     summary: dict[str, Any]
     times: np.ndarray
     measured: dict[str, np.ndarray]
     model: dict[str, np.ndarray]
+    counted: dict[str, np.ndarray]
 
 
 def experiment_summary(
@@ -440,9 +457,12 @@ def experiment_summary(
     residual_si: np.ndarray,
     measured: np.ndarray,
     model: np.ndarray,
+    counted: np.ndarray,
 ) -> ExperimentFit:
-    """Experiment `e` of the arrays `present`, `residual_si` (signal units), `measured`
-    and `model`, each `(E, S, n)`, by the signals its trace measures (`ExperimentFit`)."""
+    """Experiment `e` of the arrays `present` (the trace's samples), `residual_si`
+    (signal units), `measured` and `model`, and `counted` (the samples the fit counts:
+    those present off the model's jumps, `jump_samples`), each `(E, S, n)`, by the
+    signals its trace measures (`ExperimentFit`)."""
     trace = experiment.fitted_trace
     n = len(trace.t)
     signals = [s for s in layout.signals if s in trace.signals]
@@ -450,16 +470,19 @@ def experiment_summary(
     summary = {
         "name": experiment.label,
         "trace": trace.source,
-        "samples": int(sum(present[e, s].sum() for s in rows.values())),
+        "samples": int(sum(counted[e, s].sum() for s in rows.values())),
         "skipped": dict(trace.skipped),
+        "left_out": int(sum((present[e, s] & ~counted[e, s]).sum() for s in rows.values())),
         "rms": {
-            name: float(np.sqrt(np.mean(residual_si[e, s][present[e, s]] ** 2)))
+            name: float(np.sqrt(np.mean(residual_si[e, s][counted[e, s]] ** 2)))
             for name, s in rows.items()
-            if present[e, s].any()
+            if counted[e, s].any()
         },
     }
-    measured_signals = {
-        name: np.where(present[e, s, :n], measured[e, s, :n], np.nan) for name, s in rows.items()
-    }
+
+    def where(mask):
+        return {name: np.where(mask[e, s, :n], measured[e, s, :n], np.nan)
+                for name, s in rows.items()}  # fmt: skip
+
     model_signals = {name: model[e, s, :n] for name, s in rows.items()}
-    return ExperimentFit(summary, trace.t, measured_signals, model_signals)
+    return ExperimentFit(summary, trace.t, where(present), model_signals, where(counted))

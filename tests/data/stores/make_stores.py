@@ -11,7 +11,9 @@ calibration store's identity), and the calibration's again at d4bfe79 (issue 65)
 trace kept as numbers (`calibration_trace.csv`: the simulated one's last bits, and so its
 store's identity, differed between CPUs), and all four again for the model's revision 3
 (issue 66: the stick a mode, the friction's smoothing widths gone from every identity;
-`sweep_revision2.sqlite` is the sweep's store as it was before, refused), with
+`sweep_revision2.sqlite` is the sweep's store as it was before, refused), and the
+calibration's again when its fits left out the samples beside a jump (`jump_passes`, a
+field of its settings), with
 
     PYTHONPATH=<a checkout of 66a0bae> python tests/data/stores/make_stores.py tests/data/stores
 
