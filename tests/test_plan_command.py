@@ -179,7 +179,7 @@ def test_the_prediction_holds_on_the_reference_solver_traces(planned):
     slip crosses a sample time, and χ² is a staircase there: the fits from the truth
     stayed on its tread (about half within 1e-6 of where they started), and the spread
     of `friction_coefficient` was 0.51 of the prediction. The fit now refits without
-    the samples either side of a jump (`solve_off_the_jumps`), and the spread is the
+    the samples either side of a jump (`fit_off_the_jumps`), and the spread is the
     noise's again."""
     _, problem, _ = planned
     plan = rj.plan_firings(problem)

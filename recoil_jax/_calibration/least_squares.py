@@ -15,7 +15,7 @@ bounds, or logarithmic over three decades and more) through lmfit's bounded tran
 optimistix's with Marquardt's first damping and two more stopping tests, in standard
 errors and in the gain a step has left (`_LevenbergMarquardt`). Each fit runs on every
 sample, then again without the samples either side of a jump in the model's signal
-(`solve_off_the_jumps`), under the noise the first one's residuals show where a noise
+(`fit_off_the_jumps`), under the noise the first one's residuals show where a noise
 is estimated (`FitOutcome`).
 
 `_Static` keeps its name and fields: it is in the identity of every calibration store
@@ -50,6 +50,7 @@ __all__ = [
     "OffTheJumps",
     "evaluate",
     "evaluate_program",
+    "fit_off_the_jumps",
     "fit_program",
     "jump_samples",
     "jumps_at",
@@ -57,7 +58,6 @@ __all__ = [
     "model_residuals",
     "robust",
     "solve_lm",
-    "solve_off_the_jumps",
     "theta_of_u",
     "u_of_z",
 ]
@@ -100,9 +100,10 @@ _LM_FIRST_DAMPING = 1e-3
 #: A step in the model's signal between two samples over this many times what its
 #: rates there explain (plus twice the noise) is a jump (`jump_samples`).
 JUMP_RATIO = 3.0
-#: The fits off the jumps, at most (`solve_off_the_jumps`): each from the last one's
-#: optimum, while that optimum's jumps sit beside other samples than the ones it left
-#: out. Where the last still moved them, its optimum is kept, off its own jumps.
+#: The fits off the jumps after the one on every sample, at most (`fit_off_the_jumps`):
+#: each from the last one's optimum, while that optimum's jumps sit beside other samples
+#: than the ones it left out. Where the last still moved them, its optimum is kept, off
+#: its own jumps.
 _JUMP_PASSES = 3
 
 
@@ -123,7 +124,7 @@ class _Static(eqx.Module):
     lm_tolerance: float = eqx.field(static=True, default=_LM_TOLERANCE)
     lm_standard_errors: float = eqx.field(static=True, default=_LM_STANDARD_ERRORS)
     lm_gain: float = eqx.field(static=True, default=_LM_GAIN)
-    # The fits off the jumps (`solve_off_the_jumps`): a field, so that a fit made on
+    # The fits off the jumps (`fit_off_the_jumps`): a field, so that a fit made on
     # every sample (a store's from before) is another fit.
     jump_passes: int = eqx.field(static=True, default=_JUMP_PASSES)
 
@@ -434,11 +435,15 @@ def jump_samples(times, signals, rates, present, sigma):
 
 
 class OffTheJumps(eqx.Module):
-    """A fit off the jumps (`solve_off_the_jumps`): its optimum `u (P,)`, the samples
-    left out there `jumps (E, S, n)`, whether every pass converged, and their steps."""
+    """A fit off the jumps (`fit_off_the_jumps`): its optimum `u (P,)`, the samples
+    left out there `jumps (E, S, n)`, the noise `sigma (E, S)` it fitted under, its
+    `cost` over the samples it counts (the robust `Σ r²`), whether every pass
+    converged, and their steps."""
 
     u: jax.Array
     jumps: jax.Array
+    sigma: jax.Array
+    cost: jax.Array
     converged: jax.Array
     steps: jax.Array
 
@@ -452,74 +457,69 @@ def jumps_at(evaluation: Evaluation, data: CalibrationData):
     return jumps & ok
 
 
-def solve_off_the_jumps(
-    u, jumps, data: CalibrationData, static: _Static, start, held=None, held_theta=None
+def fit_off_the_jumps(
+    u, data: CalibrationData, static: _Static, held=None, held_theta=None
 ) -> OffTheJumps:
-    """Levenberg–Marquardt from `u (P,)` without the samples `jumps (E, S, n)` (where
-    `start`, else `u` is kept); again from each optimum while the samples either side
-    of its jumps (`jump_samples`) are other ones than it left out, at most
-    `static.jump_passes` times in all (the last optimum kept, with its own jumps). The
-    values `held (P,)` stay at `held_theta (P,)` (`solve_lm`'s).
+    """Levenberg–Marquardt from `u (P,)` on every sample under the noise `data.sigma`;
+    then from its optimum without the samples either side of a jump in the model's
+    signal there (`jumps_at`), where it has any, and (where `static.estimate_noise`)
+    under the noise the first fit's residuals off the jumps show; again from each
+    optimum while the samples beside its jumps are other ones than it left out, at
+    most `static.jump_passes` times after the first (the last optimum kept, off its
+    own jumps). The values `held (P,)` stay at `held_theta (P,)` (`solve_lm`'s).
 
     Where the model's signal jumps (a stick or slip of the rails, exact events since
-    model revision 3; the buffer's engagement), χ² is a staircase in the values, which
-    no gradient step crosses; without those samples it is smooth about `u` while the
-    events move by under a sample's spacing."""
+    model revision 3; the buffer's engagement), χ² is a staircase in the values: on
+    every sample a fit reaches the step the optimum lies on and stays there (measured
+    on 40 reference traces of the planned friction test, started at the truth: half
+    stayed within 1e-6 of it). Without those samples χ² is smooth about that optimum
+    while the events move by under a sample's spacing.
+
+    One loop, whose first pass is the fit on every sample, so that the program holds
+    one Levenberg–Marquardt and one solve (each copy doubles its compilation)."""
     held = jnp.zeros(u.shape, dtype=bool) if held is None else held
     held_theta = jnp.zeros(u.shape) if held_theta is None else held_theta
 
     def again(carry):
-        _, _, _, _, passes, moved = carry
-        return moved & (passes < static.jump_passes)
+        *_, passes, go = carry
+        return go & (passes <= static.jump_passes)
 
     def refit(carry):
-        u, jumps, ok, steps, passes, _ = carry
-        off = eqx.tree_at(lambda d: d.present, data, data.present & ~jumps)
+        u, jumps, sigma, _, ok, steps, passes, _ = carry
+        under = eqx.tree_at(lambda d: d.sigma, data, sigma)
+        off = eqx.tree_at(lambda d: d.present, under, data.present & ~jumps)
         u, ok_, steps_ = solve_lm(u, off, static, held, held_theta)
-        theta = jnp.where(held, held_theta, theta_of_u(u, data.space))
-        moved = jumps_at(evaluate(theta, off, static), data)
+        at = evaluate(jnp.where(held, held_theta, theta_of_u(u, data.space)), under, static)
+        residuals, moved = at.residuals, jumps_at(at, under)
+        go = jnp.any(moved != jumps)
+        if static.estimate_noise:  # after the first fit, under the noise it shows
+            first = passes == 0
+            scale = _residual_scale(residuals, data.present & ~moved, static.loss)
+            scale = jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0)
+            shown = jnp.where(data.sigma_given, sigma, sigma * scale)
+            new = jnp.where(first, shown, sigma)
+            residuals = residuals * (sigma / new)[..., None]
+            moved = jumps_at(at, eqx.tree_at(lambda d: d.sigma, data, new))
+            sigma, go = new, first | jnp.any(moved != jumps)
         steps = steps + jnp.asarray(steps_, dtype=steps.dtype)
-        return u, moved, ok & ok_, steps, passes + 1, jnp.any(moved != jumps)
+        return u, moved, sigma, residuals, ok & ok_, steps, passes + 1, go
 
-    none = jnp.asarray(0)
-    u, jumps, ok, steps, _, _ = jax.lax.while_loop(
-        again, refit, (u, jumps, jnp.asarray(True), none, none, jnp.asarray(start))
-    )
-    return OffTheJumps(u, jumps, ok, steps)
+    none = jnp.zeros(data.present.shape, dtype=bool)
+    start = (u, none, data.sigma, jnp.zeros(data.present.shape), jnp.asarray(True),
+             jnp.asarray(0), jnp.asarray(0), jnp.asarray(True))  # fmt: skip
+    u, jumps, sigma, residuals, ok, steps, _, _ = jax.lax.while_loop(again, refit, start)
+    cost = jnp.sum(robust(jnp.where(jumps, 0.0, residuals), static.loss, static.f_scale) ** 2)
+    return OffTheJumps(u, jnp.asarray(jumps), sigma, cost, ok, steps)
 
 
 def _fit_one(u0, measured, data: CalibrationData, static: _Static) -> FitOutcome:
-    """Fit with every sample under the assumed noise; then from that optimum without
-    the samples either side of a jump in the model's signal there, where it has any,
-    and (where it is estimated) under the noise the first fit's residuals show
-    (`solve_off_the_jumps`).
-
-    On every sample the fit reaches the step of χ²'s staircase that the optimum lies on
-    and stays there (measured on 40 reference traces of the planned friction test,
-    started at the truth: half stayed within 1e-6 of it)."""
+    """One fit from `u0 (P,)` on `measured (E, S, n)` (`fit_off_the_jumps`), scored over
+    every sample: fits leave out different ones, and each left out counts the χ² a
+    sample expects (1)."""
     data = eqx.tree_at(lambda d: d.measured, data, measured)
-    u1, ok1, steps1 = solve_lm(u0, data, static)
-    first = evaluate(theta_of_u(u1, data.space), data, static)
-    jumps = jumps_at(first, data)
-    if static.estimate_noise:
-        scale = _residual_scale(first.residuals, data.present & ~jumps, static.loss)
-        scale = jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0)
-        sigma = jnp.where(data.sigma_given, data.sigma, data.sigma * scale)
-        data = eqx.tree_at(lambda d: d.sigma, data, sigma)
-        jumps = jumps_at(first, data)  # under the noise the next fits use
-    else:
-        sigma = data.sigma
-    # Every noise given and no jump: the first optimum is the fit's.
-    off = solve_off_the_jumps(u1, jumps, data, static, static.estimate_noise | jnp.any(jumps))
-    present = data.present & ~off.jumps
-    final = evaluate(theta_of_u(off.u, data.space),
-                     eqx.tree_at(lambda d: d.present, data, present), static)  # fmt: skip
-    cost = jnp.sum(robust(final.residuals, static.loss, static.f_scale) ** 2)
-    # Ranked on every sample, as fits left out different ones: each left out counts
-    # the χ² a sample expects (1).
-    score = cost + jnp.sum(off.jumps) + log_likelihood_term(sigma, data.present)
-    steps = steps1 + jnp.asarray(off.steps, dtype=jnp.asarray(steps1).dtype)
-    return FitOutcome(off.u, ok1 & off.converged, steps, sigma, cost, score)
+    fit = fit_off_the_jumps(u0, data, static)
+    score = fit.cost + jnp.sum(fit.jumps) + log_likelihood_term(fit.sigma, data.present)
+    return FitOutcome(fit.u, fit.converged, fit.steps, fit.sigma, fit.cost, score)
 
 
 @functools.partial(structure_jit, exported=lambda leaves: FitOutcome(*leaves))

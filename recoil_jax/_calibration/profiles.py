@@ -12,21 +12,13 @@ from __future__ import annotations
 
 import dataclasses
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._model.programs import structure_jit
 from .layout import CalibrationData, Layout
-from .least_squares import (
-    FitSettings,
-    evaluate,
-    jumps_at,
-    robust,
-    solve_off_the_jumps,
-    theta_of_u,
-)
+from .least_squares import FitSettings, fit_off_the_jumps
 from .result import CalibrationResult
 
 __all__ = ["PROFILE_POINTS", "ProfileGrid", "profile_grid", "refit_profiles", "with_profiles"]
@@ -92,15 +84,11 @@ def _profile_program(u0, held, held_theta, data: CalibrationData, static: FitSet
     converged (B,))`."""
 
     def one(u, h, t):
-        # Off the jumps, as the fit (`solve_off_the_jumps`): first those at the start.
-        jumps = jumps_at(evaluate(jnp.where(h, t, theta_of_u(u, data.space)), data, static), data)
-        off = solve_off_the_jumps(u, jumps, data, static, True, h, t)
-        kept = eqx.tree_at(lambda d: d.present, data, data.present & ~off.jumps)
-        theta = jnp.where(h, t, theta_of_u(off.u, data.space))
-        r = robust(evaluate(theta, kept, static).residuals, static.loss, static.f_scale)
-        # Each sample left out counted at the χ² it expects (1), as the fit's report
-        # counts its own (`with_profiles`): the points leave out others than it.
-        return jnp.sum(r**2) + jnp.sum(off.jumps), off.converged
+        # Off the jumps, as the fit (`fit_off_the_jumps`); each sample left out counted
+        # at the χ² it expects (1), as `with_profiles` counts the optimum's: the points
+        # leave out others than it.
+        fit = fit_off_the_jumps(u, data, static, h, t)
+        return fit.cost + jnp.sum(fit.jumps), fit.converged
 
     return jax.lax.map(lambda a: one(*a), (u0, held, held_theta))
 
@@ -112,6 +100,8 @@ def refit_profiles(
     under the fit's noise (`data.sigma`), in one program: `{"cost": (P·m,), "converged":
     (P·m,)}`."""
     u0 = jnp.broadcast_to(u_best, grid.held.shape)
+    # Under the fit's noise: none estimated again.
+    static = dataclasses.replace(static, estimate_noise=False)
     cost, converged = _profile_program(
         u0, jnp.asarray(grid.held), jnp.asarray(grid.held_theta), data, static
     )
