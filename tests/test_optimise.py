@@ -278,6 +278,54 @@ def test_every_shipped_study_parses():
         load_study(path)
 
 
+@pytest.mark.slow  # two processes, each starting JAX
+def test_a_study_run_again_loads_its_exported_programs(tmp_path):
+    """With the compilation cache on, `optimise` exports its gradient program and its
+    batched solve to the cache's folder; the same study again, in another process,
+    loads them (each counted as its one build: `compilations`) and finds the same
+    design, to the bit."""
+    import os
+    import subprocess
+    import sys
+
+    pytest.importorskip("flatbuffers")  # (jax.export's files: the apps extra)
+    study = tmp_path / "small.toml"
+    study.write_text(study_text(
+        **SMALL_STUDY | {"design": "m = 1500.0\ngap = 0.062"},
+        optimiser='method = "search"\nsamples = 16\nstarts = 1',
+    ))  # fmt: skip
+    env = os.environ | {"RECOIL_JAX_CACHE": str(tmp_path / "cache")}
+    # The command, counting the programs it loads from the folder.
+    counted = (
+        "import sys, jax\n"
+        "loads = []\n"
+        "load = jax.export.deserialize\n"
+        "jax.export.deserialize = lambda data: loads.append(1) or load(data)\n"
+        "from recoil_jax.apps import main\n"
+        "code = main(sys.argv[1:])\n"
+        "print(f'loaded {len(loads)}')\n"
+        "sys.exit(code)\n"
+    )
+    results, loaded = [], []
+    for run in range(2):
+        out = tmp_path / f"out{run}"
+        argv = [sys.executable, "-c", counted, "optimise", str(study), "--out", str(out)]
+        done = subprocess.run(argv, check=True, capture_output=True, text=True, env=env,
+                              timeout=600)  # fmt: skip
+        loaded.append(done.stdout.strip().splitlines()[-1])
+        results.append(json.loads((out / "result.json").read_text()))
+        if run == 0:
+            folder = tmp_path / "cache" / "exported"
+            written = {p.name for p in folder.iterdir()}
+    assert {name.split("-")[0] for name in written} == {"_gradient_solve", "_peaks_batch"}
+    assert not any("." in name for name in written)  # programs, not markers
+    assert {p.name for p in folder.iterdir()} == written  # none written again
+    assert loaded == ["loaded 0", "loaded 2"]
+    first, second = results
+    assert first["best"] == second["best"] and first["objective"] == second["objective"]
+    assert first["optimiser"]["compilations"] == second["optimiser"]["compilations"] == 1
+
+
 @pytest.mark.slow
 def test_study_command_writes_result_json(tmp_path, capsys):
     """`recoil-jax optimise` on a small study writes result.json with the documented keys

@@ -193,3 +193,75 @@ def test_avx2_codegen_is_set_before_the_backend_and_changes_no_result():
     assert _fresh("before", "--xla_cpu_max_isa=avx2")["first"] is True  # already AVX2
     default = _fresh("never")
     assert default["flags"] == "" and chosen["peaks"] == default["peaks"]
+
+
+def _as_the_package_s(fn):
+    """`fn`, named as a function of the package (only those are exported)."""
+    fn.__module__ = "recoil_jax._probe"
+    return fn
+
+
+def test_programs_are_exported_only_where_their_key_says_what_they_compute(
+    tmp_path, monkeypatch, limit
+):
+    """With a cache folder, `structure_jit(..., exported=...)` exports a package
+    function's program, and a second build of it loads the file instead of tracing
+    (the same result); a program JAX cannot export (`equinox.error_if`'s host callback)
+    is marked refused, so that later builds trace it once, not twice; a function from
+    outside the package, or a static argument named by its address, writes nothing.
+    Every build counts (`program_builds`), loaded or compiled."""
+    import dataclasses
+
+    import equinox as eqx
+
+    pytest.importorskip("flatbuffers")  # (jax.export's files: the apps extra)
+    monkeypatch.setattr(cache, "_export_folder", lambda: str(tmp_path))
+    folder = tmp_path / "exported"
+    traces = []
+
+    def scaled(x, power):
+        traces.append("scaled")
+        return x**power
+
+    program = cache.structure_jit(_as_the_package_s(scaled), exported=lambda leaves: leaves[0])
+    assert float(program(jnp.array(3.0), 2)) == 9.0
+    (written,) = folder.iterdir()
+    assert written.name.startswith("scaled-") and len(traces) == 1
+    limit(1)  # drop it from memory: built again, from the file
+    rjx.structure_jit(lambda x: x)(jnp.ones(1))
+    assert float(program(jnp.array(4.0), 2)) == 16.0
+    assert len(traces) == 1 and cache.program_builds(scaled) == 2
+
+    def checked(x):
+        traces.append("checked")
+        return eqx.error_if(x, x < 0, "negative")
+
+    guarded = cache.structure_jit(_as_the_package_s(checked), exported=lambda leaves: leaves[0])
+    assert float(guarded(jnp.array(2.0))) == 2.0  # traced to export, then to compile
+    assert [p.suffix for p in folder.glob("checked-*")] == [".refused"]
+    rjx.structure_jit(lambda x: x)(jnp.ones(1))
+    assert float(guarded(jnp.array(5.0))) == 5.0  # refused: traced once, to compile
+    assert traces.count("checked") == 3 and cache.program_builds(checked) == 2
+
+    class Scale:  # no value repr: named by its address
+        def __init__(self, value):
+            self.value = value
+
+    def outside(x):
+        return 2.0 * x
+
+    times = cache.structure_jit(
+        _as_the_package_s(lambda x, scale: scale.value * x), exported=lambda leaves: leaves[0]
+    )
+    assert float(times(jnp.array(1.0), Scale(3.0))) == 3.0
+    assert float(cache.structure_jit(outside, exported=lambda out: out[0])(jnp.array(1.0))) == 2.0
+
+    @dataclasses.dataclass(frozen=True)
+    class Gain:  # a value's repr, but a type from outside the package
+        value: float
+
+    gained = cache.structure_jit(
+        _as_the_package_s(lambda x, gain: gain.value * x), exported=lambda leaves: leaves[0]
+    )
+    assert float(gained(jnp.array(1.0), Gain(4.0))) == 4.0
+    assert sorted(p.name.split("-")[0] for p in folder.iterdir()) == ["checked", "scaled"]

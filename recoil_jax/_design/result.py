@@ -86,7 +86,8 @@ class OptimiseResult:
       `"stopped"` for a stopped run evaluated again where it stopped, as every step
       solves every run).
     - `solves`, `gradient_solves`: plain solves and solves with sensitivities
-      (`simulations`: both); `seconds`; `compilations` of the gradient program;
+      (`simulations`: both); `seconds`; `compilations`: gradient programs built
+      (compiled, or with `search` loaded exported from the compilation cache's folder);
       `replayed`: evaluations read back from a study's store instead of solved.
     - `scenario_params`: the base design of each scenario (leading axis `S`; None for
       `minimise`); `scenario_limits (S, C)`: their metric limits.

@@ -9,8 +9,10 @@ second process that runs the same program (the same `recoil-jax simulate`, `swee
 from __future__ import annotations
 
 import collections
+import contextlib
 import functools
 import hashlib
+import importlib.metadata
 import importlib.util
 import os
 import platform
@@ -35,6 +37,7 @@ __all__ = [
     "compiled_ahead",
     "enable_compilation_cache",
     "live_programs",
+    "program_builds",
     "set_max_programs",
     "structure_jit",
     "use_avx2_codegen",
@@ -148,7 +151,8 @@ def enable_compilation_cache(directory: str | os.PathLike | None = None) -> Path
 _DEFAULT_MAX_PROGRAMS = 32
 _programs: collections.OrderedDict = collections.OrderedDict()  # key -> jitted, LRU last
 _limit = [_DEFAULT_MAX_PROGRAMS]
-_lock = threading.Lock()
+_lock = threading.RLock()  # (a program built while another is: no deadlock)
+_builds: collections.Counter = collections.Counter()  # fn -> programs built for it
 
 
 def set_max_programs(count: int) -> int:
@@ -172,6 +176,13 @@ def set_max_programs(count: int) -> int:
 def live_programs() -> int:
     """How many compiled programs (`structure_jit` entries) this process holds now."""
     return len(_programs)
+
+
+def program_builds(fn) -> int:
+    """How many programs this process has built for the `structure_jit` function `fn`
+    (traced and compiled, or loaded exported): one per structure it was called with,
+    and again for one dropped from the bounded cache and called again."""
+    return _builds[fn]
 
 
 def compiled_ahead(fn, *args) -> tuple[Callable, float]:
@@ -221,7 +232,10 @@ def structure_jit(fn, *, exported=None):
     `exported`: a function that rebuilds `fn`'s output from its array leaves (an output
     of arrays only). With the compilation cache on, the traced program is then also kept
     in the cache's folder (`jax.export`), keyed by the package's source, JAX's version
-    and the arguments' structure, so that another process skips tracing it too."""
+    and the arguments' structure, so that another process skips tracing it too. Only
+    for the package's own functions, with static arguments that have a value's repr; a
+    program JAX cannot export (a host callback, such as `equinox.error_if`'s) is marked
+    so, and compiled as usual from then on."""
 
     @functools.wraps(fn)
     def call(*args, **kwargs):
@@ -235,6 +249,7 @@ def structure_jit(fn, *, exported=None):
                 program = (exported and _exported(fn, dynamic, static, exported)) or _compile(
                     fn, static
                 )
+                _builds[fn] += 1
             _programs[key] = program  # the most recently used last
             while len(_programs) > _limit[0]:
                 _programs.popitem(last=False)
@@ -250,40 +265,108 @@ def _source_digest() -> str:
     return digest.hexdigest()
 
 
-def _export(jitted, shapes):
-    """`jax.export`, allowing LAPACK's custom calls (a QR in a least-squares solve): they
-    carry no guarantee across JAX versions, and none is needed, since an exported
-    program is keyed by the JAX version it was made with."""
+def _version(distribution: str) -> str:
     try:
-        return jax.export.export(jitted)(shapes)
+        return importlib.metadata.version(distribution)
+    except importlib.metadata.PackageNotFoundError:
+        return "absent"
+
+
+#: What an exported program's key names besides its arguments: the package's source as
+#: imported (read now: a file edited later is not the code this process runs) and the
+#: versions of the libraries whose code it traced.
+_CODE = "|".join([
+    _source_digest(),
+    *(f"{name} {_version(name)}"
+      for name in ("jax", "jaxlib", "equinox", "diffrax", "lineax", "optimistix")),
+])  # fmt: skip
+
+
+def _export(jitted, shapes, platform: str):
+    """`jax.export` for `platform`, allowing LAPACK's custom calls (a QR in a
+    least-squares solve): they carry no guarantee across JAX versions, and none is
+    needed, since an exported program is keyed by the JAX version it was made with."""
+    try:
+        return jax.export.export(jitted, platforms=(platform,))(shapes)
     except ValueError as error:
         targets = sorted(set(re.findall(r"custom_call @(\w+)\(", str(error))))
         if not targets:
             raise
         checks = [jax.export.DisabledSafetyCheck.custom_call(t) for t in targets]
-        return jax.export.export(jitted, disabled_checks=checks)(shapes)
+        return jax.export.export(jitted, platforms=(platform,), disabled_checks=checks)(shapes)
+
+
+#: Where the types of an exported program's arguments may come from: a type defined
+#: elsewhere (a user's subclass) is named in the key by its name, not its code.
+_KNOWN_MODULES = ("builtins", "numpy", "jax", "jaxlib", "equinox", "diffrax", "optax")
+
+
+def _known_types(*trees) -> bool:
+    """Whether every pytree node and static leaf of `trees` is of a type of the package
+    or of the libraries it builds on."""
+
+    def known(kind) -> bool:
+        module = getattr(kind, "__module__", "") or ""
+        return module.split(".")[0] in (*_KNOWN_MODULES, _PACKAGE.rstrip("."))
+
+    def nodes(treedef):
+        data = treedef.node_data()
+        if data is not None:
+            yield data[0]
+        for child in treedef.children():
+            yield from nodes(child)
+
+    for tree in trees:
+        leaves, treedef = jax.tree.flatten(tree)
+        if not all(known(kind) for kind in nodes(treedef)):
+            return False
+        if not all(known(type(leaf)) for leaf in leaves):
+            return False
+    return True
+
+
+def _export_folder() -> str | None:
+    """The compilation cache's folder, where exported programs are kept (None: off)."""
+    return getattr(jax.config, "jax_compilation_cache_dir")  # noqa: B009 (untyped flag)
+
+
+_PACKAGE = __name__.split(".")[0] + "."  # the package's modules' names start with it
+
+#: A repr that names an object by its address (a function defined outside the package,
+#: an object without a value repr): not a key that says what the program computes.
+_ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
 
 
 def _exported(fn, dynamic, static, rebuild):
     """A program for `fn` at this structure, exported to (or loaded from) the
     compilation cache's folder; None without a cache folder or flatbuffers, or where
     JAX cannot export it (the caller then compiles as usual)."""
-    folder = getattr(jax.config, "jax_compilation_cache_dir")  # noqa: B009 (untyped flag)
+    folder = _export_folder()
     if folder is None or importlib.util.find_spec("flatbuffers") is None:
         return None
-    if outside_parts(dynamic):  # its key names the package's code, not theirs
+    # Its key names the package's code: not a function, or a part, defined outside it.
+    if not fn.__module__.startswith(_PACKAGE) or outside_parts(dynamic):
+        return None
+    if not _known_types(dynamic, static):
         return None
     leaves, treedef = jax.tree.flatten(dynamic)
+    devices = [d for x in leaves if isinstance(x, jax.Array) for d in x.devices()]
+    platform = devices[0].platform if devices else jax.default_backend()
     text = "|".join([
-        _source_digest(), jax.__version__, fn.__qualname__, str(treedef),
+        _CODE, platform, f"{fn.__module__}.{fn.__qualname__}", str(treedef),
         str(jax.tree.structure(static)), repr(jax.tree.leaves(static)),
         *(f"{tuple(x.shape)}:{x.dtype}" for x in leaves),
     ])  # fmt: skip
+    if _ADDRESS.search(text):  # an object named by its address, not its value
+        return None
     path = (
         Path(folder)
         / "exported"
         / f"{fn.__name__}-{hashlib.sha256(text.encode()).hexdigest()[:32]}"
     )
+    refused = path.with_suffix(".refused")
+    if refused.exists():  # JAX could not export it before: compile, do not trace twice
+        return None
     try:
         if path.exists():
             program = jax.export.deserialize(bytearray(path.read_bytes()))
@@ -294,16 +377,32 @@ def _exported(fn, dynamic, static, rebuild):
                 return jax.tree.leaves(fn(*args, **kwargs))
 
             shapes = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
-            program = _export(jax.jit(flat), shapes)
+            try:
+                program = _export(jax.jit(flat), shapes, platform)
+                serialized = program.serialize()
+            except (NotImplementedError, ValueError):  # JAX cannot export it (a callback)
+                with contextlib.suppress(OSError):
+                    refused.parent.mkdir(parents=True, exist_ok=True)
+                    refused.touch()
+                return None
             path.parent.mkdir(parents=True, exist_ok=True)
-            partial = path.with_suffix(".partial")
-            partial.write_bytes(program.serialize())
-            partial.replace(path)  # whole or absent, also with two processes at once
+            partial = path.with_suffix(f".{os.getpid()}-{threading.get_ident()}.partial")
+            try:
+                partial.write_bytes(serialized)
+                partial.replace(path)  # whole or absent, also with two processes at once
+            finally:
+                partial.unlink(missing_ok=True)
     except Exception:
         return None
 
+    def imported(leaves):
+        return program.call(leaves)
+
+    imported.__name__ = imported.__qualname__ = fn.__name__  # in JAX's logs, as `_compile`'s
+    jitted = jax.jit(imported)
+
     def run(dynamic):
-        return rebuild(jax.block_until_ready(program.call(jax.tree.leaves(dynamic))))
+        return rebuild(jax.block_until_ready(jitted(jax.tree.leaves(dynamic))))
 
     return run
 

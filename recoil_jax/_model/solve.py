@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from typing import Any
 
 import equinox as eqx
@@ -30,7 +32,7 @@ from .._model.params import RecoilParams
 from .._model.programs import structure_jit
 from .._model.registry import ParameterError, is_concrete
 from .._model.settings import Smoothing, SolverOptions, end_time, with_default_tolerances
-from .._model.status import raise_on_failure
+from .._model.status import Status, raise_on_failure
 from .._model.stepping import (
     Ceilings,
     Crossing,
@@ -374,4 +376,13 @@ def _peaks_batch(
 #: `params`, and per-design end times `t1`, shape `(n,)`), run through `queued_map` with
 #: `lanes` designs in flight; only the first `count` (an integer array) are solved.
 #: Jitted; `lanes` is static.
-peaks_batch = structure_jit(_peaks_batch)
+peaks_batch = structure_jit(
+    _peaks_batch, exported=lambda leaves: jax.tree.unflatten(_peaks_tree(), leaves)
+)
+
+
+@functools.cache
+def _peaks_tree():
+    """The pytree structure of a `Peaks` (every field an array, its status a `Status`)."""
+    fields = {f.name: 0.0 for f in dataclasses.fields(Peaks) if f.name != "status"}
+    return jax.tree.structure(Peaks(**fields, status=Status.ok))  # pyright: ignore[reportArgumentType]
