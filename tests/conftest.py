@@ -205,6 +205,19 @@ SMALL_STUDY = dict(
 )
 
 
+def drop_programs():
+    """Drop this process's compiled programs from its bounded cache (`set_max_programs`),
+    so that a test counts its own compilations whatever ran before it on its worker (a
+    program built by an earlier test would otherwise be reused: no compilation)."""
+    import jax.numpy as jnp
+
+    import recoil_jax.extend as rjx
+
+    previous = rjx.set_max_programs(1)
+    rjx.structure_jit(lambda x: x)(jnp.ones(1))  # the one kept: a program of its own
+    rjx.set_max_programs(previous)
+
+
 def gap_problem(limit: float = 0.15):
     """The small gap study as a `DesignProblem` (`SMALL_STUDY`): the paper's absorber
     (m 1500 kg) tuned in its gap for the lowest peak anchoring force, the stroke within

@@ -6,7 +6,13 @@ import dataclasses
 
 import numpy as np
 import pytest
-from conftest import assert_complete_result, compiled_programs, gap_problem, study_text
+from conftest import (
+    assert_complete_result,
+    compiled_programs,
+    drop_programs,
+    gap_problem,
+    study_text,
+)
 from scipy.optimize import brentq
 
 import recoil_jax as rj
@@ -430,6 +436,7 @@ def _grid_best(problem) -> float:
 
 def test_search_matches_a_dense_grid_with_one_compilation():
     problem = gap_problem()
+    drop_programs()
     result = rj.search(problem, global_phase=rj.SobolStarts(32, 2), progress=False)
     assert result.feasible[0] and result.compilations == 1
     assert_complete_result(result, "search", 1)
@@ -460,6 +467,7 @@ def test_search_as_a_minimax_matches_the_dense_grid():
     # The same problem as a minimax with no smoothing (the signal at 1024 times and its
     # peak as constraints): the same optimum as the grid, one program compiled.
     problem = gap_problem()
+    drop_programs()
     result = rj.search(problem, global_phase=rj.SobolStarts(32, 2), minimax=True, progress=False)
     assert result.feasible[0] and result.compilations == 1
     grid_best = _grid_best(problem)
@@ -473,6 +481,7 @@ def test_search_levels_narrow_peaks_on_the_epigraph():
     # the previous point. The same optimum as the grid; two programs (the smoothed
     # level's and the minimax's) and no more.
     base = gap_problem()
+    drop_programs()
     problem = dataclasses.replace(
         base,
         objective=rj.Objective(
