@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import drop_programs
 
 import recoil_jax as rj
 import recoil_jax.extend as rjx
@@ -78,7 +79,7 @@ def no_solve(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("a bad input reached the solver")
 
-    monkeypatch.setattr("recoil_jax.apps._files.exported.exported_peaks", refuse)
+    monkeypatch.setattr(rj, "peaks", refuse)
     monkeypatch.setattr(rj, "sweep", refuse)
     monkeypatch.setattr(rj, "sweep_grid", refuse)
 
@@ -265,16 +266,17 @@ def test_a_missing_optional_dependency_is_named_with_its_extra(capsys, monkeypat
     assert "bench-tuning needs cmaes" in capsys.readouterr().err
 
 
-def test_simulate_solves_in_process_without_flatbuffers(monkeypatch, tmp_path):
-    """Without flatbuffers `simulate` cannot keep its exported program on disk: it solves
-    in process (the same peaks) and writes no exported file."""
-    from recoil_jax.apps._files.exported import exported_peaks
+def test_peaks_solve_in_process_without_flatbuffers(monkeypatch, tmp_path):
+    """Without flatbuffers no program can be kept exported on disk: `rj.peaks` (and so
+    `simulate`) compiles in process, gives the same peaks and writes no exported file."""
+    from recoil_jax._model import programs
 
-    monkeypatch.setitem(sys.modules, "flatbuffers", None)
-    monkeypatch.setattr("recoil_jax.apps._files.exported._folder", lambda: str(tmp_path))
     params = rj.params_from_values(m=0.0)
-    peaks = exported_peaks(params, rj.Smoothing(), rj.SolverOptions())
-    assert peaks.to_dict() == rj.peaks(params).to_dict()
+    expected = rj.peaks(params).to_dict()
+    drop_programs()  # so that the next call builds its program again
+    monkeypatch.setitem(sys.modules, "flatbuffers", None)
+    monkeypatch.setattr(programs, "_export_folder", lambda: str(tmp_path))
+    assert rj.peaks(params).to_dict() == expected
     assert not (tmp_path / "exported").exists()
 
 

@@ -280,9 +280,9 @@ def test_every_shipped_study_parses():
 
 @pytest.mark.slow  # two processes, each starting JAX
 def test_a_study_run_again_loads_its_exported_programs(tmp_path):
-    """With the compilation cache on, `optimise` exports its gradient program and its
-    batched solve to the cache's folder; the same study again, in another process,
-    loads them (each counted as its one build: `compilations`) and finds the same
+    """With the compilation cache on, `optimise` exports its gradient program, its
+    batched solve and its checks' solve of one design to the cache's folder; the same
+    study again, in another process, loads them (each counted as its one build: `compilations`) and finds the same
     design, to the bit."""
     import os
     import subprocess
@@ -317,10 +317,11 @@ def test_a_study_run_again_loads_its_exported_programs(tmp_path):
         if run == 0:
             folder = tmp_path / "cache" / "exported"
             written = {p.name for p in folder.iterdir()}
-    assert {name.split("-")[0] for name in written} == {"_gradient_solve", "_peaks_batch"}
+    exported = {"_gradient_solve", "_peaks_batch", "_peaks_jit"}  # (the last: the checks')
+    assert {name.split("-")[0] for name in written} == exported
     assert not any("." in name for name in written)  # programs, not markers
     assert {p.name for p in folder.iterdir()} == written  # none written again
-    assert loaded == ["loaded 0", "loaded 2"]
+    assert loaded == ["loaded 0", "loaded 3"]
     first, second = results
     assert first["best"] == second["best"] and first["objective"] == second["objective"]
     assert first["optimiser"]["compilations"] == second["optimiser"]["compilations"] == 1

@@ -3,6 +3,7 @@ recently used is dropped, and its memory (the memory regions XLA maps for it, of
 Linux allows a process about 65,000) is freed."""
 
 import gc
+import inspect
 import json
 import os
 import subprocess
@@ -265,3 +266,65 @@ def test_programs_are_exported_only_where_their_key_says_what_they_compute(
     )
     assert float(gained(jnp.array(1.0), Gain(4.0))) == 4.0
     assert sorted(p.name.split("-")[0] for p in folder.iterdir()) == ["checked", "scaled"]
+
+
+def test_the_solves_raise_outside_their_programs_so_that_they_are_kept(
+    tmp_path, monkeypatch, limit
+):
+    """`rj.peaks`, `rj.simulate` and `rj.peak_jacobian` check their status after the
+    compiled program, not in it: none of the three programs holds a host callback (JAX
+    keeps none that do in its persistent cache), where the same solve with
+    `raise_on_failure` inside does. `rj.peaks`' program, with the default `throw=True`,
+    is exported and loaded again after being dropped from memory; a failure that the
+    loaded program reports raises `SolveError` with the status's message."""
+    import jax
+
+    from recoil_jax._model import derivatives, solve
+    from recoil_jax._model.status import raise_on_failure
+
+    params = rj.params_from_values(m=500.0, gap=0.0)
+    smoothing, options = rj.Smoothing(), rj.SolverOptions(max_steps=100)
+    ts = jnp.linspace(0.0, 0.1, 11)
+    wrt = ("gap",)
+
+    def lowered(fn) -> str:
+        return jax.jit(fn).lower().as_text()
+
+    def peaks():
+        return solve._peaks_jit(params, smoothing, options)
+
+    programs = {
+        "peaks": peaks,
+        "simulate": lambda: solve._simulate_jit(params, smoothing, options, ts),
+        "peak_jacobian": lambda: derivatives._peak_jacobian_jit(params, smoothing, options, wrt),
+    }
+    for name, program in programs.items():
+        assert "callback" not in lowered(program), name
+    assert "callback" in lowered(lambda: raise_on_failure(peaks(), peaks().status))
+
+    pytest.importorskip("flatbuffers")  # (jax.export's files: the apps extra)
+    monkeypatch.setattr(cache, "_export_folder", lambda: str(tmp_path))
+    limit(1)
+    rjx.structure_jit(lambda x: x)(jnp.ones(1))  # drop what earlier tests built
+    builds = cache.program_builds(inspect.unwrap(solve._peaks_jit))
+    fine = rj.peaks(rj.params_from_values(m=500.0, gap=0.15), smoothing, options)
+    assert fine.status == rj.Status.ok
+    (written,) = (tmp_path / "exported").iterdir()
+    assert written.name.startswith("_peaks_jit-") and written.suffix != ".refused"
+    rjx.structure_jit(lambda x: x)(jnp.ones(1))
+    loads = []
+    monkeypatch.setattr(jax.export, "deserialize", _counted(jax.export.deserialize, loads))
+    with pytest.raises(rj.SolveError, match="max_steps reached before t1") as info:
+        rj.peaks(params, smoothing, options)
+    assert rj.failure_message(info.value) == rj.Status[rj.Status.max_steps]
+    assert len(loads) == 1 and cache.program_builds(inspect.unwrap(solve._peaks_jit)) == builds + 2
+    quiet = rj.peaks(params, smoothing, options, throw=False)
+    assert quiet.status == rj.Status.max_steps and len(loads) == 1  # the same program
+
+
+def _counted(fn, calls):
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return fn(*args, **kwargs)
+
+    return counted

@@ -32,7 +32,6 @@ from hypothesis import (  # noqa: E402
 
 import recoil_jax as rj  # noqa: E402
 from recoil_jax.apps import main  # noqa: E402
-from recoil_jax.apps._files import exported as _exported  # noqa: E402
 
 EXAMPLES = int(os.environ.get("RECOIL_JAX_EXAMPLES", "150"))
 #: CI: the same examples every run; on demand (RECOIL_JAX_EXAMPLES given), new ones.
@@ -279,7 +278,6 @@ def stubbed():
     with pytest.MonkeyPatch.context() as patch:
         for name in SOLVES:
             patch.setattr(rj, name, _reached)
-        patch.setattr(_exported, "exported_peaks", _reached)
         yield
 
 

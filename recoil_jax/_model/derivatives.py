@@ -707,12 +707,8 @@ def peak_gradients(
     return _peaks_and_gradients(params, smoothing, options, wrt)
 
 
-@structure_jit
-def _peak_jacobian_jit(params, smoothing, options, wrt, throw: bool):
-    peaks, gradients = _peaks_and_gradients(params, smoothing, options, wrt)
-    if throw:
-        peaks, gradients = raise_on_failure((peaks, gradients), peaks.status)
-    return peaks, gradients
+#: `peak_gradients` as one compiled program (its failures raised outside it).
+_peak_jacobian_jit = structure_jit(_peaks_and_gradients)
 
 
 def peak_jacobian(
@@ -736,7 +732,8 @@ def peak_jacobian(
     wrt = tuple(wrt)
     check_wrt(params, wrt)
     options = with_default_tolerances(params, options)  # one program for any tolerances
-    return _peak_jacobian_jit(params, smoothing, options, wrt, throw)
+    peaks, gradients = _peak_jacobian_jit(params, smoothing, options, wrt)
+    return raise_on_failure((peaks, gradients), peaks.status) if throw else (peaks, gradients)
 
 
 #: The model's measurable signals by name (the paper's symbols), with their unit and

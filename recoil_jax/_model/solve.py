@@ -218,10 +218,9 @@ def peak_metrics(
     return peaks_of_run(params, smoothing, run, t1, args.rest, args.structure)
 
 
-@structure_jit
-def _peaks_jit(params, smoothing, options, throw: bool) -> Peaks:
-    result = peak_metrics(params, smoothing, options)
-    return raise_on_failure(result, result.status) if throw else result
+@functools.partial(structure_jit, exported=lambda leaves: jax.tree.unflatten(_peaks_tree(), leaves))
+def _peaks_jit(params, smoothing, options) -> Peaks:
+    return peak_metrics(params, smoothing, options)
 
 
 def peaks(
@@ -243,14 +242,15 @@ def peaks(
     their times, the absorber's stroke range, step counts and `status`.
 
     **Raises:** `SolveError` (with `throw=True`) if the step limit is reached, the state
-    becomes non-finite or the step size underflows. The check runs inside the compiled
-    program (`equinox.error_if`), so it also works inside a user's `jit`.
+    becomes non-finite or the step size underflows. Inside a user's `jit` the check
+    runs within that program (`equinox.error_if`), so it works there too.
     `ParameterError` for a load that does not fit in the solve (`end_time`), before
     compiling.
     """
     end_time(params, options)  # checks concrete inputs, before compiling
     # Tolerances as values, also the defaults: one program for any tolerances.
-    return _peaks_jit(params, smoothing, with_default_tolerances(params, options), throw)
+    result = _peaks_jit(params, smoothing, with_default_tolerances(params, options))
+    return raise_on_failure(result, result.status) if throw else result
 
 
 class History(eqx.Module):
@@ -289,7 +289,7 @@ class History(eqx.Module):
 
 
 @structure_jit
-def _simulate_jit(params, smoothing, options, ts, throw: bool) -> History:
+def _simulate_jit(params, smoothing, options, ts) -> History:
     args = model_args(params, smoothing)
     t1 = end_time(params, options)
     run = model_loop(params, options, stop_early=False, structure=args.structure).integrate(
@@ -297,7 +297,7 @@ def _simulate_jit(params, smoothing, options, ts, throw: bool) -> History:
     )
     ys = run.saved
     f = jax.vmap(lambda t, y: forces(y, params, smoothing, args.contact_width, t=t))(ts, ys)
-    history = History(
+    return History(
         ts=ts,
         x_M=ys[:, 0],
         v_M=ys[:, 1],
@@ -309,7 +309,6 @@ def _simulate_jit(params, smoothing, options, ts, throw: bool) -> History:
         peaks=peaks_of_run(params, smoothing, run, t1, args.rest, args.structure),
         status=run.status,
     )
-    return raise_on_failure(history, run.status) if throw else history
 
 
 def simulate(
@@ -345,7 +344,8 @@ def simulate(
             raise ParameterError(
                 f"simulate: ts must be sorted save times within [0, t1 = {end:g} s]"
             )
-    return _simulate_jit(params, smoothing, with_default_tolerances(params, options), ts, throw)
+    history = _simulate_jit(params, smoothing, with_default_tolerances(params, options), ts)
+    return raise_on_failure(history, history.status) if throw else history
 
 
 def _peaks_batch(

@@ -10,6 +10,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._model.registry import is_concrete
+
 __all__ = [
     "OK_CODE",
     "SolveError",
@@ -43,17 +45,29 @@ class Status(eqx.Enumeration):
 
 
 #: What `peaks`, `simulate` and `peak_jacobian` raise when a solve fails and
-#: `throw=True`: equinox's runtime error, raised by `equinox.error_if` inside the compiled
-#: program, so it works inside a user's `jit` too. Its message holds the `Status` message.
+#: `throw=True` (`raise_on_failure`): equinox's runtime error, raised after the compiled
+#: program ran or, inside a user's `jit`, by `equinox.error_if` within it. Its message
+#: holds the `Status` message.
 SolveError = eqx.EquinoxRuntimeError
 
 
 def raise_on_failure(token: Any, status: Any) -> Any:
-    """`token`, with a runtime error (`SolveError`) attached that fires if any element of
-    `status` is not `Status.ok`, carrying that status's message. Works under `jit` and
-    `vmap`, and for a batch of statuses (the message is that of the largest code)."""
+    """`token`, raising `SolveError` if any element of `status` is not `Status.ok`, with
+    that status's message (for a batch, the largest code's).
+
+    A concrete `status` (a compiled program's output) is checked here, on the host. A
+    traced one (inside a user's `jit` or `vmap`) gets the error attached with
+    `equinox.error_if`, which fires when that program runs. Called on a program's
+    outputs rather than inside it, the program holds no host callback, and JAX keeps
+    it in the persistent compilation cache."""
     (codes,) = jax.tree.leaves(status)
     ok = status_codes(Status.ok)
+    if is_concrete(codes):
+        host = np.asarray(codes)
+        failed = host != ok
+        if np.any(failed):
+            raise SolveError(_messages()[int(np.max(np.where(failed, host, ok)))])
+        return token
     failed = codes != ok
     worst = jax.tree.map(lambda _: jnp.max(jnp.where(failed, codes, ok)), Status.ok)
     return worst.error_if(token, jnp.any(failed))

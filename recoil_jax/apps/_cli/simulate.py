@@ -54,11 +54,7 @@ def run_simulate(args) -> int:
         smoothing = rj.Smoothing.exact()
     else:
         smoothing = rj.Smoothing()
-    # Checked here, not inside the program: a program that can raise holds a host
-    # callback, and JAX does not keep those in the compilation cache.
-    from .._files.exported import exported_peaks
-
-    peaks = exported_peaks(params, smoothing, options)
+    peaks = rj.peaks(params, smoothing, options, throw=False)  # its status said below
     if not bool(np.all(peaks.status == rj.Status.ok)):
         print(f"recoil-jax: solver failed: {rjx.status_messages(peaks.status)[0]}", file=sys.stderr)
         return 1
