@@ -231,3 +231,22 @@ def gap_problem(limit: float = 0.15):
         bounds={"gap": (0.0, 0.12)},
         constraints=(rj.Constraint("max_stroke", upper=limit),),
     )
+
+
+#: A force defined in a script's `__main__` (or a notebook): cloudpickle sends its
+#: class by value, as Dask does to its workers.
+SCRIPT_FORCE = """
+from typing import Any
+import recoil_jax as rj
+import recoil_jax.extend as rjx
+
+class MainSpring(rjx.Force):
+    GROUP = rjx.Group("main_spring", "MainSpring", "Spring to the mount", "hardware",
+                      ("main_spring_stiffness",))
+    ROWS = (rjx.Parameter(name="main_spring_stiffness", group="main_spring", default=0.0,
+                          unit="N/m", lower=0.0, documented=(0.0, 1e6), meaning="a spring"),)
+    main_spring_stiffness: Any = rjx.float_leaf(0.0)
+
+    def anchoring(self, y, t, design, smoothing):
+        return {"main_spring": self.main_spring_stiffness * y[0]}
+"""

@@ -115,6 +115,28 @@ def test_sweep_command_on_a_cluster(client, capsys):
     assert "not both" in capsys.readouterr().err
 
 
+def test_a_force_of_ones_own_is_solved_on_the_workers(client):
+    """A force defined in a notebook or a script's `__main__`, which Dask sends to the
+    workers by value, gives there the results of one process, bit for bit; before its
+    class was made whole where it landed, the workers solved every design as if its
+    spring were 0."""
+    from conftest import SCRIPT_FORCE
+
+    namespace = {"__name__": "__main__"}  # as a notebook's cell defines it
+    exec(SCRIPT_FORCE, namespace)
+    force = namespace["MainSpring"]
+    assert force.__module__ == "__main__"
+    try:
+        designs = [dict(k_r=20000.0, main_spring_stiffness=k) for k in (0.0, 2500.0, 7500.0)]
+        alone = rj.sweep(designs, progress=False, chunk_size=2)
+        spread = rj.sweep(designs, progress=False, chunk_size=2, client=client)
+        _assert_same(spread, alone)
+        forces = alone.peaks["peak_anchoring_force"]
+        assert forces[0] < forces[1] < forces[2]  # the spring counts
+    finally:
+        rjx.forget_part(force)
+
+
 def test_a_search_and_the_tuning_baselines_on_a_cluster(client, tmp_path, capsys):
     """The optimiser's global phase and the benchmark's batched baselines go through the
     cluster: the same samples, the same best design, the same penalised objectives."""

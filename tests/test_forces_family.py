@@ -21,7 +21,7 @@ import pytest
 import recoil_jax as rj
 import recoil_jax.extend as rjx
 from recoil_jax import apps
-from tests.conftest import study_text
+from tests.conftest import SCRIPT_FORCE, study_text
 
 K_BASE, K_ADDED = 20000.0, 7500.0  # the paper's k is 27,500 N/m: 20,000 + 7,500
 #: One tolerance for both designs (a design with a part beyond the paper's gets a
@@ -287,3 +287,56 @@ def test_a_share_is_one_forces():
 
             def anchoring(self, y, t, design, smoothing):
                 return {}
+
+
+def test_a_force_defined_in_a_script_is_whole_where_it_is_sent(mount_spring, tmp_path):
+    """A force defined in a script's `__main__` and sent by value (cloudpickle, as to a
+    Dask worker) solves there as where it was made, to the bit: its class is made again
+    where it lands (equinox registers a module's pytree fields when its class is made,
+    and a class sent by value is made empty: its spring would read its default, 0).
+    Also where the receiving process has its own copy of the class (a worker started by
+    `spawn` runs the script again). In the process that made it, a design copied or
+    pickled keeps its part's class."""
+    import copy
+    import pickle
+    import subprocess
+    import sys
+
+    cloudpickle = pytest.importorskip("cloudpickle")
+    sent = tmp_path / "design.pkl"
+    send = (
+        SCRIPT_FORCE
+        + f"""
+import cloudpickle, pickle, copy
+design = rj.params_from_values(k_r=20000.0, main_spring_stiffness=7500.0)
+assert type(pickle.loads(cloudpickle.dumps(design)).added[0]) is MainSpring
+assert type(copy.deepcopy(design).added[0]) is MainSpring
+value = float(rj.peaks(design).peak_anchoring_force)
+plain = float(rj.peaks(rj.params_from_values(k_r=20000.0)).peak_anchoring_force)
+open({str(sent)!r}, "wb").write(cloudpickle.dumps((design, value, plain)))
+"""
+    )
+    receive = f"""
+import pickle, jax
+import recoil_jax as rj
+design, value, plain = pickle.loads(open({str(sent)!r}, "rb").read())
+(part,) = design.added
+assert len(jax.tree.leaves(part)) == 1, jax.tree.leaves(part)
+assert float(part.main_spring_stiffness) == 7500.0
+assert "main_spring_stiffness" in rj.PARAMETERS
+here = float(rj.peaks(design).peak_anchoring_force)
+assert here == value != plain, (here, value, plain)
+again, _, _ = pickle.loads(open({str(sent)!r}, "rb").read())
+assert type(again.added[0]) is type(part)
+print("whole")
+"""
+    for script in (send, receive, SCRIPT_FORCE + receive):
+        done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.strip() == "whole"
+
+    # In the process that made it: copied, or pickled by value, its class is its own.
+    design = rj.params_from_values(k_r=20000.0, mount_spring_stiffness=7500.0)
+    for back in (copy.deepcopy(design), pickle.loads(cloudpickle.dumps(design))):
+        assert type(back.added[0]) is mount_spring
+        assert jax.tree.leaves(back) == jax.tree.leaves(design)

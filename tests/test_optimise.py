@@ -282,8 +282,8 @@ def test_every_shipped_study_parses():
 def test_a_study_run_again_loads_its_exported_programs(tmp_path):
     """With the compilation cache on, `optimise` exports its gradient program, its
     batched solve and its checks' solve of one design to the cache's folder; the same
-    study again, in another process, loads them (each counted as its one build: `compilations`) and finds the same
-    design, to the bit."""
+    study again, in another process, loads them (each counted as its one build:
+    `compilations`) and finds the same design, to the bit."""
     import os
     import subprocess
     import sys

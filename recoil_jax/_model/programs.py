@@ -424,8 +424,8 @@ def _compile(fn, static):
 
     def run(dynamic):
         try:
-            # Waited for here, so that a runtime error (`eqx.error_if`, a failed solve
-            # with `throw=True`) is raised by this call, as `eqx.filter_jit` does.
+            # Waited for here, so that a runtime error (an `eqx.error_if` in `fn`) is
+            # raised by this call, as `eqx.filter_jit` does.
             out_dynamic = jax.block_until_ready(jitted(dynamic))
         # A callback's error comes as a JaxRuntimeError, or in some processes (seen in
         # the test suite, under xdist) as a ValueError("INTERNAL: CpuCallback error").

@@ -11,11 +11,13 @@ registry, `params_from_values`, the sweeps and the studies take it by its flat n
 from __future__ import annotations
 
 import abc
+import dataclasses
 import hashlib
 import inspect
 from typing import Any, ClassVar
 
 import jax
+import numpy as np
 
 from ..._model.parameter_table import PARAMETERS
 from ..._model.registry import (
@@ -102,6 +104,14 @@ class Part(Validated):
             cls.LIMITS = group_limits(group.name)
         FAMILY[group.name] = cls
 
+    def __reduce_ex__(self, protocol):
+        # A part defined outside the package travels as its class and its fields, and
+        # is made whole where it lands (`_received_part`).
+        if not type(self).ROWS:
+            return super().__reduce_ex__(protocol)
+        values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        return _received_part, (type(self), values)
+
 
 class Force(Part):
     """A part that pushes on the barrel through the recoil mechanism: what it adds to
@@ -154,6 +164,72 @@ def forget_part(part: type[Part]) -> None:
     FAMILY.pop(name, None)
     GROUPS.pop(name, None)
     PARAMETERS.remove([row.name for row in part.ROWS])
+
+
+#: What making a class adds to its body (dataclass, equinox, abc and `Part` itself):
+#: left out when a class is made again from its body (`_remade`).
+_MADE = frozenset({
+    "__dict__", "__weakref__", "__dataclass_fields__", "__dataclass_params__",
+    "__match_args__", "__abstractclassvars__", "__abstractmethods__", "__abstractvars__",
+    "_abc_impl", "__slotnames__", "LIMITS",
+})  # fmt: skip
+#: Each outside part's class as received, and the class its parts are made of here.
+_RECEIVED: dict[type, type] = {}
+
+
+def _received_part(cls: type[Part], values: dict[str, Any]) -> Part:
+    """A part defined outside the package, unpickled (`Part.__reduce_ex__`): `values`
+    (its fields by name) on its class made whole (`_whole`)."""
+    part = object.__new__(_whole(cls))
+    for name, value in values.items():
+        object.__setattr__(part, name, value)
+    return part
+
+
+def _whole(cls: type[Part]) -> type[Part]:
+    """`cls`, or where it came without its pytree's fields, the class made again from its
+    body. A class sent by value (cloudpickle: one defined in a notebook or a script's
+    `__main__`, sent to a Dask worker) is made empty and filled in after, and equinox
+    registers a module's pytree fields when its class is made: its parts would flatten
+    to nothing, and a solve would see each field's default instead of its value."""
+    if cls not in _RECEIVED:
+        fields = dataclasses.fields(cls)
+        probe = object.__new__(cls)
+        for field in fields:
+            object.__setattr__(probe, field.name, np.zeros(()))
+        dynamic = [f for f in fields if not f.metadata.get("static", False)]
+        whole = jax.tree.structure(probe).num_leaves == len(dynamic)
+        _RECEIVED[cls] = cls if whole else _remade(cls)
+    return _RECEIVED[cls]
+
+
+def _remade(cls: type[Part]) -> type[Part]:
+    """`cls` made again from its body, its fields as declared: it joins the family here
+    (`Part.__init_subclass__`), in place of any class of its group made before."""
+    body = {name: value for name, value in vars(cls).items() if name not in _MADE}
+    if cls.__dataclass_params__.init:  # pyright: ignore[reportAttributeAccessIssue]
+        body.pop("__init__", None)  # the dataclass's own, made again from the fields
+    for f in dataclasses.fields(cls):
+        default, factory = (_declared(x) for x in (f.default, f.default_factory))
+        body[f.name] = dataclasses.field(
+            default=default, default_factory=factory, init=f.init, repr=f.repr,
+            hash=f.hash, compare=f.compare, metadata=f.metadata, kw_only=_declared(f.kw_only),
+        )  # fmt: skip
+    body["__qualname__"] = cls.__qualname__
+    earlier = FAMILY.get(cls.GROUP.name)
+    if earlier is not None and earlier.ROWS:
+        # Its group's class made before in this process: one made again for an earlier
+        # version, or a worker's own copy of the sender's script (a process started by
+        # `spawn` runs its `__main__` again). The design received says what it is.
+        forget_part(earlier)
+    metaclass: Any = type(cls)  # equinox's: it registers the pytree's fields
+    return metaclass(cls.__name__, cls.__bases__, body)
+
+
+def _declared(value: Any) -> Any:
+    """`value`, or `dataclasses.MISSING` for a copy of it (sent by value with its
+    class, it is another object, which `dataclasses` would take for a value)."""
+    return dataclasses.MISSING if type(value).__name__ == "_MISSING_TYPE" else value
 
 
 def outside_parts(tree: Any) -> list[Part]:
