@@ -236,17 +236,26 @@ def gap_problem(limit: float = 0.15):
 #: A force defined in a script's `__main__` (or a notebook): cloudpickle sends its
 #: class by value, as Dask does to its workers.
 SCRIPT_FORCE = """
-from typing import Any
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
 import recoil_jax as rj
 import recoil_jax.extend as rjx
+
 
 class MainSpring(rjx.Force):
     GROUP = rjx.Group("main_spring", "MainSpring", "Spring to the mount", "hardware",
                       ("main_spring_stiffness",))
     ROWS = (rjx.Parameter(name="main_spring_stiffness", group="main_spring", default=0.0,
                           unit="N/m", lower=0.0, documented=(0.0, 1e6), meaning="a spring"),)
+    SCALE: ClassVar[float] = 1.0  # not a field
     main_spring_stiffness: Any = rjx.float_leaf(0.0)
 
     def anchoring(self, y, t, design, smoothing):
-        return {"main_spring": self.main_spring_stiffness * y[0]}
+        assert isinstance(self, MainSpring)  # its class by its name
+        return {"main_spring": self.SCALE * self.main_spring_stiffness * y[0]}
+
+    def potential(self, x_M, design):
+        return super().potential(x_M, design)  # None: the energy not known
 """

@@ -120,13 +120,21 @@ def test_a_force_of_ones_own_is_solved_on_the_workers(client):
     workers by value, gives there the results of one process, bit for bit; before its
     class was made whole where it landed, the workers solved every design as if its
     spring were 0."""
+    import sys
+    import types
+
     from conftest import SCRIPT_FORCE
 
-    namespace = {"__name__": "__main__"}  # as a notebook's cell defines it
-    exec(SCRIPT_FORCE, namespace)
-    force = namespace["MainSpring"]
-    assert force.__module__ == "__main__"
+    # Defined in a `__main__` of its own, as a notebook's cell defines it (its string
+    # annotations read there); sent once this process's `__main__` is back, in which
+    # Dask cannot find it by name, so that it goes by value.
+    notebook = types.ModuleType("__main__")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setitem(sys.modules, "__main__", notebook)
+        exec(SCRIPT_FORCE, notebook.__dict__)
+    force = notebook.MainSpring
     try:
+        assert force.__module__ == "__main__"
         designs = [dict(k_r=20000.0, main_spring_stiffness=k) for k in (0.0, 2500.0, 7500.0)]
         alone = rj.sweep(designs, progress=False, chunk_size=2)
         spread = rj.sweep(designs, progress=False, chunk_size=2, client=client)

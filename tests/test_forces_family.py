@@ -317,11 +317,13 @@ open({str(sent)!r}, "wb").write(cloudpickle.dumps((design, value, plain)))
 """
     )
     receive = f"""
-import pickle, jax
+import dataclasses, pickle, jax
 import recoil_jax as rj
 design, value, plain = pickle.loads(open({str(sent)!r}, "rb").read())
 (part,) = design.added
 assert len(jax.tree.leaves(part)) == 1, jax.tree.leaves(part)
+assert [f.name for f in dataclasses.fields(part)] == ["main_spring_stiffness"]
+assert part.potential(0.1, design) is None  # through `super()`
 assert float(part.main_spring_stiffness) == 7500.0
 assert "main_spring_stiffness" in rj.PARAMETERS
 here = float(rj.peaks(design).peak_anchoring_force)

@@ -14,6 +14,7 @@ import abc
 import dataclasses
 import hashlib
 import inspect
+import threading
 from typing import Any, ClassVar
 
 import jax
@@ -173,8 +174,10 @@ _MADE = frozenset({
     "__match_args__", "__abstractclassvars__", "__abstractmethods__", "__abstractvars__",
     "_abc_impl", "__slotnames__", "LIMITS",
 })  # fmt: skip
-#: Each outside part's class as received, and the class its parts are made of here.
+#: Each outside part's class as received, and the class its parts are made of here
+#: (made under the lock: a Dask worker may unpickle on two threads at once).
 _RECEIVED: dict[type, type] = {}
+_RECEIVING = threading.Lock()
 
 
 def _received_part(cls: type[Part], values: dict[str, Any]) -> Part:
@@ -192,24 +195,35 @@ def _whole(cls: type[Part]) -> type[Part]:
     `__main__`, sent to a Dask worker) is made empty and filled in after, and equinox
     registers a module's pytree fields when its class is made: its parts would flatten
     to nothing, and a solve would see each field's default instead of its value."""
-    if cls not in _RECEIVED:
-        fields = dataclasses.fields(cls)
-        probe = object.__new__(cls)
-        for field in fields:
-            object.__setattr__(probe, field.name, np.zeros(()))
-        dynamic = [f for f in fields if not f.metadata.get("static", False)]
-        whole = jax.tree.structure(probe).num_leaves == len(dynamic)
-        _RECEIVED[cls] = cls if whole else _remade(cls)
-    return _RECEIVED[cls]
+    with _RECEIVING:
+        if cls not in _RECEIVED:
+            _RECEIVED[cls] = cls if _flattens_its_fields(cls) else _remade(cls)
+        return _RECEIVED[cls]
+
+
+def _flattens_its_fields(cls: type[Part]) -> bool:
+    """Whether a part of `cls` flattens to one leaf a field (its static fields aside)."""
+    fields = dataclasses.fields(cls)
+    probe = object.__new__(cls)
+    for field in fields:
+        object.__setattr__(probe, field.name, np.zeros(()))
+    dynamic = [f for f in fields if not f.metadata.get("static", False)]
+    return jax.tree.structure(probe).num_leaves == len(dynamic)
 
 
 def _remade(cls: type[Part]) -> type[Part]:
     """`cls` made again from its body, its fields as declared: it joins the family here
-    (`Part.__init_subclass__`), in place of any class of its group made before."""
+    (`Part.__init_subclass__`), in place of any class of its group made before. Its
+    methods' references to the class as received (`super()`'s cell, its name among
+    their globals) are pointed at the class made."""
     body = {name: value for name, value in vars(cls).items() if name not in _MADE}
     if cls.__dataclass_params__.init:  # pyright: ignore[reportAttributeAccessIssue]
         body.pop("__init__", None)  # the dataclass's own, made again from the fields
-    for f in dataclasses.fields(cls):
+    fields = dataclasses.fields(cls)
+    # The fields alone, annotated by objects: a string annotation (`from __future__
+    # import annotations`) would be read in this process's module of that name.
+    body["__annotations__"] = {f.name: Any if isinstance(f.type, str) else f.type for f in fields}
+    for f in fields:
         default, factory = (_declared(x) for x in (f.default, f.default_factory))
         body[f.name] = dataclasses.field(
             default=default, default_factory=factory, init=f.init, repr=f.repr,
@@ -223,7 +237,27 @@ def _remade(cls: type[Part]) -> type[Part]:
         # `spawn` runs its `__main__` again). The design received says what it is.
         forget_part(earlier)
     metaclass: Any = type(cls)  # equinox's: it registers the pytree's fields
-    return metaclass(cls.__name__, cls.__bases__, body)
+    made = metaclass(cls.__name__, cls.__bases__, body)
+    for value in body.values():
+        for function in _functions(value):
+            cells = zip(function.__code__.co_freevars, function.__closure__ or (), strict=True)
+            for name, cell in cells:
+                if name == "__class__" and cell.cell_contents is cls:
+                    cell.cell_contents = made
+            for name in function.__code__.co_names:
+                if function.__globals__.get(name) is cls:
+                    function.__globals__[name] = made
+    return made
+
+
+def _functions(value: Any) -> list[Any]:
+    """The plain functions a class attribute holds (a method, a property's accessors, a
+    class or static method's function)."""
+    if isinstance(value, property):
+        candidates = [value.fget, value.fset, value.fdel]
+    else:
+        candidates = [getattr(value, "__func__", value)]
+    return [f for f in candidates if inspect.isfunction(f)]
 
 
 def _declared(value: Any) -> Any:
