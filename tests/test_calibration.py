@@ -373,8 +373,11 @@ def test_a_sample_on_an_event_its_sampling_misses_is_flagged_alone():
 def test_the_samples_either_side_of_a_jump_are_found_in_numpy_and_in_jax():
     """`jump_samples`: the two samples either side of a step the rates do not explain
     (a jump sampled each ms, its rate 0 beside it), however the step sits against a
-    sample; not a steep smooth ramp whose rates explain its steps, nor a step within
-    twice the noise, nor one beside an absent sample; the same in JAX as in numpy."""
+    sample; beside an absent sample, the present one on its other side (before, none:
+    only two present neighbours were compared); not a steep smooth ramp whose rates
+    explain its steps, nor a step within twice the noise, nor one between two absent
+    samples (moving it a little moves no sample across it); the same in JAX as in
+    numpy."""
     import jax.numpy as jnp
 
     from recoil_jax._calibration.least_squares import jump_samples
@@ -383,13 +386,14 @@ def test_the_samples_either_side_of_a_jump_are_found_in_numpy_and_in_jax():
     step = np.where(t > t[20] + 3e-4, 2400.0, 0.0)
     ramp, ramp_rate = 1e6 * t, np.full_like(t, 1e6)  # 1 kN a sample, explained
     small = np.where(t > t[20] + 3e-4, 500.0, 0.0)  # under twice the noise of 300 N
-    signals = np.stack([step, ramp, small, step])
-    rates = np.stack([np.zeros_like(t), ramp_rate, np.zeros_like(t), np.zeros_like(t)])
-    present = np.ones((1, 4, t.size), dtype=bool)
-    present[0, 3, 21] = False  # the sample after the last row's jump is absent
-    sigma = np.array([[300.0, 300.0, 300.0, 300.0]])
+    signals = np.stack([step, ramp, small, step, step])
+    rates = np.stack([np.zeros_like(t), ramp_rate, *[np.zeros_like(t)] * 3])
+    present = np.ones((1, 5, t.size), dtype=bool)
+    present[0, 3, 21] = False  # the sample after this row's jump is absent
+    present[0, 4, 20:22] = False  # both samples either side of this row's jump
+    sigma = np.full((1, 5), 300.0)
     found = jump_samples(t[None], signals[None], rates[None], present, sigma)
-    assert [np.flatnonzero(f).tolist() for f in found[0]] == [[20, 21], [], [], []]
+    assert [np.flatnonzero(f).tolist() for f in found[0]] == [[20, 21], [], [], [20], []]
     in_jax = jump_samples(jnp.asarray(t[None]), jnp.asarray(signals[None]),
                           jnp.asarray(rates[None]), jnp.asarray(present),
                           jnp.asarray(sigma))  # fmt: skip

@@ -145,6 +145,46 @@ def test_a_force_of_ones_own_is_solved_on_the_workers(client):
         rjx.forget_part(force)
 
 
+def test_a_force_the_workers_cannot_import_is_named_not_waited_for(client, tmp_path):
+    """A force from a module on this process's path but not on the workers' (a package
+    not installed on the cluster) is refused with the module and the workers named,
+    before a chunk is sent: a worker that cannot unpickle a task left the sweep waiting
+    for ever."""
+    import sys
+    import threading
+
+    from conftest import SCRIPT_FORCE
+
+    (tmp_path / "spring_here_only.py").write_text(SCRIPT_FORCE)
+    outcome = {}
+
+    def run():
+        try:
+            rj.sweep(designs, progress=False, chunk_size=2, client=client)
+        except ImportError as error:
+            outcome["error"] = error
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.syspath_prepend(str(tmp_path))  # here, after the workers started
+        import spring_here_only  # type: ignore[import-not-found]
+
+        force = spring_here_only.MainSpring
+        try:
+            designs = [dict(k_r=20000.0, main_spring_stiffness=k) for k in (0.0, 2500.0)]
+            thread = threading.Thread(target=run, daemon=True)
+            thread.start()
+            thread.join(120.0)
+            assert not thread.is_alive(), "the sweep waited for workers that cannot import"
+        finally:
+            rjx.forget_part(force)
+            sys.modules.pop("spring_here_only", None)
+    error = outcome["error"]
+    assert error.name == "spring_here_only"
+    message = str(error)
+    assert "'spring_here_only'" in message and "MainSpring" in message
+    assert all(address in message for address in client.nthreads())
+
+
 def test_a_search_and_the_tuning_baselines_on_a_cluster(client, tmp_path, capsys):
     """The optimiser's global phase and the benchmark's batched baselines go through the
     cluster: the same samples, the same best design, the same penalised objectives."""

@@ -11,6 +11,7 @@ each path it flows through.
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -342,3 +343,66 @@ print("whole")
     for back in (copy.deepcopy(design), pickle.loads(cloudpickle.dumps(design))):
         assert type(back.added[0]) is mount_spring
         assert jax.tree.leaves(back) == jax.tree.leaves(design)
+
+
+class _Workers:
+    """A Dask client as `_check_importable_on_workers` sees it: its workers by address,
+    and `run` answering for each worker asked (those in `without` lack the module
+    `springs_on_path`), recording whom it asked."""
+
+    def __init__(self, workers, without=()):
+        self.workers, self.without, self.asked = list(workers), set(without), []
+
+    def nthreads(self):
+        return {address: 1 for address in self.workers}
+
+    def run(self, function, classes, workers):
+        self.asked.append(sorted(workers))
+        lacking = {c: "ModuleNotFoundError: no springs_on_path" for c in classes
+                   if c[0] == "springs_on_path"}  # fmt: skip
+        return {w: lacking if w in self.without else function(classes) for w in workers}
+
+
+def test_a_sweep_asks_its_workers_for_the_classes_its_parts_are_sent_by(
+    mount_spring, tmp_path, monkeypatch
+):
+    """Before a chunk goes to a Dask cluster, each worker is asked, once, for the classes
+    that cloudpickle sends its outside parts by reference with (a module's top-level
+    class and its bases), not for one made in a function (sent by value) nor for the
+    package's own; a worker that lacks one is named with the module and why, where it
+    would otherwise leave the sweep waiting for ever; a worker that joins is asked
+    before the next chunk, and a cluster with no workers yet is asked nothing."""
+    from recoil_jax._sweeps.dispatch import _check_importable_on_workers, _classes_by_reference
+
+    made_in_a_function = rj.params_from_values(mount_spring_stiffness=K_ADDED)
+    assert _classes_by_reference(made_in_a_function) == {}
+    (tmp_path / "springs_on_path.py").write_text(SCRIPT_FORCE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import springs_on_path  # type: ignore[import-not-found]
+
+    try:
+        design = rj.params_from_values(k_r=K_BASE, main_spring_stiffness=K_ADDED)
+        needed = _classes_by_reference(design)
+        assert needed == {("springs_on_path", "MainSpring"): "MainSpring"}
+
+        verified: dict = {}
+        cluster = _Workers([])
+        _check_importable_on_workers(cluster, design, verified)  # no worker yet
+        assert cluster.asked == [] and verified == {}
+        cluster.workers = ["tcp://a", "tcp://b"]
+        _check_importable_on_workers(cluster, design, verified)
+        _check_importable_on_workers(cluster, design, verified)  # asked once
+        assert cluster.asked == [["tcp://a", "tcp://b"]]
+        cluster.workers.append("tcp://c")  # joins: asked alone
+        _check_importable_on_workers(cluster, design, verified)
+        assert cluster.asked[1:] == [["tcp://c"]]
+
+        lacking = _Workers(["tcp://a", "tcp://b"], without={"tcp://b"})
+        with pytest.raises(ImportError, match="no springs_on_path") as error:
+            _check_importable_on_workers(lacking, design, {})
+        assert error.value.name == "springs_on_path"
+        assert "worker tcp://b cannot import springs_on_path.MainSpring" in str(error.value)
+        assert "tcp://a" not in str(error.value)
+    finally:
+        rjx.forget_part(springs_on_path.MainSpring)
+        sys.modules.pop("springs_on_path", None)

@@ -763,7 +763,7 @@ def test_the_command_line_samples_the_posterior(tmp_path, capsys):
     import arviz as az
 
     source = calibration_file(
-        tmp_path, 'draws = 300\nwarmup = 300\nchains = 2\nseed = 3\n'
+        tmp_path, 'draws = 300\nwarmup = 300\nchains = 2\nparallel_chains = 2\nseed = 3\n'
         '[posterior.prior]\ngap = { kind = "normal", mean = 0.02, sd = 0.01 }\n'
         'k = { kind = "normal", mean = 3e4, sd = 1e4 }\n',
     )  # fmt: skip
@@ -779,6 +779,7 @@ def test_the_command_line_samples_the_posterior(tmp_path, capsys):
     report = json.loads((out / "result.json").read_text())
     summary = report["posterior"]["summary"]
     assert set(summary) == {"k", "c_out", "gap"} and report["posterior"]["converged"]
+    assert report["posterior"]["parallel_chains"] == 2
     assert report["posterior"]["priors"]["gap"] == {"kind": "normal", "mean": 0.02, "sd": 0.01}
     assert report["posterior"]["priors"]["k"] == {"kind": "lognormal", "mean": 28000, "sd": 3000}
     # The traces under the posterior: the measured samples inside the 95 % band of a
@@ -812,7 +813,8 @@ def test_the_command_line_samples_the_posterior(tmp_path, capsys):
     # The noise sampled too (`--sample-noise`), on too few draws: its rows, and the gates
     # name it as they name a value.
     status = main(["calibrate", source, "--posterior", "--draws", "20", "--warmup", "30",
-                   "--sample-noise", "--out", str(tmp_path / "short")])  # fmt: skip
+                   "--sample-noise", "--parallel-chains", "1",
+                   "--out", str(tmp_path / "short")])  # fmt: skip
     assert status == POSTERIOR_NOT_CONVERGED
     captured = capsys.readouterr()
     assert "the sampler has not converged: k: bulk ESS" in captured.err
@@ -821,6 +823,7 @@ def test_the_command_line_samples_the_posterior(tmp_path, capsys):
     assert "half-normal prior, scale" in captured.out
     report = json.loads((tmp_path / "short" / "result.json").read_text())
     assert set(report["posterior"]["noise"][0]["F_AN"]["sampled"]) >= {"mean", "q97.5", "r_hat"}
+    assert report["posterior"]["parallel_chains"] == 1  # the flag over the file's 2
 
 
 @pytest.mark.parametrize(
@@ -828,6 +831,9 @@ def test_the_command_line_samples_the_posterior(tmp_path, capsys):
     [
         ("", ["--draws", "10"], "--draws is for --posterior"),
         ("chains = 0\n", ["--posterior"], "chains must be in [1, 64], got 0"),
+        ("parallel_chains = 0\n", ["--posterior"], "parallel_chains must be in [1, 64], got 0"),
+        ("", ["--posterior", "--parallel-chains", "65"], "parallel_chains must be in [1, 64]"),
+        ("", ["--parallel-chains", "2"], "--parallel-chains is for --posterior"),
         ("", ["--posterior", "--warmup", "0"], "warmup must be in [1, 100000], got 0"),
         ("thin = 2\n", ["--posterior"], "[posterior] unknown key 'thin'"),
         ("dense_mass = 1\n", ["--posterior"], "[posterior] dense_mass = 1: give true or false"),

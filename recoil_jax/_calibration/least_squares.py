@@ -413,10 +413,12 @@ def log_likelihood_term(sigma, present):
 
 
 def jump_samples(times, signals, rates, present, sigma):
-    """Which samples `(E, S, n)` lie either side of a jump in the model's signal: a
-    step between two neighbouring samples of `signals (E, S, n)`, both present, over
+    """Which present samples `(E, S, n)` lie either side of a jump in the model's
+    signal: a step between two neighbouring sample times of `signals (E, S, n)` over
     `JUMP_RATIO` times what their `rates (E, S, n)` explain over their spacing (`times
-    (E, n)`), plus twice the noise `sigma (E, S)`. Any array module (the fit's program
+    (E, n)`), plus twice the noise `sigma (E, S)`. The model's signal is known at every
+    sample time, so a jump beside an absent sample (`present (E, S, n)` false) still
+    leaves out the present one on its other side. Any array module (the fit's program
     and the posterior's set-up call it).
 
     Such a sample carries an event's time (a stick, a slip, the buffer's engagement)
@@ -428,10 +430,10 @@ def jump_samples(times, signals, rates, present, sigma):
     step = xp.abs(xp.diff(signals, axis=-1))
     rate = xp.maximum(xp.abs(rates[..., :-1]), xp.abs(rates[..., 1:]))
     explained = rate * xp.diff(times, axis=-1)[:, None, :]
-    both = present[..., :-1] & present[..., 1:]
-    jump = both & (step > JUMP_RATIO * explained + 2.0 * sigma[..., None])
+    jump = step > JUMP_RATIO * explained + 2.0 * sigma[..., None]
     edge = xp.zeros((*jump.shape[:-1], 1), dtype=bool)
-    return xp.concatenate([jump, edge], axis=-1) | xp.concatenate([edge, jump], axis=-1)
+    beside = xp.concatenate([jump, edge], axis=-1) | xp.concatenate([edge, jump], axis=-1)
+    return beside & present
 
 
 class OffTheJumps(eqx.Module):

@@ -5,7 +5,9 @@ workers of a Dask cluster; and one chunk's results as columns."""
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import itertools
+import sys
 import time
 from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -15,6 +17,7 @@ import jax
 import numpy as np
 
 from .._model.derivatives import peak_gradients_batch
+from .._model.forces.family import Part, outside_parts
 from .._model.metrics import METRICS, PEAK_FIELDS, gradient_key
 from .._model.params import RecoilParams
 from .._model.programs import avx2_codegen_set
@@ -147,9 +150,11 @@ def _solved_on_cluster(
     futures = {}
     done = as_completed()
     waiting = iter(todo)
+    verified: dict[tuple[str, str], set[str]] = {}
 
     def submit(chunk: Chunk) -> None:
         batch, t1 = chunk.batch()
+        _check_importable_on_workers(client, batch, verified)
         future = client.submit(
             _solve_chunk_on_worker, batch, t1, len(chunk.points), chunk.group.wrt, shipped,
             cache, avx2, pure=False, retries=2,
@@ -157,11 +162,11 @@ def _solved_on_cluster(
         futures[future] = chunk
         done.add(future)
 
-    # Two chunks per worker thread in flight: the workers never wait, and the designs
-    # waiting to be solved stay here, not in the cluster's memory.
-    for chunk in itertools.islice(waiting, 2 * max(1, sum(client.nthreads().values()))):
-        submit(chunk)
     try:
+        # Two chunks per worker thread in flight: the workers never wait, and the designs
+        # waiting to be solved stay here, not in the cluster's memory.
+        for chunk in itertools.islice(waiting, 2 * max(1, sum(client.nthreads().values()))):
+            submit(chunk)
         for future in done:
             chunk = futures.pop(future)
             yield chunk, *future.result()
@@ -171,3 +176,82 @@ def _solved_on_cluster(
     finally:
         for future in futures:
             future.cancel()
+
+
+def _sent_by_reference(cls: type) -> bool:
+    """Whether cloudpickle sends the class `cls` by reference (its module's name and its
+    qualified name, which the receiver imports) rather than by value: where its module
+    is imported here, is not `__main__` nor registered by value (it or a package above
+    it), and holds `cls` under its qualified name (not a class made in a function)."""
+    import cloudpickle
+
+    module = cls.__module__
+    by_value = cloudpickle.list_registry_pickle_by_value()
+    packages = {".".join(module.split(".")[: i + 1]) for i in range(module.count(".") + 1)}
+    if module == "__main__" or packages & by_value or module not in sys.modules:
+        return False
+    found: Any = sys.modules[module]
+    for name in cls.__qualname__.split("."):
+        found = getattr(found, name, None)
+    return found is cls
+
+
+def _classes_by_reference(batch) -> dict[tuple[str, str], str]:
+    """The classes that a worker imports to unpickle the outside parts of `batch` (a
+    design's `added`): each part's class and its bases sent by reference, as `(module,
+    qualified name)`, each with the part's class that needs it. Not Python's classes,
+    nor those of the package or of its parts' bases (equinox): a worker runs them."""
+    has = {*sys.stdlib_module_names, *(c.__module__.split(".")[0] for c in Part.__mro__)}
+    needed = {}
+    for part in outside_parts(batch):
+        for cls in type(part).__mro__:
+            if cls.__module__.split(".")[0] not in has and _sent_by_reference(cls):
+                needed.setdefault((cls.__module__, cls.__qualname__), type(part).__qualname__)
+    return needed
+
+
+def _unimportable(classes: list[tuple[str, str]]) -> dict[tuple[str, str], str]:
+    """Of `classes` (`(module, qualified name)`), those this process cannot import, each
+    with why (run on each Dask worker)."""
+    missing = {}
+    for module, qualname in classes:
+        try:
+            found: Any = importlib.import_module(module)
+            for name in qualname.split("."):
+                found = getattr(found, name)
+        except Exception as error:  # reported, with its cause
+            missing[module, qualname] = f"{type(error).__name__}: {error}"
+    return missing
+
+
+def _check_importable_on_workers(
+    client: Any, batch, verified: dict[tuple[str, str], set[str]]
+) -> None:
+    """Raise `ImportError` before the chunk `batch` is sent where a worker of `client`
+    cannot import a class that its outside parts are sent by reference with: a worker
+    that cannot unpickle a task leaves the sweep waiting for ever. `verified`: for each
+    class, the workers found to import it (added to; a worker that joins later is asked
+    before the next chunk)."""
+    needed = _classes_by_reference(batch)
+    if not needed:
+        return
+    workers = set(client.nthreads())  # every worker, by address
+    asked = {key: workers - verified.get(key, set()) for key in needed}
+    ask = set().union(*asked.values())
+    if not ask:
+        return
+    missing = client.run(_unimportable, sorted(needed), workers=sorted(ask))
+    for key, part in needed.items():
+        module, qualname = key
+        failed = sorted(w for w in asked[key] if key in missing.get(w, {}))
+        if failed:
+            why = missing[failed[0]][key]
+            raise ImportError(
+                f"the Dask worker{'s' if len(failed) > 1 else ''} {', '.join(failed)} cannot "
+                f"import {module}.{qualname}, which the added part {part} needs ({why}): "
+                "make its module importable there (installed, or on the workers' "
+                "PYTHONPATH), or define the part in the script or notebook that runs the "
+                "sweep, so that it is sent with the sweep",
+                name=module,
+            )
+        verified.setdefault(key, set()).update(asked[key] & set(missing))

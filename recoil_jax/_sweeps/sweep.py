@@ -98,7 +98,10 @@ def sweep(
     and `status` says why (`SweepResult.failures()`).
 
     **Raises:** `ParameterError` for an unknown name or a bad value (naming the point's
-    index) before anything is compiled.
+    index) before anything is compiled; with `client`, `ImportError` naming the module
+    and the workers where a worker cannot import the module an added part (its `ROWS`)
+    is sent by name from, before it is sent a chunk that needs it (a part defined in a
+    notebook, a script's `__main__` or a function is sent with the sweep).
     """
     # Every argument, by name, as `_sweep` takes them (nothing else is defined yet).
     return _sweep(True, **locals())

@@ -242,10 +242,10 @@ def _sample_posterior(calibration, result, sampling: dict, predict, report: dict
 
 def _posterior_settings(args, calibration: rj.Calibration, table: dict) -> dict | None:
     """`sample_posterior`'s settings: the file's `[posterior]` with `--draws`,
-    `--warmup`, `--chains` and each `--prior` over it, checked before the fit; None
-    without `--posterior`."""
-    given = {k: getattr(args, k) for k in ("draws", "warmup", "chains", "prior")
-             if getattr(args, k) is not None}  # fmt: skip
+    `--warmup`, `--chains`, `--parallel-chains` and each `--prior` over it, checked
+    before the fit; None without `--posterior`."""
+    given = {k: getattr(args, k) for k in ("draws", "warmup", "chains", "parallel_chains",
+                                           "prior") if getattr(args, k) is not None}  # fmt: skip
     if args.sample_noise:
         given["sample_noise"] = True
     if not args.posterior:
@@ -660,8 +660,9 @@ def add_command(commands: Commands) -> None:
     )
     for name, words in (("draws", "draws per chain (default 1000)"),
                         ("warmup", "warm-up steps per chain (default 1000)"),
-                        ("chains", "chains (default 4)")):  # fmt: skip
-        calibrate.add_argument(f"--{name}", type=int, metavar="N",
+                        ("chains", "chains (default 4)"),
+                        ("parallel_chains", "chains at once (default: one per core)")):  # fmt: skip
+        calibrate.add_argument(f"--{name.replace('_', '-')}", type=int, metavar="N",
                                help=f"with --posterior: {words}, over the file's")  # fmt: skip
     add_json(calibrate)
     add_max_steps(calibrate)

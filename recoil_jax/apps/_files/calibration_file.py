@@ -47,8 +47,8 @@ MAX_SIGNAL = 1e150
 _FILE_KEYS = {"description", "design", "fit", "experiment", "validation", "loss", "f_scale",
               "starts", "seed", "fit_steps", "force_table", "posterior"}  # fmt: skip
 #: The keys of `[posterior]` (`recoil-jax calibrate --posterior`), and of each prior.
-_POSTERIOR_KEYS = {"draws", "warmup", "chains", "seed", "dense_mass", "target_acceptance", "prior",
-                   "sample_noise", "noise_scale"}  # fmt: skip
+_POSTERIOR_KEYS = {"draws", "warmup", "chains", "parallel_chains", "seed", "dense_mass",
+                   "target_acceptance", "prior", "sample_noise", "noise_scale"}  # fmt: skip
 _EXPERIMENT_KEYS = {"trace", "sigma", "per_experiment", "window", "name", "force_table"}
 
 
@@ -188,7 +188,7 @@ def _posterior(path: Path, table: Any) -> dict[str, Any]:
         raise _error(str(path), "write the sampler's settings as a [posterior] table")
     check_keys(path, "posterior", table, _POSTERIOR_KEYS)
     settings: dict[str, Any] = {}
-    for key in ("draws", "warmup", "chains", "seed"):
+    for key in ("draws", "warmup", "chains", "parallel_chains", "seed"):
         if key in table:
             settings[key] = table[key]
     for key in ("dense_mass", "sample_noise"):
