@@ -368,10 +368,11 @@ def test_a_sweep_asks_its_workers_for_the_classes_its_parts_are_sent_by(
 ):
     """Before a chunk goes to a Dask cluster, each worker is asked, once, for the classes
     that cloudpickle sends its outside parts by reference with (a module's top-level
-    class and its bases), not for one made in a function (sent by value) nor for the
-    package's own; a worker that lacks one is named with the module and why, where it
-    would otherwise leave the sweep waiting for ever; a worker that joins is asked
-    before the next chunk, and a cluster with no workers yet is asked nothing."""
+    class and its bases), not for one made in a function or from a module registered
+    by value (sent by value) nor for the package's own; a worker that lacks one is
+    named with the module and why, where it would otherwise leave the sweep waiting for
+    ever; a worker that joins is asked before the next chunk, and a cluster with no
+    workers yet is asked nothing."""
     from recoil_jax._sweeps.dispatch import _check_importable_on_workers, _classes_by_reference
 
     made_in_a_function = rj.params_from_values(mount_spring_stiffness=K_ADDED)
@@ -403,6 +404,12 @@ def test_a_sweep_asks_its_workers_for_the_classes_its_parts_are_sent_by(
         assert error.value.name == "springs_on_path"
         assert "worker tcp://b cannot import springs_on_path.MainSpring" in str(error.value)
         assert "tcp://a" not in str(error.value)
+        cloudpickle = pytest.importorskip("cloudpickle")
+        cloudpickle.register_pickle_by_value(springs_on_path)  # then sent by value
+        try:
+            assert _classes_by_reference(design) == {}
+        finally:
+            cloudpickle.unregister_pickle_by_value(springs_on_path)
     finally:
         rjx.forget_part(springs_on_path.MainSpring)
         sys.modules.pop("springs_on_path", None)
