@@ -463,7 +463,7 @@ def test_a_normal_prior_combines_with_the_likelihood_as_two_gaussians_do(absorbe
         fit=fit,
         draws=DRAWS,
         warmup=DRAWS,
-        chains=2,
+        chains=4,  # R-hat's 1.01 gate is for four chains or more (Vehtari et al. 2021)
         seed=1,
         progress=False,
         priors={"gap": {"kind": "normal", "mean": prior_mean, "sd": s}},
