@@ -163,7 +163,7 @@ def write_reference_file():
 
 
 def test_hardware_matches_the_reference_solver():
-    # The developer tier: the richest structure (every part on, impulses and pulses); the
+    # The fast tier: the richest structure (every part on, impulses and pulses); the
     # slow test below covers all seven.
     worst, _ = compare_with_reference(2, seed=10, classes=[CLASSES[1]])
     assert worst["smoothed"] <= 1e-4 and worst["hard"] <= 1e-5, worst

@@ -615,7 +615,7 @@ hard = true
 @pytest.mark.parametrize(
     "method, settings",
     [
-        # The developer tier runs the search's; optax's takes longer to trace.
+        # The fast tier runs the search's; optax's takes longer to trace.
         pytest.param("adam", "starts = 2\nsteps = 10", marks=pytest.mark.slow),
         ("search", "samples = 16\nstarts = 1"),
     ],
