@@ -634,14 +634,16 @@ def test_a_store_names_a_local_method_as_before_its_settings_moved():
 #: changed every one on purpose (the friction's smoothing widths are gone from
 #: `Smoothing`); a store made before it is refused by its model revision first. Then
 #: the calibration's again: the fits off the jumps (`jump_passes`) are a field of its
-#: settings (a fit on every sample is another fit).
+#: settings (a fit on every sample is another fit). And the calibration's again: a noise
+#: guessed from a trace is left out of it (its last bits differ between CPUs, and the
+#: kept store was refused on another machine).
 IDENTITIES_BEFORE = {
     "sweep": "7a9305e228472ca89de9ffb1e25b5f8616da476fb90b99550fba540415896136",
     "sweep of a force table": "951f82b9995e45619a8f6ba6cf4decd97ea5283e52f4a4324728dbbd682abf73",
     "grid": "186a5717ac55d6856b1eb42a42cce9bb963e50aa5685ff87868f91cfafd54192",
     "search": "13a8bacf90893e64d1c036ac143514b2f0768419c08ade550211a00bddc0268e",
     "optimise": "54a83ffbbc154f2f3bd33c4d8106746fb51d9be93949f4078dea0947efbf7508",
-    "calibration": "8d346b490ed8bb52b3197ace1ea8419d931bb7fdd3799d20ca7c8e57416b78db",
+    "calibration": "9638490ed281fa64ab9f8184cb2976c949d7190664ea976491b2a0ebb0382610",
 }
 
 
@@ -688,6 +690,39 @@ def test_campaigns_name_their_stores_as_before(monkeypatch):
         identities[name] = made.value.args[0]["identity"]
         assert "created" in made.value.args[0]["description"], name
     assert identities == IDENTITIES_BEFORE
+
+
+def test_a_calibration_store_holds_the_noise_given_not_the_noise_guessed(monkeypatch):
+    """A calibration's identity holds a noise the user gave, and not one it guessed from
+    the trace: the guess's last bits differ between CPUs (the kept store, made on one
+    machine, was refused on another), and the trace it comes from is in the identity."""
+    import recoil_jax._calibration.layout as layout_module
+    import recoil_jax._campaigns.store as store_module
+
+    class Opened(Exception):
+        pass
+
+    def opened(self, path, **kwargs):
+        raise Opened(kwargs["identity"])
+
+    monkeypatch.setattr(store_module.CalibrationStore, "__init__", opened)
+    ts = np.linspace(0.0, 0.6, 61)
+    trace = rjx.Trace.of(ts, x_M=ts * (0.6 - ts) / 9.0, F_AN=2e5 * ts * (0.6 - ts))
+
+    def identity(**sigma) -> str:
+        experiment = rjx.Experiment(trace, sigma=sigma)
+        calibration = rj.Calibration([experiment], fit={"k": (1e4, 1e5)})
+        with pytest.raises(Opened) as made:
+            rj.calibrate(calibration, starts=1, progress=False, store="s")
+        return made.value.args[0]
+
+    guessed, given = identity(), identity(F_AN=50.0)
+    guess = layout_module._noise_guess
+    # Another CPU's guess: the same to a few units in its last place.
+    monkeypatch.setattr(layout_module, "_noise_guess", lambda v: guess(v) * (1 + 4e-16))
+    assert identity() == guessed
+    assert identity(F_AN=50.0) == given != guessed
+    assert identity(F_AN=50.000000001) != given  # a noise given is the user's input
 
 
 def test_a_campaign_opens_says_it_resumes_and_closes_its_store(tmp_path, capsys):
@@ -869,7 +904,8 @@ def test_stores_made_before_the_redraw_resume(kind, tmp_path):
     identity on purpose, and the calibration's for issue 63, whose new stopping test
     changed every calibration's, and again at d4bfe79 from a trace kept as numbers, and
     all four for the model's revision 3, issue 66, which changed every identity, and the
-    calibration's for the fits off the jumps, which changed its identity), are
+    calibration's for the fits off the jumps, which changed its identity, and again when
+    its identity left out the noise it guesses, whose last bits differ between CPUs), are
     taken as the same campaigns: everything is read back, nothing is solved again, and
     the result is a fresh run's, bit for bit (a calibration's to 1e-9: see below)."""
     made = _stores_script()

@@ -5,7 +5,9 @@ read or computed and committed (`stored_part`).
 A store is identified by `campaign_identity("calibration", data, static, z0, profiles)`:
 a digest of pytrees whose structure names their classes (`layout._Data`,
 `least_squares._Static`) and their fields' order, which must not change, or every store
-made before the change is refused.
+made before the change is refused. The data enter as given (`_as_given`): a noise the
+calibration guessed from a trace is left out, as its last bits differ between CPUs
+(LAPACK's and numpy's kernels), and a store must resume on another machine.
 """
 
 from __future__ import annotations
@@ -13,6 +15,8 @@ from __future__ import annotations
 import os
 import time
 
+import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 
 from .._campaigns.opener import open_campaign
@@ -58,12 +62,19 @@ def open_store(
     return open_campaign(
         CalibrationStore, path, label="calibrate",
         identity=lambda: campaign_identity(
-            "calibration", data, static, np.asarray(z0), bool(profiles),
+            "calibration", _as_given(data), static, np.asarray(z0), bool(profiles),
             *(() if continuation is None else continuation.identity()),
         ),
         total=total, plan={"starts_per_chunk": STARTS_PER_CHUNK}, description=description,
         progress=progress, columns=(),
     )  # fmt: skip
+
+
+def _as_given(data: CalibrationData) -> CalibrationData:
+    """`data` with each noise guessed from its trace (not given: `sigma_given` False) set
+    to 0: a function of the trace, which the identity holds, whose last bits depend on
+    the CPU (a store made on one machine was refused on another)."""
+    return eqx.tree_at(lambda d: d.sigma, data, jnp.where(data.sigma_given, data.sigma, 0.0))
 
 
 def stored_part(
