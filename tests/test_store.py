@@ -634,16 +634,17 @@ def test_a_store_names_a_local_method_as_before_its_settings_moved():
 #: changed every one on purpose (the friction's smoothing widths are gone from
 #: `Smoothing`); a store made before it is refused by its model revision first. Then
 #: the calibration's again: the fits off the jumps (`jump_passes`) are a field of its
-#: settings (a fit on every sample is another fit). And the calibration's again: a noise
-#: guessed from a trace is left out of it (its last bits differ between CPUs, and the
-#: kept store was refused on another machine).
+#: settings (a fit on every sample is another fit). And the calibration's again: it holds
+#: what the calibration was given, not what it computed from it (a noise guessed from a
+#: trace, the starts' box coordinates), whose last bits differ between CPUs (the kept
+#: store was refused on another machine).
 IDENTITIES_BEFORE = {
     "sweep": "7a9305e228472ca89de9ffb1e25b5f8616da476fb90b99550fba540415896136",
     "sweep of a force table": "951f82b9995e45619a8f6ba6cf4decd97ea5283e52f4a4324728dbbd682abf73",
     "grid": "186a5717ac55d6856b1eb42a42cce9bb963e50aa5685ff87868f91cfafd54192",
     "search": "13a8bacf90893e64d1c036ac143514b2f0768419c08ade550211a00bddc0268e",
     "optimise": "54a83ffbbc154f2f3bd33c4d8106746fb51d9be93949f4078dea0947efbf7508",
-    "calibration": "9638490ed281fa64ab9f8184cb2976c949d7190664ea976491b2a0ebb0382610",
+    "calibration": "dcc17156e50ef7ed1371025a72e0c5bfa051e5930e73d6b7ac3417234a0e984a",
 }
 
 
@@ -692,10 +693,13 @@ def test_campaigns_name_their_stores_as_before(monkeypatch):
     assert identities == IDENTITIES_BEFORE
 
 
-def test_a_calibration_store_holds_the_noise_given_not_the_noise_guessed(monkeypatch):
+def test_a_calibration_store_holds_what_it_was_given_not_what_it_computed(monkeypatch):
     """A calibration's identity holds a noise the user gave, and not one it guessed from
-    the trace: the guess's last bits differ between CPUs (the kept store, made on one
-    machine, was refused on another), and the trace it comes from is in the identity."""
+    the trace; and its starts' count and seed, or their values, and not their box
+    coordinates. What it computes has last bits that differ between CPUs (the kept store,
+    made on one machine, was refused on another), and the inputs it comes from are in the
+    identity."""
+    import recoil_jax._calibration.calibrate as calibrate_module
     import recoil_jax._calibration.layout as layout_module
     import recoil_jax._campaigns.store as store_module
 
@@ -709,20 +713,26 @@ def test_a_calibration_store_holds_the_noise_given_not_the_noise_guessed(monkeyp
     ts = np.linspace(0.0, 0.6, 61)
     trace = rjx.Trace.of(ts, x_M=ts * (0.6 - ts) / 9.0, F_AN=2e5 * ts * (0.6 - ts))
 
-    def identity(**sigma) -> str:
+    def identity(starts=1, seed=0, **sigma) -> str:
         experiment = rjx.Experiment(trace, sigma=sigma)
-        calibration = rj.Calibration([experiment], fit={"k": (1e4, 1e5)})
+        calibration = rj.Calibration([experiment], fit={"k": (1e2, 1e6)})  # (log bounds)
         with pytest.raises(Opened) as made:
-            rj.calibrate(calibration, starts=1, progress=False, store="s")
+            rj.calibrate(calibration, starts=starts, seed=seed, progress=False, store="s")
         return made.value.args[0]
 
     guessed, given = identity(), identity(F_AN=50.0)
-    guess = layout_module._noise_guess
-    # Another CPU's guess: the same to a few units in its last place.
+    values = identity(starts=np.array([[3e4], [5e5]]))
+    # Another CPU's guess and logarithms: the same to a few units in their last place.
+    guess, start_points = layout_module._noise_guess, calibrate_module.start_points
     monkeypatch.setattr(layout_module, "_noise_guess", lambda v: guess(v) * (1 + 4e-16))
+    monkeypatch.setattr(calibrate_module, "start_points",
+                        lambda *a: start_points(*a) * (1 + 4e-16))  # fmt: skip
     assert identity() == guessed
     assert identity(F_AN=50.0) == given != guessed
-    assert identity(F_AN=50.000000001) != given  # a noise given is the user's input
+    assert identity(starts=np.array([[3e4], [5e5]])) == values
+    # What the user gives is told apart, to its last bit.
+    assert identity(F_AN=50.000000001) != given
+    assert len({guessed, identity(starts=2), identity(starts=2, seed=1), values}) == 4
 
 
 def test_a_campaign_opens_says_it_resumes_and_closes_its_store(tmp_path, capsys):
@@ -905,7 +915,8 @@ def test_stores_made_before_the_redraw_resume(kind, tmp_path):
     changed every calibration's, and again at d4bfe79 from a trace kept as numbers, and
     all four for the model's revision 3, issue 66, which changed every identity, and the
     calibration's for the fits off the jumps, which changed its identity, and again when
-    its identity left out the noise it guesses, whose last bits differ between CPUs), are
+    its identity held what it was given instead of what it computed (a noise guessed from
+    the trace, the starts' box coordinates), whose last bits differ between CPUs), are
     taken as the same campaigns: everything is read back, nothing is solved again, and
     the result is a fresh run's, bit for bit (a calibration's to 1e-9: see below)."""
     made = _stores_script()

@@ -113,7 +113,7 @@ def calibrate(
     bar.update(0, f"fitting from {len(z0)} start{'s' if len(z0) > 1 else ''}")
     # The store (and its writer lock) closed whatever happens.
     with open_store(store, calibration, layout, data, static, z0, profiles, progress,
-                    stages) as store_:  # fmt: skip
+                    stages, starts=starts, seed=seed) as store_:  # fmt: skip
         return _calibrate(calibration, layout, data, static, z0, profiles, bar, store_, clock,
                           stages)  # fmt: skip
 

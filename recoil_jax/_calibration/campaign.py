@@ -2,12 +2,14 @@
 store's opening, with its identity and resume notice (`open_store`), and its parts, each
 read or computed and committed (`stored_part`).
 
-A store is identified by `campaign_identity("calibration", data, static, z0, profiles)`:
-a digest of pytrees whose structure names their classes (`layout._Data`,
+A store is identified by `campaign_identity("calibration", data, static, *starts,
+profiles)`: a digest of pytrees whose structure names their classes (`layout._Data`,
 `least_squares._Static`) and their fields' order, which must not change, or every store
-made before the change is refused. The data enter as given (`_as_given`): a noise the
-calibration guessed from a trace is left out, as its last bits differ between CPUs
-(LAPACK's and numpy's kernels), and a store must resume on another machine.
+made before the change is refused. What the calibration computed from its inputs
+enters as those inputs, as its last bits may differ between CPUs (numpy's and LAPACK's
+kernels) and a store must resume on another machine: a noise guessed from a trace is
+left out (`_as_given`), and the starts are their count and seed or their values
+(`_starts_as_given`), not their box coordinates (logarithms on log bounds).
 """
 
 from __future__ import annotations
@@ -43,10 +45,14 @@ def open_store(
     profiles: bool,
     progress: bool | None,
     continuation: Continuation | None = None,
+    *,
+    starts,
+    seed: int,
 ):
     """The calibration's store at `path` (None: none), as a context manager
     (`open_campaign`): made, or checked to be this calibration's from its arrays,
-    settings, starts `z0 (N, P)`, whether it profiles and its `continuation`'s widths
+    settings, starts (`z0 (N, P)`, made from `calibrate`'s `starts` and `seed`),
+    whether it profiles and its `continuation`'s widths
     (in the identity only where there is one, so that a store of a design without one
     keeps its identity); saying on stderr how many fits
     it already holds (unless `progress` is False); closed on leaving.
@@ -62,7 +68,8 @@ def open_store(
     return open_campaign(
         CalibrationStore, path, label="calibrate",
         identity=lambda: campaign_identity(
-            "calibration", _as_given(data), static, np.asarray(z0), bool(profiles),
+            "calibration", _as_given(data), static, *_starts_as_given(starts, seed),
+            bool(profiles),
             *(() if continuation is None else continuation.identity()),
         ),
         total=total, plan={"starts_per_chunk": STARTS_PER_CHUNK}, description=description,
@@ -75,6 +82,15 @@ def _as_given(data: CalibrationData) -> CalibrationData:
     to 0: a function of the trace, which the identity holds, whose last bits depend on
     the CPU (a store made on one machine was refused on another)."""
     return eqx.tree_at(lambda d: d.sigma, data, jnp.where(data.sigma_given, data.sigma, 0.0))
+
+
+def _starts_as_given(starts, seed: int) -> tuple:
+    """What a calibration's starts are made from, as `calibrate` was given it: a count and
+    the Sobol points' seed (the first start is the design's values, which the data hold),
+    or the start values themselves (SI units)."""
+    if isinstance(starts, int) and not isinstance(starts, bool):  # (as `start_points`)
+        return np.asarray(starts), np.asarray(seed)
+    return (np.asarray(starts, dtype=float),)
 
 
 def stored_part(

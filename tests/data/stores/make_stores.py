@@ -13,9 +13,10 @@ store's identity, differed between CPUs), and all four again for the model's rev
 (issue 66: the stick a mode, the friction's smoothing widths gone from every identity;
 `sweep_revision2.sqlite` is the sweep's store as it was before, refused), and the
 calibration's again when its fits left out the samples beside a jump (`jump_passes`, a
-field of its settings), and the calibration's again when its identity left out the
-noise it guesses from a trace (the last bits of the guess differ between CPUs: the store
-made on one machine was refused on another), with
+field of its settings), and the calibration's again when its identity came to hold what
+it was given instead of what it computed from it (a noise guessed from a trace, the
+starts' box coordinates: their last bits differ between CPUs, and the store made on one
+machine was refused on another), with
 
     PYTHONPATH=<a checkout of 66a0bae> python tests/data/stores/make_stores.py tests/data/stores
 
